@@ -1,0 +1,29 @@
+"""jaxflex: flexible-joint robots with LuGre friction in pure JAX.
+
+Physics (pure functions and ``eqx.Module``s): ``friction`` (LuGre), ``plant``, ``effects``,
+``observer``, ``controller`` (cascade control), ``trajectory``; ``simulate`` closes the loop.
+Importing jaxflex changes no global JAX setting: turn on float64 yourself with
+``jax.config.update("jax_enable_x64", True)`` for identification and certificates.
+"""
+
+from jaxflex.controller import CascadeController, CascadeGains, paper_gains
+from jaxflex.friction import LuGre, paper_lugre
+from jaxflex.params import Params, load_params, paper_params, save_params
+from jaxflex.plant import (
+    DiagonalInertia,
+    FlexibleJointPlant,
+    PlanarTwoLink,
+    PlantState,
+    paper_plant,
+    two_link_plant,
+)
+from jaxflex.simulate import Sensing, paper_sensing, simulate_continuous, simulate_sampled
+from jaxflex.trajectory import Multisine, RestToRest, Sinusoid, Trajectory
+
+__all__ = [
+    "CascadeController", "CascadeGains", "DiagonalInertia", "FlexibleJointPlant", "LuGre",
+    "Multisine", "Params", "PlanarTwoLink", "PlantState", "RestToRest", "Sensing", "Sinusoid",
+    "Trajectory", "load_params", "paper_gains", "paper_lugre", "paper_params", "paper_plant",
+    "paper_sensing", "save_params", "simulate_continuous", "simulate_sampled", "two_link_plant",
+]
+__version__ = "0.1.0"

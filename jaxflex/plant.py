@@ -1,0 +1,274 @@
+"""Flexible-joint robot plant (SPEC section 1; paper eq. 3, 8, 40).
+
+    M(q1) q1'' + C(q1, q1') q1' + G(q1) + F = K (q2 - q1)      link side, LuGre friction F
+    J q2''     + K (q2 - q1)                  = tau             rotor side (link-referred)
+
+The rigid-link part is a ``LinkDynamics`` (mass matrix and potential energy); C and G are
+derived from them by automatic differentiation (Christoffel symbols and the gradient of the
+potential), so a new arm needs only M(q) and U(q). The plant is composed of links, joint
+inertia J, stiffness K, optional LuGre friction and optional effects (``jaxflex.effects``).
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from jaxflex.effects import Effect
+from jaxflex.friction import LuGre, _as_param, check_positive
+
+
+class PlantState(eqx.Module):
+    """Plant state; every field has shape (n,) except ``aux`` (one entry per effect).
+
+    q1 [rad] link angle, dq1 [rad/s], q2 [rad] rotor angle (link-referred), dq2 [rad/s],
+    z [rad] LuGre bristle state, aux: internal states of effects (e.g. actuator lag), one
+    entry per effect, or None for a plant without effects (an empty tuple would trip diffrax's
+    loop buffers).
+    """
+
+    q1: Float[Array, " n"]
+    dq1: Float[Array, " n"]
+    q2: Float[Array, " n"]
+    dq2: Float[Array, " n"]
+    z: Float[Array, " n"]
+    aux: tuple | None = None
+
+
+class LinkDynamics(eqx.Module):
+    """Rigid-link dynamics: mass matrix M(q) [kg m^2] and potential energy U(q) [J]."""
+
+    @property
+    @abc.abstractmethod
+    def n(self) -> int:
+        """Number of links."""
+
+    @abc.abstractmethod
+    def mass_matrix(self, q: Float[Array, " n"]) -> Float[Array, "n n"]:
+        """M(q) [kg m^2]."""
+
+    def potential(self, q: Float[Array, " n"]) -> Float[Array, ""]:
+        """Potential energy U(q) [J]; zero for a horizontal arm."""
+        return jnp.zeros((), dtype=q.dtype)
+
+    def coriolis(self, q: Array, dq: Array, v: Array) -> Float[Array, " n"]:
+        """C(q, dq) v [N m] with C from the Christoffel symbols of M (so M' - 2C is skew).
+
+        C v = 1/2 (dM[dq] v + dM[v] dq - grad_q(dq^T M(q) v)).
+        """
+        dM_dq = jax.jvp(self.mass_matrix, (q,), (dq,))[1]
+        dM_v = jax.jvp(self.mass_matrix, (q,), (v,))[1]
+        grad_term = jax.grad(lambda qq: dq @ self.mass_matrix(qq) @ v)(q)
+        return 0.5 * (dM_dq @ v + dM_v @ dq - grad_term)
+
+    def gravity(self, q: Float[Array, " n"]) -> Float[Array, " n"]:
+        """G(q) = dU/dq [N m]."""
+        return jax.grad(self.potential)(q)
+
+
+class DiagonalInertia(LinkDynamics):
+    """Decoupled links with constant inertia, M = diag(I), C = G = 0 (paper eq. 40).
+
+    I [kg m^2] per joint, > 0.
+    """
+
+    I: Float[Array, " n"] = eqx.field(converter=_as_param)
+
+    def __check_init__(self) -> None:
+        check_positive("plant", I=self.I)
+
+    @property
+    def n(self) -> int:
+        return int(self.I.shape[-1])
+
+    def mass_matrix(self, q: Array) -> Array:
+        return jnp.diag(self.I)
+
+    def coriolis(self, q: Array, dq: Array, v: Array) -> Array:
+        return jnp.zeros_like(v)
+
+    def gravity(self, q: Array) -> Array:
+        return jnp.zeros_like(q)
+
+
+class PlanarTwoLink(LinkDynamics):
+    """Two-link planar arm (revolute-revolute), optionally in a vertical plane with gravity.
+
+    m1, m2 [kg] link masses; l1 [m] length of link 1; lc1, lc2 [m] centre-of-mass distances;
+    I1, I2 [kg m^2] link inertias about their centres of mass; g [m/s^2] gravity (0 for a
+    horizontal arm). q = (absolute angle of link 1 from the horizontal, relative angle of link 2).
+    """
+
+    m1: Array = eqx.field(converter=jnp.asarray)
+    m2: Array = eqx.field(converter=jnp.asarray)
+    l1: Array = eqx.field(converter=jnp.asarray)
+    lc1: Array = eqx.field(converter=jnp.asarray)
+    lc2: Array = eqx.field(converter=jnp.asarray)
+    I1: Array = eqx.field(converter=jnp.asarray)
+    I2: Array = eqx.field(converter=jnp.asarray)
+    g: Array = eqx.field(converter=jnp.asarray, default=9.81)
+
+    def __check_init__(self) -> None:
+        check_positive(
+            "PlanarTwoLink", m1=self.m1, m2=self.m2, l1=self.l1, lc1=self.lc1, lc2=self.lc2,
+            I1=self.I1, I2=self.I2,
+        )
+
+    @property
+    def n(self) -> int:
+        return 2
+
+    def mass_matrix(self, q: Array) -> Array:
+        c2 = jnp.cos(q[1])
+        m11 = self.I1 + self.I2 + self.m1 * self.lc1**2 + self.m2 * (
+            self.l1**2 + self.lc2**2 + 2 * self.l1 * self.lc2 * c2
+        )
+        m12 = self.I2 + self.m2 * (self.lc2**2 + self.l1 * self.lc2 * c2)
+        m22 = self.I2 + self.m2 * self.lc2**2
+        return jnp.stack([jnp.stack([m11, m12]), jnp.stack([m12, m22])])
+
+    def potential(self, q: Array) -> Array:
+        y1 = self.lc1 * jnp.sin(q[0])
+        y2 = self.l1 * jnp.sin(q[0]) + self.lc2 * jnp.sin(q[0] + q[1])
+        return self.g * (self.m1 * y1 + self.m2 * y2)
+
+
+class FlexibleJointPlant(eqx.Module):
+    """Flexible-joint robot: links + elastic joints + rotors + LuGre friction + effects.
+
+    J [kg m^2] rotor inertias (link-referred), K [N m/rad] joint stiffnesses, both (n,).
+    ``friction=None`` gives a frictionless plant. ``effects`` is a tuple of ``Effect``s.
+    """
+
+    links: LinkDynamics
+    J: Float[Array, " n"] = eqx.field(converter=_as_param)
+    K: Float[Array, " n"] = eqx.field(converter=_as_param)
+    friction: LuGre | None = None
+    effects: tuple[Effect, ...] = ()
+
+    def __check_init__(self) -> None:
+        check_positive("plant", J=self.J, K=self.K)
+        n = self.links.n
+        for name in ("J", "K"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(
+                    f"plant: {name} must have shape ({n},) to match {n} link(s), "
+                    f"got {getattr(self, name).shape}"
+                )
+        if self.friction is not None and self.friction.Fc.shape != (n,):
+            raise ValueError(
+                f"plant: friction parameters must have shape ({n},), got {self.friction.Fc.shape}"
+            )
+
+    @property
+    def n(self) -> int:
+        """Number of joints."""
+        return self.links.n
+
+    def with_effects(self, *effects: Effect) -> "FlexibleJointPlant":
+        """A copy with ``effects`` appended (the discrepancy workflow's way to augment)."""
+        return eqx.tree_at(lambda p: p.effects, self, tuple(self.effects) + tuple(effects))
+
+    def init_state(
+        self, q1: ArrayLike = 0.0, dq1: ArrayLike = 0.0, q2: ArrayLike | None = None,
+        dq2: ArrayLike | None = None, z: ArrayLike = 0.0,
+    ) -> PlantState:
+        """A state with the given values broadcast to (n,); q2 defaults to q1 (spring at rest)."""
+        dtype = jnp.result_type(float)
+        full = lambda v: jnp.broadcast_to(jnp.asarray(v, dtype), (self.n,))
+        q1a = full(q1)
+        aux = tuple(e.aux_init(self.n) for e in self.effects) if self.effects else None
+        return PlantState(
+            q1=q1a, dq1=full(dq1), q2=q1a if q2 is None else full(q2),
+            dq2=full(dq1) if dq2 is None else full(dq2), z=full(z), aux=aux,
+        )
+
+    def friction_torque(self, x: PlantState) -> Float[Array, " n"]:
+        """LuGre friction F(q1', z) [N m] (eq. 4); zero without friction."""
+        if self.friction is None:
+            return jnp.zeros_like(x.dq1)
+        return self.friction.force(x.dq1, x.z)
+
+    def spring_torque(self, x: PlantState) -> Float[Array, " n"]:
+        """Elastic joint torque K (q2 - q1) plus effects' spring terms [N m] (eq. 3)."""
+        d, dd = x.q2 - x.q1, x.dq2 - x.dq1
+        return self.K * d + sum((e.spring_torque(d, dd) for e in self.effects), 0.0)
+
+    def applied_torque(self, x: PlantState, tau: Array) -> Float[Array, " n"]:
+        """Motor torque reaching the rotor after input-path effects [N m]."""
+        for e, a in zip(self.effects, x.aux or ()):
+            tau = e.applied_torque(tau, a)
+        return tau
+
+    def accelerations(self, x: PlantState, tau: Array) -> tuple[Array, Array]:
+        """(q1'', q2'') [rad/s^2] from eq. 3 with friction and effects."""
+        Ts = self.spring_torque(x)
+        link_rhs = (
+            Ts - self.links.coriolis(x.q1, x.dq1, x.dq1) - self.links.gravity(x.q1)
+            - self.friction_torque(x) + sum((e.link_torque(x) for e in self.effects), 0.0)
+        )
+        ddq1 = jnp.linalg.solve(self.links.mass_matrix(x.q1), link_rhs)
+        rotor_rhs = (
+            self.applied_torque(x, tau) - Ts + sum((e.rotor_torque(x) for e in self.effects), 0.0)
+        )
+        return ddq1, rotor_rhs / self.J
+
+    def vector_field(self, x: PlantState, tau: Float[Array, " n"]) -> PlantState:
+        """Time derivative of the state under motor torque ``tau`` [N m] (eq. 3-5)."""
+        ddq1, ddq2 = self.accelerations(x, tau)
+        dz = (
+            jnp.zeros_like(x.z) if self.friction is None else self.friction.z_dot(x.dq1, x.z)
+        )
+        daux = (
+            None if x.aux is None
+            else tuple(e.aux_rhs(a, tau, x) for e, a in zip(self.effects, x.aux))
+        )
+        return PlantState(q1=x.dq1, dq1=ddq1, q2=x.dq2, dq2=ddq2, z=dz, aux=daux)
+
+    def energy(self, x: PlantState) -> Float[Array, ""]:
+        """Mechanical energy [J]: link and rotor kinetic, spring and link potential.
+
+        Effects' spring terms are not included (their potential is effect-specific).
+        """
+        kin = 0.5 * x.dq1 @ self.links.mass_matrix(x.q1) @ x.dq1 + 0.5 * jnp.sum(self.J * x.dq2**2)
+        spring = 0.5 * jnp.sum(self.K * (x.q2 - x.q1) ** 2)
+        return kin + spring + self.links.potential(x.q1)
+
+    def bristle_energy(self, x: PlantState) -> Float[Array, ""]:
+        """LuGre storage function sigma0 z^2 / 2 [J] (passivity of the map v -> F)."""
+        if self.friction is None:
+            return jnp.zeros(())
+        return 0.5 * jnp.sum(self.friction.sigma0 * x.z**2)
+
+
+def paper_plant(friction: bool = True) -> FlexibleJointPlant:
+    """The paper's single horizontal link (Table 1; LuGre with SPEC's Table 2 correction)."""
+    from jaxflex.friction import paper_lugre
+
+    return FlexibleJointPlant(
+        links=DiagonalInertia(I=0.07), J=0.005, K=6.77,
+        friction=paper_lugre() if friction else None,
+    )
+
+
+def two_link_plant(gravity: float = 9.81, friction: bool = True) -> FlexibleJointPlant:
+    """A 2-link planar arm with elastic joints and LuGre friction on both links.
+
+    Link 1 is sized so that its inertia about the joint is close to the paper's prototype;
+    link 2 is lighter. With ``gravity > 0`` the arm moves in a vertical plane.
+    """
+    links = PlanarTwoLink(
+        m1=0.6, m2=0.35, l1=0.3, lc1=0.15, lc2=0.12, I1=0.0045, I2=0.002, g=gravity
+    )
+    lugre = (
+        LuGre(Fc=[0.11, 0.06], Fs=[0.15, 0.08], vs=[0.05, 0.05], sigma0=[100.0, 80.0],
+              sigma1=[0.1, 0.08], sigma2=[0.2, 0.1])
+        if friction else None
+    )
+    return FlexibleJointPlant(links=links, J=[0.005, 0.003], K=[6.77, 5.0], friction=lugre)
+

@@ -1,0 +1,151 @@
+"""Reference trajectories q1d(t) [rad] for n joints; derivatives by automatic differentiation.
+
+The cascade controller needs q1d and its derivatives up to 4th order (q2d'' contains the
+reference's 4th derivative; paper eq. 13, 16). Each trajectory only defines ``position(t)``;
+``derivatives`` obtains the rest with nested forward-mode differentiation.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from jaxflex.friction import _as_param
+
+
+class Trajectory(eqx.Module):
+    """Abstract reference trajectory."""
+
+    @abc.abstractmethod
+    def position(self, t: Float[Array, ""]) -> Float[Array, " n"]:
+        """q1d(t) [rad] at time t [s]."""
+
+    def derivatives(self, t: ArrayLike, order: int = 4) -> Float[Array, "k n"]:
+        """Stack [q1d, q1d', ..., q1d^(order)] at time t [s] (units rad/s^k), shape (order+1, n)."""
+        t = jnp.asarray(t, dtype=jnp.result_type(float))
+        fns = [self.position]
+        for _ in range(order):
+            f = fns[-1]
+            fns.append(lambda tt, f=f: jax.jvp(f, (tt,), (jnp.ones_like(tt),))[1])
+        return jnp.stack([f(t) for f in fns])
+
+    def sample(self, t: Float[Array, " N"], order: int = 0) -> Float[Array, "N k n"]:
+        """Derivatives at many times, shape (N, order+1, n)."""
+        return jax.vmap(lambda tt: self.derivatives(tt, order))(jnp.asarray(t))
+
+
+class Sinusoid(Trajectory):
+    """q1d = offset + amplitude sin(2 pi frequency t + phase); amplitude [rad], frequency [Hz]."""
+
+    amplitude: Float[Array, " n"] = eqx.field(converter=_as_param)
+    frequency: Float[Array, " n"] = eqx.field(converter=_as_param)
+    phase: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
+    offset: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
+
+    def __check_init__(self) -> None:
+        if not isinstance(self.frequency, jax.core.Tracer) and bool(jnp.any(self.frequency <= 0)):
+            raise ValueError(f"Sinusoid: frequency must be > 0 Hz, got {self.frequency}")
+
+    def position(self, t: Array) -> Array:
+        return self.offset + self.amplitude * jnp.sin(2 * math.pi * self.frequency * t + self.phase)
+
+
+def _smootherstep9(s: Array) -> Array:
+    """Degree-9 rest-to-rest polynomial: p(0)=0, p(1)=1, derivatives 1..4 vanish at both ends."""
+    return s**5 * (126.0 + s * (-420.0 + s * (540.0 + s * (-315.0 + 70.0 * s))))
+
+
+class RestToRest(Trajectory):
+    """Piecewise rest-to-rest polynomial through waypoints [rad], one segment per duration [s].
+
+    Each segment is the degree-9 polynomial whose first four derivatives vanish at both ends,
+    so q1d is four times continuously differentiable. Peak |derivative k| of a segment of
+    amplitude A and duration T is c_k A / T^k (c_1 = 2.46, c_2 = 9.37, c_3 = 46.0, c_4 = 307).
+    Waypoints have shape (m+1, n) (or (m+1,) for one joint), durations (m,).
+    """
+
+    waypoints: Float[Array, "m1 n"] = eqx.field(converter=lambda w: jnp.asarray(w, float))
+    durations: Float[Array, " m"] = eqx.field(converter=lambda d: jnp.atleast_1d(jnp.asarray(d, float)))
+    t0: Float[Array, ""] = eqx.field(converter=lambda x: jnp.asarray(x, float), default=0.0)
+
+    def __check_init__(self) -> None:
+        w = self.waypoints
+        if w.ndim not in (1, 2) or w.shape[0] != self.durations.shape[0] + 1:
+            raise ValueError(
+                f"RestToRest: need len(waypoints) == len(durations) + 1, got waypoints "
+                f"{w.shape} and durations {self.durations.shape}"
+            )
+        if not isinstance(self.durations, jax.core.Tracer) and bool(jnp.any(self.durations <= 0)):
+            raise ValueError(f"RestToRest: durations must be > 0 s, got {self.durations}")
+
+    def position(self, t: Array) -> Array:
+        w = self.waypoints if self.waypoints.ndim == 2 else self.waypoints[:, None]
+        starts = self.t0 + jnp.concatenate([jnp.zeros(1), jnp.cumsum(self.durations)[:-1]])
+        s = jnp.clip((t - starts) / self.durations, 0.0, 1.0)  # (m,)
+        steps = _smootherstep9(s)[:, None] * (w[1:] - w[:-1])  # (m, n)
+        return w[0] + jnp.sum(steps, axis=0)
+
+
+class Multisine(Trajectory):
+    """Sum of sines: q1d = offset + sum_k a_k sin(2 pi f_k t + phi_k), for excitation.
+
+    amplitudes [rad] and frequencies [Hz] have shape (K,) or (K, n); phases [rad] likewise.
+    """
+
+    amplitudes: Array = eqx.field(converter=lambda a: jnp.asarray(a, float))
+    frequencies: Array = eqx.field(converter=lambda a: jnp.asarray(a, float))
+    phases: Array = eqx.field(converter=lambda a: jnp.asarray(a, float))
+    offset: Array = eqx.field(converter=_as_param, default=0.0)
+
+    def position(self, t: Array) -> Array:
+        terms = self.amplitudes * jnp.sin(2 * math.pi * self.frequencies * t + self.phases)
+        out = jnp.sum(terms, axis=0)
+        return self.offset + jnp.atleast_1d(out)
+
+    @classmethod
+    def schroeder(
+        cls, rms: float, f_min: float, f_max: float, count: int, n: int = 1
+    ) -> "Multisine":
+        """Schroeder-phased multisine with ``count`` log-spaced tones in [f_min, f_max] Hz and
+        the given RMS [rad] (low crest factor, good for identification)."""
+        if not (0 < f_min < f_max) or count < 1 or rms <= 0:
+            raise ValueError("Multisine.schroeder: need 0 < f_min < f_max, count >= 1, rms > 0")
+        k = jnp.arange(1, count + 1)
+        f = jnp.geomspace(f_min, f_max, count)
+        ph = -math.pi * k * (k - 1) / count
+        a = jnp.full((count,), rms * math.sqrt(2.0 / count))
+        if n > 1:
+            f, ph, a = (jnp.tile(x[:, None], (1, n)) for x in (f, ph, a))
+        return cls(amplitudes=a, frequencies=f, phases=ph)
+
+
+def paper_sinusoid() -> Sinusoid:
+    """The paper's sinusoidal task (Fig. 9-11): 0.05 rad amplitude, 0.5 Hz, 10 s.
+
+    The paper prints neither amplitude nor frequency; the amplitude is read off Fig. 9-10,
+    the frequency is our choice (five periods in the 10 s plot window).
+    """
+    return Sinusoid(amplitude=0.05, frequency=0.5)
+
+
+def paper_polynomial() -> RestToRest:
+    """The paper's polynomial task (Fig. 12-14): rest-to-rest moves between -0.07 and 0.07 rad."""
+    return RestToRest(
+        waypoints=[0.0, 0.07, -0.07, 0.07, -0.07, 0.0],
+        durations=[1.5, 2.0, 2.0, 2.0, 1.5],
+        t0=0.5,
+    )
+
+
+def paper_fast() -> RestToRest:
+    """A faster motion (Fig. 15): 0.5 rad moves in 0.6 s, about 2 rad/s peak link speed."""
+    return RestToRest(
+        waypoints=[0.0, 0.5, -0.5, 0.5, 0.0],
+        durations=[0.6, 0.9, 0.9, 0.6],
+        t0=0.5,
+    )
