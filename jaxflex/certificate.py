@@ -1,0 +1,223 @@
+"""Stability certificate of the cascade controller: the matrix N2 (paper section 4, eq. 24-33;
+SPEC section 4).
+
+With rho = [e1, e1', e2, e2', eta] (each block (n,)), eta = Psi_hat(q1') z_tilde and
+z_tilde = z - z_hat, the Lyapunov function V = V1 + V2 of eq. 24-26 has
+
+    V' = -rho^T N2(q1') rho + rho^T D                                            (eq. 29)
+
+    N2 = [[ L1^2 (KD1 + a),   L1 a,       -L1 K / 2,   0,    -L1 sigma0 sigma1 / 2 ],
+          [ L1 a,             KD1 + a,    -K / 2,      0,    -sigma0 sigma1 / 2    ],
+          [ -L1 K / 2,        -K / 2,     L2^2 KD2,    0,     0                    ],
+          [ 0,                0,          0,           KD2,   0                    ],
+          [ -L1 sigma0 sigma1 / 2, -sigma0 sigma1 / 2, 0, 0, sigma0 Psi#(q1') / Ke ]]
+
+    a = sigma0 sigma1 Ke,   Psi#(v) = 1 / Psi_hat(v) = g(v) / m(v) for |v| >= eps,
+    1/eps for |v| < eps                                                          (eq. 30)
+
+    D = dPsi z [L1 sigma0 sigma1, sigma0 sigma1, 0, 0, -sigma0 Psi# / Ke],
+    dPsi = Psi(v) - Psi_hat(v) = (|v| - m(v)) / g(v)
+
+(each entry an n x n diagonal block; ``tests/test_certificate.py`` re-derives V' with sympy).
+Psi# falls as |q1'| grows, so N2 is positive definite up to some link speed: a gain set is
+*certified* over the speeds where lambda_min(N2) > 0 (or > a margin), and the errors are then
+ultimately bounded by ||rho|| <= D_bar / lambda_min(N2) (eq. 32-33).
+
+N2 does not depend on the inertia M(q1) (the skew-symmetry of M' - 2C removes it), so the
+same certificate holds for the n-link arm.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from jaxflex.controller import CascadeGains
+from jaxflex.observer import FrictionObserver
+from jaxflex.plant import FlexibleJointPlant
+
+DEFAULT_EPS: float = 1e-3
+"""Tolerance eps [rad/s] of eq. 30 below which Psi# is held at 1/eps."""
+DEFAULT_VMAX: float = 5.0
+"""Default end [rad/s] of the velocity grid of ``certify``."""
+DEFAULT_NUM: int = 301
+"""Default number of grid points of ``certify``."""
+
+
+def _friction(plant: FlexibleJointPlant):
+    if plant.friction is None:
+        raise ValueError("certificate: the plant has no LuGre friction parameters (N2 needs "
+                         "sigma0, sigma1 and g(v))")
+    return plant.friction
+
+
+def psi_sharp(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
+              eps: float = DEFAULT_EPS) -> Float[Array, " n"]:
+    """Psi#(v) of eq. 30 [N m s/rad]: the inverse of the observer's Psi_hat(v) = m(v)/g(v)
+    (eq. 19, 21) for |v| >= eps, and 1/eps for |v| < eps. ``v`` [rad/s], shape (n,) or scalar.
+
+    Double ``where`` keeps gradients finite at v = 0.
+    """
+    obs = FrictionObserver(_friction(plant), gains.Ke, gains.kv)
+    v = jnp.broadcast_to(jnp.asarray(v, jnp.result_type(float)), gains.Ke.shape)
+    small = jnp.abs(v) < eps
+    safe_v = jnp.where(small, eps, v)
+    return jnp.where(small, 1.0 / eps, 1.0 / obs.psi_hat(safe_v))
+
+
+def n2_matrix(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
+              eps: float = DEFAULT_EPS) -> Float[Array, "5n 5n"]:
+    """The matrix N2 of eq. 29 at link velocity ``v`` [rad/s] (shape (n,) or a scalar for all
+    joints), ordered rho = [e1, e1', e2, e2', eta], each block an n x n diagonal matrix.
+
+    Pure and differentiable in the gains (used as the tuner's constraint).
+    """
+    fr = _friction(plant)
+    K = plant.K
+    Ke, KD1, KD2, L1, L2 = gains.Ke, gains.KD1, gains.KD2, gains.L1, gains.L2
+    s01 = fr.sigma0 * fr.sigma1
+    a = s01 * Ke
+    zero = jnp.zeros_like(Ke)
+    p55 = fr.sigma0 * psi_sharp(plant, gains, v, eps) / Ke
+    rows = [
+        [L1**2 * (KD1 + a), L1 * a, -L1 * K / 2, zero, -L1 * s01 / 2],
+        [L1 * a, KD1 + a, -K / 2, zero, -s01 / 2],
+        [-L1 * K / 2, -K / 2, L2**2 * KD2, zero, zero],
+        [zero, zero, zero, KD2, zero],
+        [-L1 * s01 / 2, -s01 / 2, zero, zero, p55],
+    ]
+    return jnp.block([[jnp.diag(jnp.broadcast_to(e, Ke.shape)) for e in row] for row in rows])
+
+
+def d_vector(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike, z: ArrayLike,
+             eps: float = DEFAULT_EPS) -> Float[Array, " 5n"]:
+    """The perturbation D of eq. 29 at link velocity ``v`` [rad/s] and bristle state ``z``
+    [rad]: what the smoothing m(v) of |v| (eq. 21) leaves over, through dPsi = Psi - Psi_hat."""
+    fr = _friction(plant)
+    obs = FrictionObserver(fr, gains.Ke, gains.kv)
+    v = jnp.broadcast_to(jnp.asarray(v, jnp.result_type(float)), gains.Ke.shape)
+    d_psi = fr.z_rate(v) / fr.sigma0 - obs.psi_hat(v)
+    w = d_psi * jnp.asarray(z)
+    s01 = fr.sigma0 * fr.sigma1
+    zero = jnp.zeros_like(w)
+    last = -fr.sigma0 * psi_sharp(plant, gains, v, eps) / gains.Ke * w
+    return jnp.concatenate([gains.L1 * s01 * w, s01 * w, zero, zero, last])
+
+
+def lambda_min(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
+               eps: float = DEFAULT_EPS) -> Float[Array, ""]:
+    """Smallest eigenvalue of N2(v) (eq. 29, 31); ``v`` [rad/s] (n,) or a scalar for all joints.
+    Positive means V' < 0 outside the ball of eq. 32."""
+    return jnp.linalg.eigvalsh(n2_matrix(plant, gains, v, eps))[0]
+
+
+def lambda_min_curve(plant: FlexibleJointPlant, gains: CascadeGains, velocities: ArrayLike,
+                     eps: float = DEFAULT_EPS) -> Float[Array, " N"]:
+    """lambda_min(N2) at each speed of ``velocities`` [rad/s] (every joint at that speed).
+
+    N2 is block-diagonal per joint up to a permutation, so this is also the worst joint at
+    that speed, and the minimum over the curve is the minimum over the box |q1'_i| <= v.
+    """
+    vs = jnp.asarray(velocities, jnp.result_type(float))
+    return jax.vmap(lambda s: lambda_min(plant, gains, s, eps))(vs)
+
+
+@dataclasses.dataclass(frozen=True)
+class CertificateResult:
+    """Where a gain set is certified (host-side record).
+
+    velocities [rad/s] grid from 0 to vmax; lambda_min (same length) smallest eigenvalue of N2;
+    certified_up_to [rad/s]: largest speed up to which lambda_min > margin on the whole range
+    [0, speed] (refined between grid points, capped at the grid's end; 0 when N2 fails at rest);
+    certified: the whole grid passes; margin, eps [rad/s] as used.
+    """
+
+    velocities: np.ndarray
+    lambda_min: np.ndarray
+    certified_up_to: float
+    certified: bool
+    margin: float
+    eps: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready mapping (the ``jaxflex certify --json`` output)."""
+        return {
+            "velocities": [float(x) for x in self.velocities],
+            "lambda_min": [float(x) for x in self.lambda_min],
+            "certified_up_to": float(self.certified_up_to),
+            "certified": bool(self.certified),
+            "vmax": float(self.velocities[-1]),
+            "margin": float(self.margin),
+            "eps": float(self.eps),
+            "min_lambda_min": float(np.min(self.lambda_min)),
+        }
+
+
+def _check_range(vmax: float, num: int, margin: float, eps: float) -> None:
+    if not np.isfinite(vmax) or vmax <= 0:
+        raise ValueError(f"certify: vmax must be a finite speed > 0 rad/s, got {vmax}")
+    if int(num) < 2:
+        raise ValueError(f"certify: the velocity grid needs at least 2 points, got {num}")
+    if not np.isfinite(margin) or margin < 0:
+        raise ValueError(f"certify: margin must be finite and >= 0, got {margin}")
+    if not np.isfinite(eps) or eps <= 0:
+        raise ValueError(f"certify: eps must be > 0 rad/s, got {eps}")
+
+
+def certify(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAULT_VMAX, *,
+            num: int = DEFAULT_NUM, margin: float = 0.0, eps: float = DEFAULT_EPS,
+            refine: int = 40) -> CertificateResult:
+    """Certify ``gains`` on ``plant``: lambda_min(N2) over the speeds 0..vmax [rad/s] and the
+    largest speed up to which N2 stays positive definite with ``margin`` (eq. 29-31).
+
+    The boundary between the last passing and the first failing grid point is refined by
+    ``refine`` bisection steps. ``CascadeGains`` refuses gains <= 0; bad ranges raise
+    ``ValueError``.
+    """
+    _check_range(vmax, num, margin, eps)
+    vel = np.linspace(0.0, float(vmax), int(num))
+    lam = np.asarray(jax.jit(lambda g: lambda_min_curve(plant, g, vel, eps))(gains))
+    ok = lam > margin
+    if ok.all():
+        up_to = float(vmax)
+    elif not ok[0]:
+        up_to = 0.0
+    else:
+        first_bad = int(np.argmin(ok))
+        lo, hi = vel[first_bad - 1], vel[first_bad]
+        f = jax.jit(lambda s: lambda_min(plant, gains, s, eps))
+        for _ in range(refine):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if float(f(mid)) > margin else (lo, mid)
+        up_to = float(lo)
+    return CertificateResult(vel, lam, up_to, bool(ok.all()), float(margin), float(eps))
+
+
+def ultimate_bound(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAULT_VMAX,
+                   *, num: int = DEFAULT_NUM, eps: float = DEFAULT_EPS) -> dict[str, float]:
+    """The ultimate bound of eq. 32-33 over link speeds |q1'| <= vmax [rad/s].
+
+    D_bar = max ||D(v, z)|| with |z| <= max g / sigma0 = max(Fs, Fc) / sigma0 (the invariant
+    set of the LuGre state, Canudas de Wit et al. 1995), lambda = min lambda_min(N2) over the
+    same speeds; ||rho|| <= D_bar / lambda once reached. Returns ``D_bar``, ``lambda_min``,
+    ``rho_bound`` (inf if N2 is not positive definite; rho mixes rad, rad/s and eta units)
+    and ``e1_bound`` [rad] (the same number, as a bound on |e1| <= ||rho||).
+    """
+    _check_range(vmax, num, 0.0, eps)
+    fr = _friction(plant)
+    z_max = jnp.maximum(fr.Fs, fr.Fc) / fr.sigma0
+    # |D| peaks just above eps (Psi# dPsi ~ |v| / m(v) there): add a log grid from eps up.
+    vel = jnp.concatenate([jnp.linspace(0.0, float(vmax), int(num)),
+                           jnp.geomspace(eps, max(float(vmax), 2 * eps), int(num))])
+    # D is odd in v times z; the worst case is |z| = z_max with the sign that adds up.
+    dnorm = jax.vmap(lambda s: jnp.linalg.norm(d_vector(plant, gains, s, z_max, eps)))(vel)
+    d_bar = float(jnp.max(dnorm))
+    lam = float(jnp.min(lambda_min_curve(plant, gains, vel, eps)))
+    bound = d_bar / lam if lam > 0 else float("inf")
+    return {"D_bar": d_bar, "lambda_min": lam, "rho_bound": bound, "e1_bound": bound,
+            "vmax": float(vmax), "eps": float(eps)}
