@@ -1,0 +1,103 @@
+"""Monte Carlo sweep figures: error histograms, error bands over time, sensitivity bars.
+
+Each function takes one or more labelled ``SweepResult``s (e.g. with and without friction
+compensation) so that they can be compared on the same axes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+if TYPE_CHECKING:
+    from jaxflex.sweep.summary import SweepResult
+
+
+def _as_runs(results: SweepResult | dict[str, SweepResult]) -> dict[str, SweepResult]:
+    return results if isinstance(results, dict) else {"sweep": results}
+
+
+def plot_error_histograms(results, path: str | Path) -> str:
+    """Histograms of RMS and max link tracking error [rad] (log axis), non-diverged samples."""
+    runs = _as_runs(results)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for ax, m, title in zip(axes, ("rms_error", "max_error"), ("RMS link error", "max link error")):
+        for label, r in runs.items():
+            edges, counts = r.hists[m]
+            nz = np.nonzero(counts)[0]
+            if nz.size == 0:
+                continue
+            lo, hi = max(nz[0] - 2, 0), min(nz[-1] + 3, counts.size)
+            ax.stairs(counts[lo:hi], edges[lo:hi + 1], fill=True, alpha=0.45, label=label)
+        ax.set_xscale("log")
+        ax.set_xlabel(f"{title} (rad)")
+        ax.set_ylabel("samples")
+        ax.legend(fontsize=8)
+    n = next(iter(runs.values())).summary["samples"]
+    fig.suptitle(f"Tracking error over {n} samples", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return str(path)
+
+
+def plot_error_bands(results, path: str | Path, joint: int = 0, nominal: dict | None = None) -> str:
+    """Link error e1 [rad] over time: median, 25-75 % and 5-95 % bands across samples."""
+    runs = _as_runs(results)
+    fig, ax = plt.subplots(figsize=(9, 3.8))
+    for k, (label, r) in enumerate(runs.items()):
+        c = f"C{k}"
+        q = r.band_q[joint]
+        t = r.band_t
+        ax.fill_between(t, q[:, 0], q[:, 4], color=c, alpha=0.15, lw=0)
+        ax.fill_between(t, q[:, 1], q[:, 3], color=c, alpha=0.35, lw=0)
+        ax.plot(t, q[:, 2], color=c, lw=1.2, label=f"{label}: median, 25-75 %, 5-95 %")
+    if nominal is not None:
+        ax.plot(nominal["t"], nominal["e1"][:, joint], "k:", lw=0.8, label="nominal plant")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("link error e1 (rad)")
+    ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return str(path)
+
+
+def plot_sensitivity(results, path: str | Path, top: int = 12) -> str:
+    """Bars of the standardised regression coefficients (and Spearman's rho when the samples
+    were kept) of each parameter against the RMS error, largest first."""
+    runs = _as_runs(results)
+    fig, axes = plt.subplots(1, len(runs), figsize=(5 * len(runs), 0.35 * top + 1.5), squeeze=False)
+    for ax, (label, r) in zip(axes[0], runs.items()):
+        rows = r.summary["sensitivity"][:top][::-1]
+        if not rows:
+            ax.set_title(f"{label}: no sampled parameters")
+            continue
+        y = np.arange(len(rows))
+        ax.barh(y + 0.2, [s["src"] for s in rows], height=0.4, label="SRC")
+        if "spearman" in rows[0]:
+            ax.barh(y - 0.2, [s["spearman"] for s in rows], height=0.4, label="Spearman rho")
+        ax.set_yticks(y, [s["parameter"] for s in rows], fontsize=8)
+        ax.axvline(0, color="k", lw=0.6)
+        ax.set_xlabel("effect on RMS link error")
+        r2 = rows[0]["r2_linear"]
+        ax.set_title(f"{label} (linear R^2 = {r2:.2f})", fontsize=9)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return str(path)
+
+
+def plot_sweep(results, out: str | Path, nominal: dict | None = None) -> list[str]:
+    """All three figures into folder ``out``; returns the file names."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    return [
+        plot_error_histograms(results, out / "error_histograms.png"),
+        plot_error_bands(results, out / "error_bands.png", nominal=nominal),
+        plot_sensitivity(results, out / "sensitivity.png"),
+    ]

@@ -1,0 +1,263 @@
+"""Batched Monte Carlo runs: sample, build, simulate under ``vmap``, reduce per chunk.
+
+Sample i is drawn from ``fold_in(PRNGKey(seed), i)``, so a sample's parameters and noise do not
+depend on the chunk size, the number of devices or the number of processes: sharded,
+unsharded and multi-process runs of the same spread give the same numbers.
+
+Memory: one chunk of ``chunk_size`` samples is simulated at a time; per chunk only the link
+error at the band grid (``band_dt``) lives on the device, and it is folded into fixed-size
+histograms before the next chunk (``jaxflex.sweep.summary.Accumulator``). Nothing is stored
+per controller sample. Per sample only its parameters and five metrics are kept (and only when
+``keep_samples``), so peak memory does not grow with the number of samples.
+
+Scale-out: each chunk is laid out over the local devices with a ``NamedSharding`` on a 1-D
+``Mesh`` (axis ``"batch"``); with ``jax.distributed`` initialised, process p runs the chunks
+c = p, p + P, ... on its own devices and the accumulators are combined with
+``multihost_utils.process_allgather`` at the end (the same code runs on one process).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from jaxflex.controller import CascadeController
+from jaxflex.friction import LuGre
+from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.simulate import Sensing, simulate_sampled
+from jaxflex.sweep.spec import SweepSpec
+from jaxflex.sweep.summary import Accumulator, SweepResult, band_bins
+
+
+def _trajectory(name: str):
+    from jaxflex.experiments import PAPER_TASKS
+
+    return PAPER_TASKS[name][0]()
+
+
+def sample_parameters(spec: SweepSpec, index: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(theta, noise_key) of sample ``index``: theta (d,) in ``spec.labels`` order.
+
+    Fs is raised to Fc where a draw gives Fs < Fc (the LuGre constraint, SPEC section 2).
+    """
+    key = jax.random.fold_in(jax.random.PRNGKey(spec.seed), index)
+    k_theta, k_noise = jax.random.split(key)
+    if not spec.columns:
+        return jnp.zeros((0,), jnp.result_type(float)), k_noise
+    keys = jax.random.split(k_theta, len(spec.columns))
+    theta = jnp.stack([c.dist.sample(k) for c, k in zip(spec.columns, keys)])
+    return theta, k_noise
+
+
+def build_models(
+    spec: SweepSpec, theta: jax.Array
+) -> tuple[FlexibleJointPlant, CascadeController, Sensing, jax.Array]:
+    """True plant, controller (nominal model and gains) and sensing of one sample.
+
+    Returns also ``fs_raised`` (bool): whether Fs was raised to Fc for this sample.
+    Traceable in ``theta`` (the modules' value checks skip traced values).
+    """
+    from jaxflex.effects import EFFECTS
+
+    n = spec.n
+    nom = spec.nominal
+    vals: dict[str, dict[str, jax.Array]] = {
+        "plant": {k: jnp.asarray(v, float) for k, v in nom.plant.items()},
+        "friction": {k: jnp.asarray(v, float) for k, v in nom.friction.items()},
+        "sensing": {k: jnp.full((n,), spec.sensing[k]) for k in
+                    ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")},
+        "limits": {"tau_max": jnp.full((n,), spec.tau_max)},
+        "effects": {},
+    }
+    eff: dict[str, dict[str, Any]] = {
+        k: {p: jnp.broadcast_to(jnp.asarray(v, float), (n,)) for p, v in kw.items()}
+        for k, kw in spec.effects.items()
+    }
+    for i, c in enumerate(spec.columns):
+        parts = c.name.split(".")
+        if parts[0] == "effects":
+            cur = eff[parts[1]].get(parts[2], jnp.zeros((n,)))
+            eff[parts[1]][parts[2]] = cur.at[c.joint].set(theta[i])
+        else:
+            vals[parts[0]][parts[1]] = vals[parts[0]][parts[1]].at[c.joint].set(theta[i])
+    fr = vals["friction"]
+    fs_raised = jnp.any(fr["Fs"] < fr["Fc"])
+    fr["Fs"] = jnp.maximum(fr["Fs"], fr["Fc"])
+    p = vals["plant"]
+    plant = FlexibleJointPlant(
+        links=DiagonalInertia(I=p["I"]), J=p["J"], K=p["K"], friction=LuGre(**fr),
+    )
+    if eff:
+        plant = plant.with_effects(*(EFFECTS[k](**kw) for k, kw in eff.items()))
+    model = nom.to_plant(with_effects=False)
+    ctrl = CascadeController(
+        model=model, gains=nom.to_gains(), trajectory=_trajectory(spec.trajectory),
+        compensation=spec.compensation, q2d_method=spec.q2d_method, dt=spec.dt,
+        tau_max=vals["limits"]["tau_max"],
+    )
+    s = vals["sensing"]
+    sensing = Sensing(
+        q1_resolution=s["q1_resolution"], q2_resolution=s["q2_resolution"],
+        q1_noise=s["q1_noise"], q2_noise=s["q2_noise"], velocity=spec.sensing["velocity"],
+        dac_bits=spec.sensing["dac_bits"], dac_range=spec.sensing["dac_range"],
+    )
+    return plant, ctrl, sensing, fs_raised
+
+
+def _band_stride(spec: SweepSpec) -> int:
+    return max(1, round(spec.band_dt / spec.dt))
+
+
+def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
+    """Closed loop of one sample: parameters, metrics (worst joint) and the band-grid error.
+
+    Keys: theta (d,); rms_error, max_error [rad]; tau_rms [N m]; saturation_fraction;
+    diverged; fs_raised; e1_band (T, n) [rad] link error every ``band_dt`` s.
+    """
+    theta, k_noise = sample_parameters(spec, index)
+    plant, ctrl, sensing, fs_raised = build_models(spec, theta)
+    noisy = any(c.name in ("sensing.q1_noise", "sensing.q2_noise") for c in spec.columns) or (
+        spec.sensing["q1_noise"] > 0 or spec.sensing["q2_noise"] > 0
+    )
+    r = simulate_sampled(
+        plant, ctrl, spec.t_final, substeps=spec.substeps, sensing=sensing,
+        key=k_noise if noisy else None, save=True,
+    )
+    # only metrics and e1 are used below: jit's dead-code elimination drops the other
+    # saved trajectories, so save=True costs one (N, n) array per sample of the chunk.
+    m = r.metrics
+    return {
+        "theta": theta, "rms_error": jnp.max(m.rms_error), "max_error": jnp.max(m.max_error),
+        "tau_rms": jnp.max(m.tau_rms), "saturation_fraction": jnp.max(m.saturation_fraction),
+        "diverged": m.diverged, "fs_raised": fs_raised, "e1_band": r.e1[:: _band_stride(spec)],
+    }
+
+
+_CHUNK_FNS: dict[str, Callable] = {}
+
+
+def make_chunk_fn(spec: SweepSpec, float32: bool = False) -> Callable[[jax.Array, jax.Array], dict[str, jax.Array]]:
+    """A jitted function (indices (B,), valid (B,)) -> per-sample results and the chunk's
+    band histogram (n, T, nbins) over valid, non-diverged samples.
+
+    Cached per spec content (and x64 mode), so repeated sweeps of one spread compile once.
+    """
+    key = json.dumps(spec.to_dict(), sort_keys=True, default=str) + str(float32)
+    if key not in _CHUNK_FNS:
+        _CHUNK_FNS[key] = _make_chunk_fn(spec)
+    return _CHUNK_FNS[key]
+
+
+def _make_chunk_fn(spec: SweepSpec) -> Callable[[jax.Array, jax.Array], dict[str, jax.Array]]:
+    edges = band_bins()
+
+    def chunk(idx: jax.Array, valid: jax.Array) -> dict[str, jax.Array]:
+        out = jax.vmap(lambda i: simulate_sample(spec, i))(idx)
+        e = out.pop("e1_band")  # (B, T, n)
+        _B, T, n = e.shape
+        w = (valid & ~out["diverged"]).astype(jnp.int32)
+        b = jnp.clip(jnp.searchsorted(edges, jnp.arcsinh(e / _BAND_SCALE)) - 1, 0, edges.size - 2)
+        flat = (jnp.arange(n)[None, None, :] * T + jnp.arange(T)[None, :, None]) * (edges.size - 1) + b
+        hist = jnp.zeros(n * T * (edges.size - 1), jnp.int32).at[flat.reshape(-1)].add(
+            jnp.broadcast_to(w[:, None, None], flat.shape).reshape(-1)
+        )
+        out["band_hist"] = hist.reshape(n, T, edges.size - 1)
+        return out
+
+    return jax.jit(chunk)
+
+
+_BAND_SCALE = 1e-6  # [rad]; band histograms are uniform in asinh(e1 / _BAND_SCALE)
+
+
+def run_sweep(
+    spec: SweepSpec,
+    *,
+    samples: int | None = None,
+    chunk_size: int = 256,
+    shard: bool = True,
+    keep_samples: bool = True,
+    n_worst: int = 10,
+    progress: bool = True,
+    float32: bool = False,
+) -> SweepResult:
+    """Run the Monte Carlo sweep of ``spec`` and return its summary.
+
+    ``samples`` overrides ``spec.samples``; ``chunk_size`` samples run together (rounded up
+    to a multiple of the local device count when ``shard``); ``keep_samples`` keeps each
+    sample's parameters and metrics (a few dozen bytes per sample; needed for Spearman
+    sensitivities and the CSV); ``n_worst`` worst cases are kept with their parameters.
+    ``float32`` runs the loop in single precision (faster on CPU/GPU; see the benchmark
+    for its accuracy). With ``jax.distributed`` initialised, each process runs its share of
+    the chunks and every process returns the combined result.
+    """
+    n_samples = spec.samples if samples is None else int(samples)
+    if n_samples < 1:
+        raise ValueError(f"run_sweep: samples must be >= 1, got {n_samples}")
+    if chunk_size < 1:
+        raise ValueError(f"run_sweep: chunk_size must be >= 1, got {chunk_size}")
+    devices = jax.local_devices()
+    nd = len(devices) if shard else 1
+    chunk_size = int(math.ceil(min(chunk_size, n_samples) / nd) * nd)
+    n_chunks = math.ceil(n_samples / chunk_size)
+    pid, nproc = jax.process_index(), jax.process_count()
+    mine = list(range(pid, n_chunks, nproc))
+    sharding = NamedSharding(Mesh(np.array(devices[:nd]), ("batch",)), PartitionSpec("batch")) if shard else None
+
+    acc = Accumulator(spec, keep_samples=keep_samples, n_worst=n_worst)
+    ctx = jax.enable_x64(False) if float32 else contextlib.nullcontext()
+    t0 = time.perf_counter()
+    t_compile = 0.0
+    with ctx:
+        fn = make_chunk_fn(spec, float32)
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(mine), unit="chunk", desc=f"sweep[{pid}/{nproc}]" if nproc > 1 else "sweep")
+        for k, c in enumerate(mine):
+            idx = np.arange(c * chunk_size, (c + 1) * chunk_size)
+            valid = idx < n_samples
+            idx = np.where(valid, idx, 0).astype(np.uint32)
+            a_idx, a_valid = jnp.asarray(idx), jnp.asarray(valid)
+            if sharding is not None:
+                a_idx, a_valid = jax.device_put(a_idx, sharding), jax.device_put(a_valid, sharding)
+            out = jax.device_get(fn(a_idx, a_valid))
+            if k == 0:
+                t_compile = time.perf_counter() - t0
+            acc.add(idx[valid], {k2: (v if k2 == "band_hist" else v[valid]) for k2, v in out.items()})
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
+    if nproc > 1:
+        acc = acc.allgather()
+    wall = time.perf_counter() - t0
+    res = acc.result()
+    steps = n_samples * round(spec.t_final / spec.dt)
+    res.timing = {
+        "wall_s": wall, "first_chunk_s": t_compile, "chunk_size": chunk_size, "chunks": n_chunks,
+        "devices": nd, "processes": nproc, "controller_steps": steps,
+        "steps_per_s": steps / wall if nproc == 1 else None, "float32": float32,
+    }
+    return res
+
+
+def nominal_run(spec: SweepSpec) -> dict[str, np.ndarray]:
+    """The nominal closed loop (no parameter spread, no noise): t [s], e1 (N, n) [rad]."""
+    nom = spec.with_(columns=[])
+    plant, ctrl, sensing, _ = build_models(nom, jnp.zeros((0,)))
+    r = eqx.filter_jit(lambda p, c, s: simulate_sampled(p, c, spec.t_final, substeps=spec.substeps, sensing=s))(
+        plant, ctrl, sensing
+    )
+    return {"t": np.asarray(r.t), "e1": np.asarray(r.e1), "rms_error": float(np.max(np.asarray(r.metrics.rms_error)))}

@@ -1,0 +1,488 @@
+"""Spread files: which quantities are uncertain and how they are distributed (host side).
+
+A spread file is one JSON document (SI units), for example::
+
+    {"nominal": "paper",
+     "trajectory": "sinusoid", "t_final": 2.0, "substeps": 10,
+     "controller": {"compensation": true, "q2d_method": "model", "tau_max": 2.0},
+     "sensing": "ideal",
+     "samples": 1000, "seed": 0,
+     "uncertain": {
+        "plant.*":          {"dist": "uniform", "rel": 0.2},
+        "friction.sigma0":  {"dist": "loguniform", "low": 50.0, "high": 200.0},
+        "sensing.q1_noise": {"dist": "uniform", "low": 0.0, "high": 1e-4},
+        "limits.tau_max":   {"dist": "normal", "rel_std": 0.05, "low": 1.0},
+        "effects.torque_offset.offset": {"dist": "normal", "mean": 0.0, "std": 0.01}}}
+
+``nominal`` is ``"paper"``, a parameter-file path (SPEC section 7, relative to the spread file)
+or an inline parameter mapping; the controller always uses the nominal model and gains, the
+true plant of each sample is drawn from the spread (robustness, not adaptation).
+
+Names: ``plant.{I,J,K}``, ``friction.{Fc,Fs,vs,sigma0,sigma1,sigma2}``,
+``sensing.{q1_noise,q2_noise,q1_resolution,q2_resolution}``, ``limits.tau_max`` and
+``effects.<effect>.<parameter>`` for any registered effect (``jaxflex.effects.EFFECTS``);
+``group.*`` applies one distribution to every name of a group. A name with n joints gives n
+columns (``friction.Fc[0]``, ...), each drawn independently. ``name[j]`` targets one joint.
+
+Distributions (``rel`` and ``rel_std`` are fractions of the nominal value):
+``fixed`` (value), ``uniform`` (low, high | rel), ``normal`` (mean, std | rel_std; optional
+truncation low/high), ``lognormal`` (median (default nominal), sigma of log),
+``loguniform`` (low, high | factor: nominal/factor .. nominal*factor).
+
+Bad specifications raise ``SpreadError`` (a ``ValueError``) naming the entry: unknown names or
+distributions, missing or extra fields, empty ranges, and distributions whose support breaks a
+physical constraint (e.g. a normal inertia that can go negative).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflex.controller import Q2D_METHODS
+from jaxflex.friction import LUGRE_NAMES
+from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, paper_params
+
+SENSING_NAMES: tuple[str, ...] = ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")
+LIMIT_NAMES: tuple[str, ...] = ("tau_max",)
+GROUPS: dict[str, tuple[str, ...]] = {
+    "plant": PLANT_NAMES, "friction": LUGRE_NAMES, "sensing": SENSING_NAMES, "limits": LIMIT_NAMES,
+}
+TRAJECTORIES: tuple[str, ...] = ("sinusoid", "polynomial", "fast")
+# Lower bound of each quantity's physical range: (bound, strict). Effects are checked by their
+# own classes at build time (concrete values only), so only their declared support is used.
+_POSITIVE = {f"plant.{k}" for k in PLANT_NAMES} | {
+    "friction.Fc", "friction.Fs", "friction.vs", "friction.sigma0", "limits.tau_max"
+}
+_NONNEG = {"friction.sigma1", "friction.sigma2"} | {f"sensing.{k}" for k in SENSING_NAMES}
+
+_DIST_FIELDS: dict[str, tuple[set[str], ...]] = {
+    # each tuple entry is one accepted set of fields (besides 'dist')
+    "fixed": ({"value"},),
+    "uniform": ({"low", "high"}, {"rel"}),
+    "normal": ({"mean", "std"}, {"std"}, {"rel_std"}),
+    "lognormal": ({"median", "sigma"}, {"sigma"}),
+    "loguniform": ({"low", "high"}, {"factor"}),
+}
+_TRUNC = {"normal"}
+
+
+class SpreadError(ValueError):
+    """A spread file that does not follow the format of ``jaxflex.sweep.spec``."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Distribution:
+    """One scalar distribution, already resolved against its nominal value.
+
+    kind: 'fixed' | 'uniform' | 'normal' | 'lognormal' | 'loguniform'; a, b: its two numbers
+    (value/-, low/high, mean/std, log-median/sigma, log-low/log-high); low, high: truncation of
+    'normal' (+-inf if none).
+    """
+
+    kind: str
+    a: float
+    b: float = 0.0
+    low: float = -math.inf
+    high: float = math.inf
+
+    def support(self) -> tuple[float, float]:
+        """Smallest interval holding every draw."""
+        if self.kind == "fixed":
+            return self.a, self.a
+        if self.kind == "uniform":
+            return self.a, self.b
+        if self.kind == "normal":
+            return self.low, self.high
+        if self.kind == "lognormal":
+            return 0.0, math.inf  # open at 0
+        return math.exp(self.a), math.exp(self.b)
+
+    def center_scale(self) -> tuple[float, float]:
+        """A centre and scale used to standardise the column (numerics only)."""
+        if self.kind == "fixed":
+            return self.a, 1.0
+        if self.kind in ("uniform",):
+            return 0.5 * (self.a + self.b), max(0.5 * (self.b - self.a), 1e-300)
+        if self.kind == "normal":
+            return self.a, max(self.b, 1e-300)
+        if self.kind == "lognormal":
+            return math.exp(self.a), max(math.exp(self.a) * self.b, 1e-300)
+        lo, hi = math.exp(self.a), math.exp(self.b)
+        return 0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-300)
+
+    def sample(self, key: jax.Array) -> jax.Array:
+        """One draw (a scalar in the default float dtype)."""
+        dt = jnp.result_type(float)
+        if self.kind == "fixed":
+            return jnp.asarray(self.a, dt)
+        if self.kind == "uniform":
+            return jax.random.uniform(key, (), dt, self.a, self.b)
+        if self.kind == "normal":
+            if math.isinf(self.low) and math.isinf(self.high):
+                return self.a + self.b * jax.random.normal(key, (), dt)
+            lo, hi = (self.low - self.a) / self.b, (self.high - self.a) / self.b
+            return self.a + self.b * jax.random.truncated_normal(key, lo, hi, (), dt)
+        if self.kind == "lognormal":
+            return jnp.exp(self.a + self.b * jax.random.normal(key, (), dt))
+        return jnp.exp(jax.random.uniform(key, (), dt, self.a, self.b))
+
+
+def _num(where: str, field: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise SpreadError(f"{where}: '{field}' must be a finite number, got {v!r}")
+    return float(v)
+
+
+def parse_distribution(where: str, d: Any, nominal: float | None) -> Distribution:
+    """A ``Distribution`` from its JSON entry; ``nominal`` resolves rel/rel_std/factor/median."""
+    if not isinstance(d, dict):
+        raise SpreadError(f"{where}: expected an object like {{\"dist\": \"uniform\", \"rel\": 0.2}}, got {d!r}")
+    kind = d.get("dist")
+    if kind not in _DIST_FIELDS:
+        raise SpreadError(f"{where}: 'dist' must be one of {sorted(_DIST_FIELDS)}, got {kind!r}")
+    fields = set(d) - {"dist"}
+    trunc = {"low", "high"} & fields if kind in _TRUNC else set()
+    core = fields - trunc
+    if kind in _TRUNC and {"mean", "std"} <= fields:
+        core = fields - trunc
+    if core not in _DIST_FIELDS[kind]:
+        want = " or ".join("/".join(sorted(s)) for s in _DIST_FIELDS[kind])
+        extra = " (+ optional low/high truncation)" if kind in _TRUNC else ""
+        raise SpreadError(f"{where}: a '{kind}' distribution takes {want}{extra}, got {sorted(fields)}")
+    g = {k: _num(where, k, d[k]) for k in fields}
+    needs_nominal = core & {"rel", "rel_std", "factor"} or (kind == "normal" and "mean" not in core) or (
+        kind == "lognormal" and "median" not in core
+    )
+    if needs_nominal and nominal is None:
+        raise SpreadError(f"{where}: no nominal value to scale; give absolute bounds")
+    if kind == "fixed":
+        return Distribution("fixed", g["value"])
+    if kind == "uniform":
+        if "rel" in g:
+            if g["rel"] < 0:
+                raise SpreadError(f"{where}: 'rel' must be >= 0, got {g['rel']}")
+            lo, hi = sorted((nominal * (1 - g["rel"]), nominal * (1 + g["rel"])))
+        else:
+            lo, hi = g["low"], g["high"]
+        if not hi > lo:
+            raise SpreadError(f"{where}: uniform needs low < high, got low={lo}, high={hi}")
+        return Distribution("uniform", lo, hi)
+    if kind == "normal":
+        mean = g.get("mean", nominal)
+        std = g["std"] if "std" in g else abs(nominal) * g["rel_std"]
+        if not std > 0:
+            raise SpreadError(f"{where}: the standard deviation must be > 0, got {std}")
+        lo, hi = g.get("low", -math.inf), g.get("high", math.inf)
+        if not hi > lo:
+            raise SpreadError(f"{where}: truncation needs low < high, got low={lo}, high={hi}")
+        return Distribution("normal", mean, std, lo, hi)
+    if kind == "lognormal":
+        med = g.get("median", nominal)
+        if not med > 0 or not g["sigma"] > 0:
+            raise SpreadError(f"{where}: lognormal needs median > 0 and sigma > 0, got {med}, {g['sigma']}")
+        return Distribution("lognormal", math.log(med), g["sigma"])
+    if "factor" in g:
+        if not g["factor"] > 1 or not nominal > 0:
+            raise SpreadError(f"{where}: loguniform needs factor > 1 and a nominal > 0")
+        lo, hi = nominal / g["factor"], nominal * g["factor"]
+    else:
+        lo, hi = g["low"], g["high"]
+    if not (lo > 0 and hi > lo):
+        raise SpreadError(f"{where}: loguniform needs 0 < low < high, got low={lo}, high={hi}")
+    return Distribution("loguniform", math.log(lo), math.log(hi))
+
+
+@dataclasses.dataclass(frozen=True)
+class Column:
+    """One sampled scalar: ``group.name`` (effects: ``effects.<effect>.<param>``), joint index."""
+
+    name: str
+    joint: int
+    dist: Distribution
+    label: str
+
+
+@dataclasses.dataclass
+class SweepSpec:
+    """A validated spread: nominal parameters, task, and the sampled columns.
+
+    Units SI. ``t_final`` [s] horizon per sample; ``dt`` [s] controller period; ``substeps``
+    plant steps per sample; ``band_dt`` [s] spacing of the error-band time grid.
+    """
+
+    nominal: Params
+    columns: list[Column]
+    trajectory: str = "sinusoid"
+    t_final: float = 2.0
+    dt: float = 1e-3
+    substeps: int = 10
+    compensation: bool = True
+    q2d_method: str = "model"
+    tau_max: float = math.inf
+    sensing: dict[str, Any] = dataclasses.field(default_factory=dict)
+    effects: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    samples: int = 1000
+    seed: int = 0
+    band_dt: float = 0.01
+
+    @property
+    def n(self) -> int:
+        """Number of joints."""
+        return self.nominal.n
+
+    @property
+    def labels(self) -> list[str]:
+        """Column labels, in sample-vector order."""
+        return [c.label for c in self.columns]
+
+    def with_(self, **changes: Any) -> SweepSpec:
+        """A copy with some fields replaced (e.g. ``compensation=False``)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-able description (for result files)."""
+        return {
+            "nominal": self.nominal.to_dict(), "trajectory": self.trajectory,
+            "t_final": self.t_final, "dt": self.dt, "substeps": self.substeps,
+            "compensation": self.compensation, "q2d_method": self.q2d_method,
+            "tau_max": self.tau_max if math.isfinite(self.tau_max) else "inf",
+            "sensing": self.sensing, "effects": self.effects, "samples": self.samples,
+            "seed": self.seed, "band_dt": self.band_dt,
+            "columns": [dataclasses.asdict(c) for c in self.columns],
+        }
+
+
+_SENSING_PRESETS = ("ideal", "rig", "paper")
+_SENSING_KEYS = set(SENSING_NAMES) | {"velocity", "dac_bits", "dac_range"}
+_TOP_KEYS = {
+    "nominal", "trajectory", "t_final", "dt", "substeps", "controller", "sensing", "samples",
+    "seed", "uncertain", "band_dt",
+}
+
+
+def _nominal(d: Any, base: Path | None) -> Params:
+    if d is None or d == "paper":
+        return paper_params()
+    try:
+        if isinstance(d, str):
+            p = Path(d)
+            if not p.is_absolute() and base is not None:
+                p = base / p
+            return load_params(p)
+        if isinstance(d, dict):
+            return Params.from_dict(d)
+    except ParamsError as e:
+        raise SpreadError(f"nominal: {e}") from None
+    raise SpreadError(f"nominal: expected 'paper', a parameter-file path or an object, got {d!r}")
+
+
+def _sensing(d: Any) -> dict[str, Any]:
+    from jaxflex.experiments import sensing_by_name
+
+    if d is None:
+        d = "ideal"
+    if isinstance(d, str):
+        if d not in _SENSING_PRESETS:
+            raise SpreadError(f"sensing: preset must be one of {_SENSING_PRESETS}, got {d!r}")
+        s = sensing_by_name(d)
+    elif isinstance(d, dict):
+        bad = set(d) - _SENSING_KEYS
+        if bad:
+            raise SpreadError(f"sensing: unknown field(s) {sorted(bad)}; known: {sorted(_SENSING_KEYS)}")
+        from jaxflex.simulate import Sensing
+
+        try:
+            s = Sensing(**d)
+        except (TypeError, ValueError) as e:
+            raise SpreadError(f"sensing: {e}") from None
+    else:
+        raise SpreadError(f"sensing: expected a preset name {_SENSING_PRESETS} or an object, got {d!r}")
+    out = {k: float(np.asarray(getattr(s, k)).reshape(-1)[0]) for k in SENSING_NAMES}
+    out.update(velocity=s.velocity, dac_bits=int(s.dac_bits), dac_range=float(np.asarray(s.dac_range).reshape(-1)[0]))
+    return out
+
+
+def _check_support(where: str, name: str, dist: Distribution) -> None:
+    lo, _hi = dist.support()
+    if name in _POSITIVE and not lo > 0 and not (dist.kind == "lognormal"):
+        raise SpreadError(
+            f"{where}: {name} must stay > 0 but this distribution can give {lo}; "
+            "use bounds > 0 (uniform/loguniform), a truncated normal with low > 0, or lognormal"
+        )
+    if name in _NONNEG and lo < 0:
+        raise SpreadError(
+            f"{where}: {name} must stay >= 0 but this distribution can give {lo}; "
+            "use bounds >= 0 or a truncated normal with low >= 0"
+        )
+
+
+def _split_index(key: str) -> tuple[str, int | None]:
+    if key.endswith("]") and "[" in key:
+        base, idx = key[:-1].split("[", 1)
+        try:
+            return base, int(idx)
+        except ValueError:
+            raise SpreadError(f"uncertain.{key}: joint index must be an integer") from None
+    return key, None
+
+
+def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
+    """Validate a spread mapping (see the module docstring); raises ``SpreadError``."""
+    from jaxflex.effects import EFFECTS
+
+    if not isinstance(d, dict):
+        raise SpreadError(f"a spread must be a JSON object, got {type(d).__name__}")
+    bad = set(d) - _TOP_KEYS
+    if bad:
+        raise SpreadError(f"unknown top-level key(s) {sorted(bad)}; known: {sorted(_TOP_KEYS)}")
+    nominal = _nominal(d.get("nominal"), base)
+    n = nominal.n
+    traj = d.get("trajectory", "sinusoid")
+    if traj not in TRAJECTORIES:
+        raise SpreadError(f"trajectory must be one of {TRAJECTORIES}, got {traj!r}")
+    if nominal.gains is None:
+        raise SpreadError("nominal: the parameters need a 'gains' section for the controller")
+    ctrl = d.get("controller", {}) or {}
+    if not isinstance(ctrl, dict):
+        raise SpreadError("controller: expected an object")
+    bad = set(ctrl) - {"compensation", "q2d_method", "tau_max"}
+    if bad:
+        raise SpreadError(f"controller: unknown field(s) {sorted(bad)}")
+    if ctrl.get("q2d_method", "model") not in Q2D_METHODS:
+        raise SpreadError(f"controller.q2d_method must be one of {Q2D_METHODS}, got {ctrl['q2d_method']!r}")
+    if not isinstance(ctrl.get("compensation", True), bool):
+        raise SpreadError("controller.compensation must be true or false")
+    tau_max = ctrl.get("tau_max", math.inf)
+    if tau_max in (None, "inf"):
+        tau_max = math.inf
+    if isinstance(tau_max, bool) or not isinstance(tau_max, (int, float)) or not tau_max > 0:
+        raise SpreadError(f"controller.tau_max must be a number > 0 (or 'inf'), got {tau_max!r}")
+
+    def pos(key, default, integer=False):
+        v = d.get(key, default)
+        ok = isinstance(v, int) if integer else isinstance(v, (int, float))
+        if isinstance(v, bool) or not ok or not v > 0 or (not integer and not math.isfinite(v)):
+            kind = "a positive integer" if integer else "a finite number > 0"
+            raise SpreadError(f"{key} must be {kind}, got {v!r}")
+        return v
+
+    t_final, dt = float(pos("t_final", 2.0)), float(pos("dt", 1e-3))
+    band_dt = float(pos("band_dt", 0.01))
+    if t_final < dt:
+        raise SpreadError(f"t_final ({t_final} s) must be at least one controller period ({dt} s)")
+    seed = d.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise SpreadError(f"seed must be an integer >= 0, got {seed!r}")
+
+    nominal_vals = {"plant": nominal.plant, "friction": nominal.friction,
+                    "sensing": {k: [v] * n for k, v in _sensing(d.get("sensing")).items() if k in SENSING_NAMES},
+                    "limits": {"tau_max": [tau_max] * n}}
+    sensing = _sensing(d.get("sensing"))
+    unc = d.get("uncertain", {}) or {}
+    if not isinstance(unc, dict):
+        raise SpreadError("uncertain: expected an object mapping names to distributions")
+    effects: dict[str, dict[str, Any]] = {k: dict(v) for k, v in nominal.effects.items()}
+    entries: dict[tuple[str, int], tuple[str, Any]] = {}
+    for key, dist in unc.items():
+        base_name, joint = _split_index(key)
+        parts = base_name.split(".")
+        if parts[0] == "effects":
+            if len(parts) != 3:
+                raise SpreadError(f"uncertain.{key}: effect entries are named effects.<effect>.<parameter>")
+            if parts[1] not in EFFECTS:
+                raise SpreadError(f"uncertain.{key}: unknown effect {parts[1]!r}; known: {sorted(EFFECTS)}")
+            names = [base_name]
+        elif parts[0] in GROUPS and len(parts) == 2:
+            if parts[1] == "*":
+                names = [f"{parts[0]}.{k}" for k in GROUPS[parts[0]]]
+            elif parts[1] in GROUPS[parts[0]]:
+                names = [base_name]
+            else:
+                raise SpreadError(
+                    f"uncertain.{key}: unknown name {parts[1]!r} in group {parts[0]!r}; "
+                    f"known: {list(GROUPS[parts[0]])}"
+                )
+        else:
+            raise SpreadError(
+                f"uncertain.{key}: names are <group>.<name> with group in {sorted(GROUPS)} "
+                "or effects.<effect>.<parameter>"
+            )
+        if parts[0] == "limits" and not math.isfinite(tau_max) and isinstance(dist, dict) and (
+            {"rel", "rel_std", "factor"} & set(dist) or (dist.get("dist") == "normal" and "mean" not in dist)
+        ):
+            raise SpreadError(f"uncertain.{key}: controller.tau_max is infinite; give absolute bounds")
+        joints = range(n) if joint is None else [joint]
+        if joint is not None and not 0 <= joint < n:
+            raise SpreadError(f"uncertain.{key}: joint index {joint} out of range for {n} joint(s)")
+        for nm in names:
+            for j in joints:
+                entries[(nm, j)] = (key, dist)  # later, more specific entries override
+    columns: list[Column] = []
+    for (nm, j), (key, dist) in entries.items():
+        parts = nm.split(".")
+        if parts[0] == "effects":
+            nomv = effects.get(parts[1], {}).get(parts[2])
+            nom = None if nomv is None else float(np.broadcast_to(np.asarray(nomv, float), (n,))[j])
+        else:
+            nom = float(nominal_vals[parts[0]][parts[1]][j])
+            nom = nom if math.isfinite(nom) else None
+        dd = parse_distribution(f"uncertain.{key}", dist, nom)
+        _check_support(f"uncertain.{key}", nm, dd)
+        label = nm if n == 1 else f"{nm}[{j}]"
+        columns.append(Column(name=nm, joint=j, dist=dd, label=label))
+        if parts[0] == "effects":
+            effects.setdefault(parts[1], {})
+    # every sampled effect must be constructible: its other parameters come from the nominal
+    for name, kw in effects.items():
+        cls = EFFECTS.get(name)
+        if cls is None:
+            raise SpreadError(f"nominal effect {name!r} is not a known effect; known: {sorted(EFFECTS)}")
+        sampled = {c.name.split(".")[2] for c in columns if c.name.startswith(f"effects.{name}.")}
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = (set(kw) | sampled) - fields
+        if unknown:
+            raise SpreadError(f"effect {name!r} has no parameter(s) {sorted(unknown)}; it has {sorted(fields)}")
+        try:
+            cls(**{**kw, **{k: 1.0 for k in sampled}})
+        except TypeError as e:
+            raise SpreadError(f"effect {name!r}: {e}") from None
+        except ValueError:
+            pass  # value checks happen per sample; only the structure is checked here
+    samples = pos("samples", 1000, integer=True)
+    return SweepSpec(
+        nominal=nominal, columns=columns, trajectory=traj, t_final=t_final, dt=dt,
+        substeps=pos("substeps", 10, integer=True), compensation=ctrl.get("compensation", True),
+        q2d_method=ctrl.get("q2d_method", "model"), tau_max=float(tau_max), sensing=sensing,
+        effects=effects, samples=samples, seed=seed, band_dt=band_dt,
+    )
+
+
+def load_spread(path: str | os.PathLike) -> SweepSpec:
+    """Read and validate a spread file; a relative ``nominal`` path is read beside it."""
+    path = Path(path)
+    if not path.exists():
+        raise SpreadError(f"spread file not found: {path}")
+    try:
+        d = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise SpreadError(f"{path}: not valid JSON ({e})") from None
+    try:
+        return parse_spread(d, base=path.parent)
+    except SpreadError as e:
+        raise SpreadError(f"{path}: {e}") from None
+
+
+def uniform_spread(rel: float = 0.2, groups: tuple[str, ...] = ("plant", "friction"), **kw: Any) -> dict[str, Any]:
+    """A spread mapping with every name of ``groups`` uniform within +-rel of nominal."""
+    d: dict[str, Any] = {"uncertain": {f"{g}.*": {"dist": "uniform", "rel": rel} for g in groups}}
+    d.update(kw)
+    return d
