@@ -11,8 +11,8 @@ q2d' and q2d'' are not measurable; ``q2d_method`` chooses how to get them (SPEC 
 - ``"model"``: differentiate q2d along the controller's own estimate of the closed-loop vector
   field (q1'' from the model with F_hat, z_hat' from the observer) with ``jax.jvp``;
 - ``"filtered"``: two cascaded dirty derivatives of q2d at the sample rate (sampled-data only);
-- ``"reference"``: derivatives of q1d + K^-1 (M q1d'' + C q1d' + G) along the reference alone,
-  as the paper's eq. 41-42 do.
+- ``"reference"``: differentiate q2d as in "model" but with the reference's acceleration
+  q1d'' (and so its jerk) where the link's appear, as the paper's eq. 41-42 say.
 
 The same control law serves the continuous closed loop (``continuous``) and the sampled-data
 controller (``init``/``step``), which also estimates velocities from encoder angles when they
@@ -68,7 +68,7 @@ class CascadeGains(eqx.Module):
         return {k: [float(v) for v in getattr(self, k)] for k in GAIN_NAMES}
 
     @classmethod
-    def from_vector(cls, theta: Float[Array, " 6n"]) -> "CascadeGains":
+    def from_vector(cls, theta: Float[Array, " 6n"]) -> CascadeGains:
         """Gains from a flat vector ordered (Ke, KD1, KD2, kv, L1, L2), each block (n,)."""
         theta = jnp.asarray(theta)
         if theta.ndim != 1 or theta.shape[0] % 6:
@@ -184,13 +184,15 @@ class CascadeController(eqx.Module):
         )
         return ud / K + q1, F_hat, z_hat_dot, s1, e1
 
-    def _q2d_model(self, t, q1, dq1, q2, dq2, z_hat):
-        """q2d, q2d', q2d'' along the controller's estimate of the closed-loop flow (jvp).
+    def _q2d_flow(self, t, q1, dq1, q2, dq2, z_hat, accel: str):
+        """q2d, q2d', q2d'' by differentiating q2d along an estimated flow (jvp).
 
-        X = (t, q1, q1', z_hat) flows with X' = (1, q1', q1''_hat, z_hat'), where
-        q1''_hat = M^-1 (K (q2 - q1) - C q1' - G - F_hat). q1''_hat depends on q2, whose
-        derivative along the flow is the (measured) q2'; so q2d'' is the derivative of
-        q2d' = <grad q2d, X'> along (X', q2').
+        X = (t, q1, q1', z_hat) flows with X' = (1, q1', a, z_hat'). With ``accel="model"``
+        a = M^-1 (K (q2 - q1) - C q1' - G - F_hat), the controller's own estimate; a depends
+        on q2, whose derivative along the flow is the measured q2', so q2d'' is the
+        derivative of q2d' = <grad q2d, X'> along (X', q2'). With ``accel="reference"``
+        a = q1d''(t): the reference's acceleration (and, differentiated, jerk) stand where
+        the link's appear (paper eq. 41-42).
         """
         links, K = self.model.links, self.model.K
 
@@ -200,8 +202,11 @@ class CascadeController(eqx.Module):
         def first(X, q2v):
             tt, a, da, zh = X
             _, F_hat, z_hat_dot, _, _ = self._link(tt, a, da, zh)
-            rhs = K * (q2v - a) - links.coriolis(a, da, da) - links.gravity(a) - F_hat
-            dda = jnp.linalg.solve(links.mass_matrix(a), rhs)
+            if accel == "model":
+                rhs = K * (q2v - a) - links.coriolis(a, da, da) - links.gravity(a) - F_hat
+                dda = links.solve_mass(a, rhs)
+            else:
+                dda = self.trajectory.derivatives(tt, order=2)[2]
             flow = (jnp.ones_like(tt), da, dda, z_hat_dot)
             return jax.jvp(q2d_of, (X,), (flow,)), flow
 
@@ -210,8 +215,9 @@ class CascadeController(eqx.Module):
         (q2d, dq2d), (_, ddq2d) = jax.jvp(lambda X_, q2v: first(X_, q2v)[0], (X, q2), (flow, dq2))
         return q2d, dq2d, ddq2d
 
-    def _q2d_reference(self, t: Array) -> tuple[Array, Array]:
-        """q2d' and q2d'' of the reference-only rotor set point (paper eq. 41-42)."""
+    def _q2d_feedforward(self, t: Array) -> tuple[Array, Array]:
+        """q2d' and q2d'' of the feedforward rotor set point q1d + K^-1 (M q1d'' + C q1d' + G)
+        (reference only, no feedback terms); used to start the filtered derivatives."""
         links, K = self.model.links, self.model.K
 
         def q2d_ref(tt):
@@ -246,10 +252,7 @@ class CascadeController(eqx.Module):
                 "sampled-data simulation (simulate_sampled) or q2d_method 'model'/'reference'"
             )
         q2d, F_hat, z_hat_dot, s1, e1 = self._link(t, q1, dq1, z_hat)
-        if self.q2d_method == "model":
-            _, dq2d, ddq2d = self._q2d_model(t, q1, dq1, q2, dq2, z_hat)
-        else:
-            dq2d, ddq2d = self._q2d_reference(t)
+        _, dq2d, ddq2d = self._q2d_flow(t, q1, dq1, q2, dq2, z_hat, self.q2d_method)
         tau = self._rotor(q1, q2, dq2, q2d, dq2d, ddq2d)
         return LawOutput(tau=tau, z_hat_dot=z_hat_dot, F_hat=F_hat, q2d=q2d, s1=s1, e1=e1)
 
@@ -267,7 +270,7 @@ class CascadeController(eqx.Module):
         dq1 = zero if dq1 is None else jnp.asarray(dq1, q1.dtype)
         dq2 = zero if dq2 is None else jnp.asarray(dq2, q1.dtype)
         q2d = self._link(jnp.asarray(t0, q1.dtype), q1, dq1, zero)[0]
-        dq2d, ddq2d = self._q2d_reference(t0)
+        dq2d, ddq2d = self._q2d_feedforward(t0)
         return ControllerState(
             z_hat=zero, q1_prev=q1, q2_prev=q2, dq1=dq1, dq2=dq2, q2d_prev=q2d, dq2d=dq2d,
             ddq2d=ddq2d,
@@ -293,12 +296,10 @@ class CascadeController(eqx.Module):
         q2d, F_hat, z_hat_dot, s1, e1 = self._link(t, q1, dq1, state.z_hat)
         dq2d_f = dirty(state.dq2d, q2d, state.q2d_prev, self.derivative_tc)
         ddq2d_f = dirty(state.ddq2d, dq2d_f, state.dq2d, self.derivative_tc)
-        if self.q2d_method == "model":
-            _, dq2d, ddq2d = self._q2d_model(t, q1, dq1, q2, dq2, state.z_hat)
-        elif self.q2d_method == "reference":
-            dq2d, ddq2d = self._q2d_reference(t)
-        else:
+        if self.q2d_method == "filtered":
             dq2d, ddq2d = dq2d_f, ddq2d_f
+        else:
+            _, dq2d, ddq2d = self._q2d_flow(t, q1, dq1, q2, dq2, state.z_hat, self.q2d_method)
         tau = self._rotor(q1, q2, dq2, q2d, dq2d, ddq2d)
         if self.compensation:
             z_hat = self.observer.step(state.z_hat, dq1, s1, h)

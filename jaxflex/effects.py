@@ -14,6 +14,12 @@ Plant equations with effects (SPEC section 1 plus effects):
     J q2''                 = tau_a - T_s + sum rotor_torque
     T_s = K (q2 - q1) + sum spring_torque,  tau_a = applied_torque(tau)
 
+Fitting metadata: each concrete effect lists in ``constraints`` how the discrepancy workflow
+reparametrises each parameter ("positive": exp, "positive>=m": m + exp (keeps a fixed-step
+integrator stable), "free": identity, "fixed": not fitted, e.g. a smoothing width or a
+structural frequency, "tied:K": copied from the plant's K), and ``typical(n)`` gives a small instance to start a
+fit from. ``Params.to_plant`` rebuilds an effect as ``EFFECTS[name](**params)``.
+
 Concrete effects register themselves by their SPEC section 8 name in ``EFFECTS``; the
 discrepancy workflow looks them up there. Every effect's parameters are array leaves so that
 ``grad`` reaches them.
@@ -28,15 +34,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxflex.friction import _as_param, check_positive
+from jaxflex.friction import _as_param, check_nonnegative, check_positive
 
 if TYPE_CHECKING:
     from jaxflex.plant import PlantState
 
-EFFECTS: dict[str, type["Effect"]] = {}
+EFFECTS: dict[str, type[Effect]] = {}
 
 
-def register_effect(cls: type["Effect"]) -> type["Effect"]:
+def register_effect(cls: type[Effect]) -> type[Effect]:
     """Class decorator: make an effect known by its ``name`` (SPEC section 8)."""
     if not getattr(cls, "name", None):
         raise ValueError(f"effect class {cls.__name__} has no name")
@@ -48,12 +54,19 @@ class Effect(eqx.Module):
     """Abstract effect. Subclasses set ``name`` and override the hooks where they act."""
 
     name: ClassVar[str] = ""
+    where: ClassVar[str] = ""
+    constraints: ClassVar[dict[str, str]] = {}
 
-    def link_torque(self, x: "PlantState") -> Float[Array, " n"] | float:
+    @classmethod
+    def typical(cls, n: int) -> Effect:
+        """A small instance to start a fit from (all parameters within their constraints)."""
+        raise NotImplementedError(f"effect {cls.name!r} has no typical() start")
+
+    def link_torque(self, x: PlantState) -> Float[Array, " n"] | float:
         """Torque added to the link equation's right-hand side [N m]."""
         return 0.0
 
-    def rotor_torque(self, x: "PlantState") -> Float[Array, " n"] | float:
+    def rotor_torque(self, x: PlantState) -> Float[Array, " n"] | float:
         """Torque added to the rotor equation's right-hand side [N m]."""
         return 0.0
 
@@ -69,9 +82,14 @@ class Effect(eqx.Module):
         """Initial internal state (``None`` for effects without state)."""
         return None
 
-    def aux_rhs(self, aux: Any, tau: Array, x: "PlantState") -> Any:
+    def aux_rhs(self, aux: Any, tau: Array, x: PlantState) -> Any:
         """Time derivative of the internal state."""
         return None
+
+    def aux_steady(self, tau: Float[Array, " n"]) -> Any:
+        """Internal state in equilibrium with a constant commanded torque ``tau`` (used to
+        start a simulation segment from a log); defaults to ``aux_init``."""
+        return self.aux_init(int(jnp.shape(tau)[-1]))
 
     def params(self) -> dict[str, list[float]]:
         """The effect's parameters as plain lists (SPEC section 7 'effects' entry)."""
@@ -91,13 +109,19 @@ class Gravity(Effect):
     """
 
     name: ClassVar[str] = "gravity"
+    where: ClassVar[str] = "link torque"
+    constraints: ClassVar[dict[str, str]] = {"mgl": "positive", "q0": "free"}
     mgl: Float[Array, " n"] = eqx.field(converter=_as_param)
     q0: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
 
     def __check_init__(self) -> None:
         check_positive("gravity", mgl=self.mgl)
 
-    def link_torque(self, x: "PlantState") -> Float[Array, " n"]:
+    @classmethod
+    def typical(cls, n: int) -> Gravity:
+        return cls(mgl=jnp.full(n, 0.05), q0=jnp.zeros(n))
+
+    def link_torque(self, x: PlantState) -> Float[Array, " n"]:
         return -self.mgl * jnp.sin(x.q1 - self.q0)
 
 
@@ -106,7 +130,249 @@ class TorqueOffset(Effect):
     """Constant bias between commanded and applied torque: tau_a = tau + offset [N m]."""
 
     name: ClassVar[str] = "torque_offset"
+    where: ClassVar[str] = "input (applied torque)"
+    constraints: ClassVar[dict[str, str]] = {"offset": "free"}
     offset: Float[Array, " n"] = eqx.field(converter=_as_param)
+
+    @classmethod
+    def typical(cls, n: int) -> TorqueOffset:
+        return cls(offset=jnp.zeros(n))
 
     def applied_torque(self, tau: Array, aux: Any) -> Float[Array, " n"]:
         return tau + self.offset
+
+
+def _smooth_sign(v: Array, width: Array) -> Array:
+    """tanh(v / width): a differentiable sign(v) for Coulomb-type terms."""
+    return jnp.tanh(v / width)
+
+
+def _softplus(x: Array, w: Array) -> Array:
+    """w log(1 + exp(x / w)), a smooth max(x, 0) with corner width w."""
+    return w * jnp.logaddexp(0.0, x / w)
+
+
+@register_effect
+class AsymmetricFriction(Effect):
+    """Direction-dependent Coulomb level on the link: the Coulomb level is Fc + dF when moving
+    forward and Fc - dF when moving backward (SPEC section 8). Added as a link torque
+
+        link_torque = -dF |tanh(q1' / width)|      [N m]
+
+    dF [N m] any sign (|dF| < Fc for a physical plant, not enforced: the nominal Fc is refitted
+    alongside); width [rad/s] > 0 smoothing of sign(q1'), not fitted.
+    """
+
+    name: ClassVar[str] = "asymmetric_friction"
+    where: ClassVar[str] = "link torque"
+    constraints: ClassVar[dict[str, str]] = {"dF": "free", "width": "fixed"}
+    dF: Float[Array, " n"] = eqx.field(converter=_as_param)
+    width: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.01)
+
+    def __check_init__(self) -> None:
+        check_positive("asymmetric_friction", width=self.width)
+
+    @classmethod
+    def typical(cls, n: int) -> AsymmetricFriction:
+        return cls(dF=jnp.zeros(n))
+
+    def link_torque(self, x: PlantState) -> Float[Array, " n"]:
+        return -self.dF * jnp.abs(_smooth_sign(x.dq1, self.width))
+
+
+@register_effect
+class Cogging(Effect):
+    """Position-periodic torque ripple on the link: link_torque = A sin(N q1 + phi) [N m].
+
+    A [N m] >= 0 amplitude; N [1/rad] > 0 spatial frequency (cycles per radian times 2 pi; not
+    fitted by gradient, chosen from the residual's spectrum against position); phi [rad] phase.
+    """
+
+    name: ClassVar[str] = "cogging"
+    where: ClassVar[str] = "link torque"
+    constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free"}
+    A: Float[Array, " n"] = eqx.field(converter=_as_param)
+    N: Float[Array, " n"] = eqx.field(converter=_as_param)
+    phi: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
+
+    def __check_init__(self) -> None:
+        check_nonnegative("cogging", A=self.A)
+        check_positive("cogging", N=self.N)
+
+    @classmethod
+    def typical(cls, n: int) -> Cogging:
+        return cls(A=jnp.full(n, 0.01), N=jnp.full(n, 25.0), phi=jnp.zeros(n))
+
+    def link_torque(self, x: PlantState) -> Float[Array, " n"]:
+        return self.A * jnp.sin(self.N * x.q1 + self.phi)
+
+
+@register_effect
+class Backlash(Effect):
+    """Smooth dead zone of half-width b [rad] in the spring deflection: the elastic torque is
+    K dz(d) instead of K d, with dz(d) = softplus(d - b) - softplus(-d - b) (corner width w).
+    As a spring_torque hook: K (dz(d) - d) [N m].
+
+    b [rad] > 0 half gap; K [N m/rad] > 0 the joint stiffness it acts on (the discrepancy fit
+    ties it to the plant's K); w [rad] > 0 corner width, not fitted.
+    """
+
+    name: ClassVar[str] = "backlash"
+    where: ClassVar[str] = "spring torque"
+    constraints: ClassVar[dict[str, str]] = {"b": "positive", "K": "tied:K", "w": "fixed"}
+    b: Float[Array, " n"] = eqx.field(converter=_as_param)
+    K: Float[Array, " n"] = eqx.field(converter=_as_param)
+    w: Float[Array, " n"] = eqx.field(converter=_as_param, default=2e-4)
+
+    def __check_init__(self) -> None:
+        check_positive("backlash", b=self.b, K=self.K, w=self.w)
+
+    @classmethod
+    def typical(cls, n: int) -> Backlash:
+        return cls(b=jnp.full(n, 1e-3), K=jnp.full(n, 6.77))
+
+    def dead_zone(self, d: Array) -> Array:
+        """Smooth dead zone of the deflection d [rad]."""
+        return _softplus(d - self.b, self.w) - _softplus(-d - self.b, self.w)
+
+    def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"]:
+        return self.K * (self.dead_zone(d) - d)
+
+
+@register_effect
+class HardeningSpring(Effect):
+    """Cubic hardening of the joint spring: spring_torque = K3 d^3 [N m], K3 [N m/rad^3] >= 0."""
+
+    name: ClassVar[str] = "hardening_spring"
+    where: ClassVar[str] = "spring torque"
+    constraints: ClassVar[dict[str, str]] = {"K3": "positive"}
+    K3: Float[Array, " n"] = eqx.field(converter=_as_param)
+
+    def __check_init__(self) -> None:
+        check_nonnegative("hardening_spring", K3=self.K3)
+
+    @classmethod
+    def typical(cls, n: int) -> HardeningSpring:
+        return cls(K3=jnp.full(n, 10.0))
+
+    def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"]:
+        return self.K3 * d**3
+
+
+@register_effect
+class JointDamping(Effect):
+    """Viscous damping in the elastic coupling: spring_torque = D (q2' - q1') [N m],
+    D [N m s/rad] >= 0."""
+
+    name: ClassVar[str] = "joint_damping"
+    where: ClassVar[str] = "spring torque"
+    constraints: ClassVar[dict[str, str]] = {"D": "positive"}
+    D: Float[Array, " n"] = eqx.field(converter=_as_param)
+
+    def __check_init__(self) -> None:
+        check_nonnegative("joint_damping", D=self.D)
+
+    @classmethod
+    def typical(cls, n: int) -> JointDamping:
+        return cls(D=jnp.full(n, 1e-3))
+
+    def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"]:
+        return self.D * dd
+
+
+@register_effect
+class MotorFriction(Effect):
+    """Coulomb (smoothed) plus viscous friction on the rotor side:
+    rotor_torque = -(Fm tanh(q2' / width) + bm q2') [N m].
+
+    Fm [N m] >= 0, bm [N m s/rad] >= 0 (link-referred); width [rad/s] > 0 not fitted.
+    """
+
+    name: ClassVar[str] = "motor_friction"
+    where: ClassVar[str] = "rotor torque"
+    constraints: ClassVar[dict[str, str]] = {"Fm": "positive", "bm": "positive", "width": "fixed"}
+    Fm: Float[Array, " n"] = eqx.field(converter=_as_param)
+    bm: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
+    width: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.01)
+
+    def __check_init__(self) -> None:
+        check_nonnegative("motor_friction", Fm=self.Fm, bm=self.bm)
+        check_positive("motor_friction", width=self.width)
+
+    @classmethod
+    def typical(cls, n: int) -> MotorFriction:
+        return cls(Fm=jnp.full(n, 2e-3), bm=jnp.full(n, 1e-3))
+
+    def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
+        return -(self.Fm * _smooth_sign(x.dq2, self.width) + self.bm * x.dq2)
+
+
+@register_effect
+class ActuatorLag(Effect):
+    """First-order lag between commanded and applied torque (e.g. current loop):
+    T a' = tau - a, applied torque = a [N m]. T [s] > 0 time constant. Aux state a (n,)."""
+
+    name: ClassVar[str] = "actuator_lag"
+    where: ClassVar[str] = "input (applied torque, internal state)"
+    constraints: ClassVar[dict[str, str]] = {"T": "positive>=3e-4"}
+    T: Float[Array, " n"] = eqx.field(converter=_as_param)
+
+    def __check_init__(self) -> None:
+        check_positive("actuator_lag", T=self.T)
+
+    @classmethod
+    def typical(cls, n: int) -> ActuatorLag:
+        return cls(T=jnp.full(n, 1e-3))
+
+    def aux_init(self, n: int) -> Array:
+        return jnp.zeros(n)
+
+    def aux_steady(self, tau: Array) -> Array:
+        return jnp.asarray(tau)
+
+    def aux_rhs(self, aux: Array, tau: Array, x: PlantState) -> Array:
+        return (tau - aux) / self.T
+
+    def applied_torque(self, tau: Array, aux: Array) -> Float[Array, " n"]:
+        return aux
+
+
+@register_effect
+class TimeDelay(Effect):
+    """Input delay of T [s] > 0, as a second-order Pade approximant (unit gain, phase close to
+    -omega T up to omega ~ 3/T):
+
+        exp(-s T) ~ (1 - s T/2 + (s T)^2/12) / (1 + s T/2 + (s T)^2/12)
+                  = 1 - s T / (1 + s T/2 + (s T)^2/12)
+
+    Aux state (p, r) per joint with p'' = (tau - p - (T/2) p') / (T^2/12), r = p'; applied
+    torque tau - T r. Chosen over a sample shift so that the delay lives in the plant (the same
+    model serves a closed-loop simulation and a log replay) and T is differentiable.
+    """
+
+    name: ClassVar[str] = "time_delay"
+    where: ClassVar[str] = "input (applied torque, internal state)"
+    constraints: ClassVar[dict[str, str]] = {"T": "positive>=3e-4"}
+    T: Float[Array, " n"] = eqx.field(converter=_as_param)
+
+    def __check_init__(self) -> None:
+        check_positive("time_delay", T=self.T)
+
+    @classmethod
+    def typical(cls, n: int) -> TimeDelay:
+        return cls(T=jnp.full(n, 1e-3))
+
+    def aux_init(self, n: int) -> Array:
+        return jnp.zeros((2, n))
+
+    def aux_steady(self, tau: Array) -> Array:
+        tau = jnp.asarray(tau)
+        return jnp.stack([tau, jnp.zeros_like(tau)])
+
+    def aux_rhs(self, aux: Array, tau: Array, x: PlantState) -> Array:
+        p, r = aux[0], aux[1]
+        a2 = self.T**2 / 12.0
+        return jnp.stack([r, (tau - p - 0.5 * self.T * r) / a2])
+
+    def applied_torque(self, tau: Array, aux: Array) -> Float[Array, " n"]:
+        return tau - self.T * aux[1]

@@ -150,7 +150,7 @@ class LuGre(eqx.Module):
         return {k: np.asarray(getattr(self, k)).tolist() for k in LUGRE_NAMES}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "LuGre":
+    def from_dict(cls, d: dict[str, Any]) -> LuGre:
         """Build from a mapping with the six SPEC names; a missing name raises ``ValueError``."""
         missing = [k for k in LUGRE_NAMES if k not in d]
         if missing:

@@ -35,7 +35,9 @@ def _vector(section: str, name: str, value: Any, n: int | None) -> list[float]:
     try:
         out = [float(v) for v in vals]
     except (TypeError, ValueError):
-        raise ParamsError(f"{section}.{name}: expected a number or a list of numbers, got {value!r}")
+        raise ParamsError(
+            f"{section}.{name}: expected a number or a list of numbers, got {value!r}"
+        ) from None
     if not out:
         raise ParamsError(f"{section}.{name}: empty list")
     if any(not math.isfinite(v) for v in out):
@@ -67,7 +69,7 @@ class Params:
         return len(self.plant["I"])
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Params":
+    def from_dict(cls, d: dict[str, Any]) -> Params:
         """Validate a SPEC section 7 mapping; raises ``ParamsError`` naming the problem."""
         if not isinstance(d, dict):
             raise ParamsError(f"parameters must be a JSON object, got {type(d).__name__}")

@@ -12,7 +12,6 @@ inertia J, stiffness K, optional LuGre friction and optional effects (``jaxflex.
 from __future__ import annotations
 
 import abc
-from typing import Any
 
 import equinox as eqx
 import jax
@@ -52,6 +51,10 @@ class LinkDynamics(eqx.Module):
     def mass_matrix(self, q: Float[Array, " n"]) -> Float[Array, "n n"]:
         """M(q) [kg m^2]."""
 
+    def solve_mass(self, q: Float[Array, " n"], rhs: Float[Array, " n"]) -> Float[Array, " n"]:
+        """M(q)^-1 rhs (accelerations [rad/s^2] from torques [N m])."""
+        return jnp.linalg.solve(self.mass_matrix(q), rhs)
+
     def potential(self, q: Float[Array, " n"]) -> Float[Array, ""]:
         """Potential energy U(q) [J]; zero for a horizontal arm."""
         return jnp.zeros((), dtype=q.dtype)
@@ -88,6 +91,10 @@ class DiagonalInertia(LinkDynamics):
 
     def mass_matrix(self, q: Array) -> Array:
         return jnp.diag(self.I)
+
+    def solve_mass(self, q: Array, rhs: Array) -> Array:
+        # a batched LU of a 1x1 matrix costs far more than a division (vmapped sweeps)
+        return rhs / self.I
 
     def coriolis(self, q: Array, dq: Array, v: Array) -> Array:
         return jnp.zeros_like(v)
@@ -170,7 +177,7 @@ class FlexibleJointPlant(eqx.Module):
         """Number of joints."""
         return self.links.n
 
-    def with_effects(self, *effects: Effect) -> "FlexibleJointPlant":
+    def with_effects(self, *effects: Effect) -> FlexibleJointPlant:
         """A copy with ``effects`` appended (the discrepancy workflow's way to augment)."""
         return eqx.tree_at(lambda p: p.effects, self, tuple(self.effects) + tuple(effects))
 
@@ -212,7 +219,7 @@ class FlexibleJointPlant(eqx.Module):
             Ts - self.links.coriolis(x.q1, x.dq1, x.dq1) - self.links.gravity(x.q1)
             - self.friction_torque(x) + sum((e.link_torque(x) for e in self.effects), 0.0)
         )
-        ddq1 = jnp.linalg.solve(self.links.mass_matrix(x.q1), link_rhs)
+        ddq1 = self.links.solve_mass(x.q1, link_rhs)
         rotor_rhs = (
             self.applied_torque(x, tau) - Ts + sum((e.rotor_torque(x) for e in self.effects), 0.0)
         )

@@ -110,7 +110,7 @@ class Multisine(Trajectory):
     @classmethod
     def schroeder(
         cls, rms: float, f_min: float, f_max: float, count: int, n: int = 1
-    ) -> "Multisine":
+    ) -> Multisine:
         """Schroeder-phased multisine with ``count`` log-spaced tones in [f_min, f_max] Hz and
         the given RMS [rad] (low crest factor, good for identification)."""
         if not (0 < f_min < f_max) or count < 1 or rms <= 0:

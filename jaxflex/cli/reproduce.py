@@ -1,0 +1,45 @@
+"""``jaxflex reproduce --out DIR``: the paper's experiments (Fig. 9-15) on its parameters."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``reproduce`` subcommand."""
+    p = sub.add_parser(
+        "reproduce",
+        help="re-run the paper's tracking experiments (with/without friction compensation)",
+        description="Re-run the paper's experiments (sinusoid, polynomial, fast motion; q2d "
+        "derivative options) in simulation and write PNG figures and DIR/results.json.",
+    )
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--params", help="parameter file (SPEC section 7); default: the paper's")
+    p.add_argument("--sensing", default="rig", choices=["rig", "ideal", "paper"],
+                   help="measurement realism (default: rig = 16-bit encoders, filtered "
+                   "velocities, 12-bit DAC)")
+    p.add_argument("--q2d", default="model", choices=["model", "filtered", "reference"],
+                   help="how the controller gets q2d' and q2d'' (default: model)")
+    p.add_argument("--duration", type=float, default=10.0, help="seconds per run (default 10)")
+    p.add_argument("--no-q2d-comparison", action="store_true",
+                   help="skip the comparison of the three q2d options")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the experiments and print a table of the results."""
+    from jaxflex.experiments import run_paper_experiments
+    from jaxflex.params import load_params
+
+    params = load_params(args.params) if args.params else None
+    res = run_paper_experiments(
+        args.out, params=params, sensing=args.sensing, q2d_method=args.q2d,
+        t_final=args.duration, compare_q2d=not args.no_q2d_comparison,
+    )
+    print(f"\n{'experiment':<12} {'compensation':<13} {'RMS err (rad)':>14} {'max err (rad)':>14} {'torque RMS (N m)':>17}")
+    for name, e in res["experiments"].items():
+        for key in ("without_compensation", "with_compensation"):
+            print(f"{name:<12} {key.split('_')[0]:<13} {e['rms_error'][key]:>14.3e} "
+                  f"{e['max_error'][key]:>14.3e} {e['tau_rms'][key]:>17.3f}")
+    print(f"\nwrote {args.out}/results.json and figures ({res['wall_time_s']:.0f} s)")
+    return 0

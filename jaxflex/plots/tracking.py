@@ -1,0 +1,84 @@
+"""Tracking figures of the paper's experiments (Fig. 9-15 style)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from jaxflex.simulate import SimResult
+
+
+def plot_tracking(runs: dict[str, SimResult], title: str, path: str | Path) -> list[str]:
+    """Desired and actual link position for each run, and the tracking errors (Fig. 9/10/12-15).
+
+    ``runs`` maps a label (e.g. 'with_compensation') to a saved ``SimResult``. Returns the
+    written file names.
+    """
+    path = Path(path)
+    fig, axes = plt.subplots(len(runs) + 1, 1, figsize=(8, 2.4 * (len(runs) + 1)), sharex=True)
+    for ax, (label, r) in zip(axes, runs.items()):
+        t = np.asarray(r.t)
+        ax.plot(t, np.asarray(r.q1d)[:, 0], "k--", lw=1.0, label="desired")
+        ax.plot(t, np.asarray(r.q1)[:, 0], lw=1.0, label="actual")
+        ax.set_ylabel("position (rad)")
+        ax.set_title(label.replace("_", " "), fontsize=9)
+        ax.legend(loc="upper right", fontsize=8)
+    for label, r in runs.items():
+        axes[-1].plot(np.asarray(r.t), np.asarray(r.e1)[:, 0], lw=1.0, label=label.replace("_", " "))
+    axes[-1].set_ylabel("error (rad)")
+    axes[-1].set_xlabel("time (s)")
+    axes[-1].legend(loc="upper right", fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path.name]
+
+
+def plot_torque_friction(r: SimResult, path: str | Path) -> list[str]:
+    """Control torque against estimated and true friction torque (Fig. 11)."""
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=(8, 3))
+    t = np.asarray(r.t)
+    ax.plot(t, np.asarray(r.tau)[:, 0], lw=1.0, label="control torque")
+    ax.plot(t, np.asarray(r.F_hat)[:, 0], lw=1.0, label="estimated friction")
+    ax.plot(t, np.asarray(r.F)[:, 0], lw=0.8, alpha=0.7, label="true friction (simulated)")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("torque (N m)")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path.name]
+
+
+def plot_q2d_comparison(table: dict[str, Any], path: str | Path) -> list[str]:
+    """Bar chart of RMS tracking error per q2d option and sensing (log scale; hatched bars
+    diverged or saturated most of the time)."""
+    path = Path(path)
+    sensings = list(table)
+    fig, axes = plt.subplots(1, len(sensings), figsize=(4.2 * len(sensings), 3.6), sharey=True)
+    axes = np.atleast_1d(axes)
+    for ax, s in zip(axes, sensings):
+        labels = list(table[s])
+        x = np.arange(len(labels))
+        for j, comp in enumerate(("without_compensation", "with_compensation")):
+            vals = [table[s][lab][comp]["rms_error"] for lab in labels]
+            bad = [table[s][lab][comp]["diverged"] or table[s][lab][comp]["saturation_fraction"] > 0.2
+                   for lab in labels]
+            bars = ax.bar(x + (j - 0.5) * 0.38, vals, 0.38, label=comp.replace("_", " "))
+            for b, flag in zip(bars, bad):
+                if flag:
+                    b.set_hatch("//")
+        ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
+        ax.set_yscale("log")
+        ax.set_title(f"sensing: {s}", fontsize=9)
+    axes[0].set_ylabel("RMS link error (rad)")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path.name]
