@@ -87,13 +87,14 @@ def _summary(r: SimResult) -> dict[str, Any]:
 def run_paper_experiments(
     out: str | Path, *, params: Params | None = None, sensing: str = "rig",
     q2d_method: str = "model", t_final: float = 10.0, compare_q2d: bool = True,
-    progress: Callable[[str], None] | None = print,
+    tasks: list[str] | None = None, progress: Callable[[str], None] | None = print,
 ) -> dict[str, Any]:
     """Run the paper's experiments and write figures and ``results.json`` to ``out``.
 
     Returns the results dict: per experiment, ``rms_error`` / ``max_error`` [rad] and
     ``tau_rms`` [N m], each with ``with_compensation`` and ``without_compensation``.
     With ``compare_q2d`` it also compares the three q2d-derivative options (SPEC section 3).
+    ``tasks`` selects experiments by name (default: all of ``PAPER_TASKS``).
     """
     from jaxflex.plots.tracking import plot_q2d_comparison, plot_torque_friction, plot_tracking
 
@@ -111,7 +112,12 @@ def run_paper_experiments(
         "experiments": {},
     }
     t_start = time.perf_counter()
+    unknown = set(tasks or ()) - set(PAPER_TASKS)
+    if unknown:
+        raise ValueError(f"unknown experiment(s) {sorted(unknown)}; known: {sorted(PAPER_TASKS)}")
     for name, (make, title) in PAPER_TASKS.items():
+        if tasks is not None and name not in tasks:
+            continue
         traj = make()
         runs = {}
         for comp in (False, True):

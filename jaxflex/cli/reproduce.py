@@ -21,6 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--q2d", default="model", choices=["model", "filtered", "reference"],
                    help="how the controller gets q2d' and q2d'' (default: model)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds per run (default 10)")
+    p.add_argument("--tasks", nargs="+", default=None, choices=["sinusoid", "polynomial", "fast"],
+                   help="run only these experiments (default: all)")
     p.add_argument("--no-q2d-comparison", action="store_true",
                    help="skip the comparison of the three q2d options")
     p.set_defaults(func=run)
@@ -34,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params) if args.params else None
     res = run_paper_experiments(
         args.out, params=params, sensing=args.sensing, q2d_method=args.q2d,
-        t_final=args.duration, compare_q2d=not args.no_q2d_comparison,
+        t_final=args.duration, compare_q2d=not args.no_q2d_comparison, tasks=args.tasks,
     )
     print(f"\n{'experiment':<12} {'compensation':<13} {'RMS err (rad)':>14} {'max err (rad)':>14} {'torque RMS (N m)':>17}")
     for name, e in res["experiments"].items():

@@ -1,0 +1,36 @@
+"""``jaxflex reproduce`` writes results.json with the contract's keys and its figures."""
+
+import json
+
+from jaxflex.cli import main
+from jaxflex.params import paper_params, save_params
+
+
+def test_reproduce_cli_writes_results(tmp_path):
+    out = tmp_path / "rep"
+    # one experiment keeps the default suite fast; the slow study test runs them all
+    assert main(["reproduce", "--out", str(out), "--duration", "1.0", "--no-q2d-comparison",
+                 "--tasks", "sinusoid"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["experiments"]) == {"sinusoid"}
+    for e in res["experiments"].values():
+        for metric in ("rms_error", "max_error"):
+            for key in ("with_compensation", "without_compensation"):
+                v = e[metric][key]
+                assert isinstance(v, float) and 0 < v < 1.0
+        for f in e["figures"]:
+            assert (out / f).stat().st_size > 1000
+    assert (out / "sinusoid_torque_friction.png").exists()
+
+
+def test_reproduce_cli_bad_params_file_is_a_clear_error(tmp_path, capsys):
+    p = paper_params()
+    p.plant["I"] = [-0.07]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(p.to_dict()))
+    assert main(["reproduce", "--out", str(tmp_path / "o"), "--params", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "parameter I" in err and "bad.json" in err
+    good = tmp_path / "good.json"
+    save_params(paper_params(), good)
+    assert good.exists()
