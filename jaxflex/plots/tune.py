@@ -1,0 +1,98 @@
+"""Figures of gain tuning against the N2 certificate (``jaxflex tune``, studies/certificate_cost)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from jaxflex.simulate import SimResult
+
+
+def plot_lambda_min(curves: dict[str, dict[str, Any]], path: str | Path,
+                    v_task: float | None = None, margin: float | None = None) -> str:
+    """lambda_min(N2) [-] against link speed [rad/s] for each labelled certificate dict
+    (``CertificateResult.to_dict()``), with the task speed and the margin marked."""
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for label, c in curves.items():
+        v, lam = np.asarray(c["velocities"]), np.asarray(c["lambda_min"])
+        ax.plot(v, lam, lw=1.3, label=f"{label} (certified to {c['certified_up_to']:.3g} rad/s)")
+    ax.axhline(0.0, color="k", lw=0.8)
+    if margin:
+        ax.axhline(margin, color="k", ls=":", lw=0.8, label=f"margin {margin:g}")
+    if v_task:
+        ax.axvline(v_task, color="gray", ls="--", lw=0.8, label=f"task speed {v_task:.3g} rad/s")
+    ax.set_xlabel("link speed |q1'| (rad/s)")
+    ax.set_ylabel("lambda_min(N2)")
+    ax.set_title("N2 certificate (paper eq. 29-31)", fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def plot_tracking_comparison(runs: dict[str, Sequence[SimResult]], path: str | Path) -> str:
+    """Link tracking error e1 [rad] and torque [N m] against time for each labelled gain set
+    (first joint, every trajectory of the task one after another)."""
+    path = Path(path)
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    for label, rs in runs.items():
+        t0 = 0.0
+        for i, r in enumerate(rs):
+            t = np.asarray(r.t) + t0
+            kw = {"label": label} if i == 0 else {}
+            line = ax1.plot(t, np.asarray(r.e1)[:, 0], lw=0.9, **kw)[0]
+            ax2.plot(t, np.asarray(r.tau)[:, 0], lw=0.7, color=line.get_color())
+            t0 = float(t[-1]) + float(t[1] - t[0])
+    ax1.set_ylabel("e1 (rad)")
+    ax2.set_ylabel("tau (N m)")
+    ax2.set_xlabel("time (s), task trajectories in sequence")
+    ax1.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def plot_history(starts: Sequence[dict[str, Any]], path: str | Path) -> str:
+    """RMS tracking error [rad] per iteration of each start of the multi-start search."""
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for i, s in enumerate(starts):
+        ax.semilogy(np.sqrt(np.asarray(s["cost"])), marker=".", lw=1.0, label=f"start {i}")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("RMS link error (rad)")
+    ax.set_title("certified search (every iterate certified)", fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def plot_tradeoff(points: Sequence[dict[str, Any]], path: str | Path,
+                  unconstrained: dict[str, Any] | None = None,
+                  paper: dict[str, Any] | None = None) -> str:
+    """RMS tracking error [rad] of the best gains against the certified speed they were
+    required to reach [rad/s] (the cost of the certificate)."""
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    v = [p["required_speed"] for p in points]
+    e = [p["rms_error"] for p in points]
+    ax.semilogx(v, e, "o-", label="best certified gains")
+    if unconstrained is not None:
+        ax.axhline(unconstrained["rms_error"], color="r", ls="--",
+                   label=f"best uncertified (certified to {unconstrained['certified_up_to']:.3g} rad/s)")
+    if paper is not None:
+        ax.axhline(paper["rms_error"], color="k", ls=":", label="paper gains")
+    ax.set_xlabel("certified link-speed range required (rad/s)")
+    ax.set_ylabel("RMS link error (rad)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name

@@ -1,0 +1,488 @@
+"""Gain tuning against the N2 stability certificate (paper section 4; SPEC section 4).
+
+Choose the cascade gains (Ke, KD1, KD2, kv, L1, L2 per joint, Table 3) that minimise a
+simulated tracking cost over a task, subject to
+
+    lambda_min(N2(v)) >= margin   for all link speeds |v| <= v_task                 (eq. 29-31)
+
+The cost is the mean squared link error of the sampled-data closed loop
+(``jaxflex.simulate.simulate_sampled``) over one or more reference trajectories, with encoder
+and DAC quantisation, filtered velocities and a torque limit, plus an optional torque penalty.
+
+How it works:
+
+- Gains are positive, so the search runs in log-space, theta = log(gains), inside a box of
+  +-log(box) around the initial gains; the objective is log(cost), whose gradient has no
+  scale. Gradients go through the whole simulation (``jax.value_and_grad`` of a
+  ``lax.scan``); quantisers use a straight-through gradient (``StraightThroughSensing``),
+  since rounding has zero derivative and would cut every feedback path out of the gradient.
+- Adam steps, with the certificate *enforced* at every iterate: a step that leaves the
+  certified set is cut back (halved) along the segment from the last certified point, and a
+  step into a diverged simulation is undone. The iterates are certified points; none is traded
+  against the cost.
+- Multi-start: the initial gains (which must themselves be certified) and random log-normal
+  perturbations of them, each pulled back toward the initial gains if uncertified.
+- Final check: the best candidate must pass ``jaxflex.certificate.certify`` up to
+  max(v_task, fastest simulated link speed); otherwise the next best is taken.
+
+Units: gains as in ``jaxflex.controller.CascadeGains``; speeds [rad/s]; cost [rad^2].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxflex.certificate import DEFAULT_EPS, certify, lambda_min_curve
+from jaxflex.controller import CascadeController, CascadeGains
+from jaxflex.plant import FlexibleJointPlant
+from jaxflex.simulate import Sensing, SimResult, simulate_sampled, tracking_summary
+from jaxflex.trajectory import Trajectory
+
+
+class StraightThroughSensing(Sensing):
+    """``Sensing`` whose quantisers pass gradients straight through (value: quantised; derivative:
+    identity). The quantisation error then acts on the gradient like exogenous noise, which
+    is what it is on the rig."""
+
+    def measure(self, q: Array, resolution: Array, noise: Array) -> Array:
+        """Quantised angle with derivative 1 (see ``Sensing.measure``)."""
+        exact = q + noise
+        return exact + jax.lax.stop_gradient(Sensing.measure(self, q, resolution, noise) - exact)
+
+    def dac(self, tau: Array) -> Array:
+        """DAC output; derivative 1 inside the range, 0 where clipped (see ``Sensing.dac``)."""
+        if self.dac_bits == 0:
+            return tau
+        clipped = jnp.clip(tau, -self.dac_range, self.dac_range)
+        return clipped + jax.lax.stop_gradient(Sensing.dac(self, tau) - clipped)
+
+
+def straight_through(sensing: Sensing) -> StraightThroughSensing:
+    """The same sensing with straight-through gradients."""
+    names = [f.name for f in dataclasses.fields(sensing)]
+    return StraightThroughSensing(**{k: getattr(sensing, k) for k in names})
+
+
+def tune_sensing(bits: int = 16, dac_range: float = 2.0) -> Sensing:
+    """Default sensing for tuning: ``bits``-bit link and rotor encoders (rotor behind a 1:50
+    gear), filtered-derivative velocities, 12-bit DAC over +-dac_range [N m].
+
+    The paper's 0.72 deg link encoder (``paper_sensing``) makes the paper's loop (L1 = 200)
+    chatter at the torque limit: one count moves q2d by about L1 KD1 0.0126 / K = 0.37 rad.
+    """
+    res = 2 * math.pi / 2**bits
+    return Sensing(q1_resolution=res, q2_resolution=res / 50.0, velocity="filtered",
+                   dac_bits=12, dac_range=dac_range)
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneTask:
+    """What the gains are tuned for.
+
+    trajectories: references (each for the plant's n joints); t_final [s] per run; sensing;
+    tau_max [N m] controller torque limit; q2d_method "model" or "filtered" ("reference"
+    diverges with the paper's gains); dt [s] sample period; substeps plant steps per sample;
+    seed of the measurement noise (common random numbers for all candidates); torque_weight
+    [rad^2/(N m)^2] weight of the mean squared torque in the cost; velocity_factor: the
+    certificate must hold up to velocity_factor x the fastest reference speed.
+    """
+
+    trajectories: tuple[Trajectory, ...]
+    t_final: float = 2.0
+    sensing: Sensing = dataclasses.field(default_factory=tune_sensing)
+    tau_max: float = 2.0
+    q2d_method: str = "model"
+    dt: float = 1e-3
+    substeps: int = 10
+    seed: int = 0
+    torque_weight: float = 0.0
+    velocity_factor: float = 1.5
+
+    def __post_init__(self) -> None:
+        if isinstance(self.trajectories, Trajectory):
+            object.__setattr__(self, "trajectories", (self.trajectories,))
+        object.__setattr__(self, "trajectories", tuple(self.trajectories))
+        if not self.trajectories:
+            raise ValueError("TuneTask: needs at least one trajectory")
+        if not self.t_final > 0:
+            raise ValueError(f"TuneTask: t_final must be > 0 s, got {self.t_final}")
+        if not self.tau_max > 0:
+            raise ValueError(f"TuneTask: tau_max must be > 0 N m, got {self.tau_max}")
+        if self.q2d_method not in ("model", "filtered", "reference"):
+            raise ValueError(f"TuneTask: unknown q2d_method {self.q2d_method!r}")
+        if self.torque_weight < 0:
+            raise ValueError(f"TuneTask: torque_weight must be >= 0, got {self.torque_weight}")
+        if not self.velocity_factor >= 1:
+            raise ValueError(
+                f"TuneTask: velocity_factor must be >= 1, got {self.velocity_factor}")
+
+    def settings(self) -> tuple:
+        """The static (hashable) settings, for caching compiled functions."""
+        return (self.t_final, self.tau_max, self.q2d_method, self.dt, self.substeps, self.seed,
+                self.torque_weight, self.velocity_factor)
+
+    @classmethod
+    def from_settings(cls, trajectories, sensing, settings: tuple) -> "TuneTask":
+        """Inverse of ``settings``."""
+        t_final, tau_max, q2d, dt, substeps, seed, tw, vf = settings
+        return cls(tuple(trajectories), t_final, sensing, tau_max, q2d, dt, substeps, seed, tw, vf)
+
+    def reference_speed(self) -> float:
+        """Fastest reference link speed max |q1d'| [rad/s] over the task's trajectories."""
+        ts = jnp.linspace(0.0, self.t_final, int(self.t_final / self.dt) + 1)
+        return max(float(jnp.max(jnp.abs(tr.sample(ts, order=1)[:, 1]))) for tr in self.trajectories)
+
+    def certify_speed(self) -> float:
+        """Speed [rad/s] up to which tuned gains must be certified."""
+        return self.velocity_factor * max(self.reference_speed(), 1e-3)
+
+    def controller(self, model: FlexibleJointPlant, gains: CascadeGains,
+                   trajectory: Trajectory) -> CascadeController:
+        """The cascade controller of this task for ``gains``."""
+        return CascadeController(model=model, gains=gains, trajectory=trajectory,
+                                 q2d_method=self.q2d_method, dt=self.dt, tau_max=self.tau_max)
+
+
+def tracking_cost(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask,
+                  model: FlexibleJointPlant | None = None,
+                  sensing: Sensing | None = None) -> tuple[Float[Array, ""], dict[str, Array]]:
+    """Cost [rad^2] of ``gains`` on ``task``: mean over trajectories and joints of the squared
+    RMS link error plus torque_weight x mean squared RMS torque; +inf when a run diverged.
+
+    ``plant`` is the true plant, ``model`` the controller's (default: the plant). Pure; jit and
+    grad friendly. Returns (cost, {"rms_error", "tau_rms", "saturation", "diverged"}).
+    """
+    model = plant if model is None else model
+    sensing = task.sensing if sensing is None else sensing
+    key = jax.random.PRNGKey(task.seed)
+    mets = [
+        simulate_sampled(plant, task.controller(model, gains, tr), task.t_final,
+                         substeps=task.substeps, sensing=sensing, key=key, save=False).metrics
+        for tr in task.trajectories
+    ]
+    rms = jnp.stack([m.rms_error for m in mets])
+    tau = jnp.stack([m.tau_rms for m in mets])
+    diverged = jnp.any(jnp.stack([m.diverged for m in mets]))
+    cost = jnp.mean(rms**2) + task.torque_weight * jnp.mean(tau**2)
+    ok = jnp.isfinite(cost) & ~diverged
+    cost = jnp.where(ok, cost, jnp.inf)
+    aux = {"rms_error": rms, "tau_rms": tau,
+           "saturation": jnp.stack([m.saturation_fraction for m in mets]), "diverged": diverged}
+    return cost, aux
+
+
+@dataclasses.dataclass
+class StartRecord:
+    """One start of the multi-start search: initial and final gains vectors, the cost
+    [rad^2] and certificate value (min lambda_min - margin) per iteration, cut-back steps."""
+
+    theta0: np.ndarray
+    theta: np.ndarray
+    costs: list[float]
+    constraint: list[float]
+    cutbacks: int = 0
+    rejected_divergent: int = 0
+
+
+@dataclasses.dataclass
+class TuneResult:
+    """Result of ``tune``: the tuned gains, their cost and the initial gains' cost [rad^2],
+    the certificate of the tuned gains up to the task speed, the starts, wall time [s]."""
+
+    gains: CascadeGains
+    cost: float
+    initial_gains: CascadeGains
+    initial_cost: float
+    certificate: Any
+    v_task: float
+    margin: float | None
+    starts: list[StartRecord]
+    wall_time_s: float
+    evaluations: int
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready summary."""
+        return {
+            "gains": self.gains.to_dict(), "cost": self.cost,
+            "rms_error": math.sqrt(self.cost) if np.isfinite(self.cost) else None,
+            "initial_gains": self.initial_gains.to_dict(), "initial_cost": self.initial_cost,
+            "v_task": self.v_task, "margin": self.margin,
+            "certified_up_to": None if self.certificate is None else self.certificate.certified_up_to,
+            "starts": [{"cost": s.costs, "constraint": s.constraint, "cutbacks": s.cutbacks,
+                        "rejected_divergent": s.rejected_divergent} for s in self.starts],
+            "wall_time_s": self.wall_time_s, "evaluations": self.evaluations,
+        }
+
+
+def _check_gains_vector(theta: np.ndarray) -> None:
+    if not np.all(np.isfinite(theta)):
+        raise ValueError("tune: gains must be finite and > 0")
+
+
+def tune(
+    plant: FlexibleJointPlant,
+    initial: CascadeGains,
+    task: TuneTask,
+    *,
+    margin: float | None = 0.05,
+    iterations: int = 30,
+    starts: int = 3,
+    learning_rate: float = 0.1,
+    spread: float = 0.5,
+    box: float = 100.0,
+    seed: int = 0,
+    model: FlexibleJointPlant | None = None,
+    eps: float = DEFAULT_EPS,
+    grid: int = 33,
+    progress: Callable[[int, int, float], None] | None = None,
+) -> TuneResult:
+    """Tune the cascade gains on ``task`` under the N2 certificate (module docstring).
+
+    ``margin``: required lambda_min(N2) over |v| <= task.certify_speed(); ``None`` tunes
+    without the certificate (for comparisons; the result is then not checked). ``iterations``
+    Adam steps per start, ``starts`` starts (the first at ``initial``), ``learning_rate`` in
+    log units, ``spread`` the log-normal spread of the other starts, ``box`` the factor by which
+    a gain may move from its initial value, ``grid`` speeds on which the constraint is checked.
+    ``progress(start, iteration, cost)`` is called after every iteration.
+
+    Raises ``ValueError`` on bad settings or when ``initial`` is not certified with ``margin``.
+    """
+    if iterations < 0 or starts < 1:
+        raise ValueError(f"tune: need iterations >= 0 and starts >= 1, got {iterations}, {starts}")
+    if margin is not None and (not np.isfinite(margin) or margin < 0):
+        raise ValueError(f"tune: margin must be finite and >= 0 (or None), got {margin}")
+    if not learning_rate > 0 or not box > 1 or spread < 0:
+        raise ValueError("tune: need learning_rate > 0, box > 1 and spread >= 0")
+    if initial.n != plant.n:
+        raise ValueError(f"tune: gains are for {initial.n} joint(s), the plant has {plant.n}")
+    t_start = time.perf_counter()
+    model = plant if model is None else model
+    v_task = task.certify_speed()
+    vgrid = jnp.linspace(0.0, v_task, grid)
+    st_sensing = straight_through(task.sensing)
+    theta_init = jnp.log(initial.to_vector())
+    _check_gains_vector(np.asarray(theta_init))
+    lo, hi = theta_init - math.log(box), theta_init + math.log(box)
+
+    def value_and_grad(theta):
+        return _log_cost_and_grad(theta, plant, model, task.trajectories, st_sensing,
+                                  task.settings())
+
+    def feasible(theta) -> tuple[bool, float]:
+        c = float(_constraint(theta, model, vgrid, jnp.asarray(0.0 if margin is None else margin), eps))
+        return (margin is None or c >= 0.0), c
+
+    ok0, c0 = feasible(theta_init)
+    if not ok0:
+        raise ValueError(
+            f"tune: the initial gains are not certified with margin {margin} up to "
+            f"{v_task:.3g} rad/s (min lambda_min(N2) - margin = {c0:.3g}); start from "
+            "certified gains or lower the margin")
+
+    def pull_back(theta_from, cand, max_halvings=30):
+        """Largest certified point on the segment from a certified theta_from toward cand."""
+        cuts = 0
+        while not feasible(cand)[0]:
+            cand = theta_from + 0.5 * (cand - theta_from)
+            cuts += 1
+            if cuts >= max_halvings:
+                return theta_from, cuts
+        return cand, cuts
+
+    key = jax.random.PRNGKey(seed)
+    start_points = [theta_init]
+    for k in jax.random.split(key, max(starts - 1, 1))[: starts - 1]:
+        cand = jnp.clip(theta_init + spread * jax.random.normal(k, theta_init.shape), lo, hi)
+        start_points.append(pull_back(theta_init, cand)[0])
+
+    candidates: list[tuple[float, np.ndarray]] = []
+    records: list[StartRecord] = []
+    initial_cost = float("nan")
+    evals = 0
+    b1, b2, adam_eps = 0.9, 0.999, 1e-8
+    for si, theta in enumerate(start_points):
+        rec = StartRecord(theta0=np.asarray(theta), theta=np.asarray(theta), costs=[], constraint=[])
+        m = jnp.zeros_like(theta)
+        v = jnp.zeros_like(theta)
+        lr = learning_rate
+        prev_theta = None
+        for it in range(iterations + 1):
+            (val, (cost, _)), g = value_and_grad(theta)
+            evals += 1
+            cost = float(cost)
+            if si == 0 and it == 0:
+                initial_cost = cost
+            if not np.isfinite(cost) or not np.all(np.isfinite(np.asarray(g))):
+                rec.rejected_divergent += 1
+                if prev_theta is None:
+                    break
+                theta, lr, prev_theta = prev_theta, 0.5 * lr, None
+                continue
+            rec.costs.append(cost)
+            rec.constraint.append(feasible(theta)[1])
+            candidates.append((cost, np.asarray(theta)))
+            if progress is not None:
+                progress(si, it, cost)
+            if it == iterations:
+                break
+            m = b1 * m + (1 - b1) * g
+            v = b2 * v + (1 - b2) * g**2
+            mh, vh = m / (1 - b1 ** (it + 1)), v / (1 - b2 ** (it + 1))
+            cand = jnp.clip(theta - lr * mh / (jnp.sqrt(vh) + adam_eps), lo, hi)
+            new, cuts = pull_back(theta, cand)
+            rec.cutbacks += cuts
+            prev_theta, theta = theta, new
+        rec.theta = np.asarray(theta)
+        records.append(rec)
+
+    # best first; the final check certifies up to the fastest speed the loop actually reaches
+    candidates.sort(key=lambda c: c[0])
+    best_cost, best, cert = initial_cost, np.asarray(theta_init), None
+    for cost, theta in candidates:
+        g = _gains_of(jnp.asarray(theta))
+        if margin is None:
+            best_cost, best = cost, theta
+            break
+        v_check = max(v_task, max_link_speed(plant, g, task, model))
+        if not np.isfinite(v_check):
+            continue
+        c = certify(model, g, v_check, margin=margin, eps=eps)
+        if c.certified:
+            best_cost, best, cert = cost, theta, c
+            break
+    return TuneResult(
+        gains=_gains_of(jnp.asarray(best)), cost=float(best_cost), initial_gains=initial,
+        initial_cost=initial_cost, certificate=cert, v_task=v_task, margin=margin,
+        starts=records, wall_time_s=time.perf_counter() - t_start, evaluations=evals,
+    )
+
+
+def _gains_of(theta: Array) -> CascadeGains:
+    return CascadeGains.from_vector(jnp.exp(theta))
+
+
+@eqx.filter_jit
+def _log_cost_and_grad(theta, plant, model, trajectories, sensing, settings):
+    """(log cost, (cost, aux)) and its gradient in theta = log(gains); module-level so that
+    repeated ``tune`` calls on same-shaped tasks reuse the compiled function."""
+    task = TuneTask.from_settings(trajectories, sensing, settings)
+
+    def objective(th):
+        cost, aux = tracking_cost(plant, _gains_of(th), task, model, sensing)
+        safe = jnp.where(jnp.isfinite(cost), cost, 1.0)
+        return jnp.where(jnp.isfinite(cost), jnp.log(safe), jnp.inf), (cost, aux)
+
+    return jax.value_and_grad(objective, has_aux=True)(theta)
+
+
+@eqx.filter_jit
+def _constraint(theta, model, vgrid, margin, eps):
+    """min over the speed grid of lambda_min(N2) minus the margin (>= 0: certified)."""
+    return jnp.min(lambda_min_curve(model, _gains_of(theta), vgrid, eps)) - margin
+
+
+def simulate_task(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask,
+                  model: FlexibleJointPlant | None = None) -> list[SimResult]:
+    """Saved closed-loop runs of ``gains`` on each trajectory of ``task`` (for reports)."""
+    model = plant if model is None else model
+    key = jax.random.PRNGKey(task.seed)
+    return [_simulate_saved(plant, task.controller(model, gains, tr), task.t_final,
+                            task.substeps, task.sensing, key)
+            for tr in task.trajectories]
+
+
+@eqx.filter_jit
+def _simulate_saved(plant, controller, t_final, substeps, sensing, key):
+    return simulate_sampled(plant, controller, t_final, substeps=substeps, sensing=sensing,
+                            key=key)
+
+
+def max_link_speed(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask,
+                   model: FlexibleJointPlant | None = None) -> float:
+    """Fastest link speed max |q1'| [rad/s] reached on the task (inf if a run diverged)."""
+    runs = simulate_task(plant, gains, task, model)
+    if any(bool(r.metrics.diverged) for r in runs):
+        return float("inf")
+    return max(float(jnp.max(jnp.abs(r.dq1))) for r in runs)
+
+
+def evaluate(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask, *,
+             vmax: float | None = None, margin: float = 0.0,
+             model: FlexibleJointPlant | None = None, eps: float = DEFAULT_EPS,
+             runs: Sequence[SimResult] | None = None) -> dict[str, Any]:
+    """Report numbers for one gain set on ``task``: RMS/max link error [rad], torque RMS [N m],
+    saturation fraction, fastest link speed [rad/s] per trajectory, and the certificate
+    (lambda_min over 0..vmax, certified range; vmax default 5 x the task speed)."""
+    model = plant if model is None else model
+    runs = simulate_task(plant, gains, task, model) if runs is None else runs
+    per = []
+    for r in runs:
+        s = tracking_summary(r.e1, r.tau)
+        s["saturation_fraction"] = float(np.max(np.asarray(r.metrics.saturation_fraction)))
+        s["diverged"] = bool(r.metrics.diverged)
+        s["max_link_speed"] = float(jnp.max(jnp.abs(r.dq1)))
+        per.append(s)
+    vmax = 5 * task.certify_speed() if vmax is None else vmax
+    cert = certify(model, gains, vmax, margin=margin, eps=eps)
+    rms = np.array([np.atleast_1d(p["rms_error"]) for p in per])
+    tau = np.array([np.atleast_1d(p["tau_rms"]) for p in per])
+    return {
+        "gains": gains.to_dict(),
+        "rms_error": float(np.sqrt(np.mean(rms**2))),
+        "tau_rms": float(np.sqrt(np.mean(tau**2))),
+        "per_trajectory": per,
+        "certificate": cert.to_dict(),
+        "lambda_min_at_task_speed": float(
+            np.min(np.asarray(lambda_min_curve(model, gains, [0.0, task.certify_speed()], eps)))),
+    }
+
+
+def write_report(plant: FlexibleJointPlant, result: TuneResult, task: TuneTask,
+                 out: str | Path, *, model: FlexibleJointPlant | None = None,
+                 reference: CascadeGains | None = None,
+                 eps: float = DEFAULT_EPS, vmax: float | None = None) -> dict[str, Any]:
+    """Compare the reference (default: the initial) gains with the tuned gains on ``task`` and
+    write ``report.json`` and figures to the folder ``out``: lambda_min(N2) over speed,
+    certified range (over 0..vmax, default 500 rad/s), RMS link error [rad], torque RMS
+    [N m]. Returns the report dict."""
+    import json
+
+    from jaxflex.plots.tune import plot_history, plot_lambda_min, plot_tracking_comparison
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = plant if model is None else model
+    reference = result.initial_gains if reference is None else reference
+    vmax = max(500.0, 5 * result.v_task) if vmax is None else vmax
+    margin = 0.0 if result.margin is None else result.margin
+    runs = {"initial": simulate_task(plant, reference, task, model),
+            "tuned": simulate_task(plant, result.gains, task, model)}
+    ev = {k: evaluate(plant, g, task, vmax=vmax, margin=margin, model=model, eps=eps,
+                      runs=runs[k])
+          for k, g in (("initial", reference), ("tuned", result.gains))}
+    figs = [
+        plot_lambda_min({k: e["certificate"] for k, e in ev.items()}, out / "lambda_min.png",
+                        v_task=result.v_task, margin=result.margin),
+        plot_tracking_comparison(runs, out / "tracking.png"),
+        plot_history(result.summary()["starts"], out / "history.png"),
+    ]
+    report = {
+        "task": {"trajectories": [type(t).__name__ for t in task.trajectories],
+                 "t_final": task.t_final, "tau_max": task.tau_max, "q2d_method": task.q2d_method,
+                 "dt": task.dt, "certify_speed": result.v_task, "margin": result.margin},
+        "initial": ev["initial"], "tuned": ev["tuned"],
+        "improvement_rms": ev["initial"]["rms_error"] / ev["tuned"]["rms_error"],
+        "search": result.summary(), "figures": figs,
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    return report
