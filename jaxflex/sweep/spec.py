@@ -203,12 +203,19 @@ def parse_distribution(where: str, d: Any, nominal: float | None) -> Distributio
 
 @dataclasses.dataclass(frozen=True)
 class Column:
-    """One sampled scalar: ``group.name`` (effects: ``effects.<effect>.<param>``), joint index."""
+    """One sampled scalar: ``group.name`` (effects: ``effects.<effect>.<param>``), joint index,
+    its distribution, its label, and its nominal value (None where the nominal has none)."""
 
     name: str
     joint: int
     dist: Distribution
     label: str
+    nominal: float | None = None
+
+    @property
+    def nominal_or_center(self) -> float:
+        """The nominal value, or the distribution's centre where there is none."""
+        return self.nominal if self.nominal is not None else self.dist.center_scale()[0]
 
 
 @dataclasses.dataclass
@@ -438,7 +445,7 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
         dd = parse_distribution(f"uncertain.{key}", dist, nom)
         _check_support(f"uncertain.{key}", nm, dd)
         label = nm if n == 1 else f"{nm}[{j}]"
-        columns.append(Column(name=nm, joint=j, dist=dd, label=label))
+        columns.append(Column(name=nm, joint=j, dist=dd, label=label, nominal=nom))
         if parts[0] == "effects":
             effects.setdefault(parts[1], {})
     # every sampled effect must be constructible: its other parameters come from the nominal
