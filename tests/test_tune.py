@@ -1,0 +1,146 @@
+"""Gain tuning under the N2 certificate (jaxflex.tune, ``jaxflex tune``).
+
+The tuning runs are short (1 s of the paper's sinusoid, a few Adam steps, two starts) and share
+one task so that the compiled simulation gradient is reused across tests.
+"""
+
+from __future__ import annotations
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxflex.certificate import certify, lambda_min_curve
+from jaxflex.controller import CascadeGains, paper_gains
+from jaxflex.params import load_params, paper_params, save_params
+from jaxflex.plant import paper_plant
+from jaxflex.simulate import Sensing
+from jaxflex.trajectory import paper_sinusoid
+from jaxflex.tune import (
+    StraightThroughSensing,
+    TuneTask,
+    simulate_task,
+    straight_through,
+    tracking_cost,
+    tune,
+    tune_sensing,
+)
+
+T_FINAL = 1.0
+
+
+def _task() -> TuneTask:
+    return TuneTask(trajectories=(paper_sinusoid(),), t_final=T_FINAL, sensing=tune_sensing())
+
+
+def _rms(plant, gains, task) -> float:
+    """RMS link error [rad] of saved runs (independent of the tuner's running metrics)."""
+    e = np.concatenate([np.asarray(r.e1) for r in simulate_task(plant, gains, task)])
+    return float(np.sqrt(np.mean(e**2)))
+
+
+@pytest.fixture(scope="module")
+def tuned():
+    plant, task = paper_plant(), _task()
+    res = tune(plant, paper_gains(), task, margin=0.05, iterations=4, starts=2, seed=0)
+    return plant, task, res
+
+
+def test_tuned_gains_beat_paper_gains_and_pass_certify(tuned):
+    plant, task, res = tuned
+    rms_paper = _rms(plant, paper_gains(), task)
+    rms_tuned = _rms(plant, res.gains, task)
+    assert rms_tuned < 0.7 * rms_paper
+    assert res.cost == pytest.approx(rms_tuned**2, rel=1e-6)
+    # certified with the margin over every speed the task reaches, and beyond
+    fastest = max(float(jnp.max(jnp.abs(r.dq1))) for r in simulate_task(plant, res.gains, task))
+    v = max(task.certify_speed(), fastest)
+    assert certify(plant, res.gains, v, margin=0.05).certified
+    assert certify(plant, res.gains, 5.0).certified
+    assert res.certificate is not None and res.certificate.certified
+    assert len(res.starts) == 2 and all(len(s.costs) >= 2 for s in res.starts)
+
+
+def test_every_iterate_is_certified_when_the_constraint_binds(tuned):
+    """With a margin just below the paper gains' lambda_min the constraint is active: steps are
+    cut back and no recorded iterate violates it."""
+    plant, task, _ = tuned
+    lam0 = float(jnp.min(lambda_min_curve(plant, paper_gains(), [0.0, task.certify_speed()])))
+    margin = lam0 - 1e-3
+    res = tune(plant, paper_gains(), task, margin=margin, iterations=4, starts=2, seed=1)
+    assert all(c >= 0 for s in res.starts for c in s.constraint)
+    assert certify(plant, res.gains, task.certify_speed(), margin=margin).certified
+    assert res.cost <= res.initial_cost
+
+
+def test_uncertified_initial_gains_and_bad_settings_raise():
+    plant, task = paper_plant(), _task()
+    with pytest.raises(ValueError, match="not certified"):
+        tune(plant, paper_gains(), task, margin=10.0, iterations=1, starts=1)
+    with pytest.raises(ValueError, match="margin"):
+        tune(plant, paper_gains(), task, margin=-0.1, iterations=1, starts=1)
+    with pytest.raises(ValueError, match="KD1"):
+        CascadeGains(**{**paper_gains().to_dict(), "KD1": [-1.0]})
+    with pytest.raises(ValueError, match="t_final"):
+        TuneTask(trajectories=(paper_sinusoid(),), t_final=0.0)
+    with pytest.raises(ValueError, match="trajectory"):
+        TuneTask(trajectories=())
+
+
+def test_straight_through_sensing_values_and_gradient():
+    s = tune_sensing(bits=8)
+    st = straight_through(s)
+    assert isinstance(st, StraightThroughSensing)
+    q = jnp.array([0.01234])
+    res = s.q1_resolution
+    assert jnp.array_equal(st.measure(q, res, 0.0), s.measure(q, res, 0.0))
+    assert jnp.array_equal(st.dac(q * 100), s.dac(q * 100))
+    assert float(jax.grad(lambda x: s.measure(x, res, 0.0).sum())(q)[0]) == 0.0
+    assert float(jax.grad(lambda x: st.measure(x, res, 0.0).sum())(q)[0]) == 1.0
+    assert float(jax.grad(lambda x: st.dac(x).sum())(jnp.array([5.0]))[0]) == 0.0  # clipped
+
+
+def test_tracking_cost_gradient_matches_finite_difference():
+    """Gradient of the cost in log(KD1) through the sampled-data loop (exact sensing)."""
+    plant = paper_plant()
+    task = TuneTask(trajectories=(paper_sinusoid(),), t_final=0.3, sensing=Sensing(), substeps=4,
+                    q2d_method="filtered")
+    th0 = jnp.log(paper_gains().to_vector())
+
+    def f(x):
+        th = th0.at[1].set(th0[1] + x)
+        return tracking_cost(plant, CascadeGains.from_vector(jnp.exp(th)), task)[0]
+
+    vg = eqx.filter_jit(jax.value_and_grad(f))  # one compilation for values and gradient
+    g = float(vg(jnp.asarray(0.0))[1])
+    h = 1e-4
+    fd = (float(vg(jnp.asarray(h))[0]) - float(vg(jnp.asarray(-h))[0])) / (2 * h)
+    assert g == pytest.approx(fd, rel=1e-3)
+    assert g != 0.0
+
+
+def test_cli_tune_writes_gains_and_report(tmp_path, capsys):
+    from jaxflex.cli import main
+
+    p = tmp_path / "p.json"
+    save_params(paper_params(), p)
+    out = tmp_path / "gains.json"
+    rc = main(["tune", "--params", str(p), "--out", str(out), "--t-final", str(T_FINAL),
+               "--iterations", "2", "--starts", "1", "--quiet"])
+    assert rc == 0
+    tuned = load_params(out)
+    assert set(tuned.gains) == {"Ke", "KD1", "KD2", "kv", "L1", "L2"}
+    assert tuned.plant == paper_params().plant
+    rep = json.loads((tmp_path / "gains_report" / "report.json").read_text())
+    for k in ("initial", "tuned"):
+        assert {"rms_error", "tau_rms", "certificate", "lambda_min_at_task_speed"} <= set(rep[k])
+    assert rep["tuned"]["rms_error"] < rep["initial"]["rms_error"]
+    assert all((tmp_path / "gains_report" / f).exists() for f in rep["figures"])
+    assert main(["certify", "--params", str(out), "--json"]) == 0
+    capsys.readouterr()
+    assert main(["tune", "--params", str(p), "--out", str(out), "--margin", "-1"]) == 2
+    assert "margin" in capsys.readouterr().err
