@@ -127,15 +127,15 @@ class TuneTask:
                 f"TuneTask: velocity_factor must be >= 1, got {self.velocity_factor}")
 
     def settings(self) -> tuple:
-        """The static (hashable) settings, for caching compiled functions."""
+        """The static (hashable) settings of the cost, for caching compiled functions."""
         return (self.t_final, self.tau_max, self.q2d_method, self.dt, self.substeps, self.seed,
-                self.torque_weight, self.velocity_factor)
+                self.torque_weight)
 
     @classmethod
     def from_settings(cls, trajectories, sensing, settings: tuple) -> "TuneTask":
-        """Inverse of ``settings``."""
-        t_final, tau_max, q2d, dt, substeps, seed, tw, vf = settings
-        return cls(tuple(trajectories), t_final, sensing, tau_max, q2d, dt, substeps, seed, tw, vf)
+        """Inverse of ``settings`` (velocity_factor, which the cost does not use, at default)."""
+        t_final, tau_max, q2d, dt, substeps, seed, tw = settings
+        return cls(tuple(trajectories), t_final, sensing, tau_max, q2d, dt, substeps, seed, tw)
 
     def reference_speed(self) -> float:
         """Fastest reference link speed max |q1d'| [rad/s] over the task's trajectories."""
