@@ -7,8 +7,8 @@ same process. Also a profile of what limits the batched loop (plant substeps, q2
 float32 against float64) and the float32 path's accuracy.
 
 Every sweep size runs in a fresh subprocess and reads its own peak resident set size from
-``resource.getrusage(RUSAGE_SELF).ru_maxrss``. Throughput excludes the first chunk (tracing
-and XLA compilation, reported separately).
+``resource.getrusage(RUSAGE_SELF).ru_maxrss``. Throughput excludes tracing and XLA
+compilation (a one-chunk warm-up run first; its time is reported as ``first_chunk_s``).
 
 BASELINE (labelled as such, used only here): the same sampled-data loop, one sample at a
 time: the controller is the jitted single-sample ``CascadeController.step`` called every
@@ -49,17 +49,17 @@ def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str,
 
     spec = parse_spread({**SPREAD, "t_final": t_final, "substeps": substeps,
                          "controller": {**SPREAD["controller"], "q2d_method": method}})
+    # warm-up: one chunk compiles the chunk function (cached per spec in this process)
+    warm = run_sweep(spec, samples=min(chunk, samples), chunk_size=chunk, keep_samples=False,
+                     progress=False, float32=float32)
     res = run_sweep(spec, samples=samples, chunk_size=chunk, keep_samples=keep, progress=False,
                     float32=float32)
     tm = res.timing
-    steps_after_first = (samples - min(chunk, samples)) * round(t_final / spec.dt)
-    run_s = tm["wall_s"] - tm["first_chunk_s"]
     out = {
         "samples": samples, "t_final": t_final, "chunk": chunk, "substeps": substeps,
         "q2d_method": method, "float32": float32, "keep_samples": keep,
-        "first_chunk_s": tm["first_chunk_s"], "wall_s": tm["wall_s"],
-        "steps_per_s": steps_after_first / run_s if steps_after_first else None,
-        "steps_per_s_incl_compile": tm["controller_steps"] / tm["wall_s"],
+        "first_chunk_s": warm.timing["wall_s"], "wall_s": tm["wall_s"],
+        "steps_per_s": tm["controller_steps"] / tm["wall_s"],
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "diverged": res.summary["diverged"],
         "rms_q50": res.summary["metrics"]["rms_error"]["q50"],
@@ -132,15 +132,72 @@ def baseline(samples: int, t_final: float) -> dict:
             "rms": rms}
 
 
+def components(n: int, t_final: float, substeps: int = 10) -> dict:
+    """Where the time goes in one batched loop of ``n`` samples: the whole closed loop, the
+    plant alone (``plant_step`` under a fixed torque) and the controller alone (``step`` on a
+    fixed state), each a vmapped ``lax.scan`` over the same number of 1 ms samples."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    jax.config.update("jax_enable_x64", True)
+    from jaxflex.simulate import plant_step, simulate_sampled
+    from jaxflex.sweep import build_models, parse_spread, sample_parameters
+
+    spec = parse_spread({**SPREAD, "t_final": t_final, "substeps": substeps})
+    N = round(t_final / spec.dt)
+    models = jax.vmap(lambda i: build_models(spec, sample_parameters(spec, i)[0])[:3])(jnp.arange(n))
+    plant, ctrl, sens = models
+
+    def timed(f, *args):
+        f = eqx.filter_jit(f)
+        jax.block_until_ready(f(*args))
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        return n * N / (time.perf_counter() - t0)
+
+    @eqx.filter_vmap
+    def full(p, c, s):
+        return simulate_sampled(p, c, t_final, substeps=substeps, sensing=s, save=False).metrics.sum_e2
+
+    @eqx.filter_vmap
+    def plant_only(p, c):
+        x0 = p.init_state(q1=0.0)
+        return jax.lax.scan(lambda x, _: (plant_step(p, x, jnp.full((1,), 0.1), spec.dt, substeps), None),
+                            x0, None, length=N)[0].q1
+
+    @eqx.filter_vmap
+    def ctrl_only(p, c):
+        q = jnp.zeros(1)
+        st = c.init(0.0, q, q)
+        def body(st, t):
+            st, out = c.step(st, t, q + 1e-3 * t, q, q, q)
+            return st, None
+        return jax.lax.scan(body, st, jnp.arange(N) * spec.dt)[0].z_hat
+
+    return {"batch": n, "steps": N, "substeps": substeps,
+            "closed_loop_steps_per_s": timed(full, plant, ctrl, sens),
+            "plant_only_steps_per_s": timed(plant_only, plant, ctrl),
+            "controller_only_steps_per_s": timed(ctrl_only, plant, ctrl)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/bench_sweep")
     ap.add_argument("--small", action="store_true", help="tiny sizes (for the slow test)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--skip-profile", action="store_true")
+    ap.add_argument("--components", action="store_true", help="only the time-split profile")
     a = ap.parse_args()
     if a.worker:
         print(json.dumps(worker(**json.loads(a.worker))))
+        return
+    if a.components:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        rows = [components(1000, 0.1, sub) for sub in (10, 2)]
+        for r in rows:
+            print(json.dumps(r))
+        (Path(a.out) / "components.json").write_text(json.dumps(rows, indent=2) + "\n")
         return
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -320,3 +320,27 @@ def test_two_process_run_on_localhost_equals_a_single_process_run(tmp_path):
         np.testing.assert_allclose(m["rms"], s["rms"], rtol=1e-12)
         np.testing.assert_array_equal(m["band"], s["band"])
         np.testing.assert_array_equal(m["worst"], s["worst"])
+
+
+# ----- studies at small size ---------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_robustness_study_runs_at_small_size(tmp_path):
+    sys.path.insert(0, str(ROOT / "studies"))
+    import sweep_robustness
+
+    r = sweep_robustness.main(["--small", "--out", str(tmp_path), "--no-progress"])
+    assert set(r["runs"]) == {"with compensation", "without compensation"}
+    assert r["paired"]["samples_compared"] > 0
+    assert (tmp_path / "results.json").exists() and (tmp_path / "error_bands.png").exists()
+
+
+@pytest.mark.slow
+def test_benchmark_runs_at_small_size(tmp_path):
+    r = subprocess.run([sys.executable, str(ROOT / "studies" / "bench_sweep.py"), "--small",
+                        "--skip-profile", "--out", str(tmp_path)], capture_output=True, text=True,
+                       timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert len(res["scaling"]) == 2 and res["ratio"]["speedup"] > 1
