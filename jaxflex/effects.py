@@ -314,7 +314,7 @@ class ActuatorLag(Effect):
 
     name: ClassVar[str] = "actuator_lag"
     where: ClassVar[str] = "input (applied torque, internal state)"
-    constraints: ClassVar[dict[str, str]] = {"T": "positive>=3e-4"}
+    constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3"}
     T: Float[Array, " n"] = eqx.field(converter=_as_param)
 
     def __check_init__(self) -> None:
@@ -352,7 +352,7 @@ class TimeDelay(Effect):
 
     name: ClassVar[str] = "time_delay"
     where: ClassVar[str] = "input (applied torque, internal state)"
-    constraints: ClassVar[dict[str, str]] = {"T": "positive>=3e-4"}
+    constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3"}
     T: Float[Array, " n"] = eqx.field(converter=_as_param)
 
     def __check_init__(self) -> None:

@@ -1,0 +1,96 @@
+"""Figures of the discrepancy workflow: residual signature against the telling quantity,
+measured against simulated (held-out) before and after, candidate scores."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def plot_signature(loc: dict[str, Any], quantity: str, path: Path) -> None:
+    """Binned inverse-dynamics residuals (link and rotor side) against ``quantity``, with the
+    noise floor band; plus their spectra."""
+    sig = loc["signatures"]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    keys = [k for k in sig if k.startswith(quantity)] or ["link velocity"]
+    for k in keys + ([f"{quantity} (rotor side)"] if f"{quantity} (rotor side)" in sig else []):
+        if k not in sig:
+            continue
+        b = sig[k]
+        ax[0].errorbar(b["x"], b["mean"], yerr=b["se"], marker="o", ms=3, label=k)
+    if quantity == "rotor velocity" and "rotor velocity" in sig:
+        pass
+    fl = loc["noise_floor_link"] / np.sqrt(max(len(loc["_series"]["t"]) / 15, 1))
+    ax[0].axhspan(-fl, fl, color="0.85", label="noise floor (bin mean)")
+    ax[0].set_xlabel(quantity)
+    ax[0].set_ylabel("torque residual [N m]")
+    ax[0].legend(fontsize=7)
+    sp = loc["spectrum"]
+    ax[1].loglog(sp["f"][1:], sp["link"][1:], label="link side")
+    ax[1].loglog(sp["f"][1:], sp["rotor"][1:], label="rotor side")
+    ax[1].set_xlabel("frequency [Hz]")
+    ax[1].set_ylabel("PSD [N^2 m^2 / Hz]")
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_replay(plot: dict[str, Any], path: Path, count: int = 4) -> None:
+    """Measured against simulated q1 on a few held-out segments, before and after."""
+    from jaxflex.discover import held_out_traces
+
+    test, dt, ss = plot["test"], plot["dt"], plot["substeps"]
+    b1, _ = held_out_traces(plot["before"], test, dt, ss)
+    a1, _ = held_out_traces(plot["after"], test, dt, ss)
+    q1 = np.asarray(test.q1)
+    t0 = np.asarray(test.t0)
+    L = q1.shape[1]
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for i in range(min(count, q1.shape[0])):
+        t = t0[i] + np.arange(L) * dt
+        ax.plot(t, q1[i], "k", lw=1.2, label="measured" if i == 0 else None)
+        ax.plot(t, b1[i], "C3--", lw=1, label="nominal (refit)" if i == 0 else None)
+        ax.plot(t, a1[i], "C0", lw=1, label="augmented" if i == 0 else None)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("q1 [rad]")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_scores(scores: dict[str, dict[str, Any]], base_gap: float, path: Path) -> None:
+    """Held-out gap of every candidate (round 1) against the refit nominal model."""
+    names = sorted(scores, key=lambda k: scores[k]["gap_test"])
+    fig, ax = plt.subplots(figsize=(8, 4))
+    gaps = [scores[k]["gap_test"] for k in names]
+    colors = ["C2" if scores[k]["significant"] else "C7" for k in names]
+    ax.barh(names, gaps, color=colors)
+    ax.axvline(base_gap, color="C3", ls="--", label="nominal refit")
+    ax.set_xlabel("held-out gap (green: significant)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_report(rep: dict[str, Any], plot: dict[str, Any], log: Any, out: Path) -> list[str]:
+    """All figures of one discover run into ``out``; returns their file names."""
+    out = Path(out)
+    q = rep.get("telling_quantity") or "link velocity"
+    if q in ("frequency", "time"):
+        q = "link velocity"
+    plot_signature(plot["loc_before"], q, out / "signature.png")
+    plot_replay(plot, out / "replay.png")
+    names = ["signature.png", "replay.png"]
+    if rep["candidate_scores"]:
+        plot_scores(rep["candidate_scores"], rep["gap_before"], out / "scores.png")
+        names.append("scores.png")
+    return names
