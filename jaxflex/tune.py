@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxflex.certificate import DEFAULT_EPS, certify, lambda_min_curve
+from jaxflex.certificate import DEFAULT_EPS, certify, lambda_min_curve, ultimate_bound
 from jaxflex.controller import CascadeController, CascadeGains
 from jaxflex.plant import FlexibleJointPlant
 from jaxflex.simulate import Sensing, SimResult, simulate_sampled, tracking_summary
@@ -421,8 +421,9 @@ def evaluate(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask, *,
              model: FlexibleJointPlant | None = None, eps: float = DEFAULT_EPS,
              runs: Sequence[SimResult] | None = None) -> dict[str, Any]:
     """Report numbers for one gain set on ``task``: RMS/max link error [rad], torque RMS [N m],
-    saturation fraction, fastest link speed [rad/s] per trajectory, and the certificate
-    (lambda_min over 0..vmax, certified range; vmax default 5 x the task speed)."""
+    saturation fraction, fastest link speed [rad/s] per trajectory, the certificate
+    (lambda_min over 0..vmax, certified range; vmax default 5 x the task speed) and the
+    ultimate bound of eq. 32-33 over the task speeds."""
     model = plant if model is None else model
     runs = simulate_task(plant, gains, task, model) if runs is None else runs
     per = []
@@ -444,6 +445,7 @@ def evaluate(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask, *,
         "certificate": cert.to_dict(),
         "lambda_min_at_task_speed": float(
             np.min(np.asarray(lambda_min_curve(model, gains, [0.0, task.certify_speed()], eps)))),
+        "ultimate_bound": ultimate_bound(model, gains, task.certify_speed(), eps=eps),
     }
 
 

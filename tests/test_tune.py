@@ -144,3 +144,20 @@ def test_cli_tune_writes_gains_and_report(tmp_path, capsys):
     capsys.readouterr()
     assert main(["tune", "--params", str(p), "--out", str(out), "--margin", "-1"]) == 2
     assert "margin" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_certificate_cost_study_small(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "studies" / "certificate_cost.py"
+    spec = importlib.util.spec_from_file_location("certificate_cost", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.main(["--small", "--out", str(tmp_path)])
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved["certified"]["rms_error"] == pytest.approx(res["certified"]["rms_error"])
+    assert saved["certified"]["certified_up_to"] >= saved["config"]["reference_speed"]
+    assert all((tmp_path / f).exists() for f in saved["figures"])
+    assert saved["paper_encoder"]["paper_gains"]["saturation_fraction"] > 0.3
