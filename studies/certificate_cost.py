@@ -46,6 +46,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--starts", type=int, default=None)
     ap.add_argument("--margin", type=float, default=0.05)
+    ap.add_argument("--torque-weight", type=float, default=1e-6,
+                    help="weight of mean squared torque in the cost [rad^2/(N m)^2]; 1e-6 "
+                    "prices 1 N m RMS like 1 mrad RMS error (0 lets the search chatter at the "
+                    "torque limit)")
     args = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
 
@@ -63,7 +67,8 @@ def main(argv: list[str] | None = None) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plant, paper = paper_plant(), paper_gains()
-    task = TuneTask(trajectories=(paper_sinusoid(),), t_final=t_final)
+    task = TuneTask(trajectories=(paper_sinusoid(),), t_final=t_final,
+                    torque_weight=args.torque_weight)
     v_ref = task.reference_speed()
     vmax_report = 500.0
     t0 = time.perf_counter()
@@ -79,12 +84,13 @@ def main(argv: list[str] | None = None) -> dict:
 
     def run_tune(margin, v_req, start):
         tk = TuneTask(trajectories=task.trajectories, t_final=t_final,
-                      velocity_factor=max(1.0, v_req / v_ref))
+                      torque_weight=args.torque_weight, velocity_factor=max(1.0, v_req / v_ref))
         print(f"[certificate_cost] tune margin={margin} v_req={v_req:.3g} rad/s", flush=True)
         return tune(plant, start, tk, margin=margin, iterations=iterations, starts=starts,
                     seed=0)
 
     results: dict = {"config": {"t_final": t_final, "iterations": iterations, "starts": starts,
+                                "torque_weight": args.torque_weight,
                                 "margin": args.margin, "reference_speed": v_ref,
                                 "sensing": "16-bit encoders, filtered velocities, 12-bit DAC",
                                 "tau_max": task.tau_max, "q2d_method": task.q2d_method}}
@@ -117,7 +123,8 @@ def main(argv: list[str] | None = None) -> dict:
     results["tradeoff"] = trade
 
     # the paper's 0.72 deg link encoder (section 6.3) with the paper's and the tuned gains
-    ptask = TuneTask(trajectories=task.trajectories, t_final=t_final, sensing=paper_sensing())
+    ptask = TuneTask(trajectories=task.trajectories, t_final=t_final, sensing=paper_sensing(),
+                     torque_weight=args.torque_weight)
     results["paper_encoder"] = {
         "paper_gains": {k: v for k, v in ev(paper, ptask).items() if k != "certificate"},
         "certified_tuned_gains": {k: v for k, v in ev(cert_res.gains, ptask).items()
