@@ -1,0 +1,47 @@
+"""Identification from logs (SPEC section 5; paper section 5, eq. 34-39).
+
+Public API (the discrepancy workflow builds on it):
+
+- ``identify(log, init, free, model=..., segment_length=...) -> IdentResult``: joint
+  output-error fit by gradient through the simulator (optimistix Levenberg-Marquardt,
+  multiple shooting, constraints by reparametrisation, standard errors, identifiability
+  warnings);
+- ``make_problem`` / ``Problem.residuals``: the same residual for other solvers;
+- ``simulate_log``: replay a log's torque through a parameter set;
+- ``two_step``, ``static_map_experiment``, ``fit_static_map``: the paper's procedure;
+- ``synthetic_log``, ``excitation_torque``: simulated identification experiments;
+- ``ParamSpace``, ``get_value``, ``set_values``: free-parameter bookkeeping.
+"""
+
+from jaxflex.identify.core import (
+    DEFAULT_FREE,
+    IdentificationWarning,
+    IdentResult,
+    Problem,
+    covariance,
+    finish,
+    identify,
+    make_problem,
+    simulate_log,
+)
+from jaxflex.identify.experiments import (
+    STATIC_NAMES,
+    StaticMap,
+    TwoStepResult,
+    excitation_torque,
+    fit_static_map,
+    perturb,
+    static_map_experiment,
+    synthetic_log,
+    two_step,
+)
+from jaxflex.identify.simulators import MODEL_KINDS, replay, rigid_step, rigid_vector_field
+from jaxflex.identify.space import ParamSpace, get_value, set_values
+
+__all__ = [
+    "DEFAULT_FREE", "MODEL_KINDS", "STATIC_NAMES", "IdentResult", "IdentificationWarning",
+    "ParamSpace", "Problem", "StaticMap", "TwoStepResult", "covariance", "excitation_torque",
+    "finish", "fit_static_map", "get_value", "identify", "make_problem", "perturb", "replay",
+    "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",
+    "synthetic_log", "two_step",
+]

@@ -1,0 +1,215 @@
+"""Identification experiments in simulation and the paper's two-step procedure (section 5).
+
+- ``excitation_torque``: an open-loop torque with slow reversals and long low-speed dwell,
+  the excitation that makes vs, sigma0, sigma1 identifiable (SPEC section 9, last pitfall);
+- ``synthetic_log``: replay a torque through a plant and sense it (encoder quantisation and
+  noise from ``jaxflex.simulate.Sensing``) into a ``Log``;
+- ``static_map_experiment``: constant-velocity runs (eq. 35 data): for each velocity a stiff
+  PD loop drives the rigid model (eq. 37) along a ramp with a quantised encoder and a DAC;
+  friction is the mean torque over the steady part, velocity the encoder slope;
+- ``fit_static_map``: Fc, Fs, vs, sigma2 from (v, F) pairs (eq. 35), Levenberg-Marquardt;
+- ``two_step``: the paper's procedure: static fit, then sigma0, sigma1 on the rigid model
+  from an open-loop stick-slip log (eq. 36-39).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import PRNGKeyArray
+
+from jaxflex.friction import LuGre
+from jaxflex.identify.core import IdentResult, identify
+from jaxflex.identify.simulators import ModelKind, replay, rigid_step
+from jaxflex.identify.space import set_values
+from jaxflex.logs import Log
+from jaxflex.params import Params
+from jaxflex.plant import FlexibleJointPlant
+from jaxflex.simulate import Sensing
+
+STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")
+
+
+def excitation_torque(
+    t_final: float = 6.0, dt: float = 1e-3, amplitude: float = 0.22, bias: float = 0.0,
+    periods: Sequence[float] = (2.0, 0.9), n: int = 1,
+) -> np.ndarray:
+    """Open-loop torque [N m], shape (N, n): a slow sinusoid of period ``periods[0]`` [s] whose
+    amplitude sweeps from 0.5 to 1 x ``amplitude``, plus a 25% component of period
+    ``periods[1]``. With ``amplitude`` a little above Fs the link sticks and slips, dwells at low
+    speed and reverses twice per period: the excitation vs, sigma0 and sigma1 need."""
+    t = np.arange(int(round(t_final / dt))) * dt
+    env = 0.5 + 0.5 * np.clip(t / (0.6 * t_final), 0.0, 1.0)
+    u = amplitude * env * (np.sin(2 * np.pi * t / periods[0])
+                           + 0.25 * np.sin(2 * np.pi * t / periods[1] + 0.7)) + bias
+    return np.repeat(u[:, None], n, axis=1)
+
+
+def synthetic_log(
+    plant: FlexibleJointPlant, tau: np.ndarray, *, dt: float = 1e-3, substeps: int = 4,
+    model: ModelKind = "flexible", sensing: Sensing | None = None,
+    key: PRNGKeyArray | None = None, q1_0: float = 0.0,
+) -> tuple[Log, object]:
+    """Replay ``tau`` (N, n) [N m] through ``plant`` from rest at ``q1_0`` and sense the angles.
+
+    Returns (log with t, tau, q1, q2 and exact v = q1', true states). ``sensing``: encoder
+    quantisation and white noise (needs ``key``); None gives exact angles."""
+    tau = jnp.asarray(tau, float)
+    x0 = plant.init_state(q1=q1_0)
+    xs, _ = eqx.filter_jit(lambda p, x, u: replay(model, p, x, u, dt, substeps))(plant, x0, tau)
+    q1, q2 = np.asarray(xs.q1), np.asarray(xs.q2)
+    if sensing is not None:
+        k1, k2 = jax.random.split(key if key is not None else jax.random.PRNGKey(0))
+        n1 = sensing.q1_noise * jax.random.normal(k1, q1.shape)
+        n2 = sensing.q2_noise * jax.random.normal(k2, q2.shape)
+        q1 = np.asarray(sensing.measure(jnp.asarray(q1), sensing.q1_resolution, n1))
+        q2 = np.asarray(sensing.measure(jnp.asarray(q2), sensing.q2_resolution, n2))
+    t = np.arange(tau.shape[0]) * dt
+    log = Log.from_arrays(t=t, tau=np.asarray(tau), q1=q1, q2=q2, v=np.asarray(xs.dq1),
+                          source="synthetic")
+    return log, xs
+
+
+@dataclasses.dataclass(frozen=True)
+class StaticMap:
+    """Constant-velocity friction data (eq. 35): v [rad/s] and F [N m], shape (m,) each."""
+
+    v: np.ndarray
+    F: np.ndarray
+
+
+def static_map_experiment(
+    plant: FlexibleJointPlant, velocities: Sequence[float], *, sensing: Sensing | None = None,
+    kp: float = 40.0, kd: float = 1.5, run_time: float = 3.0, dt: float = 1e-3,
+    substeps: int = 4, key: PRNGKeyArray | None = None, joint: int = 0,
+) -> StaticMap:
+    """Constant-velocity runs on the rigid model (eq. 37) of ``plant`` (one joint).
+
+    For each velocity v a PD loop at 1/``dt`` Hz with feedforward Jx*0 tracks the ramp
+    q = v t from the sensed angle (``sensing``: quantisation, noise, DAC), velocity by a
+    first difference of the sensed angle. Over the second half of the run the friction is
+    the mean applied torque and the velocity is the encoder slope, as on a rig where the
+    torque comes from the motor current. Runs are vmapped over the velocities.
+    """
+    sensing = Sensing() if sensing is None else sensing
+    N = int(round(run_time / dt))
+    vel = jnp.asarray(velocities, float)
+    n = plant.n
+    keys = jax.random.split(key if key is not None else jax.random.PRNGKey(0), len(velocities))
+
+    def run(v, k):
+        noise = sensing.q1_noise * jax.random.normal(k, (N, n))
+        x0 = plant.init_state()
+        q_prev0 = jnp.zeros(n)
+
+        def body(carry, inp):
+            x, q_prev = carry
+            i, e = inp
+            t = i * dt
+            qm = sensing.measure(x.q1, sensing.q1_resolution, e)
+            vm = (qm - q_prev) / dt
+            u = kp * (v * t - qm) + kd * (v - vm)
+            u = sensing.dac(u)
+            x_new = rigid_step(plant, x, u, dt, substeps)
+            return (x_new, qm), (u, qm)
+
+        _, (u, qm) = jax.lax.scan(body, (x0, q_prev0), (jnp.arange(N), noise))
+        h = N // 2
+        F = jnp.mean(u[h:], axis=0)
+        slope = (qm[-1] - qm[h]) / ((N - 1 - h) * dt)
+        return slope[joint], F[joint]
+
+    vs, Fs = eqx.filter_jit(jax.vmap(run))(vel, keys)
+    return StaticMap(v=np.asarray(vs), F=np.asarray(Fs))
+
+
+def fit_static_map(
+    data: StaticMap, init: dict[str, float], *, rtol: float = 1e-12, atol: float = 1e-12,
+) -> dict[str, tuple[float, float]]:
+    """Fit Fc, Fs, vs, sigma2 of one joint to static-map data by eq. 35 (``LuGre.steady_state``).
+
+    Constraints by reparametrisation (Fc, vs, sigma2 = exp, Fs = Fc + exp). ``init`` holds
+    starting values for the four names. Returns name -> (value, standard error) with the
+    standard error from the Jacobian (s^2 (J^T J)^-1, mapped through the reparametrisation).
+    """
+    v, F = jnp.asarray(data.v, float), jnp.asarray(data.F, float)
+    if v.shape != F.shape or v.ndim != 1 or v.size < 5:
+        raise ValueError(f"fit_static_map: need >= 5 (v, F) pairs of equal length, got "
+                         f"{v.shape} and {F.shape}")
+    missing = [k for k in STATIC_NAMES if k not in init]
+    if missing:
+        raise ValueError(f"fit_static_map: missing starting value(s) {missing}")
+
+    def phys(th):
+        Fc = jnp.exp(th[0])
+        return jnp.stack([Fc, Fc + jnp.exp(th[1]), jnp.exp(th[2]), jnp.exp(th[3])])
+
+    def resid(th, _=None):
+        Fc, Fs, vs, s2 = phys(th)
+        lugre = LuGre(Fc=Fc, Fs=Fs, vs=vs, sigma0=1.0, sigma1=0.0, sigma2=s2)
+        return jax.vmap(lambda vi: lugre.steady_state(vi[None])[0])(v) - F
+
+    th0 = jnp.log(jnp.asarray([init["Fc"], max(init["Fs"] - init["Fc"], 1e-3 * init["Fc"]),
+                               init["vs"], max(init["sigma2"], 1e-9)], float))
+    sol = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), th0,
+                             max_steps=500, throw=False)
+    th = sol.value
+    J = np.asarray(jax.jacfwd(resid)(th))
+    r = np.asarray(resid(th))
+    s2 = float(r @ r / max(r.size - 4, 1))
+    T = np.asarray(jax.jacfwd(phys)(th))
+    cov = T @ (s2 * np.linalg.pinv(J.T @ J)) @ T.T
+    p = np.asarray(phys(th))
+    return {k: (float(p[i]), float(math.sqrt(max(cov[i, i], 0.0))))
+            for i, k in enumerate(STATIC_NAMES)}
+
+
+@dataclasses.dataclass
+class TwoStepResult:
+    """The paper's procedure: ``static`` name -> (value, stderr) for Fc, Fs, vs, sigma2;
+    ``dynamic`` the rigid-model fit of sigma0, sigma1; ``params`` all six; ``wall_s``."""
+
+    static: dict[str, tuple[float, float]]
+    dynamic: IdentResult
+    params: Params
+    wall_s: float
+
+
+def two_step(
+    static: StaticMap, stick_slip: Log, init: Params, *, segment_length: int | None = None,
+    substeps: int = 4, **identify_kw,
+) -> TwoStepResult:
+    """Section 5 of the paper on one joint: fit the static map (eq. 35), then sigma0, sigma1 by
+    output error on the rigid model Jx x'' = u - F, Jx = I + J (eq. 36-39), from ``init``."""
+    if init.n != 1:
+        raise ValueError("two_step: the paper's procedure is per joint; pass 1-joint parameters")
+    t0 = time.perf_counter()
+    start = {k: init.friction[k][0] for k in STATIC_NAMES}
+    st = fit_static_map(static, start)
+    p1 = set_values(init, {k: [v[0]] for k, v in st.items()})
+    dyn = identify(stick_slip, p1, ("sigma0", "sigma1"), model="rigid",
+                   segment_length=segment_length, substeps=substeps, **identify_kw)
+    params = dyn.params
+    params.extra["stderr"].update({k: [v[1]] for k, v in st.items()})
+    return TwoStepResult(static=st, dynamic=dyn, params=params, wall_s=time.perf_counter() - t0)
+
+
+def perturb(params: Params, names: Sequence[str], factors: Sequence[float]) -> Params:
+    """``params`` with each named parameter multiplied by its factor (keeps Fs >= Fc by
+    raising Fs if needed)."""
+    from jaxflex.identify.space import get_value
+
+    vals = {k: get_value(params, k) * f for k, f in zip(names, factors)}
+    fc = vals.get("Fc", get_value(params, "Fc"))
+    fs = vals.get("Fs", get_value(params, "Fs"))
+    if np.any(fs < fc):
+        vals["Fs"] = np.maximum(fs, 1.05 * fc)
+    return set_values(params, vals)
