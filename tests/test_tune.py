@@ -37,10 +37,13 @@ def _task() -> TuneTask:
     return TuneTask(trajectories=(paper_sinusoid(),), t_final=T_FINAL, sensing=tune_sensing())
 
 
-def _rms(plant, gains, task) -> float:
-    """RMS link error [rad] of saved runs (independent of the tuner's running metrics)."""
-    e = np.concatenate([np.asarray(r.e1) for r in simulate_task(plant, gains, task)])
-    return float(np.sqrt(np.mean(e**2)))
+def _rms(plant, gains, task) -> tuple[float, float]:
+    """RMS link error [rad] and RMS torque [N m] of saved runs (independent of the tuner's
+    running metrics)."""
+    runs = simulate_task(plant, gains, task)
+    e = np.concatenate([np.asarray(r.e1) for r in runs])
+    tau = np.concatenate([np.asarray(r.tau) for r in runs])
+    return float(np.sqrt(np.mean(e**2))), float(np.sqrt(np.mean(tau**2)))
 
 
 @pytest.fixture(scope="module")
@@ -52,10 +55,10 @@ def tuned():
 
 def test_tuned_gains_beat_paper_gains_and_pass_certify(tuned):
     plant, task, res = tuned
-    rms_paper = _rms(plant, paper_gains(), task)
-    rms_tuned = _rms(plant, res.gains, task)
+    rms_paper, _ = _rms(plant, paper_gains(), task)
+    rms_tuned, tau_tuned = _rms(plant, res.gains, task)
     assert rms_tuned < 0.7 * rms_paper
-    assert res.cost == pytest.approx(rms_tuned**2, rel=1e-6)
+    assert res.cost == pytest.approx(rms_tuned**2 + task.torque_weight * tau_tuned**2, rel=1e-6)
     # certified with the margin over every speed the task reaches, and beyond
     fastest = max(float(jnp.max(jnp.abs(r.dq1))) for r in simulate_task(plant, res.gains, task))
     v = max(task.certify_speed(), fastest)

@@ -39,8 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tau-max", type=float, default=2.0, help="torque limit [N m] (default 2)")
     p.add_argument("--q2d", default="model", choices=["model", "filtered"],
                    help="how the controller gets q2d', q2d'' (default model)")
-    p.add_argument("--torque-weight", type=float, default=0.0,
-                   help="weight of mean squared torque in the cost [rad^2/(N m)^2] (default 0)")
+    p.add_argument("--torque-weight", type=float, default=1e-6,
+                   help="weight of mean squared torque in the cost [rad^2/(N m)^2] (default "
+                   "1e-6: 1 N m RMS costs like 1 mrad RMS error)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts (default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -87,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     def progress(start: int, it: int, cost: float) -> None:
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(start=start, rms=f"{cost ** 0.5:.3e}")
+            bar.set_postfix(start=start, cost=f"{cost:.3e}")
 
     res = tune(plant, initial, task, margin=args.margin, iterations=args.iterations,
                starts=args.starts, learning_rate=args.lr, seed=args.seed, progress=progress)

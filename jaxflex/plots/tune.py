@@ -63,7 +63,7 @@ def plot_history(starts: Sequence[dict[str, Any]], path: str | Path) -> str:
     path = Path(path)
     fig, ax = plt.subplots(figsize=(7, 4))
     for i, s in enumerate(starts):
-        ax.semilogy(np.sqrt(np.asarray(s["cost"])), marker=".", lw=1.0, label=f"start {i}")
+        ax.semilogy(np.asarray(s["rms_error"]), marker=".", lw=1.0, label=f"start {i}")
     ax.set_xlabel("iteration")
     ax.set_ylabel("RMS link error (rad)")
     ax.set_title("certified search (every iterate certified)", fontsize=10)
