@@ -1,0 +1,183 @@
+"""Identification (SPEC section 5): synthetic logs with known parameters are recovered.
+
+Default tests are small; the full-size acceptance checks (all six from factor-2 guesses
+within 0.5%, noisy logs within 10% with consistent standard errors) are marked slow.
+"""
+
+import math
+import warnings
+
+import jax
+import numpy as np
+import pytest
+
+from jaxflex.friction import LUGRE_NAMES
+from jaxflex.identify import (
+    DEFAULT_FREE,
+    IdentificationWarning,
+    ParamSpace,
+    excitation_torque,
+    fit_static_map,
+    identify,
+    make_problem,
+    perturb,
+    static_map_experiment,
+    synthetic_log,
+    two_step,
+)
+from jaxflex.params import paper_params
+from jaxflex.simulate import Sensing
+
+FACTORS = (2.0, 0.6, 2.0, 0.5, 2.0, 0.5)  # Fc, Fs, vs, sigma0, sigma1, sigma2: up to 2x off
+
+
+def _rel_err(params, truth, names=LUGRE_NAMES):
+    return {k: abs(params.friction[k][0] / truth.friction[k][0] - 1.0) for k in names}
+
+
+def _noisy_sensing():
+    # 16-bit link encoder, 0.02 mrad white noise; rotor encoder behind a 1:50 gear.
+    res = 2 * math.pi / 2**16
+    return Sensing(q1_resolution=res, q2_resolution=res / 50, q1_noise=2e-5, q2_noise=1e-6)
+
+
+def _static_data(p):
+    # 16-bit encoder, 12-bit DAC; 4 s per run so the slowest run reaches its steady state.
+    v = np.concatenate([-np.geomspace(0.005, 1.5, 10), np.geomspace(0.005, 1.5, 10)])
+    sens = Sensing(q1_resolution=2 * math.pi / 2**16, dac_bits=12, dac_range=2.0)
+    return static_map_experiment(p.to_plant(), v, sensing=sens, run_time=4.0, substeps=2)
+
+
+def test_reparametrisation_keeps_constraints():
+    p = paper_params()
+    space = ParamSpace.build(p, DEFAULT_FREE)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        theta = {k: np.asarray(rng.normal(scale=5.0, size=1)) for k in space.names}
+        phys = space.physical(theta)
+        assert all(float(phys[k][0]) > 0 for k in LUGRE_NAMES)
+        assert float(phys["Fs"][0]) >= float(phys["Fc"][0])
+    th0 = space.theta0(p)
+    phys0 = space.physical(th0)
+    for k in LUGRE_NAMES:
+        assert float(phys0[k][0]) == pytest.approx(p.friction[k][0], rel=1e-12)
+    # Fc free with Fs fixed stays below Fs.
+    sp2 = ParamSpace.build(p, ["Fc"])
+    assert float(sp2.physical({"Fc": np.array([30.0])})["Fc"][0]) <= p.friction["Fs"][0]
+
+
+def test_bad_identify_input():
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.2), substeps=1)
+    with pytest.raises(ValueError, match="unknown free parameter 'mu'"):
+        identify(log, p, ["mu"])
+    with pytest.raises(ValueError, match="effect 'backlash' is not in the initial parameters"):
+        identify(log, p, ["backlash.width"])
+    with pytest.raises(ValueError, match="segment_length"):
+        identify(log, p, ["Fc"], segment_length=1)
+    with pytest.raises(ValueError, match="model must be"):
+        identify(log, p, ["Fc"], model="stiff")
+
+
+def test_rank_deficiency_is_named():
+    """On the rigid model only Jx = I + J is seen: I and J together are unidentifiable."""
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.4), model="rigid",
+                           substeps=1)
+    with pytest.warns(IdentificationWarning, match=r"cannot separate \[.*'I'.*'J'.*\]"):
+        r = identify(log, p, ["I", "J", "sigma2"], model="rigid", substeps=1, max_steps=3)
+    assert "I" in r.unidentifiable and "J" in r.unidentifiable
+    assert r.rank < r.n_free
+
+
+def test_static_map_fit_recovers_static_parameters():
+    """Step 1 of the paper's procedure alone: constant-velocity runs, eq. 35 fit, within 2%."""
+    p = paper_params()
+    data = _static_data(p)
+    start = {"Fc": 0.2, "Fs": 0.25, "vs": 0.1, "sigma2": 0.1}
+    fit = fit_static_map(data, start)
+    for k, (val, se) in fit.items():
+        assert val == pytest.approx(p.friction[k][0], rel=0.02), k
+        assert se > 0
+
+
+@pytest.mark.slow
+def test_joint_fit_small_noise_free():
+    """A short noise-free log, three parameters from guesses off by 2x, multiple shooting."""
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=1.5, periods=(1.5, 0.7)),
+                           substeps=2)
+    init = perturb(p, ("Fc", "Fs", "sigma2"), (2.0, 1.6, 0.5))
+    r = identify(log, init, ("Fc", "Fs", "sigma2"), segment_length=300, substeps=2,
+                 max_steps=60)
+    err = _rel_err(r.params, p, ("Fc", "Fs", "sigma2"))
+    assert max(err.values()) < 5e-3, err
+    assert r.params.extra["stderr"]["Fc"][0] >= 0
+
+
+def test_problem_residual_zero_at_truth():
+    p = paper_params()
+    log, xs = synthetic_log(p.to_plant(), excitation_torque(t_final=0.6), substeps=2)
+    prob, y0 = make_problem(log, p, DEFAULT_FREE, segment_length=200, substeps=2)
+    # Start states from the true trajectory: residuals vanish at the true parameters.
+    idx = np.arange(3) * 200
+    x0s = np.stack([np.asarray(getattr(xs, f))[idx] for f in ("q1", "dq1", "q2", "dq2", "z")],
+                   axis=1)
+    r = prob.residuals((y0[0], jax.numpy.asarray(x0s)))
+    assert float(np.max(np.abs(np.asarray(r)))) < 1e-6
+
+
+@pytest.mark.slow
+def test_all_six_noise_free_within_half_percent():
+    """Acceptance: all six LuGre parameters from one noise-free log (exact q1, q2), initial
+    guesses off by up to 2x, within 0.5%."""
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=3.0, periods=(1.5, 0.7)),
+                           substeps=2)
+    init = perturb(p, DEFAULT_FREE, FACTORS)
+    r = identify(log, init, DEFAULT_FREE, segment_length=300, substeps=2, max_steps=100)
+    err = _rel_err(r.params, p)
+    assert max(err.values()) < 5e-3, err
+
+
+@pytest.mark.slow
+def test_noisy_logs_within_ten_percent_and_consistent_stderr():
+    """Acceptance: quantised, noisy logs: all six within 10%; across seeds the normalised errors
+    (estimate - truth) / stderr have an RMS of order one (standard errors are honest)."""
+    p = paper_params()
+    tau = excitation_torque(t_final=3.0, periods=(1.5, 0.7))
+    init = perturb(p, DEFAULT_FREE, FACTORS)
+    zs = []
+    for seed in range(4):
+        log, _ = synthetic_log(p.to_plant(), tau, substeps=2, sensing=_noisy_sensing(),
+                               key=jax.random.PRNGKey(seed))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", IdentificationWarning)
+            r = identify(log, init, DEFAULT_FREE, segment_length=300, substeps=2,
+                         max_steps=100)
+        err = _rel_err(r.params, p)
+        assert max(err.values()) < 0.10, (seed, err)
+        for k in LUGRE_NAMES:
+            zs.append((r.params.friction[k][0] - p.friction[k][0]) / r.stderr[k][0])
+    zs = np.asarray(zs)
+    rms = float(np.sqrt(np.mean(zs**2)))
+    assert 0.2 < rms < 3.0, zs
+    assert np.max(np.abs(zs)) < 6.0, zs
+
+
+@pytest.mark.slow
+def test_two_step_procedure():
+    """Acceptance: the paper's procedure recovers Fc, Fs, vs, sigma2 within 2% (static map with
+    a 16-bit encoder and 12-bit DAC); sigma0, sigma1 come from the rigid model fitted to a
+    flexible plant's open-loop stick-slip run."""
+    p = paper_params()
+    data = _static_data(p)
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=2.0, periods=(1.5, 0.7)),
+                           substeps=2, sensing=_noisy_sensing(), key=jax.random.PRNGKey(1))
+    init = perturb(p, DEFAULT_FREE, FACTORS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        res = two_step(data, log, init, segment_length=250, substeps=2, max_steps=60)
+    err = _rel_err(res.params, p, ("Fc", "Fs", "vs", "sigma2"))
+    assert max(err.values()) < 0.02, err
+    assert res.params.friction["sigma0"][0] > 0 and res.params.friction["sigma1"][0] > 0
