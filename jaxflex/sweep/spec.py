@@ -120,20 +120,26 @@ class Distribution:
         return 0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-300)
 
     def sample(self, key: jax.Array) -> jax.Array:
-        """One draw (a scalar in the default float dtype)."""
+        """One draw (a scalar in the default float dtype).
+
+        The random variate is drawn in float32 and then cast, so that a sample's parameters
+        are the same in float64 and float32 runs (24-bit resolution is far below any spread).
+        """
         dt = jnp.result_type(float)
+        f32 = jnp.float32
         if self.kind == "fixed":
             return jnp.asarray(self.a, dt)
         if self.kind == "uniform":
-            return jax.random.uniform(key, (), dt, self.a, self.b)
+            return self.a + (self.b - self.a) * jax.random.uniform(key, (), f32).astype(dt)
         if self.kind == "normal":
             if math.isinf(self.low) and math.isinf(self.high):
-                return self.a + self.b * jax.random.normal(key, (), dt)
+                return self.a + self.b * jax.random.normal(key, (), f32).astype(dt)
             lo, hi = (self.low - self.a) / self.b, (self.high - self.a) / self.b
-            return self.a + self.b * jax.random.truncated_normal(key, lo, hi, (), dt)
+            x = self.a + self.b * jax.random.truncated_normal(key, lo, hi, (), f32).astype(dt)
+            return jnp.clip(x, self.low, self.high)  # float32 rounding at the bounds
         if self.kind == "lognormal":
-            return jnp.exp(self.a + self.b * jax.random.normal(key, (), dt))
-        return jnp.exp(jax.random.uniform(key, (), dt, self.a, self.b))
+            return jnp.exp(self.a + self.b * jax.random.normal(key, (), f32).astype(dt))
+        return jnp.exp(self.a + (self.b - self.a) * jax.random.uniform(key, (), f32).astype(dt))
 
 
 def _num(where: str, field: str, v: Any) -> float:
