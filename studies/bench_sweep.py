@@ -188,6 +188,7 @@ def main() -> None:
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--skip-profile", action="store_true")
     ap.add_argument("--components", action="store_true", help="only the time-split profile")
+    ap.add_argument("--profile-only", action="store_true", help="skip scaling and baseline")
     a = ap.parse_args()
     if a.worker:
         print(json.dumps(worker(**json.loads(a.worker))))
@@ -207,8 +208,10 @@ def main() -> None:
     res: dict = {"horizon_s": H, "chunk": chunk, "cpu_count": os.cpu_count(),
                  "load_avg_start": os.getloadavg(), "gpu": "none available in this task"}
 
-    print(f"[bench] scaling: {sizes} samples, horizon {H} s, chunk {chunk}, float64, 10 substeps")
+    if a.profile_only:
+        sizes = ()
     res["scaling"] = []
+    print(f"[bench] scaling: {sizes} samples, horizon {H} s, chunk {chunk}, float64, 10 substeps")
     for n in sizes:
         r = run_worker(samples=n, t_final=H, chunk=chunk, substeps=10, method="model",
                        float32=False, keep=False)
@@ -216,26 +219,27 @@ def main() -> None:
         print(f"  {n:>7} samples: {r['steps_per_s']:.3g} steps/s (after compile {r['first_chunk_s']:.1f} s), "
               f"peak RSS {r['peak_rss_mb']:.0f} MB")
 
-    nb = 2 if a.small else 5
-    print(f"[bench] baseline: solve_ivp loop over {nb} samples (same process) ...")
-    b = baseline(nb, H)
-    res["baseline"] = {k: v for k, v in b.items()}
-    # the same samples through the batched path, in this process, for the ratio and accuracy
     import jax
     import numpy as np
 
     jax.config.update("jax_enable_x64", True)
     from jaxflex.sweep import parse_spread, run_sweep
 
-    spec = parse_spread({**SPREAD, "t_final": H})
-    ours = run_sweep(spec, samples=chunk, chunk_size=chunk, progress=False)  # compile
-    ours = run_sweep(spec, samples=chunk, chunk_size=chunk, progress=False)
-    sps = ours.timing["controller_steps"] / ours.timing["wall_s"]
-    rel = np.abs(np.asarray(ours.samples["rms_error"][:nb]) - np.asarray(b["rms"])) / np.asarray(b["rms"])
-    res["ratio"] = {"batched_steps_per_s": sps, "baseline_steps_per_s": b["steps_per_s"],
-                    "speedup": sps / b["steps_per_s"], "rms_rel_diff_vs_baseline_max": float(rel.max())}
-    print(f"  baseline {b['steps_per_s']:.3g} steps/s, batched {sps:.3g} steps/s in the same process: "
-          f"x{sps / b['steps_per_s']:.0f}; RMS error agrees to {rel.max():.1e} (relative)")
+    nb = 2 if a.small else 5
+    if not a.profile_only:
+        print(f"[bench] baseline: solve_ivp loop over {nb} samples (same process) ...")
+        b = baseline(nb, H)
+        res["baseline"] = dict(b)
+        # the same samples through the batched path, in this process: ratio and agreement
+        spec = parse_spread({**SPREAD, "t_final": H})
+        ours = run_sweep(spec, samples=chunk, chunk_size=chunk, progress=False)  # compile
+        ours = run_sweep(spec, samples=chunk, chunk_size=chunk, progress=False)
+        sps = ours.timing["controller_steps"] / ours.timing["wall_s"]
+        rel = np.abs(np.asarray(ours.samples["rms_error"][:nb]) - np.asarray(b["rms"])) / np.asarray(b["rms"])
+        res["ratio"] = {"batched_steps_per_s": sps, "baseline_steps_per_s": b["steps_per_s"],
+                        "speedup": sps / b["steps_per_s"], "rms_rel_diff_vs_baseline_max": float(rel.max())}
+        print(f"  baseline {b['steps_per_s']:.3g} steps/s, batched {sps:.3g} steps/s in the same process: "
+              f"x{sps / b['steps_per_s']:.0f}; RMS error agrees to {rel.max():.1e} (relative)")
 
     if not a.skip_profile:
         n = 64 if a.small else 1000
@@ -255,8 +259,9 @@ def main() -> None:
             print(f"  substeps {sub:>2} {meth:>8} {'f32' if f32 else 'f64'}: {r['steps_per_s']:.3g} steps/s, "
                   f"compile {r['first_chunk_s']:.1f} s, RMS rel. diff vs first row {r['rms_rel_diff_vs_first_max']}")
     res["load_avg_end"] = os.getloadavg()
-    (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
-    print(f"[bench] wrote {out / 'results.json'}")
+    name = "profile.json" if a.profile_only else "results.json"
+    (out / name).write_text(json.dumps(res, indent=2) + "\n")
+    print(f"[bench] wrote {out / name}")
 
 
 if __name__ == "__main__":
