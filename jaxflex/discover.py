@@ -13,7 +13,8 @@ Workflow (``discover``), for one joint:
    data do not.
 2. Refit the nominal model (I, J, K, Fc, Fs, sigma2; vs, sigma0, sigma1 kept, they are poorly
    identifiable from positions, SPEC section 9) on the training segments by Levenberg-Marquardt
-   on the simulated-position residuals, so that a parameter mismatch is not taken for missing
+   on the simulated-position residuals (forward-mode Jacobian through the lax.scan replay; a
+   small host loop rather than optimistix, whose compiled solver took minutes to compile), so that a parameter mismatch is not taken for missing
    physics.
 3. Gap metric: normalised RMS error of the simulated q1 and q2 over the held-out segments,
    relative to the measured motion within each segment:
@@ -45,7 +46,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 import scipy.signal
 import scipy.stats
 
@@ -222,9 +222,40 @@ def _constraint(c: str) -> tuple[Callable, Callable] | None:
     return None
 
 
+class Gated(Effect):
+    """An effect switched by ``gate`` (0 or 1): every hook's contribution times the gate, the
+    applied torque tau + gate (inner(tau) - tau). Lets one compiled simulator hold every
+    candidate at once (inactive ones gated off), so fits of all candidates, rounds and logs of
+    the same length share one XLA compilation. Not registered: it is a device of the fit."""
+
+    inner: Effect
+    gate: jax.Array
+
+    def link_torque(self, x: PlantState):
+        return self.gate * self.inner.link_torque(x)
+
+    def rotor_torque(self, x: PlantState):
+        return self.gate * self.inner.rotor_torque(x)
+
+    def spring_torque(self, d, dd):
+        return self.gate * self.inner.spring_torque(d, dd)
+
+    def applied_torque(self, tau, aux):
+        return tau + self.gate * (self.inner.applied_torque(tau, aux) - tau)
+
+    def aux_init(self, n: int):
+        return self.inner.aux_init(n)
+
+    def aux_steady(self, tau):
+        return self.inner.aux_steady(tau)
+
+    def aux_rhs(self, aux, tau, x):
+        return self.inner.aux_rhs(aux, tau, x)
+
+
 def _set(plant: FlexibleJointPlant, owner: int, name: str, val: jax.Array) -> FlexibleJointPlant:
     if owner >= 0:
-        return eqx.tree_at(lambda p: getattr(p.effects[owner], name), plant, val)
+        return eqx.tree_at(lambda p: getattr(p.effects[owner].inner, name), plant, val)
     sec, k = name.split(".")
     if k == "I":
         return eqx.tree_at(lambda p: p.links.I, plant, val)
@@ -234,8 +265,8 @@ def _set(plant: FlexibleJointPlant, owner: int, name: str, val: jax.Array) -> Fl
 
 
 def unpack(theta: jax.Array, template: FlexibleJointPlant, slots: tuple) -> FlexibleJointPlant:
-    """The plant of an unconstrained parameter vector: ``template`` with the fitted leaves
-    replaced (Fs = Fc + exp(u); effect parameters "tied:K" follow the plant's K). Traceable."""
+    """The plant of an unconstrained parameter vector: the gated ``template`` with the fitted
+    leaves replaced (Fs = Fc + exp(u); "tied:K" effect parameters follow the plant's K)."""
     plant = template
     dFs = None
     for i, (owner, name, c) in enumerate(slots):
@@ -247,7 +278,7 @@ def unpack(theta: jax.Array, template: FlexibleJointPlant, slots: tuple) -> Flex
     if dFs is not None:
         plant = eqx.tree_at(lambda p: p.friction.Fs, plant, plant.friction.Fc + dFs)
     for i, e in enumerate(plant.effects):
-        for k, c in type(e).constraints.items():
+        for k, c in type(e.inner).constraints.items():
             if c == "tied:K":
                 plant = _set(plant, i, k, plant.K)
     return plant
@@ -255,26 +286,58 @@ def unpack(theta: jax.Array, template: FlexibleJointPlant, slots: tuple) -> Flex
 
 @dataclasses.dataclass
 class Model:
-    """A one-joint model to fit: nominal ``Params`` plus a list of effects (instances)."""
+    """A one-joint model to fit: nominal ``Params`` plus the active effects (instances, in the
+    order added). ``starts`` gives start instances for inactive candidates (e.g. cogging with
+    its frequency from the residual spectrum)."""
 
     params: Params
     effects: list[Effect]
+    starts: dict[str, Effect] = dataclasses.field(default_factory=dict)
+    universe: tuple[str, ...] = ()
 
-    def template(self) -> FlexibleJointPlant:
-        """The plant at the current values."""
+    def _universe(self) -> tuple[str, ...]:
+        """Effects the gated model holds (the candidates; all registered ones by default), in a
+        fixed order, always including the active ones."""
+        return tuple(sorted(set(self.universe or EFFECTS) | set(self.active)))
+
+    @property
+    def active(self) -> dict[str, Effect]:
+        return {e.name: e for e in self.effects}
+
+    def plant(self) -> FlexibleJointPlant:
+        """The plant with the active effects only (what params.json describes)."""
         return self.params.to_plant(with_effects=False).with_effects(*self.effects)
 
+    def template(self) -> FlexibleJointPlant:
+        """The gated universal plant: every registered effect, active ones with gate 1."""
+        act = self.active
+        effs = []
+        for name in self._universe():
+            e = act.get(name) or self.starts.get(name) or EFFECTS[name].typical(1)
+            if name == "backlash" and name not in act:
+                e = EFFECTS[name](b=e.b, K=self.params.plant["K"], w=e.w)
+            effs.append(Gated(e, jnp.asarray(1.0 if name in act else 0.0)))
+        return self.params.to_plant(with_effects=False).with_effects(*effs)
+
     def slots(self) -> tuple[tuple[int, str, str], ...]:
-        """Fitted parameters as (owner, name, constraint); owner -1 is the nominal part."""
+        """All parameters of the universal model as (owner, name, constraint); owner -1 is the
+        nominal part, owner i the i-th effect of ``self._universe()``."""
         out = [(-1, f"{sec}.{k}", "positive") for sec, k in NOMINAL_FIT]
-        for i, e in enumerate(self.effects):
-            for k, c in type(e).constraints.items():
+        for i, name in enumerate(self._universe()):
+            for k, c in EFFECTS[name].constraints.items():
                 if _constraint(c) is not None:
                     out.append((i, k, c))
         return tuple(out)
 
+    def mask(self) -> np.ndarray:
+        """Which slots are fitted: the nominal ones and those of active effects."""
+        act = self.active
+        uni = self._universe()
+        return np.asarray([o < 0 or uni[o] in act for o, _, _ in self.slots()])
+
     def theta0(self) -> np.ndarray:
-        """Unconstrained start vector."""
+        """Unconstrained start vector (all slots)."""
+        tpl = self.template()
         th = []
         for owner, name, c in self.slots():
             if owner < 0:
@@ -283,16 +346,19 @@ class Model:
                 if k == "Fs":
                     v = max(v - self.params.friction["Fc"][0], 1e-6)
             else:
-                v = float(np.ravel(getattr(self.effects[owner], name))[0])
+                v = float(np.ravel(getattr(tpl.effects[owner].inner, name))[0])
             th.append(float(_constraint(c)[1](np.asarray(v))))
         return np.asarray(th)
 
     def physical(self, theta: np.ndarray) -> tuple["Model", dict[str, float], np.ndarray]:
-        """(model at theta, {name: value}, d value / d theta) on the host."""
-        slots = self.slots()
+        """(model at theta, {name: value} of fitted slots, d value / d theta) on the host."""
+        slots, mask = self.slots(), self.mask()
         plant = unpack(jnp.asarray(theta), self.template(), slots)
+        uni = self._universe()
         named, deriv = {}, []
         for i, (owner, name, c) in enumerate(slots):
+            if not mask[i]:
+                continue
             f = _constraint(c)[0]
             deriv.append(float(jax.grad(lambda u: f(u))(jnp.asarray(theta[i], float))))
             if owner < 0:
@@ -300,20 +366,23 @@ class Model:
                 mod = plant.links if k == "I" else plant if sec == "plant" else plant.friction
                 named[name] = float(np.ravel(getattr(mod, k))[0])
             else:
-                named[f"{self.effects[owner].name}.{name}"] = float(
-                    np.ravel(getattr(plant.effects[owner], name))[0]
+                named[f"{uni[owner]}.{name}"] = float(
+                    np.ravel(getattr(plant.effects[owner].inner, name))[0]
                 )
-        return Model(_params_from_plant(plant, self.params), list(plant.effects)), named, np.asarray(deriv)
+        fitted = {uni[i]: g.inner for i, g in enumerate(plant.effects)}
+        effects = [fitted[e.name] for e in self.effects]
+        P = _params_from_plant(plant, effects, self.params)
+        return Model(P, effects, self.starts, self.universe), named, np.asarray(deriv)
 
 
-def _params_from_plant(plant: FlexibleJointPlant, base: Params) -> Params:
+def _params_from_plant(plant: FlexibleJointPlant, effects: list[Effect], base: Params) -> Params:
     f = lambda a: [float(v) for v in np.ravel(a)]
     fr = plant.friction
     return Params(
         plant={"I": f(plant.links.I), "J": f(plant.J), "K": f(plant.K)},
         friction={k: f(getattr(fr, k)) for k in ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")},
         gains=base.gains,
-        effects={e.name: e.params() for e in plant.effects},
+        effects={e.name: e.params() for e in effects},
         extra=dict(base.extra),
     )
 
@@ -338,30 +407,82 @@ class FitResult:
 
 
 class _Problem(eqx.Module):
-    """Everything a residual evaluation needs, as one pytree (so that the compiled solver is
-    reused across logs and candidates of the same structure)."""
+    """Everything a residual evaluation needs, as one pytree: the gated universal plant, which
+    slots are fitted (``mask``) and the fixed values of the others. Same structure for every
+    candidate, round and log of the same length, so the solver compiles once."""
 
     template: FlexibleJointPlant
     segs: Segments
     scale: jax.Array
+    mask: jax.Array
+    theta_fixed: jax.Array
     slots: tuple = eqx.field(static=True)
     dt: float = eqx.field(static=True)
     substeps: int = eqx.field(static=True)
 
 
 def _residual(theta: jax.Array, prob: _Problem) -> jax.Array:
-    plant = unpack(theta, prob.template, prob.slots)
+    th = jnp.where(prob.mask, theta, prob.theta_fixed)
+    plant = unpack(th, prob.template, prob.slots)
     s1, s2 = simulate_segments(plant, prob.segs, prob.dt, prob.substeps)
     r = jnp.concatenate([(s1 - prob.segs.q1).ravel(), (s2 - prob.segs.q2).ravel()]) / prob.scale
     return jnp.where(jnp.isfinite(r), r, 1e3)
 
 
+#: Most fitted parameters at once (6 nominal + up to three effects of two parameters).
+_PMAX = 12
+
+
 @eqx.filter_jit
-def _solve(theta0, prob, max_steps):
-    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
-    sol = optx.least_squares(_residual, solver, theta0, args=prob, max_steps=max_steps, throw=False)
-    r = _residual(sol.value, prob)
-    return sol.value, sol.stats["num_steps"], r, jax.jacfwd(_residual)(sol.value, prob)
+def _residual_jac(theta: jax.Array, basis: jax.Array, prob: _Problem) -> tuple[jax.Array, jax.Array]:
+    """Residual and its Jacobian along the columns of ``basis`` (forward mode, one jvp per
+    column, batched)."""
+    f = lambda th: _residual(th, prob)
+    r, lin = jax.linearize(f, theta)
+    return r, jax.vmap(lin, in_axes=1, out_axes=1)(basis)
+
+
+def _levenberg_marquardt(
+    theta0: np.ndarray, mask: np.ndarray, prob: _Problem, max_steps: int, rtol: float = 1e-7,
+) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt with Marquardt's diagonal scaling on the fitted slots; the residual
+    and Jacobian come from one compiled function (a host loop keeps XLA compile time low).
+    Returns (theta, steps, residual, Jacobian over fitted slots)."""
+    idx = np.flatnonzero(mask)
+    p = idx.size
+    if p > _PMAX:
+        raise ValueError(f"too many fitted parameters ({p} > {_PMAX})")
+    basis = np.zeros((theta0.size, _PMAX))
+    basis[idx, np.arange(p)] = 1.0
+    basis = jnp.asarray(basis)
+    theta = np.asarray(theta0, float).copy()
+    r, J = (np.asarray(a) for a in _residual_jac(jnp.asarray(theta), basis, prob))
+    J = J[:, :p]
+    cost, lam = float(r @ r), 1e-3
+    steps = 0
+    for steps in range(1, max_steps + 1):  # noqa: B007 (steps is returned)
+        A, g = J.T @ J, J.T @ r
+        d = np.maximum(np.diag(A), 1e-12 * max(np.diag(A).max(), 1e-300))
+        try:
+            step = np.linalg.solve(A + lam * np.diag(d), -g)
+        except np.linalg.LinAlgError:
+            lam *= 10
+            continue
+        trial = theta.copy()
+        trial[idx] += step
+        r2, J2 = (np.asarray(a) for a in _residual_jac(jnp.asarray(trial), basis, prob))
+        c2 = float(r2 @ r2)
+        if np.isfinite(c2) and c2 < cost:
+            done = cost - c2 < rtol * cost
+            theta, r, J, cost = trial, r2, J2[:, :p], c2
+            lam = max(lam / 3.0, 1e-9)
+            if done:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e8:
+                break
+    return theta, steps, r, J
 
 
 @eqx.filter_jit
@@ -371,12 +492,14 @@ def _gap(plant, segs, dt, substeps):
 
 def _problem(model: Model, segs: Segments, dt: float, substeps: int) -> _Problem:
     scale = jnp.sqrt(jnp.mean((segs.q1 - segs.q1[:, :1]) ** 2))
-    return _Problem(model.template(), segs, scale, model.slots(), dt, substeps)
+    th0 = jnp.asarray(model.theta0())
+    return _Problem(model.template(), segs, scale, jnp.asarray(model.mask()), th0,
+                    model.slots(), dt, substeps)
 
 
 def fit_model(
-    model: Model, train: Segments, test: Segments, dt: float, *, substeps: int = 4,
-    max_steps: int = 30, tau_int: float = 1.0,
+    model: Model, train: Segments, test: Segments, dt: float, *, substeps: int = 1,
+    max_steps: int = 15, tau_int: float = 1.0,
 ) -> FitResult:
     """Levenberg-Marquardt fit of ``model`` on the training segments (forward-mode Jacobian
     through the lax.scan simulator); standard errors from the Gauss-Newton covariance
@@ -384,18 +507,15 @@ def fit_model(
     t0 = time.perf_counter()
     prob = _problem(model, train, dt, substeps)
     scale = float(prob.scale)
-    th0 = jnp.asarray(model.theta0())
-    theta, steps, r, Jm = _solve(th0, prob, max_steps)
-    rss = float(jnp.sum(r**2)) * scale**2
-    Jm = np.asarray(Jm) * scale
-    n, p = r.size, th0.size
-    fitted, named, deriv = model.physical(np.asarray(theta))
+    mask = model.mask()
+    theta, steps, r, Jm = _levenberg_marquardt(model.theta0(), mask, prob, max_steps)
+    rss = float(np.sum(r**2)) * scale**2
+    Jm = Jm * scale
+    n, p = r.size, int(mask.sum())
+    fitted, named, deriv = model.physical(theta)
     sigma2 = rss / max(n - p, 1) * tau_int
-    try:
-        cov = sigma2 * np.linalg.pinv(Jm.T @ Jm)
-        se_u = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    except np.linalg.LinAlgError:
-        se_u = np.full(p, np.nan)
+    cov = sigma2 * np.linalg.pinv(Jm.T @ Jm)
+    se_u = np.sqrt(np.maximum(np.diag(cov), 0.0))
     stderr = {k: float(abs(d) * s) for k, d, s in zip(named, deriv, se_u)}
     plant = fitted.template()
     return FitResult(
@@ -601,7 +721,8 @@ def discover(
     test = make_segments(log, split, N, L)
     nominal = Params.from_dict(nominal.to_dict())
     nominal.effects = {}
-    current = fit_model(Model(nominal, []), train, test, dt, substeps=cfg.substeps,
+    universe = tuple(sorted(cands))
+    current = fit_model(Model(nominal, [], universe=universe), train, test, dt, substeps=cfg.substeps,
                         max_steps=cfg.max_steps * 2)
     say(f"nominal refit: gap train {current.gap_train:.4f} held-out {current.gap_test:.4f}")
     first_fit = current
@@ -621,7 +742,9 @@ def discover(
         for name in cands:
             if name in added:
                 continue
-            m = Model(current.model.params, list(current.model.effects) + [_start_effect(name, current.model, series)])
+            start = _start_effect(name, current.model, series)
+            m = Model(current.model.params, list(current.model.effects) + [start],
+                      universe=universe)
             try:
                 f = fit_model(m, train, test, dt, substeps=cfg.substeps, max_steps=cfg.max_steps,
                               tau_int=tau_int)
@@ -700,5 +823,5 @@ def _gap_floor(log: LogData, train: Segments, dt: float, window: int = 31) -> fl
 
 def held_out_traces(fit: FitResult, segs: Segments, dt: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:
     """Simulated (q1, q2) of a fitted model on segments, (S, L) each (for plots)."""
-    s1, s2 = eqx.filter_jit(simulate_segments)(fit.model.template(), segs, dt, substeps)
+    s1, s2 = eqx.filter_jit(simulate_segments)(fit.model.plant(), segs, dt, substeps)
     return np.asarray(s1), np.asarray(s2)

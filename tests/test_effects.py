@@ -1,0 +1,130 @@
+"""Effects library (SPEC section 8): names, construction from params, where each acts, the
+physics of each hook, constraints, gradients."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxflex.effects import EFFECTS
+from jaxflex.params import Params, paper_params
+from jaxflex.plant import paper_plant
+
+SPEC_NAMES = {
+    "asymmetric_friction", "gravity", "cogging", "backlash", "hardening_spring",
+    "joint_damping", "motor_friction", "actuator_lag", "torque_offset", "time_delay",
+}
+
+
+def test_all_spec_names_registered_with_metadata():
+    assert SPEC_NAMES <= set(EFFECTS)
+    for name in SPEC_NAMES:
+        cls = EFFECTS[name]
+        assert cls.name == name and cls.where and cls.constraints
+
+
+@pytest.mark.parametrize("name", sorted(SPEC_NAMES))
+def test_rebuilt_from_params_section(name):
+    """Params.to_plant() rebuilds each effect from its 'effects' entry, same vector field."""
+    e = EFFECTS[name].typical(1)
+    p = paper_params()
+    d = p.to_dict()
+    d["effects"] = {name: e.params()}
+    plant = Params.from_dict(d).to_plant()
+    ref = paper_plant().with_effects(e)
+    x = ref.init_state(q1=0.1, dq1=0.3, q2=0.13, dq2=0.5)
+    tau = jnp.array([0.2])
+    a, b = plant.vector_field(x, tau), ref.vector_field(x, tau)
+    for u, v in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(u, v, rtol=1e-12)
+
+
+def _acc(effect, **state):
+    base = paper_plant()
+    x = base.with_effects(effect).init_state(**state)
+    x0 = base.init_state(**state)
+    tau = jnp.array([0.3])
+    a1, a2 = base.with_effects(effect).accelerations(x, tau)
+    b1, b2 = base.accelerations(x0, tau)
+    return float((a1 - b1)[0]) * 0.07, float((a2 - b2)[0]) * 0.005  # torque changes [N m]
+
+
+def test_each_effect_acts_where_it_says():
+    E = EFFECTS
+    # link-side torques: only the link acceleration changes
+    dl, dr = _acc(E["gravity"](mgl=0.4, q0=0.0), q1=0.3)
+    assert dl == pytest.approx(-0.4 * math.sin(0.3)) and dr == 0.0
+    dl, dr = _acc(E["cogging"](A=0.05, N=20.0, phi=0.3), q1=0.1)
+    assert dl == pytest.approx(0.05 * math.sin(2.0 + 0.3)) and dr == 0.0
+    dl, dr = _acc(E["asymmetric_friction"](dF=0.04), q1=0.0, dq1=1.0)
+    assert dl == pytest.approx(-0.04, rel=1e-6) and dr == 0.0
+    dl, _ = _acc(E["asymmetric_friction"](dF=0.04), q1=0.0, dq1=-1.0)
+    assert dl == pytest.approx(-0.04, rel=1e-6)  # same sign both ways: the asymmetry
+    # rotor-side torque
+    dl, dr = _acc(E["motor_friction"](Fm=0.03, bm=0.02), dq1=0.0, dq2=2.0)
+    assert dl == 0.0 and dr == pytest.approx(-(0.03 + 0.04), rel=1e-6)
+    # spring torques act on both sides with opposite signs
+    dl, dr = _acc(E["hardening_spring"](K3=500.0), q1=0.0, q2=0.05)
+    assert dl == pytest.approx(500.0 * 0.05**3) and dr == pytest.approx(-dl)
+    dl, dr = _acc(E["joint_damping"](D=0.03), dq1=0.0, dq2=2.0)
+    assert dl == pytest.approx(0.06) and dr == pytest.approx(-0.06)
+    # input path
+    dl, dr = _acc(E["torque_offset"](offset=0.05))
+    assert dl == 0.0 and dr == pytest.approx(0.05)
+
+
+def test_backlash_dead_zone():
+    bl = EFFECTS["backlash"](b=0.01, K=6.77, w=1e-4)
+    d = jnp.array([0.0, 0.005, -0.008, 0.05, -0.05])
+    total = 6.77 * d + bl.spring_torque(d, 0 * d)
+    expect = 6.77 * np.array([0.0, 0.0, 0.0, 0.04, -0.04])
+    np.testing.assert_allclose(total, expect, atol=6.77 * 2e-4)
+
+
+def test_actuator_lag_and_delay_steady_state_and_gain():
+    for name in ("actuator_lag", "time_delay"):
+        e = EFFECTS[name](T=0.004)
+        tau = jnp.array([0.7])
+        aux = e.aux_steady(tau)
+        assert float(e.applied_torque(tau, aux)[0]) == pytest.approx(0.7)
+        np.testing.assert_allclose(e.aux_rhs(aux, tau, None), 0.0, atol=1e-12)
+
+
+def test_time_delay_pade_matches_exp():
+    """Frequency response of the Pade state-space (from the hooks by autodiff) is
+    exp(-j w T) to within the 2nd-order Pade error for w T <= 1, and lag is not a delay."""
+    T = 0.004
+    e = EFFECTS["time_delay"](T=T)
+    z = jnp.zeros((2, 1))
+    A = jax.jacobian(lambda a: e.aux_rhs(a, jnp.zeros(1), None).ravel())(z).reshape(2, 2)
+    B = jax.jacobian(lambda u: e.aux_rhs(z, u, None).ravel())(jnp.zeros(1)).reshape(2, 1)
+    C = jax.jacobian(lambda a: e.applied_torque(jnp.zeros(1), a))(z).reshape(1, 2)
+    D = 1.0
+    for w in (10.0, 100.0, 250.0):
+        H = (C @ np.linalg.solve(1j * w * np.eye(2) - np.asarray(A), np.asarray(B)))[0, 0] + D
+        assert abs(H) == pytest.approx(1.0, abs=1e-9)
+        assert np.angle(H) == pytest.approx(-w * T, abs=2e-3)
+
+
+@pytest.mark.parametrize(
+    "name,kw,bad",
+    [("hardening_spring", {"K3": -1.0}, "K3"), ("joint_damping", {"D": -0.1}, "D"),
+     ("actuator_lag", {"T": 0.0}, "T"), ("time_delay", {"T": -1e-3}, "T"),
+     ("backlash", {"b": -0.01, "K": 6.77}, "b"), ("cogging", {"A": 0.1, "N": 0.0}, "N"),
+     ("motor_friction", {"Fm": -0.1}, "Fm")],
+)
+def test_constraints_refuse_bad_values(name, kw, bad):
+    with pytest.raises(ValueError, match=bad):
+        EFFECTS[name](**kw)
+
+
+def test_gradient_reaches_effect_parameters():
+    def f(K3):
+        p = paper_plant().with_effects(EFFECTS["hardening_spring"](K3=K3))
+        x = p.init_state(q1=0.0, q2=0.05)
+        return p.accelerations(x, jnp.array([0.0]))[0][0]
+
+    g = jax.grad(f)(300.0)
+    assert float(g) == pytest.approx(0.05**3 / 0.07, rel=1e-9)
