@@ -28,6 +28,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--samples", type=int, help="samples (default: the spread file's, 10,000)")
     ap.add_argument("--t-final", type=float, help="horizon per sample [s] (default: the file's)")
     ap.add_argument("--substeps", type=int, help="plant substeps per 1 ms sample (default: the file's)")
+    ap.add_argument("--q2d-method", choices=("model", "filtered", "reference"),
+                    help="how the controller gets q2d', q2d'' (default: the file's, 'model')")
     ap.add_argument("--chunk-size", type=int, default=1000)
     ap.add_argument("--small", action="store_true", help="64 samples, 0.3 s (for the slow test)")
     ap.add_argument("--no-progress", action="store_true")
@@ -49,6 +51,8 @@ def main(argv: list[str] | None = None) -> dict:
         ch["t_final"] = a.t_final
     if a.substeps:
         ch["substeps"] = a.substeps
+    if a.q2d_method:
+        ch["q2d_method"] = a.q2d_method
     if a.small:
         ch.update(samples=64, t_final=0.3)
     spec = spec.with_(**ch)
@@ -61,7 +65,8 @@ def main(argv: list[str] | None = None) -> dict:
     for comp in (True, False):
         label = "with compensation" if comp else "without compensation"
         s = spec.with_(compensation=comp)
-        print(f"[sweep_robustness] {label}: {s.samples} samples, {s.t_final} s, {s.substeps} substeps")
+        print(f"[sweep_robustness] {label}: {s.samples} samples, {s.t_final} s, "
+              f"{s.substeps} substeps, q2d {s.q2d_method}")
         runs[label] = run_sweep(s, chunk_size=chunk, progress=not a.no_progress)
         noms[label] = nominal_run(s)
     wall = time.perf_counter() - t0
@@ -73,6 +78,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "question": __doc__.split("\n\n")[0].replace("Study: ", ""),
         "samples": spec.samples, "t_final_s": spec.t_final, "substeps": spec.substeps,
+        "q2d_method": spec.q2d_method,
         "wall_s": wall,
         "runs": {k: {**r.summary, "timing": r.timing} for k, r in runs.items()},
         "nominal_rms_error": {k: v["rms_error"] for k, v in noms.items()},
