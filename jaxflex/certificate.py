@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -127,6 +128,11 @@ def lambda_min_curve(plant: FlexibleJointPlant, gains: CascadeGains, velocities:
     return jax.vmap(lambda s: lambda_min(plant, gains, s, eps))(vs)
 
 
+# compiled once per shape (plant and gains are array leaves, eps static)
+_curve_jit = eqx.filter_jit(lambda_min_curve)
+_lambda_min_jit = eqx.filter_jit(lambda_min)
+
+
 @dataclasses.dataclass(frozen=True)
 class CertificateResult:
     """Where a gain set is certified (host-side record).
@@ -181,7 +187,7 @@ def certify(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAUL
     """
     _check_range(vmax, num, margin, eps)
     vel = np.linspace(0.0, float(vmax), int(num))
-    lam = np.asarray(jax.jit(lambda g: lambda_min_curve(plant, g, vel, eps))(gains))
+    lam = np.asarray(_curve_jit(plant, gains, jnp.asarray(vel), eps))
     ok = lam > margin
     if ok.all():
         up_to = float(vmax)
@@ -190,10 +196,10 @@ def certify(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAUL
     else:
         first_bad = int(np.argmin(ok))
         lo, hi = vel[first_bad - 1], vel[first_bad]
-        f = jax.jit(lambda s: lambda_min(plant, gains, s, eps))
         for _ in range(refine):
             mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if float(f(mid)) > margin else (lo, mid)
+            lam_mid = float(_lambda_min_jit(plant, gains, jnp.asarray(mid), eps))
+            lo, hi = (mid, hi) if lam_mid > margin else (lo, mid)
         up_to = float(lo)
     return CertificateResult(vel, lam, up_to, bool(ok.all()), float(margin), float(eps))
 
