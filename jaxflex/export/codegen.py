@@ -1,0 +1,418 @@
+"""Write the standalone controller module from traced ``CascadeController`` functions.
+
+Three functions of the controller are traced with ``jax.make_jaxpr`` for fixed shapes (n
+joints): ``init`` (filter and observer state at the first sample), ``step`` (one sample:
+velocity estimation, observer, q2d derivatives, cascade law, saturation) and the reference
+``trajectory.position``. Every array leaf of the controller (model, LuGre, gains, reference,
+filter constants, torque limit) is a jaxpr *input*, so the generated module can be rebuilt
+with other values; the traced values are written into it as defaults.
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflex.controller import CascadeController
+from jaxflex.export.translate import (
+    Program,
+    Sym,
+    Translator,
+    eliminate_dead,
+    format_atom,
+    sym_array,
+)
+
+# SPEC section 7 entries -> controller leaf names
+_SPEC_MAP: dict[str, str] = {
+    "plant.I": "model.links.I", "plant.J": "model.J", "plant.K": "model.K",
+    **{f"friction.{k}": f"model.friction.{k}" for k in ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")},
+    **{f"gains.{k}": f"gains.{k}" for k in ("Ke", "KD1", "KD2", "kv", "L1", "L2")},
+}
+
+
+@dataclass
+class _Leaves:
+    names: list[str]
+    values: list[np.ndarray]
+    rebuild: Callable[[list[Any]], CascadeController]
+
+
+def _leaves(controller: CascadeController) -> _Leaves:
+    dyn, static = eqx.partition(controller, eqx.is_array)
+    flat, treedef = jax.tree_util.tree_flatten_with_path(dyn)
+    names = [jax.tree_util.keystr(path).lstrip(".") for path, _ in flat]
+    values = [np.asarray(v, dtype=np.float64) for _, v in flat]
+
+    def rebuild(leaves):
+        return eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
+
+    return _Leaves(names, values, rebuild)
+
+
+def _translate(fn: Callable, example_args: list[Any], arg_syms: list[np.ndarray],
+               prefix: str) -> Program:
+    """Trace ``fn`` (flat args) and translate its jaxpr, with ``arg_syms`` as its inputs."""
+    closed = jax.make_jaxpr(fn)(*example_args)
+    flat_syms = [a for a in arg_syms]
+    if len(flat_syms) != len(closed.jaxpr.invars):
+        raise RuntimeError("jaxflex.export: argument count mismatch while tracing")
+    tr = Translator(prefix=prefix)
+    outs = tr.run(closed.jaxpr, closed.consts, flat_syms)
+    prog = Program(params=[], signals=[], outputs=[a for o in outs for a in o.reshape(-1)])
+    prog.static_stmts, prog.dyn_stmts = tr.static_stmts, tr.dyn_stmts
+    return prog
+
+
+def _fn_source(prog: Program, fname: str, param_names: list[str], signal_sig: str,
+               unpack: str, ret: str) -> str:
+    """``_derive_<f>`` (hoisted constants) and ``_make_<f>`` (closure with the per-sample code)."""
+    live: set[str] = {a.name for a in prog.outputs if isinstance(a, Sym)}
+    dyn = eliminate_dead(prog.dyn_stmts, live)
+    dyn_targets = {t for st in dyn for t in st.targets}
+    closure = sorted(n for n in live if n not in dyn_targets and n[0] in "cp")
+    live_static = set(closure)
+    stat = eliminate_dead(prog.static_stmts, live_static)
+    lines = [f"def _derive_{fname}({', '.join(param_names)}):"]
+    lines += [f"    {', '.join(st.targets)} = {st.code}" for st in stat]
+    lines.append(f"    return ({''.join(c + ', ' for c in closure)})")
+    lines.append("")
+    lines.append("")
+    cl = ", ".join(closure)
+    body = ([f"{unpack}"] if unpack else []) + [f"{', '.join(st.targets)} = {st.code}" for st in dyn]
+    body.append(f"return {ret}")
+    # fast path: Python floats and math (raises on 1/0, overflow, domain errors, even in a
+    # branch that jnp.where discards); fallback: the same statements on numpy float64 scalars
+    # with IEEE semantics, as XLA computes them
+    lines.append(f"def _make_{fname}_ieee({cl}):")
+    lines.append(f"    def _{fname}_ieee({signal_sig}):")
+    lines += ["        " + b.replace("_m.", "_s.") for b in body]
+    lines.append(f"    return _{fname}_ieee")
+    lines.append("")
+    lines.append("")
+    lines.append(f"def _make_{fname}({cl}):")
+    lines.append(f"    _slow = _make_{fname}_ieee(*[_np.float64(x) for x in ({cl}{',' if closure else ''})])")
+    lines.append(f"    def _{fname}({signal_sig}):")
+    lines.append("        try:")
+    lines += ["            " + b for b in body]
+    lines.append("        except (ArithmeticError, ValueError):")
+    lines.append(f"            return _ieee(_slow, {signal_sig.replace('*', '')})")
+    lines.append(f"    return _{fname}")
+    return "\n".join(lines)
+
+
+def _literal(v: float) -> str:
+    if math.isnan(v):
+        return "_NAN"
+    if math.isinf(v):
+        return "_INF" if v > 0 else "-_INF"
+    return repr(float(v))
+
+
+def generate_source(controller: CascadeController, *, description: str = "") -> str:
+    """Python source of a standalone module (numpy and the standard library only) that
+    computes exactly what ``controller.init`` / ``controller.step`` compute.
+
+    Needs float64 (the exporter turns it on while tracing). Raises ``UnsupportedPrimitive``
+    (a ``ValueError``) naming a primitive it cannot translate.
+    """
+    with jax.enable_x64(True):
+        return _generate(controller, description)
+
+
+def _generate(controller: CascadeController, description: str) -> str:
+    n = controller.model.n
+    lv = _leaves(controller)
+    f64 = jnp.float64
+    leaves = [jnp.asarray(v, f64) for v in lv.values]
+    param_syms = [sym_array(f"p{i}", v.shape, True) for i, v in enumerate(lv.values)]
+    param_args = [f"p{i}_{k}" for i, v in enumerate(lv.values) for k in range(v.size)]
+    zeros = jnp.zeros(n, f64)
+    state0 = controller.init(0.0, zeros, zeros)
+    st_leaves, st_def = jax.tree_util.tree_flatten(state0)
+    st_syms = [sym_array(f"s{i}", tuple(x.shape), False) for i, x in enumerate(st_leaves)]
+    t_sym = np.array(Sym("t", False), dtype=object).reshape(())
+    q1_syms = sym_array("q1", (n,), False)
+    q2_syms = sym_array("q2", (n,), False)
+    q_args = [f"q1_{k}" for k in range(n)] + [f"q2_{k}" for k in range(n)]
+    state_args = [f"s{i}_{k}" for i, x in enumerate(st_leaves) for k in range(int(np.size(x)))]
+
+    def step_fn(*args):
+        k = len(leaves)
+        c = lv.rebuild(list(args[:k]))
+        st = jax.tree_util.tree_unflatten(st_def, list(args[k:k + len(st_leaves)]))
+        t, q1, q2 = args[k + len(st_leaves):]
+        new, out = c.step(st, t, q1, q2)
+        return jax.tree_util.tree_leaves(new), out.tau
+
+    def init_fn(*args):
+        k = len(leaves)
+        c = lv.rebuild(list(args[:k]))
+        t, q1, q2 = args[k:]
+        return jax.tree_util.tree_leaves(c.init(t, q1, q2))
+
+    def ref_fn(*args):
+        k = len(leaves)
+        c = lv.rebuild(list(args[:k]))
+        return c.trajectory.position(args[k])
+
+    t0 = jnp.asarray(0.0, f64)
+    step_prog = _translate(step_fn, [*leaves, *st_leaves, t0, zeros, zeros],
+                           [*param_syms, *st_syms, t_sym, q1_syms, q2_syms], "v")
+    init_prog = _translate(init_fn, [*leaves, t0, zeros, zeros],
+                           [*param_syms, t_sym, q1_syms, q2_syms], "v")
+    ref_prog = _translate(ref_fn, [*leaves, t0], [*param_syms, t_sym], "v")
+
+    n_state = len(state_args)
+    new_state = [format_atom(a) for a in step_prog.outputs[:n_state]]
+    tau = [format_atom(a) for a in step_prog.outputs[n_state:]]
+    init_state = [format_atom(a) for a in init_prog.outputs]
+    ref = [format_atom(a) for a in ref_prog.outputs]
+    tup = lambda xs: "(" + "".join(x + ", " for x in xs) + ")"
+    if n == 1:
+        step_ret = f"{tup(new_state)}, {tau[0]}"
+        ref_ret = ref[0]
+    else:
+        step_ret = f"{tup(new_state)}, {tup(tau)}"
+        ref_ret = tup(ref)
+    sig = ", ".join(["S", "t", *q_args])
+    unpack = f"{tup(state_args)} = S"
+    funcs = [
+        _fn_source(step_prog, "step", param_args, sig, unpack, step_ret),
+        _fn_source(init_prog, "init", param_args, ", ".join(["t", *q_args]), "", tup(init_state)),
+        _fn_source(ref_prog, "reference", param_args, "t", "", ref_ret),
+    ]
+    defaults = ",\n".join(
+        f"    {name!r}: ({tuple(v.shape)!r}, [{', '.join(_literal(x) for x in v.reshape(-1))}])"
+        for name, v in zip(lv.names, lv.values)
+    )
+    spec_map = {k: v for k, v in _SPEC_MAP.items() if v in lv.names}
+    state_names = [f.name for f in _state_fields(state0)]
+    header = _HEADER.format(
+        description=description or "Cascade controller with LuGre friction observer",
+        date=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        n=n, dt=repr(float(controller.dt)), method=controller.q2d_method,
+        compensation=controller.compensation,
+        n_ops=sum(1 for _ in funcs[0].splitlines()),
+    )
+    body = _BODY.format(
+        n=n, dt=repr(float(controller.dt)), method=controller.q2d_method,
+        defaults=defaults, spec_map=repr(spec_map), state_names=repr(state_names),
+        funcs="\n\n\n".join(funcs),
+    )
+    return header + body
+
+
+def _state_fields(state: Any) -> list[Any]:
+    import dataclasses
+
+    return list(dataclasses.fields(state))
+
+
+_HEADER = '''"""{description} -- standalone export.
+
+Generated by ``jaxflex export`` on {date} from the traced JAX definition
+(``jaxflex.controller.CascadeController.init`` / ``.step``); DO NOT EDIT: change the JAX
+controller and export again. Imports only numpy and the Python standard library.
+
+Joints: {n}; sample period dt = {dt} s; q2d_method = {method!r}; friction compensation: {compensation}.
+
+    ctrl = Controller()                      # the exported parameters
+    ctrl = Controller.from_json("P.json")    # other plant/friction/gains (SPEC section 7)
+    ctrl = Controller(params={{"gains.L1": [150.0]}})
+    ctrl.reset()
+    tau = ctrl.step(t, q1, q2)               # t [s], q1, q2 [rad] -> tau [N m]
+
+``step`` must be called once per sample period dt (the velocity filters and the observer
+assume it). One joint: floats in, float out; n joints: arrays (n,) in, numpy array out.
+"""
+
+'''
+
+_BODY = '''import json as _json
+import math as _m
+
+import numpy as _np
+
+N_JOINTS = {n}
+DT = {dt}
+Q2D_METHOD = {method!r}
+_INF = float("inf")
+_NAN = float("nan")
+
+# name: (shape, row-major values) of every controller constant
+DEFAULT_PARAMS = {{
+{defaults}
+}}
+# SPEC section 7 parameter-file entries -> names above
+SPEC_MAP = {spec_map}
+STATE_NAMES = {state_names}
+
+
+def _sign(x):
+    return 1.0 if x > 0 else (-1.0 if x < 0 else x)
+
+
+class _s:
+    """IEEE versions (numpy float64) of the math functions used by the generated code."""
+
+    sin, cos, tan, asin, acos, atan = _np.sin, _np.cos, _np.tan, _np.arcsin, _np.arccos, _np.arctan
+    sinh, cosh, tanh = _np.sinh, _np.cosh, _np.tanh
+    asinh, acosh, atanh = _np.arcsinh, _np.arccosh, _np.arctanh
+    exp, log, expm1, log1p, sqrt = _np.exp, _np.log, _np.expm1, _np.log1p, _np.sqrt
+    atan2, fmod, copysign, floor, ceil = _np.arctan2, _np.fmod, _np.copysign, _np.floor, _np.ceil
+    isfinite, nextafter = _np.isfinite, _np.nextafter
+    erf, erfc, lgamma = _m.erf, _m.erfc, _m.lgamma
+
+
+def _to_float(x):
+    return tuple(_to_float(y) for y in x) if isinstance(x, tuple) else float(x)
+
+
+def _ieee(fn, *args):
+    """Run the IEEE variant on float64 scalars (inf/nan instead of exceptions)."""
+    conv = [tuple(_np.float64(y) for y in a) if isinstance(a, tuple) else _np.float64(a)
+            for a in args]
+    with _np.errstate(all="ignore"):
+        return _to_float(fn(*conv))
+
+
+def _round_away(x):
+    return float(_m.copysign(_m.floor(abs(x) + 0.5), x))
+
+
+def _solve(n, a, b):
+    """x with A x = b (A row-major), Gaussian elimination with partial pivoting."""
+    A = [list(a[i * n:(i + 1) * n]) + [b[i]] for i in range(n)]
+    for k in range(n):
+        piv = max(range(k, n), key=lambda i: abs(A[i][k]))
+        A[k], A[piv] = A[piv], A[k]
+        for i in range(k + 1, n):
+            f = A[i][k] / A[k][k]
+            for j in range(k, n + 1):
+                A[i][j] -= f * A[k][j]
+    x = [0.0] * n
+    for i in range(n - 1, -1, -1):
+        x[i] = (A[i][n] - sum(A[i][j] * x[j] for j in range(i + 1, n))) / A[i][i]
+    return tuple(x)
+
+
+{funcs}
+
+
+def _scalar(x, what):
+    if type(x) is float:
+        return x
+    a = _np.asarray(x, dtype=float)
+    if a.size != 1:
+        raise ValueError(f"{{what}}: expected one value for a one-joint controller, got shape {{a.shape}}")
+    return float(a.reshape(()))
+
+
+def _vector(x, what):
+    a = _np.asarray(x, dtype=float).reshape(-1)
+    if a.size != N_JOINTS:
+        raise ValueError(f"{{what}}: expected {{N_JOINTS}} values, got shape {{_np.shape(x)}}")
+    return a.tolist()
+
+
+class Controller:
+    """The exported controller: ``reset()``, then ``step(t, q1, q2) -> tau`` once per DT.
+
+    ``params`` overrides constants by name (see ``DEFAULT_PARAMS``), each a number or a list
+    of row-major values of the right size.
+    """
+
+    n = N_JOINTS
+    dt = DT
+
+    def __init__(self, params=None):
+        p = {{k: list(v[1]) for k, v in DEFAULT_PARAMS.items()}}
+        for name, value in (params or {{}}).items():
+            if name not in DEFAULT_PARAMS:
+                raise ValueError(f"unknown controller parameter {{name!r}}; known: {{sorted(DEFAULT_PARAMS)}}")
+            vals = [float(x) for x in _np.asarray(value, dtype=float).reshape(-1)]
+            if len(vals) != len(p[name]):
+                raise ValueError(f"parameter {{name}}: expected {{len(p[name])}} value(s), got {{len(vals)}}")
+            if any(_m.isnan(x) for x in vals):
+                raise ValueError(f"parameter {{name}}: NaN")
+            p[name] = vals
+        self.params = p
+        flat = [x for k in DEFAULT_PARAMS for x in p[k]]
+        self._step = _make_step(*_derive_step(*flat))
+        self._init = _make_init(*_derive_init(*flat))
+        self._ref = _make_reference(*_derive_reference(*flat))
+        self._state = None
+
+    @classmethod
+    def from_json(cls, path):
+        """Controller with the plant, friction and gains of a SPEC section 7 parameter file."""
+        with open(path) as f:
+            doc = _json.load(f)
+        params = {{}}
+        for key, name in SPEC_MAP.items():
+            section, entry = key.split(".")
+            if section in doc and isinstance(doc[section], dict) and entry in doc[section]:
+                params[name] = doc[section][entry]
+        return cls(params=params)
+
+    def reset(self):
+        """Forget the filter and observer state; the next ``step`` starts from its angles."""
+        self._state = None
+
+    @property
+    def state(self):
+        """Current internal state by name (None before the first step)."""
+        if self._state is None:
+            return None
+        vals = _np.asarray(self._state, dtype=float).reshape(len(STATE_NAMES), N_JOINTS)
+        return dict(zip(STATE_NAMES, vals))
+
+    def reference(self, t):
+        """Reference link angle q1d(t) [rad]."""
+        r = self._ref(float(t))
+        return r if N_JOINTS == 1 else _np.array(r)
+
+    def step(self, t, q1, q2):
+        """Motor torque tau [N m] at time t [s] from link and rotor angles q1, q2 [rad]."""
+        if N_JOINTS == 1:
+            q1 = _scalar(q1, "q1")
+            q2 = _scalar(q2, "q2")
+            t = float(t)
+            if self._state is None:
+                self._state = self._init(t, q1, q2)
+            self._state, tau = self._step(self._state, t, q1, q2)
+            return tau
+        q = _vector(q1, "q1") + _vector(q2, "q2")
+        t = float(t)
+        if self._state is None:
+            self._state = self._init(t, *q)
+        self._state, tau = self._step(self._state, t, *q)
+        return _np.array(tau)
+'''
+
+
+def function_source(fn: Callable, *example_args: Any, name: str = "f") -> str:
+    """Source of a standalone Python function ``name(*flat_scalars) -> tuple`` computing
+    ``fn`` (a JAX function of arrays) for the shapes of ``example_args``, through the same
+    translator as the controller export. Inputs and outputs are flattened row-major; every
+    input is a signal (nothing is hoisted). Used to test the translator primitive by primitive.
+    """
+    with jax.enable_x64(True):
+        args = [jnp.asarray(a) for a in example_args]
+        syms = [sym_array(f"a{i}", tuple(a.shape), False) for i, a in enumerate(args)]
+        prog = _translate(fn, args, syms, "v")
+    names = [f"a{i}_{k}" for i, a in enumerate(args) for k in range(int(np.size(a)))]
+    outs = "(" + "".join(format_atom(a) + ", " for a in prog.outputs) + ")"
+    src = _fn_source(prog, name, [], ", ".join(names), "", outs)
+    prelude = _BODY.split("{funcs}")[0].split("N_JOINTS")[0]
+    helpers = _BODY.split("def _sign")[1].split("{funcs}")[0]
+    return (prelude + '_INF = float("inf")\n_NAN = float("nan")\n\n\ndef _sign' + helpers
+            + src + f"\n\n\n{name} = _make_{name}(*_derive_{name}())\n")

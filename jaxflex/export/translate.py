@@ -1,0 +1,556 @@
+"""Translate a traced jaxpr into straight-line Python on floats (the exporter's code generator).
+
+Every array value of the jaxpr is *scalarised*: it becomes a numpy object array of atoms, one
+per element, where an atom is a Python constant (folded at generation time) or a ``Sym`` (a
+variable name in the generated code). Structural primitives (reshape, broadcast, slice,
+concatenate, transpose, pad, ...) only rearrange atoms and emit no code; elementwise
+primitives emit one statement per element; reductions and ``dot_general`` emit sums of
+products. For a one-joint controller this gives plain float code with ``math`` functions,
+which is ~10x faster than numpy on size-1 arrays (SPEC section 9).
+
+Inputs are either *parameters* (controller constants that may be overridden when the exported
+controller is built) or *signals* (state, time, angles). Statements whose inputs are all
+parameters are hoisted into a ``derive`` function that runs once per parameter set; the rest
+forms the per-sample function. Common subexpressions are shared, trivial operations (x * 1,
+x + 0, operations on literals) are folded, and dead code is dropped.
+
+Unsupported primitives raise ``UnsupportedPrimitive`` naming the primitive.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+
+class UnsupportedPrimitive(ValueError):
+    """A jaxpr primitive the exporter cannot translate (the message names it)."""
+
+
+class Sym:
+    """A variable of the generated code; ``static`` if it depends only on parameters."""
+
+    __slots__ = ("name", "static")
+
+    def __init__(self, name: str, static: bool):
+        self.name = name
+        self.static = static
+
+    def __repr__(self) -> str:
+        return self.name
+
+
+class _Opaque:
+    """Placeholder for outputs that must not be used (e.g. the LU factors behind a solve)."""
+
+    def __init__(self, what: str):
+        self.what = what
+
+
+Atom = Any  # float | int | bool | Sym | _Opaque
+
+
+def _lit(c: Any) -> str:
+    if isinstance(c, (bool, np.bool_)):
+        return "True" if c else "False"
+    if isinstance(c, (int, np.integer)):
+        v = int(c)
+        return f"({v})" if v < 0 else str(v)
+    v = float(c)
+    if math.isnan(v):
+        return "_NAN"
+    if math.isinf(v):
+        return "_INF" if v > 0 else "(-_INF)"
+    r = repr(v)
+    return f"({r})" if v < 0 or r.startswith("-") else r
+
+
+def _is_const(a: Atom) -> bool:
+    return not isinstance(a, (Sym, _Opaque))
+
+
+@dataclass
+class Stmt:
+    """One generated statement: ``targets = code``; ``uses`` the names it reads."""
+
+    targets: tuple[str, ...]
+    code: str
+    uses: tuple[str, ...]
+    static: bool
+
+
+@dataclass
+class Program:
+    """Generated code of one traced function: hoisted and per-sample statements."""
+
+    params: list[str]
+    signals: list[str]
+    outputs: list[Atom]
+    static_stmts: list[Stmt] = field(default_factory=list)
+    dyn_stmts: list[Stmt] = field(default_factory=list)
+
+
+# Python/math spellings of unary elementwise primitives; {0} is the operand.
+_UNARY: dict[str, str] = {
+    "neg": "-{0}", "sin": "_m.sin({0})", "cos": "_m.cos({0})", "tan": "_m.tan({0})",
+    "asin": "_m.asin({0})", "acos": "_m.acos({0})", "atan": "_m.atan({0})",
+    "sinh": "_m.sinh({0})", "cosh": "_m.cosh({0})", "tanh": "_m.tanh({0})",
+    "asinh": "_m.asinh({0})", "acosh": "_m.acosh({0})", "atanh": "_m.atanh({0})",
+    "exp": "_m.exp({0})", "exp2": "2.0 ** {0}", "log": "_m.log({0})", "expm1": "_m.expm1({0})",
+    "log1p": "_m.log1p({0})", "sqrt": "_m.sqrt({0})", "rsqrt": "1.0 / _m.sqrt({0})",
+    "cbrt": "_m.copysign(abs({0}) ** (1.0 / 3.0), {0})", "abs": "abs({0})",
+    "sign": "_sign({0})", "floor": "float(_m.floor({0}))", "ceil": "float(_m.ceil({0}))",
+    "is_finite": "_m.isfinite({0})", "not": "not {0}", "square": "{0} * {0}",
+    "logistic": "1.0 / (1.0 + _m.exp(-{0}))", "erf": "_m.erf({0})", "erfc": "_m.erfc({0})",
+    "lgamma": "_m.lgamma({0})",
+}
+_BINARY: dict[str, str] = {
+    "add": "{0} + {1}", "add_any": "{0} + {1}", "sub": "{0} - {1}", "mul": "{0} * {1}",
+    "div": "{0} / {1}", "pow": "{0} ** {1}", "atan2": "_m.atan2({0}, {1})",
+    "rem": "_m.fmod({0}, {1})", "nextafter": "_m.nextafter({0}, {1})",
+    "max": "({0} if {0} >= {1} or {0} != {0} else {1})",
+    "min": "({0} if {0} <= {1} or {0} != {0} else {1})",
+    "eq": "{0} == {1}", "ne": "{0} != {1}", "lt": "{0} < {1}", "le": "{0} <= {1}",
+    "gt": "{0} > {1}", "ge": "{0} >= {1}", "and": "{0} and {1}", "or": "{0} or {1}",
+}
+# Generation-time folding on literals (IEEE-identical to XLA for arithmetic).
+_FOLD2: dict[str, Callable[[Any, Any], Any]] = {
+    "add": lambda a, b: a + b, "add_any": lambda a, b: a + b, "sub": lambda a, b: a - b,
+    "mul": lambda a, b: a * b, "max": lambda a, b: max(a, b), "min": lambda a, b: min(a, b),
+    "eq": lambda a, b: a == b, "ne": lambda a, b: a != b, "lt": lambda a, b: a < b,
+    "le": lambda a, b: a <= b, "gt": lambda a, b: a > b, "ge": lambda a, b: a >= b,
+    "and": lambda a, b: a and b, "or": lambda a, b: a or b,
+}
+_FOLD1: dict[str, Callable[[Any], Any]] = {"neg": lambda a: -a, "abs": abs, "not": lambda a: not a}
+
+_CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint", "custom_jvp_call",
+          "custom_vjp_call", "custom_vjp_call_jaxpr", "custom_lin")
+_IDENTITY = ("stop_gradient", "copy", "copy_p", "optimization_barrier", "reduce_precision")
+
+
+def _is_int_dtype(aval: Any) -> bool:
+    return np.issubdtype(np.dtype(aval.dtype), np.integer)
+
+
+def _is_bool_dtype(aval: Any) -> bool:
+    return np.dtype(aval.dtype) == np.bool_
+
+
+class Translator:
+    """Walks jaxprs and accumulates the statements of one ``Program``."""
+
+    def __init__(self, prefix: str = "v"):
+        self.prefix = prefix
+        self.count = 0
+        self.cse: dict[str, Sym] = {}
+        self.static_stmts: list[Stmt] = []
+        self.dyn_stmts: list[Stmt] = []
+
+    # ----- statements -------------------------------------------------------------------------
+
+    def _new(self, static: bool) -> Sym:
+        self.count += 1
+        return Sym(f"{'c' if static else self.prefix}{self.count}", static)
+
+    def emit(self, template: str, *args: Atom) -> Sym:
+        """One statement computing ``template`` of atoms; shared when already computed."""
+        for a in args:
+            if isinstance(a, _Opaque):
+                raise UnsupportedPrimitive(
+                    f"the exporter cannot use the {a.what} output of a primitive directly"
+                )
+        code = template.format(*[a.name if isinstance(a, Sym) else _lit(a) for a in args])
+        hit = self.cse.get(code)
+        if hit is not None:
+            return hit
+        static = all(a.static for a in args if isinstance(a, Sym))
+        s = self._new(static)
+        uses = tuple(a.name for a in args if isinstance(a, Sym))
+        (self.static_stmts if static else self.dyn_stmts).append(Stmt((s.name,), code, uses, static))
+        self.cse[code] = s
+        return s
+
+    def emit_multi(self, code_fn: Callable[[list[str]], str], args: Sequence[Atom], nout: int) -> list[Sym]:
+        """A statement with several targets (e.g. a linear solve returning a tuple)."""
+        names = [a.name if isinstance(a, Sym) else _lit(a) for a in args]
+        code = code_fn(names)
+        static = all(a.static for a in args if isinstance(a, Sym))
+        outs = [self._new(static) for _ in range(nout)]
+        uses = tuple(a.name for a in args if isinstance(a, Sym))
+        st = Stmt(tuple(o.name for o in outs), code, uses, static)
+        (self.static_stmts if static else self.dyn_stmts).append(st)
+        return outs
+
+    # ----- scalar operations with simplification ----------------------------------------------
+
+    def unary(self, prim: str, a: Atom, *, int_out: bool = False) -> Atom:
+        if _is_const(a) and prim in _FOLD1:
+            return _FOLD1[prim](a)
+        if _is_const(a) and prim in ("sin", "cos", "exp", "log", "sqrt", "atan", "tanh", "expm1",
+                                     "log1p") and isinstance(a, (int, float)):
+            try:
+                return float(getattr(math, prim)(a))
+            except (ValueError, OverflowError):
+                pass
+        if prim not in _UNARY:
+            raise UnsupportedPrimitive(f"primitive '{prim}' is not supported by the exporter")
+        return self.emit(_UNARY[prim], a)
+
+    def binary(self, prim: str, a: Atom, b: Atom, *, is_int: bool = False) -> Atom:
+        ca, cb = _is_const(a), _is_const(b)
+        if prim == "div" and is_int:
+            if ca and cb:
+                return int(a / b)
+            return self.emit("int({0} / {1})", a, b)
+        if ca and cb:
+            if prim in _FOLD2:
+                return _FOLD2[prim](a, b)
+            if prim == "div" and b != 0:
+                return a / b
+        if prim in ("add", "add_any"):
+            if ca and a == 0 and not isinstance(a, bool):
+                return b
+            if cb and b == 0 and not isinstance(b, bool):
+                return a
+        elif prim == "sub":
+            if cb and b == 0:
+                return a
+            if ca and a == 0:
+                return self.unary("neg", b)
+        elif prim == "mul":
+            for x, y, cx in ((a, b, ca), (b, a, cb)):
+                if cx and x == 1:
+                    return y
+                if cx and x == -1:
+                    return self.unary("neg", y)
+                if cx and x == 0 and not math.isnan(float(x)):
+                    return 0 if isinstance(y, int) and not isinstance(y, bool) else 0.0
+        elif prim == "div":
+            if cb and b == 1:
+                return a
+        elif prim == "pow" and cb and b == 1:
+            return a
+        if prim not in _BINARY:
+            raise UnsupportedPrimitive(f"primitive '{prim}' is not supported by the exporter")
+        return self.emit(_BINARY[prim], a, b)
+
+    def integer_pow(self, a: Atom, y: int) -> Atom:
+        if _is_const(a):
+            return float(a) ** y
+        if y == 0:
+            return 1.0
+        if y < 0:
+            return self.binary("div", 1.0, self.integer_pow(a, -y))
+        # binary exponentiation by repeated products, as XLA expands integer_pow
+        acc, base, k = None, a, y
+        while k:
+            if k & 1:
+                acc = base if acc is None else self.binary("mul", acc, base)
+            k >>= 1
+            if k:
+                base = self.binary("mul", base, base)
+        return acc
+
+    def select(self, pred: Atom, cases: Sequence[Atom]) -> Atom:
+        if _is_const(pred):
+            return cases[int(pred)]
+        if len(cases) == 2:
+            if _is_const(cases[0]) and _is_const(cases[1]) and cases[0] == cases[1] \
+                    and type(cases[0]) is type(cases[1]):
+                return cases[0]
+            return self.emit("({2} if {0} else {1})", pred, cases[0], cases[1])
+        acc = cases[-1]
+        for i in range(len(cases) - 2, -1, -1):
+            acc = self.emit(f"({{1}} if {{0}} == {i} else {{2}})", pred, cases[i], acc)
+        return acc
+
+    def total(self, atoms: Sequence[Atom]) -> Atom:
+        acc: Atom = None
+        for a in atoms:
+            acc = a if acc is None else self.binary("add", acc, a)
+        return 0.0 if acc is None else acc
+
+    # ----- jaxpr walking ----------------------------------------------------------------------
+
+    def run(self, jaxpr: Any, consts: Sequence[Any], args: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Evaluate an (open) jaxpr on object arrays of atoms; returns the outputs' arrays."""
+        env: dict[Any, np.ndarray] = {}
+
+        def read(v):
+            if type(v).__name__ == "Literal":
+                return _const_array(v.val)
+            return env[v]
+
+        for v, c in zip(jaxpr.constvars, consts):
+            env[v] = c if isinstance(c, np.ndarray) and c.dtype == object else _const_array(c)
+        for v, a in zip(jaxpr.invars, args):
+            env[v] = a
+        for eqn in jaxpr.eqns:
+            ins = [read(v) for v in eqn.invars]
+            outs = self.eqn(eqn, ins)
+            for v, o in zip(eqn.outvars, outs):
+                shape = tuple(v.aval.shape)
+                if o.shape != shape:
+                    o = o.reshape(shape) if o.size == int(np.prod(shape)) else o
+                env[v] = o
+        return [read(v) for v in jaxpr.outvars]
+
+    def _call(self, sub: Any, ins: list[np.ndarray]) -> list[np.ndarray]:
+        if hasattr(sub, "jaxpr") and hasattr(sub, "consts"):
+            return self.run(sub.jaxpr, sub.consts, ins)
+        return self.run(sub, [], ins)
+
+    def eqn(self, eqn: Any, ins: list[np.ndarray]) -> list[np.ndarray]:
+        prim = eqn.primitive.name
+        p = eqn.params
+        out_avals = [v.aval for v in eqn.outvars]
+        if prim in _CALLS:
+            sub = p.get("jaxpr") or p.get("call_jaxpr") or p.get("fun_jaxpr")
+            if sub is None:
+                raise UnsupportedPrimitive(f"primitive '{prim}' without a jaxpr parameter")
+            n_in = len(sub.jaxpr.invars) if hasattr(sub, "consts") else len(sub.invars)
+            return self._call(sub, ins[len(ins) - n_in:])
+        if prim in _IDENTITY:
+            return list(ins[: len(out_avals)])
+        if prim == "convert_element_type":
+            return [self._convert(ins[0], eqn.invars[0].aval, out_avals[0])]
+        if prim == "integer_pow":
+            return [_map1(lambda a: self.integer_pow(a, int(p["y"])), ins[0])]
+        if prim in ("select_n",):
+            pred, cases = ins[0], ins[1:]
+            arrs = np.broadcast_arrays(pred, *cases)
+            out = np.empty(arrs[0].shape, dtype=object)
+            for idx in np.ndindex(out.shape):
+                out[idx] = self.select(arrs[0][idx], [c[idx] for c in arrs[1:]])
+            return [out]
+        if prim == "clamp":
+            lo, x, hi = np.broadcast_arrays(*ins)
+            out = np.empty(x.shape, dtype=object)
+            for idx in np.ndindex(x.shape):
+                out[idx] = self.binary("min", self.binary("max", x[idx], lo[idx]), hi[idx])
+            return [out]
+        if prim in _UNARY or prim in _FOLD1:
+            if prim == "sign" and _is_int_dtype(out_avals[0]):
+                raise UnsupportedPrimitive("primitive 'sign' on integers is not supported")
+            return [_map1(lambda a: self.unary(prim, a), ins[0])]
+        if prim in _BINARY:
+            is_int = _is_int_dtype(out_avals[0])
+            a, b = np.broadcast_arrays(ins[0], ins[1])
+            out = np.empty(a.shape, dtype=object)
+            for idx in np.ndindex(a.shape):
+                out[idx] = self.binary(prim, a[idx], b[idx], is_int=is_int)
+            return [out]
+        if prim == "round":
+            method = int(p.get("rounding_method", 0))
+            fmt = "float(round({0}))" if method == 1 else "_round_away({0})"
+            return [_map1(lambda a: self.emit(fmt, a), ins[0])]
+        return [np.asarray(o, dtype=object) if not isinstance(o, np.ndarray) else o
+                for o in self.structural(prim, p, ins, out_avals)]
+
+    def _convert(self, x: np.ndarray, in_aval: Any, aval: Any) -> np.ndarray:
+        if _is_bool_dtype(aval):
+            return _map1(lambda a: bool(a) if _is_const(a) else self.emit("bool({0})", a), x)
+        if _is_int_dtype(aval):
+            return _map1(lambda a: int(a) if _is_const(a) else self.emit("int({0})", a), x)
+
+        from_float = np.issubdtype(np.dtype(in_aval.dtype), np.floating)
+
+        def to_float(a):
+            if _is_const(a):
+                return float(a)
+            return a if from_float else self.emit("float({0})", a)
+
+        return _map1(to_float, x)
+
+    def structural(self, prim: str, p: dict, ins: list[np.ndarray], out_avals: list) -> list:
+        x = ins[0] if ins else None
+        if prim == "broadcast_in_dim":
+            shape, dims = tuple(p["shape"]), tuple(p["broadcast_dimensions"])
+            expanded = [1] * len(shape)
+            for i, d in enumerate(dims):
+                expanded[d] = x.shape[i]
+            return [np.broadcast_to(x.reshape(expanded), shape).copy()]
+        if prim in ("reshape", "squeeze", "expand_dims"):
+            return [x.reshape(tuple(out_avals[0].shape))]
+        if prim == "transpose":
+            return [x.transpose(tuple(p["permutation"]))]
+        if prim == "rev":
+            return [np.flip(x, axis=tuple(p["dimensions"]))]
+        if prim == "slice":
+            strides = p.get("strides") or (1,) * x.ndim
+            sl = tuple(slice(s, e, st) for s, e, st in zip(p["start_indices"], p["limit_indices"], strides))
+            return [x[sl]]
+        if prim == "dynamic_slice":
+            starts = []
+            for a, size, dim in zip(ins[1:], p["slice_sizes"], x.shape):
+                v = a.reshape(()).item()
+                if not _is_const(v):
+                    raise UnsupportedPrimitive("dynamic_slice with data-dependent start indices")
+                starts.append(min(max(int(v), 0), dim - size))
+            sl = tuple(slice(s, s + z) for s, z in zip(starts, p["slice_sizes"]))
+            return [x[sl]]
+        if prim == "concatenate":
+            return [np.concatenate(ins, axis=int(p["dimension"]))]
+        if prim == "stack":
+            return [np.stack(ins, axis=int(p["axis"]))]
+        if prim == "split":
+            axis = int(p["axis"])
+            edges = np.cumsum(p["sizes"])[:-1]
+            return list(np.split(x, edges, axis=axis))
+        if prim == "iota":
+            shape, dim = tuple(p["shape"]), int(p["dimension"])
+            idx = np.indices(shape)[dim]
+            conv = float if np.issubdtype(np.dtype(p["dtype"]), np.floating) else int
+            return [_const_array(np.vectorize(conv, otypes=[object])(idx))]
+        if prim == "pad":
+            pad_val = ins[1].reshape(()).item()
+            cfg = p["padding_config"]
+            out = np.full(tuple(out_avals[0].shape), None, dtype=object)
+            for i in range(out.size):
+                out.flat[i] = pad_val
+            # place x at lo + k (interior + 1); negative lo/hi crop
+            src_idx = np.indices(x.shape).reshape(x.ndim, -1).T
+            for si in src_idx:
+                di = [int(lo) + int(s) * (int(it) + 1) for s, (lo, _hi, it) in zip(si, cfg)]
+                if all(0 <= d < n for d, n in zip(di, out.shape)):
+                    out[tuple(di)] = x[tuple(si)]
+            return [out]
+        if prim in ("cumsum", "cumprod", "cummax", "cummin"):
+            axis, reverse = int(p["axis"]), bool(p.get("reverse", False))
+            op = {"cumsum": "add", "cumprod": "mul", "cummax": "max", "cummin": "min"}[prim]
+            y = np.moveaxis(x, axis, -1).copy()
+            for idx in np.ndindex(y.shape[:-1]):
+                row = y[idx]
+                order = range(row.shape[0] - 1, -1, -1) if reverse else range(row.shape[0])
+                acc = None
+                for k in order:
+                    acc = row[k] if acc is None else self.binary(op, acc, row[k])
+                    row[k] = acc
+            return [np.moveaxis(y, -1, axis)]
+        if prim in ("reduce_sum", "reduce_max", "reduce_min", "reduce_prod", "reduce_and",
+                    "reduce_or"):
+            axes = tuple(p["axes"])
+            op = {"reduce_sum": "add", "reduce_max": "max", "reduce_min": "min",
+                  "reduce_prod": "mul", "reduce_and": "and", "reduce_or": "or"}[prim]
+            keep = [d for d in range(x.ndim) if d not in axes]
+            y = x.transpose(keep + list(axes)).reshape([x.shape[d] for d in keep] + [-1])
+            out = np.empty(y.shape[:-1], dtype=object)
+            for idx in np.ndindex(out.shape):
+                acc = None
+                for a in y[idx]:
+                    acc = a if acc is None else self.binary(op, acc, a)
+                out[idx] = acc
+            return [out]
+        if prim == "dot_general":
+            return [self.dot_general(ins[0], ins[1], p["dimension_numbers"])]
+        if prim == "lu":
+            return [np.full(tuple(a.shape), _Opaque("LU factorisation"), dtype=object) for a in out_avals]
+        if prim == "custom_linear_solve":
+            return [self.linear_solve(p, ins)]
+        raise UnsupportedPrimitive(
+            f"primitive '{prim}' is not supported by the exporter; supported are elementwise "
+            "arithmetic and math functions, comparisons, select_n, clamp, structural ops "
+            "(reshape, broadcast, slice, concatenate, pad, transpose), reductions, dot_general, "
+            "cumulative sums, jnp.linalg.solve and nested calls"
+        )
+
+    def dot_general(self, a: np.ndarray, b: np.ndarray, dims: Any) -> np.ndarray:
+        (lc, rc), (lb, rb) = dims
+        lf = [d for d in range(a.ndim) if d not in lc and d not in lb]
+        rf = [d for d in range(b.ndim) if d not in rc and d not in rb]
+        A = a.transpose(list(lb) + lf + list(lc))
+        B = b.transpose(list(rb) + rf + list(rc))
+        nb = len(lb)
+        bshape = A.shape[:nb]
+        out = np.empty(bshape + A.shape[nb:nb + len(lf)] + B.shape[nb:nb + len(rf)], dtype=object)
+        csize = int(np.prod([a.shape[d] for d in lc])) if lc else 1
+        for bi in np.ndindex(bshape):
+            Ab = A[bi].reshape(A[bi].shape[: len(lf)] + (csize,))
+            Bb = B[bi].reshape(B[bi].shape[: len(rf)] + (csize,))
+            for i in np.ndindex(Ab.shape[:-1]):
+                for j in np.ndindex(Bb.shape[:-1]):
+                    terms = [self.binary("mul", x, y) for x, y in zip(Ab[i], Bb[j])]
+                    out[bi + i + j] = self.total(terms)
+        return out
+
+    def linear_solve(self, p: dict, ins: list[np.ndarray]) -> np.ndarray:
+        """``jnp.linalg.solve``: read the matrix from the matvec jaxpr and solve directly."""
+        cl = p["const_lengths"]
+        mv = p["jaxprs"].matvec
+        mvj = mv.jaxpr if hasattr(mv, "jaxpr") else mv
+        ok = (len(mvj.eqns) == 1 and mvj.eqns[0].primitive.name == "dot_general"
+              and tuple(map(tuple, mvj.eqns[0].params["dimension_numbers"][0])) == ((1,), (0,))
+              and cl.matvec == 1 and mvj.eqns[0].invars[0] is mvj.invars[0])
+        if not ok:
+            raise UnsupportedPrimitive(
+                "custom_linear_solve other than jnp.linalg.solve(A, b) with a 2-D A and 1-D b"
+            )
+        A = ins[0]
+        b = ins[-1]
+        n = b.shape[0]
+        if A.shape != (n, n) or b.ndim != 1:
+            raise UnsupportedPrimitive("custom_linear_solve: need A (n, n) and b (n,)")
+        off = [A[i, j] for i in range(n) for j in range(n) if i != j]
+        if all(_is_const(a) and a == 0 for a in off):
+            # diagonal A: LU with partial pivoting reduces to b_i / A_ii
+            return np.array([self.binary("div", b[i], A[i, i]) for i in range(n)], dtype=object)
+        flat = [A[i, j] for i in range(n) for j in range(n)] + [b[i] for i in range(n)]
+        outs = self.emit_multi(
+            lambda nm: f"_solve({n}, ({', '.join(nm[: n * n])},), ({', '.join(nm[n * n:])},))",
+            flat, n,
+        )
+        return np.array(outs, dtype=object)
+
+
+def _const_array(v: Any) -> np.ndarray:
+    arr = np.asarray(v)
+    out = np.empty(arr.shape, dtype=object)
+    for idx in np.ndindex(arr.shape):
+        x = arr[idx]
+        if isinstance(x, Sym):
+            out[idx] = x
+        elif arr.dtype == np.bool_:
+            out[idx] = bool(x)
+        elif np.issubdtype(arr.dtype, np.integer):
+            out[idx] = int(x)
+        elif arr.dtype == object:
+            out[idx] = x
+        else:
+            out[idx] = float(x)
+    return out
+
+
+def _map1(f: Callable[[Atom], Atom], x: np.ndarray) -> np.ndarray:
+    out = np.empty(x.shape, dtype=object)
+    for idx in np.ndindex(x.shape):
+        out[idx] = f(x[idx])
+    return out
+
+
+def sym_array(prefix: str, shape: tuple[int, ...], static: bool) -> np.ndarray:
+    """An object array of fresh input symbols ``prefix_i`` (row-major)."""
+    out = np.empty(shape, dtype=object)
+    for k, idx in enumerate(np.ndindex(shape)):
+        out[idx] = Sym(f"{prefix}_{k}", static)
+    return out
+
+
+def eliminate_dead(stmts: list[Stmt], live: set[str]) -> list[Stmt]:
+    """Statements needed for the ``live`` names, in order (``live`` is updated in place)."""
+    keep = []
+    for st in reversed(stmts):
+        if any(t in live for t in st.targets):
+            keep.append(st)
+            live.update(st.uses)
+    keep.reverse()
+    return keep
+
+
+def format_atom(a: Atom) -> str:
+    """Python source of an atom."""
+    if isinstance(a, _Opaque):
+        raise UnsupportedPrimitive(f"the exporter cannot output the {a.what} directly")
+    return a.name if isinstance(a, Sym) else _lit(a)
