@@ -181,3 +181,24 @@ def test_two_step_procedure():
     err = _rel_err(res.params, p, ("Fc", "Fs", "vs", "sigma2"))
     assert max(err.values()) < 0.02, err
     assert res.params.friction["sigma0"][0] > 0 and res.params.friction["sigma1"][0] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["ident_two_step", "ident_bench_scipy", "ident_emps"])
+def test_studies_run_small(tmp_path, name):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "studies" / f"{name}.py"
+    if name == "ident_emps":
+        data = path.parents[2] / "shared" / "data" / "emps"
+        if not (data / "DATA_EMPS.mat").exists():
+            pytest.skip("EMPS data not present")
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        res = mod.main(["--small", "--out", str(tmp_path)])
+    assert (tmp_path / "results.json").exists()
+    assert isinstance(res, dict)
