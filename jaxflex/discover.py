@@ -104,9 +104,10 @@ class LogData:
             raise ValueError("log: time column t must be increasing with a uniform period")
 
 
-def read_log(path: str | Path) -> LogData:
-    """Read a log. Uses ``jaxflex.logs.load_log`` when that module exists (issue 3); otherwise
-    a private CSV reader (header row with at least t,tau,q1,q2)."""
+def read_log(path: str | Path, mapping: dict[str, str] | None = None) -> LogData:
+    """Read a one-joint log with ``jaxflex.logs.load_log`` (issue 3: CSV, npz, mat, with its
+    checks and optional column ``mapping``); a private CSV reader is the fallback if that
+    module is absent."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"log file not found: {path}")
@@ -115,7 +116,7 @@ def read_log(path: str | Path) -> LogData:
     except ImportError:
         load_log = None
     if load_log is not None:
-        log = load_log(path)
+        log = load_log(path, mapping) if mapping else load_log(path)
         col = lambda k: None if getattr(log, k, None) is None else np.asarray(getattr(log, k)).reshape(len(log.t), -1)[:, 0]
         return LogData(t=np.asarray(log.t), tau=col("tau"), q1=col("q1"), q2=col("q2"), q1d=col("q1d"))
     return _read_csv(path)
@@ -139,7 +140,9 @@ def _read_csv(path: Path) -> LogData:
 
 class Segments(eqx.Module):
     """Short log pieces for multiple shooting, arrays (S, L) or (S,): measured angles q1, q2
-    [rad], logged torque tau [N m], start velocities dq1, dq2 [rad/s], start time t0 [s]."""
+    [rad], logged torque tau [N m], start velocities dq1, dq2 [rad/s], start time t0 [s], and
+    the torque of the ``W`` samples before each start, tau_pre (S, W), to warm up effect
+    states (actuator lag, delay)."""
 
     q1: jax.Array
     q2: jax.Array
@@ -147,6 +150,7 @@ class Segments(eqx.Module):
     dq1: jax.Array
     dq2: jax.Array
     t0: jax.Array
+    tau_pre: jax.Array
 
     @property
     def count(self) -> int:
@@ -157,8 +161,11 @@ def _savgol(x: np.ndarray, dt: float, deriv: int, window: int, order: int = 3) -
     return scipy.signal.savgol_filter(x, window, order, deriv=deriv, delta=dt, mode="interp")
 
 
-def make_segments(log: LogData, start: int, stop: int, length: int, window: int = 31) -> Segments:
-    """Non-overlapping segments of ``length`` samples within samples [start, stop)."""
+def make_segments(
+    log: LogData, start: int, stop: int, length: int, window: int = 31, warmup: int = 30,
+) -> Segments:
+    """Non-overlapping segments of ``length`` samples within samples [start, stop), with the
+    ``warmup`` torque samples before each (the first sample repeated before the log starts)."""
     dq1 = _savgol(log.q1, log.dt, 1, window)
     dq2 = _savgol(log.q2, log.dt, 1, window)
     starts = np.arange(start, stop - length + 1, length)
@@ -167,7 +174,9 @@ def make_segments(log: LogData, start: int, stop: int, length: int, window: int 
             f"log too short: need at least 2 segments of {length} samples in [{start}, {stop})"
         )
     idx = starts[:, None] + np.arange(length)[None, :]
+    pre = np.clip(starts[:, None] + np.arange(-warmup, 0)[None, :], 0, None)
     return Segments(
+        tau_pre=jnp.asarray(log.tau[pre]),
         q1=jnp.asarray(log.q1[idx]), q2=jnp.asarray(log.q2[idx]), tau=jnp.asarray(log.tau[idx]),
         dq1=jnp.asarray(dq1[starts]), dq2=jnp.asarray(dq2[starts]), t0=jnp.asarray(log.t[starts]),
     )
@@ -179,15 +188,35 @@ def simulate_segments(
     """Open-loop replay of every segment from its measured start state under the logged torque
     (zero-order hold); returns simulated (q1, q2), each (S, L), at the log samples."""
 
-    def one(q1, q2, tau, dq1, dq2):
+    tmap = jax.tree_util.tree_map
+
+    def one(q1, q2, tau, dq1, dq2, tau_pre):
         v = jnp.atleast_1d(dq1)
         z0 = jnp.zeros(1) if plant.friction is None else plant.friction.z_steady(v)
-        tau0 = jnp.atleast_1d(tau[0])
-        aux = tuple(e.aux_steady(tau0) for e in plant.effects) if plant.effects else None
         x0 = PlantState(
             q1=jnp.atleast_1d(q1[0]), dq1=v, q2=jnp.atleast_1d(q2[0]),
-            dq2=jnp.atleast_1d(dq2), z=z0, aux=aux,
+            dq2=jnp.atleast_1d(dq2), z=z0, aux=None,
         )
+        aux = None
+        if plant.effects:
+            # effect states start in equilibrium with the torque before the warm-up window and
+            # follow the logged torque through it (exact for input-path effects)
+            aux = tuple(e.aux_steady(jnp.atleast_1d(tau_pre[0])) for e in plant.effects)
+            rhs = lambda a, u: tuple(
+                e.aux_rhs(ai, u, x0) for e, ai in zip(plant.effects, a)
+            )
+
+            def warm(a, u):
+                u = jnp.atleast_1d(u)
+                k1 = rhs(a, u)
+                k2 = rhs(tmap(lambda p, k: p + 0.5 * dt * k, a, k1), u)
+                k3 = rhs(tmap(lambda p, k: p + 0.5 * dt * k, a, k2), u)
+                k4 = rhs(tmap(lambda p, k: p + dt * k, a, k3), u)
+                return tmap(lambda p, b, c, d, e: p + dt / 6 * (b + 2 * c + 2 * d + e),
+                            a, k1, k2, k3, k4), None
+
+            aux, _ = jax.lax.scan(warm, aux, tau_pre)
+        x0 = eqx.tree_at(lambda s: s.aux, x0, aux, is_leaf=lambda n: n is None)
 
         def body(x, u):
             return plant_step(plant, x, jnp.atleast_1d(u), dt, substeps), (x.q1[0], x.q2[0])
@@ -195,7 +224,7 @@ def simulate_segments(
         _, (s1, s2) = jax.lax.scan(body, x0, tau)
         return s1, s2
 
-    return jax.vmap(one)(segs.q1, segs.q2, segs.tau, segs.dq1, segs.dq2)
+    return jax.vmap(one)(segs.q1, segs.q2, segs.tau, segs.dq1, segs.dq2, segs.tau_pre)
 
 
 def gap_metric(sim: tuple[jax.Array, jax.Array], segs: Segments) -> jax.Array:
@@ -689,7 +718,7 @@ class DiscoverConfig:
 
     segment: float = 0.3
     train_frac: float = 0.7
-    max_steps: int = 15
+    max_steps: int = 30
     substeps: int = 1
     alpha: float = 1e-3
     min_gain: float = 0.15
@@ -766,7 +795,10 @@ def discover(
         if winner is None:
             break
         added.append(winner)
-        current = fits[winner]
+        # polish the winner so that the next round's candidates are compared with a converged
+        # base, not with one that merely had fewer iterations
+        current = fit_model(fits[winner].model, train, test, dt, substeps=cfg.substeps,
+                            max_steps=cfg.max_steps * 2)
         say(f"added {winner}: held-out gap {current.gap_test:.4f}")
     eff_report = {}
     for e in current.model.effects:

@@ -23,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="comma-separated effect names to try (default: all known)")
     p.add_argument("--segment", type=float, default=0.3, help="segment length [s] (default 0.3)")
     p.add_argument("--train-frac", type=float, default=0.7, help="training fraction (0.7)")
-    p.add_argument("--max-steps", type=int, default=25, help="LM steps per candidate (25)")
+    p.add_argument("--max-steps", type=int, default=30, help="LM steps per candidate (30)")
     p.add_argument("--alpha", type=float, default=1e-3, help="F-test significance level")
     p.add_argument("--min-gain", type=float, default=0.15,
                    help="minimal relative held-out gap reduction to accept an effect")
