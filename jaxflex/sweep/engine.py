@@ -218,7 +218,7 @@ def run_sweep(
 
     acc = Accumulator(spec, keep_samples=keep_samples, n_worst=n_worst)
     ctx = jax.enable_x64(False) if float32 else contextlib.nullcontext()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     t_compile = 0.0
     with ctx:
         fn = make_chunk_fn(spec, float32)
@@ -244,13 +244,14 @@ def run_sweep(
             bar.close()
     if nproc > 1:
         acc = acc.allgather()
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     res = acc.result()
     steps = n_samples * round(spec.t_final / spec.dt)
     res.timing = {
-        "wall_s": wall, "first_chunk_s": t_compile, "chunk_size": chunk_size, "chunks": n_chunks,
+        "wall_s": wall, "cpu_s": cpu, "first_chunk_s": t_compile, "chunk_size": chunk_size, "chunks": n_chunks,
         "devices": nd, "processes": nproc, "controller_steps": steps,
-        "steps_per_s": steps / wall if nproc == 1 else None, "float32": float32,
+        "steps_per_s": steps / wall if nproc == 1 else None,
+        "steps_per_cpu_s": steps / cpu if nproc == 1 else None, "float32": float32,
     }
     return res
 
