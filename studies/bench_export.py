@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -31,6 +32,8 @@ def _stats(a: np.ndarray) -> dict[str, float]:
 def bench_step(ctrl_factory, steps: int) -> np.ndarray:
     """Per-step wall time [s] of ``ctrl.step`` on a smooth synthetic measurement sequence."""
     ctrl = ctrl_factory()
+    for k in range(5):  # warm-up (compilation of the JAX baseline, caches)
+        ctrl.step(k * ctrl.dt, 0.0, 0.0)
     ctrl.reset()
     dt = ctrl.dt
     out = np.empty(steps)
@@ -108,7 +111,8 @@ def main(argv: list[str] | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     steps = 2000 if args.small else 20000
     loop_s = 0.5 if args.small else 5.0
-    results: dict = {"steps": steps, "compute": {}, "loop": {}}
+    results: dict = {"steps": steps, "compute": {}, "loop": {},
+                     "load_average_at_start": list(os.getloadavg()), "cpu_count": os.cpu_count()}
     series = {}
     for traj in ("sinusoid", "polynomial"):
         for method in ("model", "filtered"):
@@ -150,6 +154,7 @@ def main(argv: list[str] | None = None) -> dict:
         "rms_tracking_error_rad": float(np.sqrt(np.mean(e**2))), **r.timing_summary(),
     }
     print("simulated rig 1000 Hz", json.dumps(results["loop"]["simulated_rig_1000Hz"]))
+    results["load_average_at_end"] = list(os.getloadavg())
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     try:
         import matplotlib

@@ -24,7 +24,7 @@ class FakeIO(RigIO):
     def __init__(self, angles, n=1):
         self.n = n
         self.angles = angles
-        self.k = 0
+        self.k = -1  # run_loop reads once to warm the I/O before sample 0
         self.written: list[np.ndarray] = []
         self.closed = False
 
@@ -172,3 +172,43 @@ def test_exported_controller_on_simulated_rig_matches_jax(tmp_path):
         return
     log = load_log(tmp_path / "run.csv")
     assert log.N == 1500 and abs(log.dt - 1e-3) < 1e-12
+
+
+@pytest.mark.slow
+def test_cli_run_loop_lockstep(tmp_path, capsys):
+    from jaxflex.cli import main
+
+    log = tmp_path / "out.csv"
+    ctrl = tmp_path / "controller.py"
+    assert main(["export", "--out", str(ctrl)]) == 0
+    rc = main(["run-loop", "--duration", "0.5", "--log", str(log), "--controller", str(ctrl),
+               "--lockstep"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert '"stop_reason": "completed"' in text
+    assert log.read_text().splitlines()[0] == "t,tau,q1,q2,q1d"
+    with pytest.raises(ValueError, match="dt"):
+        from jaxflex.cli.run_loop import run as run_loop_cmd
+
+        class A:
+            params = None
+            duration, rate, log, controller = 0.1, 500.0, str(log), str(ctrl)
+            trajectory, q2d, tau_limit, q_limit, max_misses = "sinusoid", None, 2.0, 10.0, 10
+            lockstep, encoder_bits = True, 16
+
+        run_loop_cmd(A())
+
+
+@pytest.mark.slow
+def test_bench_export_study_small(tmp_path):
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).parents[1] / "studies" / "bench_export.py"
+    spec = importlib.util.spec_from_file_location("bench_export", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.main(["--small", "--out", str(tmp_path)])
+    assert (tmp_path / "results.json").exists()
+    assert res["compute"]["sinusoid/model"]["export"]["median_us"] > 0
+    assert res["loop"]["loopback_1000Hz"]["samples"] == 500
