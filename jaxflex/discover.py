@@ -29,8 +29,9 @@ Workflow (``discover``), for one joint:
    effective sample count (the residuals of a simulated trajectory are strongly correlated; the
    count is divided by their integrated autocorrelation time). A candidate is significant when
    the F-test p-value is below ``alpha``, its BIC is lower and it lowers the held-out gap by at
-   least ``min_gain``. The significant candidate with the lowest held-out gap is added, and the
-   search repeats until nothing is significant (answer ``none`` if that happens at once).
+   least ``min_gain``. Among significant candidates within ``parsimony`` of the lowest held-out
+   gap, the one with the fewest parameters is added (``select``), and the search repeats until
+   nothing is significant (answer ``none`` if that happens at once).
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ class LogData:
         if n < 100:
             raise ValueError(f"log: need at least 100 samples, got {n}")
         d = np.diff(self.t)
-        if not np.all(d > 0) or np.ptp(d) > 1e-6 * d.mean() + 1e-12:
+        if not np.all(d > 0) or np.ptp(d) > 1e-3 * d.mean():
             raise ValueError("log: time column t must be increasing with a uniform period")
 
 
@@ -710,6 +711,24 @@ def score(base: FitResult, cand: FitResult, n_eff: float) -> dict[str, float]:
     }
 
 
+def fitted_count(name: str) -> int:
+    """Number of parameters the fit adjusts for effect ``name``."""
+    return sum(_constraint(c) is not None for c in EFFECTS[name].constraints.values())
+
+
+def select(scores: dict[str, dict[str, Any]], parsimony: float = 0.1) -> str | None:
+    """The winner among significant candidates: those whose held-out gap is within
+    ``parsimony`` (relative) of the best, then the fewest fitted parameters, then the lowest
+    gap. (A two-parameter effect can mimic a one-parameter one, e.g. gravity with a free rest
+    angle far from the motion looks like a constant torque; held-out gaps then tie.)"""
+    sig = [k for k, s in scores.items() if s["significant"]]
+    if not sig:
+        return None
+    best = min(scores[k]["gap_test"] for k in sig)
+    near = [k for k in sig if scores[k]["gap_test"] <= best * (1 + parsimony)]
+    return min(near, key=lambda k: (fitted_count(k), scores[k]["gap_test"]))
+
+
 @dataclasses.dataclass
 class DiscoverConfig:
     """Settings of ``discover``: segment length [s], training fraction, LM steps, substeps per
@@ -724,6 +743,7 @@ class DiscoverConfig:
     min_gain: float = 0.15
     max_effects: int = 3
     candidates: Sequence[str] | None = None
+    parsimony: float = 0.1
 
 
 def discover(
@@ -788,8 +808,7 @@ def discover(
             scores[name], fits[name] = s, f
             say(f"  {name:20s} gap {f.gap_test:.4f} gain {s['gain']:+.3f} p {s['p_value']:.2e} "
                 f"dBIC {s['dBIC']:+.1f} {'*' if s['significant'] else ''} ({f.seconds:.1f} s)")
-        sig = [k for k, s in scores.items() if s["significant"]]
-        winner = min(sig, key=lambda k: scores[k]["gap_test"]) if sig else None
+        winner = select(scores, cfg.parsimony)
         rounds.append({"base_gap_test": current.gap_test, "tau_int": tau_int, "n_eff": n_eff,
                        "scores": scores, "winner": winner or "none"})
         if winner is None:

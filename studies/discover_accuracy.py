@@ -31,7 +31,22 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--effects", default=None, help="comma-separated subset of effects")
     ap.add_argument("--seed", type=int, default=100)
     ap.add_argument("--small", action="store_true", help="tiny run (for a slow test)")
+    ap.add_argument("--rescore", action="store_true",
+                    help="re-apply the current selection rule to the saved candidate scores of "
+                         "--out/results.json (first round) and rewrite the summary")
     a = ap.parse_args(argv)
+    if a.rescore:
+        from jaxflex.discover import select
+
+        res = json.loads((Path(a.out) / "results.json").read_text())
+        for r in res["rows"]:
+            r["found_original"] = r.get("found_original", r["found"])
+            r["found"] = select(r["scores"]) or "none"
+            r["gap_after"] = (r["scores"][r["found"]]["gap_test"] if r["found"] != "none"
+                              else r["gap_before"])
+        _write(res["rows"], res["summary"]["confusion_labels"], Path(a.out))
+        print(json.dumps(json.loads((Path(a.out) / "results.json").read_text())["summary"], indent=1))
+        return
     jax.config.update("jax_enable_x64", True)
     from jaxflex.datagen import generate_log
     from jaxflex.discover import DiscoverConfig, LogData, discover
