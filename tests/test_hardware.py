@@ -187,16 +187,17 @@ def test_cli_run_loop_lockstep(tmp_path, capsys):
     assert rc == 0, text
     assert '"stop_reason": "completed"' in text
     assert log.read_text().splitlines()[0] == "t,tau,q1,q2,q1d"
+    import argparse
+
+    from jaxflex.cli.run_loop import run as run_loop_cmd
+
+    ns = argparse.Namespace(
+        params=None, duration=0.1, rate=500.0, log=str(log), controller=str(ctrl),
+        trajectory="sinusoid", q2d=None, tau_limit=2.0, q_limit=10.0, max_misses=10,
+        lockstep=True, encoder_bits=16,
+    )
     with pytest.raises(ValueError, match="dt"):
-        from jaxflex.cli.run_loop import run as run_loop_cmd
-
-        class A:
-            params = None
-            duration, rate, log, controller = 0.1, 500.0, str(log), str(ctrl)
-            trajectory, q2d, tau_limit, q_limit, max_misses = "sinusoid", None, 2.0, 10.0, 10
-            lockstep, encoder_bits = True, 16
-
-        run_loop_cmd(A())
+        run_loop_cmd(ns)
 
 
 @pytest.mark.slow
