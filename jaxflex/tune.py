@@ -187,7 +187,8 @@ def tracking_cost(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask
 class StartRecord:
     """One start of the multi-start search: initial and final gains vectors, the cost
     [rad^2], RMS link error [rad] and certificate value (min lambda_min - margin) per
-    iteration, cut-back steps and undone divergent steps."""
+    iteration, halvings that pulled the start or a step back into the certified set, and
+    undone divergent steps."""
 
     theta0: np.ndarray
     theta: np.ndarray
@@ -304,18 +305,19 @@ def tune(
         return cand, cuts
 
     key = jax.random.PRNGKey(seed)
-    start_points = [theta_init]
+    start_points = [(theta_init, 0)]
     for k in jax.random.split(key, max(starts - 1, 1))[: starts - 1]:
         cand = jnp.clip(theta_init + spread * jax.random.normal(k, theta_init.shape), lo, hi)
-        start_points.append(pull_back(theta_init, cand)[0])
+        start_points.append(pull_back(theta_init, cand))
 
     candidates: list[tuple[float, np.ndarray]] = []
     records: list[StartRecord] = []
     initial_cost = float("nan")
     evals = 0
     b1, b2, adam_eps = 0.9, 0.999, 1e-8
-    for si, theta in enumerate(start_points):
-        rec = StartRecord(theta0=np.asarray(theta), theta=np.asarray(theta), costs=[], constraint=[])
+    for si, (theta, start_cuts) in enumerate(start_points):
+        rec = StartRecord(theta0=np.asarray(theta), theta=np.asarray(theta), costs=[],
+                          constraint=[], cutbacks=start_cuts)
         m = jnp.zeros_like(theta)
         v = jnp.zeros_like(theta)
         lr = learning_rate

@@ -68,14 +68,20 @@ def test_tuned_gains_beat_paper_gains_and_pass_certify(tuned):
     assert len(res.starts) == 2 and all(len(s.costs) >= 2 for s in res.starts)
 
 
-def test_every_iterate_is_certified_when_the_constraint_binds(tuned):
-    """With a margin just below the paper gains' lambda_min the constraint is active: steps are
-    cut back and no recorded iterate violates it."""
+def test_every_iterate_is_certified_and_uncertified_starts_are_pulled_back(tuned):
+    """Tight margin (just below the paper gains' lambda_min) and wide random starts: starts that
+    leave the certified set are halved back toward the initial gains, and no recorded iterate
+    violates the constraint."""
     plant, task, _ = tuned
     lam0 = float(jnp.min(lambda_min_curve(plant, paper_gains(), [0.0, task.certify_speed()])))
     margin = lam0 - 1e-3
-    res = tune(plant, paper_gains(), task, margin=margin, iterations=4, starts=2, seed=1)
+    res = tune(plant, paper_gains(), task, margin=margin, iterations=2, starts=3, spread=2.0,
+               seed=1)
+    assert sum(s.cutbacks for s in res.starts) > 0
     assert all(c >= 0 for s in res.starts for c in s.constraint)
+    for s in res.starts:
+        g = CascadeGains.from_vector(jnp.exp(jnp.asarray(s.theta0)))
+        assert certify(plant, g, task.certify_speed(), margin=margin).certified
     assert certify(plant, res.gains, task.certify_speed(), margin=margin).certified
     assert res.cost <= res.initial_cost
 

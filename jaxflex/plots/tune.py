@@ -83,10 +83,10 @@ def plot_tradeoff(points: Sequence[dict[str, Any]], path: str | Path,
     fig, ax = plt.subplots(figsize=(7, 4))
     v = [p["required_speed"] for p in points]
     e = [p["rms_error"] for p in points]
-    ax.semilogx(v, e, "o-", label="best certified gains")
+    ax.semilogx(v, e, "o-", label="certified search")
     if unconstrained is not None:
         ax.axhline(unconstrained["rms_error"], color="r", ls="--",
-                   label=f"best uncertified (certified to {unconstrained['certified_up_to']:.3g} rad/s)")
+                   label=f"search without certificate (certified to {unconstrained['certified_up_to']:.3g} rad/s)")
     if paper is not None:
         ax.axhline(paper["rms_error"], color="k", ls=":", label="paper gains")
     ax.set_xlabel("certified link-speed range required (rad/s)")
