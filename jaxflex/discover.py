@@ -659,9 +659,9 @@ def _cogging_start(series: dict[str, np.ndarray], n: int) -> Effect:
         c, *_ = np.linalg.lstsq(X, r, rcond=None)
         expl = float(np.sum((X[:, :2] @ c[:2]) ** 2))
         if expl > best[0]:
-            # link_torque = A sin(Nq + phi) must cancel r_link (r_link ~ -link_torque)
+            # r_link = I q1'' + F - K d equals the missing link torque A sin(N q + phi)
             A = math.hypot(c[0], c[1])
-            phi = math.atan2(-c[1], -c[0])
+            phi = math.atan2(c[1], c[0])
             best = (expl, float(N), phi, max(A, 1e-3))
     _, N, phi, A = best
     return EFFECTS["cogging"](A=jnp.full(n, A), N=jnp.full(n, N), phi=jnp.full(n, phi))

@@ -29,6 +29,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--max-effects", type=int, default=1,
                     help="effects added per case (1: only the first-named effect is scored)")
     ap.add_argument("--effects", default=None, help="comma-separated subset of effects")
+    ap.add_argument("--hidden", default=None,
+                    help="comma-separated effects to hide (all candidates are still tried)")
     ap.add_argument("--seed", type=int, default=100)
     ap.add_argument("--small", action="store_true", help="tiny run (for a slow test)")
     ap.add_argument("--rescore", action="store_true",
@@ -53,11 +55,12 @@ def main(argv: list[str] | None = None) -> None:
     from jaxflex.effects import EFFECTS
 
     names = a.effects.split(",") if a.effects else sorted(EFFECTS)
+    hidden = a.hidden.split(",") if a.hidden else names
     if a.small:
         names, a.per_effect, a.clean, a.t_final = names[:1], 1, 1, 6.0
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    cases = [(n,) for n in names for _ in range(a.per_effect)] + [()] * a.clean
+    cases = [(n,) for n in hidden for _ in range(a.per_effect)] + [()] * a.clean
     labels = names + ["none"]
     rows = []
     cfg = DiscoverConfig(max_effects=a.max_effects, candidates=names if a.effects else None)
