@@ -315,6 +315,8 @@ class Translator:
             return self._call(sub, ins[len(ins) - n_in:])
         if prim in _IDENTITY:
             return list(ins[: len(out_avals)])
+        if prim == "scan":
+            return self.scan(p, ins)
         if prim == "convert_element_type":
             return [self._convert(ins[0], eqn.invars[0].aval, out_avals[0])]
         if prim == "integer_pow":
@@ -456,6 +458,24 @@ class Translator:
             "(reshape, broadcast, slice, concatenate, pad, transpose), reductions, dot_general, "
             "cumulative sums, jnp.linalg.solve and nested calls"
         )
+
+    def scan(self, p: dict, ins: list[np.ndarray]) -> list[np.ndarray]:
+        """``lax.scan`` with a static length, unrolled (for short loops such as substeps)."""
+        length, nc, nk = int(p["length"]), int(p["num_consts"]), int(p["num_carry"])
+        if length > 1000:
+            raise UnsupportedPrimitive(f"primitive 'scan' of length {length} (unrolled up to 1000)")
+        consts, carry, xs = ins[:nc], list(ins[nc:nc + nk]), ins[nc + nk:]
+        ys: list[list[np.ndarray]] = []
+        order = range(length - 1, -1, -1) if p.get("reverse", False) else range(length)
+        for i in order:
+            outs = self._call(p["jaxpr"], [*consts, *carry, *[x[i] for x in xs]])
+            carry, y = list(outs[:nk]), outs[nk:]
+            ys.append(y)
+        if p.get("reverse", False):
+            ys.reverse()
+        n_y = len(ys[0]) if ys else 0
+        stacked = [np.stack([y[j] for y in ys]) for j in range(n_y)]
+        return [*carry, *stacked]
 
     def dot_general(self, a: np.ndarray, b: np.ndarray, dims: Any) -> np.ndarray:
         (lc, rc), (lb, rb) = dims
