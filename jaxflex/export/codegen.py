@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import datetime
 import math
+import re
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -86,7 +87,7 @@ def _fn_source(prog: Program, fname: str, param_names: list[str], signal_sig: st
     lines.append("")
     lines.append("")
     cl = ", ".join(closure)
-    body = ([f"{unpack}"] if unpack else []) + [f"{', '.join(st.targets)} = {st.code}" for st in dyn]
+    body = ([f"{unpack}"] if unpack else []) + _inline_single_use(dyn, ret)
     body.append(f"return {ret}")
     # fast path: Python floats and math (raises on 1/0, overflow, domain errors, even in a
     # branch that jnp.where discards); fallback: the same statements on numpy float64 scalars
@@ -106,6 +107,43 @@ def _fn_source(prog: Program, fname: str, param_names: list[str], signal_sig: st
     lines.append(f"            return _ieee(_slow, {signal_sig.replace('*', '')})")
     lines.append(f"    return _{fname}")
     return "\n".join(lines)
+
+
+_NAME = re.compile(r"\bv\d+\b")
+
+
+def _inline_single_use(dyn: list, ret: str, max_depth: int = 12) -> list[str]:
+    """Statement lines with temporaries used exactly once substituted into their user
+    (parenthesised, so the evaluation order and every rounding stay those of the separate
+    statements; fewer stores and loads per sample). Nesting is capped at ``max_depth``."""
+    counts: dict[str, int] = {}
+    for st in dyn:
+        for m in _NAME.findall(st.code):
+            counts[m] = counts.get(m, 0) + 1
+    for m in _NAME.findall(ret):
+        counts[m] = counts.get(m, 0) + 2  # outputs stay named
+    pending: dict[str, tuple[str, int]] = {}
+    lines = []
+    for st in dyn:
+        depth = 0
+
+        def sub(m):
+            nonlocal depth
+            name = m.group(0)
+            if name in pending:
+                code, d = pending.pop(name)
+                depth = max(depth, d)
+                return f"({code})"
+            return name
+
+        code = _NAME.sub(sub, st.code)
+        if len(st.targets) == 1 and counts.get(st.targets[0], 0) == 1 and depth < max_depth:
+            pending[st.targets[0]] = (code, depth + 1)
+            continue
+        lines.append(f"{', '.join(st.targets)} = {code}")
+    if pending:  # pragma: no cover - every single-use name has a later user
+        raise RuntimeError("jaxflex.export: unresolved inlined temporaries")
+    return lines
 
 
 def _literal(v: float) -> str:
