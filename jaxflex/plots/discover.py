@@ -18,14 +18,10 @@ def plot_signature(loc: dict[str, Any], quantity: str, path: Path) -> None:
     noise floor band; plus their spectra."""
     sig = loc["signatures"]
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    keys = [k for k in sig if k.startswith(quantity)] or ["link velocity"]
-    for k in keys + ([f"{quantity} (rotor side)"] if f"{quantity} (rotor side)" in sig else []):
-        if k not in sig:
-            continue
+    keys = [k for k in (quantity, f"{quantity} (rotor side)") if k in sig] or ["link velocity"]
+    for k in keys:
         b = sig[k]
         ax[0].errorbar(b["x"], b["mean"], yerr=b["se"], marker="o", ms=3, label=k)
-    if quantity == "rotor velocity" and "rotor velocity" in sig:
-        pass
     fl = loc["noise_floor_link"] / np.sqrt(max(len(loc["_series"]["t"]) / 15, 1))
     ax[0].axhspan(-fl, fl, color="0.85", label="noise floor (bin mean)")
     ax[0].set_xlabel(quantity)
