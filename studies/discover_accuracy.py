@@ -60,7 +60,11 @@ def main(argv: list[str] | None = None) -> None:
         names, a.per_effect, a.clean, a.t_final = names[:1], 1, 1, 6.0
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    cases = [(n,) for n in hidden for _ in range(a.per_effect)] + [()] * a.clean
+    # round-robin order, so that a run stopped early still covers every effect and clean data
+    cases: list[tuple[str, ...]] = []
+    for k in range(max(a.per_effect, a.clean)):
+        cases += [(n,) for n in hidden] if k < a.per_effect else []
+        cases += [()] if k < a.clean else []
     labels = names + ["none"]
     rows = []
     cfg = DiscoverConfig(max_effects=a.max_effects, candidates=names if a.effects else None)
