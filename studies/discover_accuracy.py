@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> None:
     names = a.effects.split(",") if a.effects else sorted(EFFECTS)
     hidden = a.hidden.split(",") if a.hidden else names
     if a.small:
-        names, a.per_effect, a.clean, a.t_final = names[:1], 1, 1, 6.0
+        hidden, a.per_effect, a.clean, a.t_final = hidden[:1], 1, 1, 6.0
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     # round-robin order, so that a run stopped early still covers every effect and clean data
@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> None:
     for k in range(max(a.per_effect, a.clean)):
         cases += [(n,) for n in hidden] if k < a.per_effect else []
         cases += [()] if k < a.clean else []
-    labels = names + ["none"]
+    labels = sorted(set(names) | set(hidden)) + ["none"]
     rows = []
     cfg = DiscoverConfig(max_effects=a.max_effects, candidates=names if a.effects else None)
     for i, eff in enumerate(cases):
