@@ -500,7 +500,8 @@ def _levenberg_marquardt(
             continue
         trial = theta.copy()
         trial[idx] += step
-        r2, J2 = (np.asarray(a) for a in _residual_jac(jnp.asarray(trial), basis, prob))
+        with np.errstate(over="ignore", invalid="ignore"):  # a wild trial is rejected below
+            r2, J2 = (np.asarray(a) for a in _residual_jac(jnp.asarray(trial), basis, prob))
         c2 = float(r2 @ r2)
         if np.isfinite(c2) and c2 < cost:
             done = cost - c2 < rtol * cost

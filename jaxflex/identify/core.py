@@ -59,7 +59,8 @@ class IdentResult:
     unknowns and their number; singular_values of the column-scaled Jacobian; unidentifiable:
     names the data cannot identify; warnings: messages; steps: solver steps; converged;
     wall_s: solve time [s]; problem: the ``Problem`` (for re-simulation and benchmarks);
-    solution: the solver's final unknowns (theta and segment states).
+    solution: the solver's final unknowns (theta and segment states); attempts: the
+    continuation schedules tried, with their final costs.
     """
 
     params: Params
@@ -77,6 +78,7 @@ class IdentResult:
     wall_s: float
     problem: Problem
     solution: Any
+    attempts: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
     def table(self) -> str:
         """A short text table: name, value, standard error, relative standard error."""
@@ -114,6 +116,7 @@ class Problem(eqx.Module):
     outputs: tuple[str, ...] = eqx.field(static=True)
     w_y: Array
     w_def: Array  # (n_state,) weights of continuity defects
+    structured: bool = eqx.field(static=True, default=True)
 
     def state(self, v: Array, aux: Any) -> PlantState:
         """PlantState from a packed segment start vector (q1, dq1, [q2, dq2], z) per joint."""
@@ -142,13 +145,69 @@ class Problem(eqx.Module):
 
         return jax.vmap(seg)(x0s, self.tau)
 
-    def residuals(self, y: tuple[dict[str, Array], Array], args: Any = None) -> Array:
-        """Weighted output residuals and continuity defects, flattened."""
+    def _plain_residuals(self, y: tuple[dict[str, Array], Array]) -> Array:
         ys, ends = self.simulate(y)
         r_out = (self.w_y * (ys - self.y_meas)).reshape(-1)
         x0s = y[1]
         defects = (ends[:-1] - x0s[1:]) * self.w_def[None, :, None]
         return jnp.concatenate([r_out, defects.reshape(-1)])
+
+    def residuals(self, y: tuple[dict[str, Array], Array], args: Any = None) -> Array:
+        """Weighted output residuals and continuity defects, flattened.
+
+        With ``structured`` (the default) the function carries a custom JVP that uses the
+        multiple-shooting sparsity: segment s depends only on theta and its own start state,
+        so its Jacobian is one forward-mode pass with k + n_state*n tangents (vmapped over the
+        segments) instead of k + S*n_state*n; a Jacobian-vector product is then a contraction.
+        Values and derivatives are the same as without it (a test checks this).
+        """
+        if not self.structured:
+            return self._plain_residuals(y)
+        theta, x0s = y
+        th_flat, th_unravel = ravel_pytree(theta)
+        S, n_state, n = x0s.shape
+        n_y = self.y_meas.shape[1] * self.y_meas.shape[2]
+        # The problem's arrays go in as an argument (no closed-over tracers: optimistix traces
+        # the residual to a jaxpr); their tangents are ignored (the data are not differentiated).
+        dyn, static = eqx.partition(self, eqx.is_array)
+
+        def seg_flat(prob, th, v0, tau):
+            plant = prob.space.plant(th_unravel(th))
+            aux = tuple(e.aux_init(plant.n) for e in plant.effects) if plant.effects else None
+            xs, x_end = replay(prob.kind, plant, prob.state(v0.reshape(n_state, n), aux), tau,
+                               prob.dt, prob.substeps)
+            ys = jnp.concatenate([getattr(xs, o) for o in prob.outputs], axis=-1)
+            return jnp.concatenate([ys.reshape(-1), prob.pack(x_end).reshape(-1)])
+
+        def assemble(prob, out, v0s):
+            r_out = prob.w_y * (out[:, :n_y].reshape(prob.y_meas.shape) - prob.y_meas)
+            defects = (out[:-1, n_y:] - v0s[1:]) * jnp.repeat(prob.w_def, n)
+            return jnp.concatenate([r_out.reshape(-1), defects.reshape(-1)])
+
+        @jax.custom_jvp
+        def res(th, v0s, d):
+            prob = eqx.combine(d, static)
+            out = jax.vmap(seg_flat, in_axes=(None, None, 0, 0))(prob, th, v0s, prob.tau)
+            return assemble(prob, out, v0s)
+
+        @res.defjvp
+        def res_jvp(primals, tangents):
+            th, v0s, d = primals
+            dth, dv0s, _ = tangents
+            prob = eqx.combine(d, static)
+
+            def seg_and_jac(v0, tau):
+                out = seg_flat(prob, th, v0, tau)
+                jt, jx = jax.jacfwd(seg_flat, argnums=(1, 2))(prob, th, v0, tau)
+                return out, jt, jx
+
+            out, jt, jx = jax.vmap(seg_and_jac)(v0s, prob.tau)
+            dout = jnp.einsum("smk,k->sm", jt, dth) + jnp.einsum("smd,sd->sm", jx, dv0s)
+            r_out_dot = (prob.w_y * dout[:, :n_y].reshape(prob.y_meas.shape)).reshape(-1)
+            def_dot = ((dout[:-1, n_y:] - dv0s[1:]) * jnp.repeat(prob.w_def, n)).reshape(-1)
+            return assemble(prob, out, v0s), jnp.concatenate([r_out_dot, def_dot])
+
+        return res(th_flat, x0s.reshape(S, n_state * n), dyn)
 
     @property
     def n_out(self) -> int:
@@ -294,7 +353,9 @@ def identify(
     log: Log, init: Params, free: Sequence[str] = DEFAULT_FREE, *,
     model: ModelKind = "flexible", segment_length: int | None = None, substeps: int = 4,
     outputs: Sequence[str] | None = None, output_scale: float | None = None,
-    continuity_weight: float = 10.0, warm_start: float | None = 1e-3, warm_steps: int = 40,
+    continuity_weight: float = 10.0,
+    warm_start: float | None | Sequence[float | None] = (1e-3, None, 1e-2),
+    warm_steps: int = 40, accept_cost: float = 4.0,
     rtol: float = 1e-10, atol: float = 1e-10, max_steps: int = 200,
     rel_stderr_limit: float = 0.5, progress: bool | int = False,
 ) -> IdentResult:
@@ -309,23 +370,54 @@ def identify(
     ``progress``: print the cost every ``progress`` steps (True: every step).
     ``warm_start``: with several segments, first solve for at most ``warm_steps`` steps with
     the continuity weight multiplied by this factor (segments nearly independent, a far less
-    nonconvex problem), then tighten to the full weight (a continuation; None: off).
+    nonconvex problem), then tighten to the full weight (a continuation; None: off). A
+    sequence of factors is a portfolio of such schedules, tried in order from the same start
+    until one ends with a cost the noise explains (0.5 ||r||^2 <= ``accept_cost`` x n_out / 2,
+    the residuals being scaled by the estimated noise level); otherwise the lowest cost wins.
+    The output-error problem has local minima, and which schedule avoids them depends on the
+    log (seed 3 of the noisy acceptance test needs the second one).
     """
     prob, y0 = make_problem(
         log, init, free, model=model, segment_length=segment_length, substeps=substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
     )
     verbose = _progress_printer(int(progress)) if progress else False
+    schedules = list(warm_start) if isinstance(warm_start, (list, tuple)) else [warm_start]
+    if not schedules:
+        raise ValueError("identify: warm_start needs at least one schedule (a factor or None)")
+    if prob.tau.shape[0] == 1:  # one segment: nothing to loosen
+        schedules = [None]
+    good = accept_cost * prob.n_out / 2
     t0 = time.perf_counter()
-    if warm_start is not None and prob.tau.shape[0] > 1:
-        loose = eqx.tree_at(lambda q: q.w_def, prob, prob.w_def * warm_start)
-        y0 = _solve(loose, y0, rtol, atol, warm_steps, verbose).value
-    sol = _solve(prob, y0, rtol, atol, max_steps, verbose)
+    best = None
+    attempts = []
+    for factor in schedules:
+        y = y0
+        if factor is not None:
+            loose = eqx.tree_at(lambda q: q.w_def, prob, prob.w_def * factor)
+            y = _solve(loose, y, rtol, atol, warm_steps, verbose).value
+        sol = _solve(prob, y, rtol, atol, max_steps, verbose)
+        r = np.asarray(prob.residuals(sol.value))
+        cost = 0.5 * float(r @ r)
+        cost = cost if np.isfinite(cost) else math.inf
+        attempts.append({"warm_start": factor, "cost": cost,
+                         "steps": int(sol.stats["num_steps"])})
+        if progress:
+            print(f"  [identify] schedule warm_start={factor}: cost {cost:.6e}"
+                  f" (noise explains <= {good:.3e})")
+        if best is None or cost < best[0]:
+            best = (cost, sol)
+        if cost <= good:
+            break
+    sol = best[1]
     y = jax.block_until_ready(sol.value)
     wall = time.perf_counter() - t0
-    return finish(prob, init, y, steps=int(sol.stats["num_steps"]),
-                  converged=bool(sol.result == optx.RESULTS.successful), wall_s=wall,
-                  rel_stderr_limit=rel_stderr_limit)
+    res = finish(prob, init, y, steps=int(sol.stats["num_steps"]),
+                 converged=bool(sol.result == optx.RESULTS.successful), wall_s=wall,
+                 rel_stderr_limit=rel_stderr_limit)
+    res.attempts = attempts
+    res.params.extra["identification"]["attempts"] = attempts
+    return res
 
 
 def finish(
