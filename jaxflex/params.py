@@ -170,15 +170,21 @@ def paper_params() -> Params:
     )
 
 
-def load_params(path: str | os.PathLike) -> Params:
-    """Read and validate a parameter file (SPEC section 7)."""
+def read_json_file(path: str | os.PathLike, error: type[Exception], what: str) -> Any:
+    """Parse a JSON file, raising ``error`` naming the file when it is missing or malformed
+    (``what``: the kind of file, for the message)."""
     path = Path(path)
     if not path.exists():
-        raise ParamsError(f"parameter file not found: {path}")
+        raise error(f"{what} not found: {path}")
     try:
-        d = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise ParamsError(f"{path}: not valid JSON ({e})") from None
+        raise error(f"{path}: not valid JSON ({e})") from None
+
+
+def load_params(path: str | os.PathLike) -> Params:
+    """Read and validate a parameter file (SPEC section 7)."""
+    d = read_json_file(path, ParamsError, "parameter file")
     try:
         return Params.from_dict(d)
     except ParamsError as e:

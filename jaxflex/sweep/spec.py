@@ -37,7 +37,6 @@ physical constraint (e.g. a normal inertia that can go negative).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 from pathlib import Path
@@ -49,7 +48,14 @@ import numpy as np
 
 from jaxflex.controller import Q2D_METHODS
 from jaxflex.friction import LUGRE_NAMES
-from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, paper_params
+from jaxflex.params import (
+    PLANT_NAMES,
+    Params,
+    ParamsError,
+    load_params,
+    paper_params,
+    read_json_file,
+)
 
 SENSING_NAMES: tuple[str, ...] = ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")
 LIMIT_NAMES: tuple[str, ...] = ("tau_max",)
@@ -482,12 +488,7 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
 def load_spread(path: str | os.PathLike) -> SweepSpec:
     """Read and validate a spread file; a relative ``nominal`` path is read beside it."""
     path = Path(path)
-    if not path.exists():
-        raise SpreadError(f"spread file not found: {path}")
-    try:
-        d = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise SpreadError(f"{path}: not valid JSON ({e})") from None
+    d = read_json_file(path, SpreadError, "spread file")
     try:
         return parse_spread(d, base=path.parent)
     except SpreadError as e:
