@@ -12,7 +12,10 @@ an integrating plant (and closed-loop logs, whose torque was computed from the r
 position) from drifting, and make the problem far less nonconvex.
 
 Solver: optimistix Levenberg-Marquardt with forward-mode Jacobians through the ``lax.scan``
-simulator. Physical constraints hold by reparametrisation (``space``). Standard errors come
+simulator; the residual's custom JVP uses the block sparsity of multiple shooting (segment s
+depends on theta and its own start state only), so a Jacobian costs k + n_state tangents
+whatever the number of segments; damped normal equations by Cholesky. A portfolio of
+continuation schedules guards against local minima (``identify``). Physical constraints hold by reparametrisation (``space``). Standard errors come
 from the Jacobian at the optimum, Cov = s^2 (J^T J)^+ with s^2 the residual variance, mapped to
 physical values through the reparametrisation's Jacobian; the nuisance initial states are part
 of J, so their uncertainty is accounted for.
