@@ -15,10 +15,11 @@ Solver: optimistix Levenberg-Marquardt with forward-mode Jacobians through the `
 simulator; the residual's custom JVP uses the block sparsity of multiple shooting (segment s
 depends on theta and its own start state only), so a Jacobian costs k + n_state tangents
 whatever the number of segments; damped normal equations by Cholesky. A portfolio of
-continuation schedules guards against local minima (``identify``). Physical constraints hold by reparametrisation (``space``). Standard errors come
-from the Jacobian at the optimum, Cov = s^2 (J^T J)^+ with s^2 the residual variance, mapped to
-physical values through the reparametrisation's Jacobian; the nuisance initial states are part
-of J, so their uncertainty is accounted for.
+continuation schedules guards against local minima (``identify``). Physical constraints hold
+by reparametrisation (``space``). Standard errors come from the Jacobian at the optimum,
+Cov = s^2 (J^T J)^+ with s^2 the residual variance, mapped to physical values through the
+reparametrisation's Jacobian; the nuisance initial states are part of J, so their uncertainty
+is accounted for.
 """
 
 from __future__ import annotations
@@ -149,13 +150,6 @@ class Problem(eqx.Module):
 
         return jax.vmap(seg)(x0s, self.tau)
 
-    def _plain_residuals(self, y: tuple[dict[str, Array], Array]) -> Array:
-        ys, ends = self.simulate(y)
-        r_out = (self.w_y * (ys - self.y_meas)).reshape(-1)
-        x0s = y[1]
-        defects = (ends[:-1] - x0s[1:]) * self.w_def[None, :, None]
-        return jnp.concatenate([r_out, defects.reshape(-1)])
-
     def residuals(self, y: tuple[dict[str, Array], Array], args: Any = None) -> Array:
         """Weighted output residuals and continuity defects, flattened.
 
@@ -165,8 +159,6 @@ class Problem(eqx.Module):
         segments) instead of k + S*n_state*n; a Jacobian-vector product is then a contraction.
         Values and derivatives are the same as without it (a test checks this).
         """
-        if not self.structured:
-            return self._plain_residuals(y)
         theta, x0s = y
         th_flat, th_unravel = ravel_pytree(theta)
         S, n_state, n = x0s.shape
@@ -188,11 +180,15 @@ class Problem(eqx.Module):
             defects = (out[:-1, n_y:] - v0s[1:]) * jnp.repeat(prob.w_def, n)
             return jnp.concatenate([r_out.reshape(-1), defects.reshape(-1)])
 
-        @jax.custom_jvp
-        def res(th, v0s, d):
+        def primal(th, v0s, d):
             prob = eqx.combine(d, static)
             out = jax.vmap(seg_flat, in_axes=(None, None, 0, 0))(prob, th, v0s, prob.tau)
             return assemble(prob, out, v0s)
+
+        args = (th_flat, x0s.reshape(S, n_state * n), dyn)
+        if not self.structured:  # plain autodiff through the same function
+            return primal(*args)
+        res = jax.custom_jvp(primal)
 
         @res.defjvp
         def res_jvp(primals, tangents):
@@ -211,7 +207,7 @@ class Problem(eqx.Module):
             def_dot = ((dout[:-1, n_y:] - dv0s[1:]) * jnp.repeat(prob.w_def, n)).reshape(-1)
             return assemble(prob, out, v0s), jnp.concatenate([r_out_dot, def_dot])
 
-        return res(th_flat, x0s.reshape(S, n_state * n), dyn)
+        return res(*args)
 
     @property
     def n_out(self) -> int:
