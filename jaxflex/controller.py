@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.friction import _as_param, check_nonnegative, check_positive
+from jaxflex.validation import as_param, check_nonnegative, check_positive
 from jaxflex.observer import FrictionObserver
 from jaxflex.plant import FlexibleJointPlant
 from jaxflex.trajectory import Trajectory
@@ -45,12 +45,12 @@ class CascadeGains(eqx.Module):
     kv [s/rad] smoothing of |v| in the observer; L1, L2 [1/s] sliding-surface slopes.
     """
 
-    Ke: Float[Array, " n"] = eqx.field(converter=_as_param)
-    KD1: Float[Array, " n"] = eqx.field(converter=_as_param)
-    KD2: Float[Array, " n"] = eqx.field(converter=_as_param)
-    kv: Float[Array, " n"] = eqx.field(converter=_as_param)
-    L1: Float[Array, " n"] = eqx.field(converter=_as_param)
-    L2: Float[Array, " n"] = eqx.field(converter=_as_param)
+    Ke: Float[Array, " n"] = eqx.field(converter=as_param)
+    KD1: Float[Array, " n"] = eqx.field(converter=as_param)
+    KD2: Float[Array, " n"] = eqx.field(converter=as_param)
+    kv: Float[Array, " n"] = eqx.field(converter=as_param)
+    L1: Float[Array, " n"] = eqx.field(converter=as_param)
+    L2: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
         shapes = {k: getattr(self, k).shape for k in GAIN_NAMES}
@@ -132,9 +132,9 @@ class CascadeController(eqx.Module):
     compensation: bool = eqx.field(static=True, default=True)
     q2d_method: str = eqx.field(static=True, default="model")
     dt: float = eqx.field(static=True, default=1e-3)
-    velocity_tc: Array = eqx.field(converter=_as_param, default=0.002)
-    derivative_tc: Array = eqx.field(converter=_as_param, default=0.002)
-    tau_max: Array = eqx.field(converter=_as_param, default=float("inf"))
+    velocity_tc: Array = eqx.field(converter=as_param, default=0.002)
+    derivative_tc: Array = eqx.field(converter=as_param, default=0.002)
+    tau_max: Array = eqx.field(converter=as_param, default=float("inf"))
 
     def __check_init__(self) -> None:
         if self.q2d_method not in Q2D_METHODS:

@@ -27,17 +27,15 @@ discrepancy workflow looks them up there. Every effect's parameters are array le
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxflex.friction import _as_param, check_nonnegative, check_positive
-
-if TYPE_CHECKING:
-    from jaxflex.plant import PlantState
+from jaxflex.state import PlantState
+from jaxflex.validation import as_param, check_nonnegative, check_positive
 
 EFFECTS: dict[str, type[Effect]] = {}
 
@@ -111,8 +109,8 @@ class Gravity(Effect):
     name: ClassVar[str] = "gravity"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"mgl": "positive", "q0": "free"}
-    mgl: Float[Array, " n"] = eqx.field(converter=_as_param)
-    q0: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
+    mgl: Float[Array, " n"] = eqx.field(converter=as_param)
+    q0: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
     def __check_init__(self) -> None:
         check_positive("gravity", mgl=self.mgl)
@@ -132,7 +130,7 @@ class TorqueOffset(Effect):
     name: ClassVar[str] = "torque_offset"
     where: ClassVar[str] = "input (applied torque)"
     constraints: ClassVar[dict[str, str]] = {"offset": "free"}
-    offset: Float[Array, " n"] = eqx.field(converter=_as_param)
+    offset: Float[Array, " n"] = eqx.field(converter=as_param)
 
     @classmethod
     def typical(cls, n: int) -> TorqueOffset:
@@ -166,8 +164,8 @@ class AsymmetricFriction(Effect):
     name: ClassVar[str] = "asymmetric_friction"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"dF": "free", "width": "fixed"}
-    dF: Float[Array, " n"] = eqx.field(converter=_as_param)
-    width: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.01)
+    dF: Float[Array, " n"] = eqx.field(converter=as_param)
+    width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
 
     def __check_init__(self) -> None:
         check_positive("asymmetric_friction", width=self.width)
@@ -191,9 +189,9 @@ class Cogging(Effect):
     name: ClassVar[str] = "cogging"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free"}
-    A: Float[Array, " n"] = eqx.field(converter=_as_param)
-    N: Float[Array, " n"] = eqx.field(converter=_as_param)
-    phi: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
+    A: Float[Array, " n"] = eqx.field(converter=as_param)
+    N: Float[Array, " n"] = eqx.field(converter=as_param)
+    phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
     def __check_init__(self) -> None:
         check_nonnegative("cogging", A=self.A)
@@ -220,9 +218,9 @@ class Backlash(Effect):
     name: ClassVar[str] = "backlash"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"b": "positive", "K": "tied:K", "w": "fixed"}
-    b: Float[Array, " n"] = eqx.field(converter=_as_param)
-    K: Float[Array, " n"] = eqx.field(converter=_as_param)
-    w: Float[Array, " n"] = eqx.field(converter=_as_param, default=2e-4)
+    b: Float[Array, " n"] = eqx.field(converter=as_param)
+    K: Float[Array, " n"] = eqx.field(converter=as_param)
+    w: Float[Array, " n"] = eqx.field(converter=as_param, default=2e-4)
 
     def __check_init__(self) -> None:
         check_positive("backlash", b=self.b, K=self.K, w=self.w)
@@ -246,7 +244,7 @@ class HardeningSpring(Effect):
     name: ClassVar[str] = "hardening_spring"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"K3": "positive"}
-    K3: Float[Array, " n"] = eqx.field(converter=_as_param)
+    K3: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
         check_nonnegative("hardening_spring", K3=self.K3)
@@ -267,7 +265,7 @@ class JointDamping(Effect):
     name: ClassVar[str] = "joint_damping"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"D": "positive"}
-    D: Float[Array, " n"] = eqx.field(converter=_as_param)
+    D: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
         check_nonnegative("joint_damping", D=self.D)
@@ -291,9 +289,9 @@ class MotorFriction(Effect):
     name: ClassVar[str] = "motor_friction"
     where: ClassVar[str] = "rotor torque"
     constraints: ClassVar[dict[str, str]] = {"Fm": "positive", "bm": "positive", "width": "fixed"}
-    Fm: Float[Array, " n"] = eqx.field(converter=_as_param)
-    bm: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
-    width: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.01)
+    Fm: Float[Array, " n"] = eqx.field(converter=as_param)
+    bm: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
+    width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
 
     def __check_init__(self) -> None:
         check_nonnegative("motor_friction", Fm=self.Fm, bm=self.bm)
@@ -315,7 +313,7 @@ class ActuatorLag(Effect):
     name: ClassVar[str] = "actuator_lag"
     where: ClassVar[str] = "input (applied torque, internal state)"
     constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3"}
-    T: Float[Array, " n"] = eqx.field(converter=_as_param)
+    T: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
         check_positive("actuator_lag", T=self.T)
@@ -353,7 +351,7 @@ class TimeDelay(Effect):
     name: ClassVar[str] = "time_delay"
     where: ClassVar[str] = "input (applied torque, internal state)"
     constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3"}
-    T: Float[Array, " n"] = eqx.field(converter=_as_param)
+    T: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
         check_positive("time_delay", T=self.T)

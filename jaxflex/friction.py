@@ -20,45 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxflex.validation import as_param, check_nonnegative, check_positive, is_concrete
+
 LUGRE_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")
-
-
-def _as_param(x: ArrayLike) -> Array:
-    return jnp.atleast_1d(jnp.asarray(x, dtype=jnp.result_type(float)))
-
-
-def _is_concrete(x: Any) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def check_positive(owner: str, allow_inf: bool = False, **values: ArrayLike) -> None:
-    """Raise ``ValueError`` naming the first parameter that is not finite and > 0
-    (``allow_inf``: +inf is accepted, e.g. for 'no limit').
-
-    Only concrete (non-traced) values are checked, so the check runs when a user builds a
-    model and stays out of the way under ``jit``/``vmap``/``grad``.
-    """
-    for name, v in values.items():
-        if not _is_concrete(v):
-            continue
-        a = np.asarray(v, dtype=float)
-        ok = np.isfinite(a) | (allow_inf & (a == np.inf))
-        if not np.all(ok):
-            raise ValueError(f"{owner}: parameter {name} must be finite, got {a.tolist()}")
-        if np.any(a <= 0):
-            raise ValueError(f"{owner}: parameter {name} must be > 0, got {a.tolist()}")
-
-
-def check_nonnegative(owner: str, **values: ArrayLike) -> None:
-    """Raise ``ValueError`` naming the first parameter that is not finite and >= 0."""
-    for name, v in values.items():
-        if not _is_concrete(v):
-            continue
-        a = np.asarray(v, dtype=float)
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"{owner}: parameter {name} must be finite, got {a.tolist()}")
-        if np.any(a < 0):
-            raise ValueError(f"{owner}: parameter {name} must be >= 0, got {a.tolist()}")
 
 
 def relax(z: Array, rate: Array, target_rate: Array, h: float | Array) -> Array:
@@ -87,12 +51,12 @@ class LuGre(eqx.Module):
     ``ValueError`` naming the parameter when the model is built from concrete values.
     """
 
-    Fc: Float[Array, " n"] = eqx.field(converter=_as_param)
-    Fs: Float[Array, " n"] = eqx.field(converter=_as_param)
-    vs: Float[Array, " n"] = eqx.field(converter=_as_param)
-    sigma0: Float[Array, " n"] = eqx.field(converter=_as_param)
-    sigma1: Float[Array, " n"] = eqx.field(converter=_as_param)
-    sigma2: Float[Array, " n"] = eqx.field(converter=_as_param)
+    Fc: Float[Array, " n"] = eqx.field(converter=as_param)
+    Fs: Float[Array, " n"] = eqx.field(converter=as_param)
+    vs: Float[Array, " n"] = eqx.field(converter=as_param)
+    sigma0: Float[Array, " n"] = eqx.field(converter=as_param)
+    sigma1: Float[Array, " n"] = eqx.field(converter=as_param)
+    sigma2: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
         shapes = {k: jnp.shape(getattr(self, k)) for k in LUGRE_NAMES}
@@ -100,7 +64,7 @@ class LuGre(eqx.Module):
             raise ValueError(f"LuGre: parameters must all have the same shape (n,), got {shapes}")
         check_positive("LuGre", Fc=self.Fc, Fs=self.Fs, vs=self.vs, sigma0=self.sigma0)
         check_nonnegative("LuGre", sigma1=self.sigma1, sigma2=self.sigma2)
-        if _is_concrete(self.Fs) and _is_concrete(self.Fc):
+        if is_concrete(self.Fs) and is_concrete(self.Fc):
             fs, fc = np.asarray(self.Fs), np.asarray(self.Fc)
             if np.any(fs < fc):
                 raise ValueError(

@@ -19,24 +19,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from jaxflex.effects import Effect
-from jaxflex.friction import LuGre, _as_param, check_positive
-
-
-class PlantState(eqx.Module):
-    """Plant state; every field has shape (n,) except ``aux`` (one entry per effect).
-
-    q1 [rad] link angle, dq1 [rad/s], q2 [rad] rotor angle (link-referred), dq2 [rad/s],
-    z [rad] LuGre bristle state, aux: internal states of effects (e.g. actuator lag), one
-    entry per effect, or None for a plant without effects (an empty tuple would trip diffrax's
-    loop buffers).
-    """
-
-    q1: Float[Array, " n"]
-    dq1: Float[Array, " n"]
-    q2: Float[Array, " n"]
-    dq2: Float[Array, " n"]
-    z: Float[Array, " n"]
-    aux: tuple | None = None
+from jaxflex.friction import LuGre
+from jaxflex.state import PlantState
+from jaxflex.validation import as_param, check_positive
 
 
 class LinkDynamics(eqx.Module):
@@ -80,7 +65,7 @@ class DiagonalInertia(LinkDynamics):
     I [kg m^2] per joint, > 0.
     """
 
-    I: Float[Array, " n"] = eqx.field(converter=_as_param)
+    I: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
         check_positive("plant", I=self.I)
@@ -153,8 +138,8 @@ class FlexibleJointPlant(eqx.Module):
     """
 
     links: LinkDynamics
-    J: Float[Array, " n"] = eqx.field(converter=_as_param)
-    K: Float[Array, " n"] = eqx.field(converter=_as_param)
+    J: Float[Array, " n"] = eqx.field(converter=as_param)
+    K: Float[Array, " n"] = eqx.field(converter=as_param)
     friction: LuGre | None = None
     effects: tuple[Effect, ...] = ()
 

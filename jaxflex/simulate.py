@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
 from jaxflex.controller import CascadeController
-from jaxflex.friction import _as_param, check_nonnegative
+from jaxflex.validation import as_param, check_nonnegative
 from jaxflex.plant import FlexibleJointPlant, PlantState
 
 _tmap = jax.tree_util.tree_map
@@ -45,13 +45,13 @@ class Sensing(eqx.Module):
     +-dac_range [N m].
     """
 
-    q1_resolution: Array = eqx.field(converter=_as_param, default=0.0)
-    q2_resolution: Array = eqx.field(converter=_as_param, default=0.0)
-    q1_noise: Array = eqx.field(converter=_as_param, default=0.0)
-    q2_noise: Array = eqx.field(converter=_as_param, default=0.0)
+    q1_resolution: Array = eqx.field(converter=as_param, default=0.0)
+    q2_resolution: Array = eqx.field(converter=as_param, default=0.0)
+    q1_noise: Array = eqx.field(converter=as_param, default=0.0)
+    q2_noise: Array = eqx.field(converter=as_param, default=0.0)
     velocity: str = eqx.field(static=True, default="exact")
     dac_bits: int = eqx.field(static=True, default=0)
-    dac_range: Array = eqx.field(converter=_as_param, default=2.0)
+    dac_range: Array = eqx.field(converter=as_param, default=2.0)
 
     def __check_init__(self) -> None:
         if self.velocity not in ("exact", "filtered"):

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.friction import _as_param
+from jaxflex.validation import as_param
 
 
 class Trajectory(eqx.Module):
@@ -42,10 +42,10 @@ class Trajectory(eqx.Module):
 class Sinusoid(Trajectory):
     """q1d = offset + amplitude sin(2 pi frequency t + phase); amplitude [rad], frequency [Hz]."""
 
-    amplitude: Float[Array, " n"] = eqx.field(converter=_as_param)
-    frequency: Float[Array, " n"] = eqx.field(converter=_as_param)
-    phase: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
-    offset: Float[Array, " n"] = eqx.field(converter=_as_param, default=0.0)
+    amplitude: Float[Array, " n"] = eqx.field(converter=as_param)
+    frequency: Float[Array, " n"] = eqx.field(converter=as_param)
+    phase: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
+    offset: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
     def __check_init__(self) -> None:
         if not isinstance(self.frequency, jax.core.Tracer) and bool(jnp.any(self.frequency <= 0)):
@@ -100,7 +100,7 @@ class Multisine(Trajectory):
     amplitudes: Array = eqx.field(converter=lambda a: jnp.asarray(a, float))
     frequencies: Array = eqx.field(converter=lambda a: jnp.asarray(a, float))
     phases: Array = eqx.field(converter=lambda a: jnp.asarray(a, float))
-    offset: Array = eqx.field(converter=_as_param, default=0.0)
+    offset: Array = eqx.field(converter=as_param, default=0.0)
 
     def position(self, t: Array) -> Array:
         terms = self.amplitudes * jnp.sin(2 * math.pi * self.frequencies * t + self.phases)
