@@ -37,10 +37,10 @@ from jaxtyping import Array, Float
 from jaxflex.state import PlantState
 from jaxflex.validation import as_param, check_nonnegative, check_positive
 
-EFFECTS: dict[str, type[Effect]] = {}
+EFFECTS: dict[str, type[AbstractEffect]] = {}
 
 
-def register_effect(cls: type[Effect]) -> type[Effect]:
+def register_effect(cls: type[AbstractEffect]) -> type[AbstractEffect]:
     """Class decorator: make an effect known by its ``name`` (SPEC section 8)."""
     if not getattr(cls, "name", None):
         raise ValueError(f"effect class {cls.__name__} has no name")
@@ -48,15 +48,18 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     return cls
 
 
-class Effect(eqx.Module):
-    """Abstract effect. Subclasses set ``name`` and override the hooks where they act."""
+class AbstractEffect(eqx.Module):
+    """The interface of an effect: where it acts (the hooks below, each contributing nothing
+    unless a subclass says otherwise), its ``name`` (docs/spec.md section 8), its fitting
+    ``constraints`` and a ``typical`` start. Concrete effects are final classes; variants are
+    made by wrapping (``Gated``), never by subclassing a concrete effect."""
 
     name: ClassVar[str] = ""
     where: ClassVar[str] = ""
     constraints: ClassVar[dict[str, str]] = {}
 
     @classmethod
-    def typical(cls, n: int) -> Effect:
+    def typical(cls, n: int) -> AbstractEffect:
         """A small instance to start a fit from (all parameters within their constraints)."""
         raise NotImplementedError(f"effect {cls.name!r} has no typical() start")
 
@@ -99,7 +102,7 @@ class Effect(eqx.Module):
 
 
 @register_effect
-class Gravity(Effect):
+class Gravity(AbstractEffect):
     """Link gravity m g l sin(q1) in a vertical plane: link_torque = -mgl sin(q1 - q0) [N m].
 
     ``mgl`` [N m] is mass times g times the centre-of-mass distance; ``q0`` [rad] the angle of
@@ -124,7 +127,7 @@ class Gravity(Effect):
 
 
 @register_effect
-class TorqueOffset(Effect):
+class TorqueOffset(AbstractEffect):
     """Constant bias between commanded and applied torque: tau_a = tau + offset [N m]."""
 
     name: ClassVar[str] = "torque_offset"
@@ -151,7 +154,7 @@ def _softplus(x: Array, w: Array) -> Array:
 
 
 @register_effect
-class AsymmetricFriction(Effect):
+class AsymmetricFriction(AbstractEffect):
     """Direction-dependent Coulomb level on the link: the Coulomb level is Fc + dF when moving
     forward and Fc - dF when moving backward (SPEC section 8). Added as a link torque
 
@@ -179,7 +182,7 @@ class AsymmetricFriction(Effect):
 
 
 @register_effect
-class Cogging(Effect):
+class Cogging(AbstractEffect):
     """Position-periodic torque ripple on the link: link_torque = A sin(N q1 + phi) [N m].
 
     A [N m] >= 0 amplitude; N [1/rad] > 0 spatial frequency (cycles per radian times 2 pi; not
@@ -206,7 +209,7 @@ class Cogging(Effect):
 
 
 @register_effect
-class Backlash(Effect):
+class Backlash(AbstractEffect):
     """Smooth dead zone of half-width b [rad] in the spring deflection: the elastic torque is
     K dz(d) instead of K d, with dz(d) = softplus(d - b) - softplus(-d - b) (corner width w).
     As a spring_torque hook: K (dz(d) - d) [N m].
@@ -238,7 +241,7 @@ class Backlash(Effect):
 
 
 @register_effect
-class HardeningSpring(Effect):
+class HardeningSpring(AbstractEffect):
     """Cubic hardening of the joint spring: spring_torque = K3 d^3 [N m], K3 [N m/rad^3] >= 0."""
 
     name: ClassVar[str] = "hardening_spring"
@@ -258,7 +261,7 @@ class HardeningSpring(Effect):
 
 
 @register_effect
-class JointDamping(Effect):
+class JointDamping(AbstractEffect):
     """Viscous damping in the elastic coupling: spring_torque = D (q2' - q1') [N m],
     D [N m s/rad] >= 0."""
 
@@ -279,7 +282,7 @@ class JointDamping(Effect):
 
 
 @register_effect
-class MotorFriction(Effect):
+class MotorFriction(AbstractEffect):
     """Coulomb (smoothed) plus viscous friction on the rotor side:
     rotor_torque = -(Fm tanh(q2' / width) + bm q2') [N m].
 
@@ -306,7 +309,7 @@ class MotorFriction(Effect):
 
 
 @register_effect
-class ActuatorLag(Effect):
+class ActuatorLag(AbstractEffect):
     """First-order lag between commanded and applied torque (e.g. current loop):
     T a' = tau - a, applied torque = a [N m]. T [s] > 0 time constant. Aux state a (n,)."""
 
@@ -336,7 +339,7 @@ class ActuatorLag(Effect):
 
 
 @register_effect
-class TimeDelay(Effect):
+class TimeDelay(AbstractEffect):
     """Input delay of T [s] > 0, as a second-order Pade approximant (unit gain, phase close to
     -omega T up to omega ~ 3/T):
 
@@ -374,3 +377,55 @@ class TimeDelay(Effect):
 
     def applied_torque(self, tau: Array, aux: Array) -> Float[Array, " n"]:
         return tau - self.T * aux[1]
+
+
+class Gated(AbstractEffect):
+    """An effect switched by ``gate`` (0 or 1, an array so it is data, not structure): every
+    hook's contribution times the gate, the applied torque tau + gate (inner(tau) - tau).
+
+    A wrapper, not a registered effect: it lets one compiled model hold several candidate
+    effects at once, inactive ones gated off, so the discrepancy workflow fits every candidate
+    with one XLA compilation (``jaxflex.fit``). Its ``name`` and ``constraints`` are those of
+    the wrapped effect."""
+
+    inner: AbstractEffect
+    gate: Array
+
+    @property
+    def name(self) -> str:  # type: ignore[override]
+        return self.inner.name
+
+    @property
+    def constraints(self) -> dict[str, str]:  # type: ignore[override]
+        return type(self.inner).constraints
+
+    def link_torque(self, x: PlantState):
+        return self.gate * self.inner.link_torque(x)
+
+    def rotor_torque(self, x: PlantState):
+        return self.gate * self.inner.rotor_torque(x)
+
+    def spring_torque(self, d: Array, dd: Array):
+        return self.gate * self.inner.spring_torque(d, dd)
+
+    def applied_torque(self, tau: Array, aux: Any):
+        return tau + self.gate * (self.inner.applied_torque(tau, aux) - tau)
+
+    def aux_init(self, n: int):
+        return self.inner.aux_init(n)
+
+    def aux_steady(self, tau: Array):
+        return self.inner.aux_steady(tau)
+
+    def aux_rhs(self, aux: Any, tau: Array, x: PlantState):
+        return self.inner.aux_rhs(aux, tau, x)
+
+    def params(self) -> dict[str, list[float]]:
+        return self.inner.params()
+
+
+def unwrap(effect: AbstractEffect) -> AbstractEffect:
+    """The effect inside any wrappers (``Gated``)."""
+    while isinstance(effect, Gated):
+        effect = effect.inner
+    return effect

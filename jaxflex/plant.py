@@ -3,7 +3,7 @@
     M(q1) q1'' + C(q1, q1') q1' + G(q1) + F = K (q2 - q1)      link side, LuGre friction F
     J q2''     + K (q2 - q1)                  = tau             rotor side (link-referred)
 
-The rigid-link part is a ``LinkDynamics`` (mass matrix and potential energy); C and G are
+The rigid-link part is an ``AbstractLinkDynamics`` (mass matrix and potential energy); C and G are
 derived from them by automatic differentiation (Christoffel symbols and the gradient of the
 potential), so a new arm needs only M(q) and U(q). The plant is composed of links, joint
 inertia J, stiffness K, optional LuGre friction and optional effects (``jaxflex.effects``).
@@ -18,13 +18,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.effects import Effect
+from jaxflex.effects import AbstractEffect
 from jaxflex.friction import LuGre
 from jaxflex.state import PlantState
 from jaxflex.validation import as_param, check_positive
 
 
-class LinkDynamics(eqx.Module):
+class AbstractLinkDynamics(eqx.Module):
     """Rigid-link dynamics: mass matrix M(q) [kg m^2] and potential energy U(q) [J]."""
 
     @property
@@ -59,7 +59,7 @@ class LinkDynamics(eqx.Module):
         return jax.grad(self.potential)(q)
 
 
-class DiagonalInertia(LinkDynamics):
+class DiagonalInertia(AbstractLinkDynamics):
     """Decoupled links with constant inertia, M = diag(I), C = G = 0 (paper eq. 40).
 
     I [kg m^2] per joint, > 0.
@@ -88,7 +88,7 @@ class DiagonalInertia(LinkDynamics):
         return jnp.zeros_like(q)
 
 
-class PlanarTwoLink(LinkDynamics):
+class PlanarTwoLink(AbstractLinkDynamics):
     """Two-link planar arm (revolute-revolute), optionally in a vertical plane with gravity.
 
     m1, m2 [kg] link masses; l1 [m] length of link 1; lc1, lc2 [m] centre-of-mass distances;
@@ -134,14 +134,14 @@ class FlexibleJointPlant(eqx.Module):
     """Flexible-joint robot: links + elastic joints + rotors + LuGre friction + effects.
 
     J [kg m^2] rotor inertias (link-referred), K [N m/rad] joint stiffnesses, both (n,).
-    ``friction=None`` gives a frictionless plant. ``effects`` is a tuple of ``Effect``s.
+    ``friction=None`` gives a frictionless plant. ``effects`` is a tuple of ``AbstractEffect``s.
     """
 
-    links: LinkDynamics
+    links: AbstractLinkDynamics
     J: Float[Array, " n"] = eqx.field(converter=as_param)
     K: Float[Array, " n"] = eqx.field(converter=as_param)
     friction: LuGre | None = None
-    effects: tuple[Effect, ...] = ()
+    effects: tuple[AbstractEffect, ...] = ()
 
     def __check_init__(self) -> None:
         check_positive("plant", J=self.J, K=self.K)
@@ -162,7 +162,7 @@ class FlexibleJointPlant(eqx.Module):
         """Number of joints."""
         return self.links.n
 
-    def with_effects(self, *effects: Effect) -> FlexibleJointPlant:
+    def with_effects(self, *effects: AbstractEffect) -> FlexibleJointPlant:
         """A copy with ``effects`` appended (the discrepancy workflow's way to augment)."""
         return eqx.tree_at(lambda p: p.effects, self, tuple(self.effects) + tuple(effects))
 
@@ -209,6 +209,32 @@ class FlexibleJointPlant(eqx.Module):
             self.applied_torque(x, tau) - Ts + sum((e.rotor_torque(x) for e in self.effects), 0.0)
         )
         return ddq1, rotor_rhs / self.J
+
+    def torque_residuals(
+        self, x: PlantState, ddq1: Float[Array, " n"], ddq2: Float[Array, " n"],
+        tau: Float[Array, " n"],
+    ) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
+        """Inverse dynamics: what eq. 3 leaves unexplained at a measured motion [N m].
+
+            r_link  = M q1'' + C q1' + G + F - T_s - sum link_torque
+            r_rotor = J q2'' + T_s - tau_a - sum rotor_torque
+
+        with the friction F of the state ``x`` (pass z at its steady state ``z_steady(q1')``
+        for F_ss of eq. 35) and effect states in ``x.aux``. Both are zero for a motion the
+        model explains; a torque the model lacks appears with its own sign (a missing link
+        torque T_e gives r_link = T_e). The one inverse-dynamics function of jaxflex (used by
+        the discrepancy localisation and the torque-prediction error)."""
+        Ts = self.spring_torque(x)
+        r_link = (
+            self.links.mass_matrix(x.q1) @ ddq1 + self.links.coriolis(x.q1, x.dq1, x.dq1)
+            + self.links.gravity(x.q1) + self.friction_torque(x) - Ts
+            - sum((e.link_torque(x) for e in self.effects), 0.0)
+        )
+        r_rotor = (
+            self.J * ddq2 + Ts - self.applied_torque(x, tau)
+            - sum((e.rotor_torque(x) for e in self.effects), 0.0)
+        )
+        return r_link, r_rotor
 
     def vector_field(self, x: PlantState, tau: Float[Array, " n"]) -> PlantState:
         """Time derivative of the state under motor torque ``tau`` [N m] (eq. 3-5)."""

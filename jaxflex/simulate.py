@@ -31,6 +31,7 @@ from jaxtyping import Array, ArrayLike, PRNGKeyArray
 from jaxflex.controller import CascadeController
 from jaxflex.validation import as_param, check_nonnegative
 from jaxflex.plant import FlexibleJointPlant, PlantState
+from jaxflex.step import plant_step, plant_step_diffrax
 
 _tmap = jax.tree_util.tree_map
 
@@ -147,56 +148,6 @@ class SimResult(eqx.Module):
     e1: Array | None = None
     q1_meas: Array | None = None
     q2_meas: Array | None = None
-
-
-def _rk4(f, x, h):
-    k1 = f(x)
-    k2 = f(_tmap(lambda a, b: a + 0.5 * h * b, x, k1))
-    k3 = f(_tmap(lambda a, b: a + 0.5 * h * b, x, k2))
-    k4 = f(_tmap(lambda a, b: a + h * b, x, k3))
-    return _tmap(lambda a, b, c, d, e: a + h / 6.0 * (b + 2 * c + 2 * d + e), x, k1, k2, k3, k4)
-
-
-def plant_step(
-    plant: FlexibleJointPlant, x: PlantState, tau: Array, h: float | Array, substeps: int
-) -> PlantState:
-    """Advance the plant by ``h`` seconds under constant torque ``tau`` [N m].
-
-    Strang splitting per substep: exact z half-step (velocity frozen), RK4 on the rest with z
-    frozen, exact z half-step. Without friction this is plain RK4.
-    """
-    hs = h / substeps
-    fr = plant.friction
-
-    def mech(xx):
-        d = plant.vector_field(xx, tau)
-        return eqx.tree_at(lambda s: s.z, d, jnp.zeros_like(d.z))
-
-    def sub(xx, _):
-        if fr is None:
-            return _rk4(lambda s: plant.vector_field(s, tau), xx, hs), None
-        xx = eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, 0.5 * hs))
-        xx = _rk4(mech, xx, hs)
-        xx = eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, 0.5 * hs))
-        return xx, None
-
-    x, _ = jax.lax.scan(sub, x, None, length=substeps)
-    return x
-
-
-def plant_step_diffrax(
-    plant: FlexibleJointPlant, x: PlantState, tau: Array, h: float, rtol: float = 1e-10,
-    atol: float = 1e-12,
-) -> PlantState:
-    """Advance the plant by ``h`` under constant ``tau`` with an adaptive stiff solver
-    (diffrax Kvaerno5, PID step control); an accurate reference for ``plant_step``."""
-    term = diffrax.ODETerm(lambda t, y, args: plant.vector_field(y, tau))
-    sol = diffrax.diffeqsolve(
-        term, diffrax.Kvaerno5(), 0.0, h, h / 10, x,
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        max_steps=100_000,
-    )
-    return _tmap(lambda a: a[-1], sol.ys)
 
 
 def _noise(key, shape, std):

@@ -51,19 +51,19 @@ def _static_data(p):
 
 def test_reparametrisation_keeps_constraints():
     p = paper_params()
-    space = ParamSpace.build(p, DEFAULT_FREE)
+    space = ParamSpace.build(p.to_plant(), DEFAULT_FREE)
     rng = np.random.default_rng(0)
     for _ in range(20):
         theta = {k: np.asarray(rng.normal(scale=5.0, size=1)) for k in space.names}
         phys = space.physical(theta)
         assert all(float(phys[k][0]) > 0 for k in LUGRE_NAMES)
         assert float(phys["Fs"][0]) >= float(phys["Fc"][0])
-    th0 = space.theta0(p)
+    th0 = space.theta0()
     phys0 = space.physical(th0)
     for k in LUGRE_NAMES:
         assert float(phys0[k][0]) == pytest.approx(p.friction[k][0], rel=1e-12)
     # Fc free with Fs fixed stays below Fs.
-    sp2 = ParamSpace.build(p, ["Fc"])
+    sp2 = ParamSpace.build(p.to_plant(), ["Fc"])
     assert float(sp2.physical({"Fc": np.array([30.0])})["Fc"][0]) <= p.friction["Fs"][0]
 
 

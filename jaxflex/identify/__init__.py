@@ -1,6 +1,6 @@
 """Identification from logs (SPEC section 5; paper section 5, eq. 34-39).
 
-Public API (the discrepancy workflow builds on it):
+Public API (a workflow on the fitting engine ``jaxflex.fit``):
 
 - ``identify(log, init, free, model=..., segment_length=...) -> IdentResult``: joint
   output-error fit by gradient through the simulator (optimistix Levenberg-Marquardt,
@@ -10,15 +10,14 @@ Public API (the discrepancy workflow builds on it):
 - ``simulate_log``: replay a log's torque through a parameter set;
 - ``two_step``, ``static_map_experiment``, ``fit_static_map``: the paper's procedure;
 - ``synthetic_log``, ``excitation_torque``: simulated identification experiments;
-- ``ParamSpace``, ``get_value``, ``set_values``: free-parameter bookkeeping.
+- ``ParamSpace``, ``get_value``, ``set_values``, ``Problem``, ``covariance``: from the
+  fitting engine ``jaxflex.fit``, re-exported for convenience.
 """
 
 from jaxflex.identify.core import (
     DEFAULT_FREE,
     IdentificationWarning,
     IdentResult,
-    Problem,
-    covariance,
     finish,
     identify,
     make_problem,
@@ -35,8 +34,8 @@ from jaxflex.identify.experiments import (
     synthetic_log,
     two_step,
 )
-from jaxflex.identify.simulators import MODEL_KINDS, replay, rigid_step, rigid_vector_field
-from jaxflex.identify.space import ParamSpace, get_value, set_values
+from jaxflex.fit import ParamSpace, Problem, covariance, get_value, set_values
+from jaxflex.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
 
 __all__ = [
     "DEFAULT_FREE", "MODEL_KINDS", "STATIC_NAMES", "IdentResult", "IdentificationWarning",

@@ -23,17 +23,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import PRNGKeyArray
 
-from jaxflex.friction import LuGre
 from jaxflex.identify.core import IdentResult, identify
-from jaxflex.identify.simulators import ModelKind, replay, rigid_step
-from jaxflex.identify.space import set_values
+from jaxflex.fit import ParamSpace, covariance, get_value, least_squares, set_values
 from jaxflex.logs import Log
 from jaxflex.params import Params
-from jaxflex.plant import FlexibleJointPlant
+from jaxflex.friction import LuGre
+from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 from jaxflex.simulate import Sensing
+from jaxflex.step import ModelKind, replay, rigid_step
 
 STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")
 
@@ -131,15 +130,36 @@ def static_map_experiment(
     return StaticMap(v=np.asarray(vs), F=np.asarray(Fs))
 
 
+class StaticMapProblem(eqx.Module):
+    """The curve fit of eq. 35 as a problem of the fitting engine: residuals
+    ``F_ss(v; theta) - F`` [N m] over the static-map data, parameters in ``space``."""
+
+    space: ParamSpace
+    v: jax.Array
+    F: jax.Array
+
+    def split(self, y: dict[str, jax.Array]) -> tuple[dict[str, jax.Array], None]:
+        """(theta, no start states)."""
+        return y, None
+
+    def residuals(self, y: dict[str, jax.Array], args: object = None) -> jax.Array:
+        """F_ss(v) - F of the friction of ``space.plant(y)`` (eq. 35) [N m]."""
+        fr = self.space.plant(y).friction
+        return jax.vmap(lambda vi: fr.steady_state(vi[None])[0])(self.v) - self.F
+
+    @property
+    def n_out(self) -> int:
+        """Number of residuals."""
+        return int(self.v.shape[0])
+
+
 def fit_static_map(
     data: StaticMap, init: dict[str, float], *, rtol: float = 1e-12, atol: float = 1e-12,
 ) -> dict[str, tuple[float, float]]:
-    """Fit Fc, Fs, vs, sigma2 of one joint to static-map data by eq. 35 (``LuGre.steady_state``).
-
-    Constraints by reparametrisation (Fc, vs, sigma2 = exp, Fs = Fc + exp). ``init`` holds
-    starting values for the four names. Returns name -> (value, standard error) with the
-    standard error from the Jacobian (s^2 (J^T J)^-1, mapped through the reparametrisation).
-    """
+    """Fit Fc, Fs, vs, sigma2 of one joint to static-map data by eq. 35 (``LuGre.steady_state``)
+    with the fitting engine (its constraints: Fc, vs, sigma2 positive, Fs >= Fc; its solver;
+    its covariance). ``init`` holds starting values for the four names. Returns name ->
+    (value [N m, rad/s or N m s/rad], standard error)."""
     v, F = jnp.asarray(data.v, float), jnp.asarray(data.F, float)
     if v.shape != F.shape or v.ndim != 1 or v.size < 5:
         raise ValueError(f"fit_static_map: need >= 5 (v, F) pairs of equal length, got "
@@ -147,29 +167,21 @@ def fit_static_map(
     missing = [k for k in STATIC_NAMES if k not in init]
     if missing:
         raise ValueError(f"fit_static_map: missing starting value(s) {missing}")
+    # A unit plant holds the friction: eq. 35 does not involve I, J, K, sigma0, sigma1.
+    lugre = LuGre(Fc=init["Fc"], Fs=max(init["Fs"], 1.001 * init["Fc"]), vs=init["vs"],
+                  sigma0=1.0, sigma1=0.0, sigma2=max(init["sigma2"], 1e-9))
+    holder = FlexibleJointPlant(links=DiagonalInertia(I=1.0), J=1.0, K=1.0, friction=lugre)
+    space = ParamSpace.build(holder, STATIC_NAMES)
+    prob = StaticMapProblem(space=space, v=v, F=F)
+    sol = least_squares(prob, space.theta0(), fn=_static_residuals, rtol=rtol, atol=atol,
+                        max_steps=500)
+    phys = space.physical(sol.y)
+    se = covariance(prob, sol.y)["stderr"]
+    return {k: (float(phys[k][0]), float(se[k][0])) for k in STATIC_NAMES}
 
-    def phys(th):
-        Fc = jnp.exp(th[0])
-        return jnp.stack([Fc, Fc + jnp.exp(th[1]), jnp.exp(th[2]), jnp.exp(th[3])])
 
-    def resid(th, _=None):
-        Fc, Fs, vs, s2 = phys(th)
-        lugre = LuGre(Fc=Fc, Fs=Fs, vs=vs, sigma0=1.0, sigma1=0.0, sigma2=s2)
-        return jax.vmap(lambda vi: lugre.steady_state(vi[None])[0])(v) - F
-
-    th0 = jnp.log(jnp.asarray([init["Fc"], max(init["Fs"] - init["Fc"], 1e-3 * init["Fc"]),
-                               init["vs"], max(init["sigma2"], 1e-9)], float))
-    sol = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), th0,
-                             max_steps=500, throw=False)
-    th = sol.value
-    J = np.asarray(jax.jacfwd(resid)(th))
-    r = np.asarray(resid(th))
-    s2 = float(r @ r / max(r.size - 4, 1))
-    T = np.asarray(jax.jacfwd(phys)(th))
-    cov = T @ (s2 * np.linalg.pinv(J.T @ J)) @ T.T
-    p = np.asarray(phys(th))
-    return {k: (float(p[i]), float(math.sqrt(max(cov[i, i], 0.0))))
-            for i, k in enumerate(STATIC_NAMES)}
+def _static_residuals(y: dict[str, jax.Array], prob: StaticMapProblem) -> jax.Array:
+    return prob.residuals(y)
 
 
 @dataclasses.dataclass
@@ -205,8 +217,6 @@ def two_step(
 def perturb(params: Params, names: Sequence[str], factors: Sequence[float]) -> Params:
     """``params`` with each named parameter multiplied by its factor (keeps Fs >= Fc by
     raising Fs if needed)."""
-    from jaxflex.identify.space import get_value
-
     vals = {k: get_value(params, k) * f for k, f in zip(names, factors)}
     fc = vals.get("Fc", get_value(params, "Fc"))
     fs = vals.get("Fs", get_value(params, "Fs"))

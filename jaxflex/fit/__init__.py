@@ -1,0 +1,40 @@
+"""The fitting engine: one least-squares problem over log segments (multiple shooting), one
+constraint vocabulary, one solver path (optimistix Levenberg-Marquardt), one covariance.
+
+``jaxflex.identify``, ``jaxflex.discover`` (and any validation) are thin workflows on it:
+
+- ``ParamSpace``: free parameters and their reparametrisation (``space``);
+- ``Segments``, ``make_segments``, ``Problem``: data and residuals (``problem``);
+- ``least_squares``, ``covariance``, ``cost``: solve and judge (``solve``).
+"""
+
+from jaxflex.fit.problem import (
+    BLOWN_RESIDUAL,
+    Problem,
+    Segments,
+    make_segments,
+    noise_level,
+    output_columns,
+    pack_state,
+    savgol,
+    unpack_state,
+)
+from jaxflex.fit.solve import Solution, cost, covariance, least_squares, problem_residuals
+from jaxflex.fit.space import (
+    NOMINAL_CONSTRAINTS,
+    ParamSpace,
+    constraint_of,
+    get_value,
+    is_fitted,
+    params_of_plant,
+    relative,
+    set_values,
+)
+
+__all__ = [
+    "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "ParamSpace", "Problem", "Segments", "Solution",
+    "constraint_of", "cost", "covariance", "get_value", "is_fitted", "least_squares",
+    "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
+    "problem_residuals",
+    "relative", "savgol", "set_values", "unpack_state",
+]

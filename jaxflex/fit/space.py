@@ -1,0 +1,322 @@
+"""Free parameters and their reparametrisation: the one constraint vocabulary of jaxflex.
+
+A free parameter is named as in the parameter file (docs/spec.md section 7): plant ``I``,
+``J``, ``K``; friction ``Fc``, ``Fs``, ``vs``, ``sigma0``, ``sigma1``, ``sigma2``; or an
+effect's parameter as ``"<effect>.<param>"`` (e.g. ``"torque_offset.offset"``). Each name
+covers all n joints. Every parameter has a constraint, a string of this vocabulary:
+
+    "positive"      p = exp(u)                    (I, J, K, Fc, vs, sigma0..2; effect sizes)
+    "nonnegative"   p = exp(u)                    (a value of exactly 0 is floored at 1e-12)
+    "positive>=m"   p = m + exp(u)                (a lower bound, e.g. a time constant that a
+                                                   fixed-step integrator needs above 1.5 ms)
+    "bounded:a,b"   p = a + (b - a) sigmoid(u)
+    "ordered"       Fs = Fc + exp(u)              (Fs >= Fc always, docs/spec.md section 2);
+                    Fc = Fs sigmoid(u) when Fc is free and Fs is not
+    "free"          p = u
+    "fixed"         never fitted (a smoothing width, a structural frequency)
+    "tied:K"        copied from the plant's K (a backlash acts on the joint's own spring)
+
+Nominal parameters take their constraint from ``NOMINAL_CONSTRAINTS``, effect parameters from
+their class's ``constraints``. A ``ParamSpace`` maps unconstrained coordinates ``theta`` (dict
+name -> (n,)) to a plant; with a ``mask`` (data, not structure) some names are pinned at
+``fixed`` values, so problems that differ only in which parameters are fitted share one
+compiled solver (the discrepancy workflow's candidates).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array
+
+from jaxflex.effects import EFFECTS, unwrap
+from jaxflex.friction import LUGRE_NAMES
+from jaxflex.params import PLANT_NAMES, Params
+from jaxflex.plant import FlexibleJointPlant
+
+_FLOOR = 1e-12
+
+#: Constraint of each nominal parameter (Fs: "ordered" with respect to Fc).
+NOMINAL_CONSTRAINTS: dict[str, str] = {
+    "I": "positive", "J": "positive", "K": "positive", "Fc": "positive", "Fs": "ordered",
+    "vs": "positive", "sigma0": "positive", "sigma1": "nonnegative", "sigma2": "nonnegative",
+}
+
+
+def is_fitted(constraint: str) -> bool:
+    """Whether a parameter with this constraint is adjusted by a fit."""
+    return not (constraint == "fixed" or constraint.startswith("tied:"))
+
+
+def _parse(constraint: str) -> tuple[str, float, float]:
+    """(transform, a, b) of a constraint string; raises ``ValueError`` for an unknown one."""
+    if constraint in ("positive", "nonnegative"):
+        return "exp", 0.0, 0.0
+    if constraint == "free":
+        return "id", 0.0, 0.0
+    if constraint == "ordered":
+        return "gap", 0.0, 0.0
+    m = re.fullmatch(r"positive>=([0-9.eE+-]+)", constraint)
+    if m:
+        return "lower", float(m.group(1)), 0.0
+    m = re.fullmatch(r"bounded:([0-9.eE+-]+),([0-9.eE+-]+)", constraint)
+    if m and float(m.group(1)) < float(m.group(2)):
+        return "bounded", float(m.group(1)), float(m.group(2))
+    raise ValueError(
+        f"unknown constraint {constraint!r}; use positive, nonnegative, positive>=m, "
+        "bounded:a,b, ordered, free, fixed or tied:K"
+    )
+
+
+def constraint_of(name: str, effects: Mapping[str, Any] | None = None) -> str:
+    """The constraint string of a named parameter (nominal, or ``"<effect>.<param>"``)."""
+    if name in NOMINAL_CONSTRAINTS:
+        return NOMINAL_CONSTRAINTS[name]
+    eff, dot, par = name.partition(".")
+    if not dot:
+        raise ValueError(
+            f"unknown parameter '{name}'; use {list(PLANT_NAMES)}, {list(LUGRE_NAMES)} or "
+            "'<effect>.<param>'"
+        )
+    if eff not in EFFECTS:
+        raise ValueError(f"parameter '{name}': unknown effect '{eff}'; known: {sorted(EFFECTS)}")
+    cons = EFFECTS[eff].constraints
+    if par not in cons:
+        raise ValueError(f"parameter '{name}': effect '{eff}' has no parameter '{par}' "
+                         f"(has {sorted(cons)})")
+    return cons[par]
+
+
+def get_value(params: Params, name: str) -> np.ndarray:
+    """The (n,) value of a named parameter in a ``Params``."""
+    if name in PLANT_NAMES:
+        return np.asarray(params.plant[name], float)
+    if name in LUGRE_NAMES:
+        return np.asarray(params.friction[name], float)
+    eff, _, par = name.partition(".")
+    if eff not in params.effects or par not in params.effects[eff]:
+        raise ValueError(
+            f"parameter '{name}': effect '{eff}' with parameter '{par}' is not in the "
+            f"parameters (effects present: {sorted(params.effects)}); add it with a start value"
+        )
+    return np.atleast_1d(np.asarray(params.effects[eff][par], float))
+
+
+def set_values(params: Params, values: Mapping[str, Any]) -> Params:
+    """A copy of ``params`` with the named values replaced (validated)."""
+    d = copy.deepcopy(params.to_dict())
+    for name, v in values.items():
+        v = np.atleast_1d(np.asarray(v, float)).tolist()
+        if name in PLANT_NAMES:
+            d["plant"][name] = v
+        elif name in LUGRE_NAMES:
+            d["friction"][name] = v
+        else:
+            eff, _, par = name.partition(".")
+            d.setdefault("effects", {}).setdefault(eff, {})[par] = v
+    return Params.from_dict(d)
+
+
+def params_of_plant(plant: FlexibleJointPlant, base: Params) -> Params:
+    """``base`` with the plant, friction and effect values of a (diagonal-inertia) plant;
+    gated effects are written when their gate is on, unwrapped."""
+    f = lambda a: [float(v) for v in np.ravel(a)]
+    fr = plant.friction
+    effects = {}
+    for e in plant.effects:
+        if float(np.ravel(getattr(e, "gate", 1.0))[0]) > 0:
+            effects[e.name] = unwrap(e).params()
+    return Params(
+        plant={"I": f(plant.links.I), "J": f(plant.J), "K": f(plant.K)},
+        friction={k: f(getattr(fr, k)) for k in LUGRE_NAMES},
+        gains=base.gains, effects=effects, extra=dict(base.extra),
+    )
+
+
+class ParamSpace(eqx.Module):
+    """Map between unconstrained coordinates ``theta`` (dict name -> (n,)) and the plant.
+
+    ``base``: the plant whose leaves are replaced (it may hold ``Gated`` effects); ``names``:
+    the parameters in theta; ``transforms``: per name (kind, a, b) from ``_parse``;
+    ``effect_index``: the position in ``base.effects`` of an effect parameter (-1 nominal);
+    ``mask``: per name a boolean (array) whether it is fitted; ``fixed``: per name the
+    coordinates used where it is not.
+    """
+
+    base: FlexibleJointPlant
+    names: tuple[str, ...] = eqx.field(static=True)
+    transforms: tuple[tuple[str, float, float], ...] = eqx.field(static=True)
+    effect_index: tuple[int, ...] = eqx.field(static=True)
+    mask: dict[str, Array]
+    fixed: dict[str, Array]
+
+    @classmethod
+    def build(cls, base: FlexibleJointPlant, free: Sequence[str]) -> ParamSpace:
+        """Check the names in ``free`` against ``base`` and pick each one's transform.
+
+        Raises ``ValueError`` naming an unknown parameter or effect, or one that is not
+        fitted by its constraint ("fixed", "tied:...")."""
+        free = tuple(dict.fromkeys(free))
+        if not free:
+            raise ValueError("fit: no free parameters given")
+        effect_names = [e.name for e in base.effects]
+        transforms, eidx = [], []
+        for name in free:
+            if name in NOMINAL_CONSTRAINTS:
+                eidx.append(-1)
+            elif "." in name:
+                eff = name.partition(".")[0]
+                if eff not in effect_names:
+                    raise ValueError(
+                        f"free parameter '{name}': effect '{eff}' is not in the initial "
+                        f"parameters (effects present: {sorted(effect_names)}); add it with a "
+                        "start value"
+                    )
+                eidx.append(effect_names.index(eff))
+            else:
+                raise ValueError(
+                    f"unknown free parameter '{name}'; use {list(PLANT_NAMES)}, "
+                    f"{list(LUGRE_NAMES)} or '<effect>.<param>'"
+                )
+            con = constraint_of(name)
+            if not is_fitted(con):
+                raise ValueError(f"free parameter '{name}' has constraint '{con}' and is not "
+                                 "fitted")
+            if name == "Fc" and "Fs" not in free:
+                transforms.append(("frac", 0.0, 0.0))
+            else:
+                transforms.append(_parse(con))
+        # Fs is built from Fc: evaluate Fc first.
+        order = sorted(range(len(free)), key=lambda i: free[i] != "Fc")
+        names = tuple(free[i] for i in order)
+        n = base.n
+        return cls(
+            base=base, names=names, transforms=tuple(transforms[i] for i in order),
+            effect_index=tuple(eidx[i] for i in order),
+            mask={k: jnp.asarray(True) for k in names},
+            fixed={k: jnp.zeros(n) for k in names},
+        )
+
+    def with_mask(self, fitted: Sequence[str], theta_fixed: dict[str, Array]) -> ParamSpace:
+        """The same space fitting only ``fitted``; the others stay at ``theta_fixed``."""
+        unknown = sorted(set(fitted) - set(self.names))
+        if unknown:
+            raise ValueError(f"fit: {unknown} are not parameters of this space ({self.names})")
+        mask = {k: jnp.asarray(k in fitted) for k in self.names}
+        fixed = {k: jnp.asarray(theta_fixed[k]) for k in self.names}
+        return eqx.tree_at(lambda s: (s.mask, s.fixed), self, (mask, fixed))
+
+    def fitted_names(self) -> tuple[str, ...]:
+        """Names fitted under the current mask (host side)."""
+        return tuple(k for k in self.names if bool(self.mask[k]))
+
+    def _current(self, name: str, idx: int) -> Array:
+        if name == "I":
+            return self.base.links.I
+        if name in ("J", "K"):
+            return getattr(self.base, name)
+        if name in LUGRE_NAMES:
+            return getattr(self.base.friction, name)
+        return getattr(unwrap(self.base.effects[idx]), name.partition(".")[2])
+
+    def physical(self, theta: dict[str, Array]) -> dict[str, Array]:
+        """Physical values (dict name -> (n,)) of the coordinates ``theta``."""
+        fr = self.base.friction
+        out: dict[str, Array] = {}
+        for name, (kind, a, b) in zip(self.names, self.transforms):
+            t = jnp.where(self.mask[name], theta[name], self.fixed[name])
+            if kind == "exp":
+                out[name] = jnp.exp(t)
+            elif kind == "lower":
+                out[name] = a + jnp.exp(t)
+            elif kind == "bounded":
+                out[name] = a + (b - a) * jax.nn.sigmoid(t)
+            elif kind == "gap":
+                out[name] = out.get("Fc", fr.Fc) + jnp.exp(t)
+            elif kind == "frac":
+                out[name] = fr.Fs * jax.nn.sigmoid(t)
+            else:
+                out[name] = t
+        return out
+
+    def theta_of(self, values: Mapping[str, Any]) -> dict[str, Array]:
+        """Coordinates of physical ``values`` (dict name -> (n,) or scalar); names not given
+        take the base plant's value. Values on a constraint's boundary are moved inside."""
+        th: dict[str, Array] = {}
+        cur = {name: np.asarray(values[name], float) if name in values
+               else np.asarray(self._current(name, i), float)
+               for name, i in zip(self.names, self.effect_index)}
+        fc = cur.get("Fc", np.asarray(self.base.friction.Fc, float)) if self.base.friction else 0
+        for name, (kind, a, b) in zip(self.names, self.transforms):
+            v = np.broadcast_to(cur[name], (self.base.n,))
+            if kind == "exp":
+                th[name] = jnp.asarray(np.log(np.maximum(v, _FLOOR)))
+            elif kind == "lower":
+                th[name] = jnp.asarray(np.log(np.maximum(v - a, _FLOOR)))
+            elif kind == "bounded":
+                r = np.clip((v - a) / (b - a), 1e-9, 1 - 1e-9)
+                th[name] = jnp.asarray(np.log(r / (1 - r)))
+            elif kind == "gap":
+                th[name] = jnp.asarray(np.log(np.maximum(v - fc, 1e-3 * fc)))
+            elif kind == "frac":
+                r = np.clip(v / np.asarray(self.base.friction.Fs, float), 1e-6, 1 - 1e-6)
+                th[name] = jnp.asarray(np.log(r / (1 - r)))
+            else:
+                th[name] = jnp.asarray(v, float)
+        return th
+
+    def theta0(self) -> dict[str, Array]:
+        """Coordinates of the base plant's values."""
+        return self.theta_of({})
+
+    def plant(self, theta: dict[str, Array]) -> FlexibleJointPlant:
+        """The base plant with the parameters set from ``theta``; effect parameters with a
+        "tied:K" constraint follow the plant's K."""
+        phys = self.physical(theta)
+        p = self.base
+        for name, idx in zip(self.names, self.effect_index):
+            p = eqx.tree_at(_where(name, idx), p, phys[name])
+        for i, e in enumerate(p.effects):
+            for k, c in type(unwrap(e)).constraints.items():
+                if c == "tied:K":
+                    p = eqx.tree_at(_where(f"{e.name}.{k}", i), p, p.K)
+        return p
+
+    def physical_jacobian(self, theta: dict[str, Array]) -> np.ndarray:
+        """d physical / d theta over the flattened names (k x k) at ``theta``."""
+        flat, unravel = ravel_pytree(theta)
+        phys_flat = lambda f: ravel_pytree(self.physical(unravel(f)))[0]
+        return np.asarray(jax.jacfwd(phys_flat)(flat))
+
+    def fitted_flat(self) -> np.ndarray:
+        """Boolean per flattened theta entry: fitted under the current mask."""
+        flat = ravel_pytree(
+            {k: jnp.broadcast_to(self.mask[k], (self.base.n,)) for k in self.names}
+        )[0]
+        return np.asarray(flat).astype(bool)
+
+
+def _where(name: str, idx: int):
+    if name == "I":
+        return lambda p: p.links.I
+    if name in ("J", "K"):
+        return lambda p: getattr(p, name)
+    if name in LUGRE_NAMES:
+        return lambda p: getattr(p.friction, name)
+    par = name.partition(".")[2]
+    return lambda p: getattr(unwrap(p.effects[idx]), par)
+
+
+def relative(se: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """Relative standard error |se / value| (inf where the value is 0)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.abs(value) > 0, np.abs(se) / np.abs(value), math.inf)

@@ -1,0 +1,176 @@
+"""One integration step of the plant, and the replay of a torque sequence through it.
+
+This is the only place where the plant is integrated: the closed loop (``jaxflex.simulate``),
+the replay of identification and discovery (``jaxflex.fit``), the simulated rig
+(``jaxflex.hardware``) and the data generators all call ``plant_step`` / ``replay``.
+
+Plant integrator: Strang splitting per substep h, z-half-step / mechanics RK4 step /
+z-half-step. The LuGre bristle state z is advanced exactly with the link velocity frozen
+(eq. 5 is linear in z at fixed v, ``LuGre.step_z``), so the stiff rate sigma0 |v| / g(v) never
+limits the step (docs/spec.md section 9); the mechanical part has no such stiffness. The
+scheme is second order in h; ``tests/test_simulate.py`` shows convergence to the diffrax
+reference ``plant_step_diffrax``.
+
+Two model structures share that step (``ModelKind``):
+
+- ``"flexible"``: the full plant of eq. 3 (``FlexibleJointPlant.vector_field``);
+- ``"rigid"``: the rigid model of the paper's identification step (eq. 37-39),
+  ``Jx q1'' = u - F`` with ``Jx = I + J`` (rotor locked to the link, q2 = q1). Effects act
+  through their link, rotor and input hooks; spring effects have no meaning there.
+
+Both are ``lax.scan`` loops, so forward-mode Jacobians work (docs/spec.md section 9).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Literal
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.state import PlantState
+
+ModelKind = Literal["flexible", "rigid"]
+MODEL_KINDS: tuple[str, ...] = ("flexible", "rigid")
+
+_tmap = jax.tree_util.tree_map
+
+
+def rk4(f: Callable, x, h: float | Array):
+    """One classical Runge-Kutta step of x' = f(x) over ``h`` (x any pytree)."""
+    k1 = f(x)
+    k2 = f(_tmap(lambda a, b: a + 0.5 * h * b, x, k1))
+    k3 = f(_tmap(lambda a, b: a + 0.5 * h * b, x, k2))
+    k4 = f(_tmap(lambda a, b: a + h * b, x, k3))
+    return _tmap(lambda a, b, c, d, e: a + h / 6.0 * (b + 2 * c + 2 * d + e), x, k1, k2, k3, k4)
+
+
+def rigid_inertia(plant: FlexibleJointPlant) -> Float[Array, " n"]:
+    """Jx = I + J [kg m^2] of the rigid model (eq. 37); needs decoupled links (eq. 40)."""
+    if not isinstance(plant.links, DiagonalInertia):
+        raise ValueError("rigid model: needs DiagonalInertia links (M = diag(I), eq. 40)")
+    return plant.links.I + plant.J
+
+
+def rigid_vector_field(plant: FlexibleJointPlant, x: PlantState, tau: Array) -> PlantState:
+    """Time derivative of the rigid model Jx q1'' = u - F (eq. 37) [rad/s^2].
+
+    The rotor follows the link (q2 = q1, q2' = q1'); ``u`` [N m] is the applied torque after
+    the plant's input effects plus the effects' link and rotor torques; z follows eq. 5.
+    """
+    u = plant.applied_torque(x, tau)
+    u = u + sum((e.link_torque(x) for e in plant.effects), 0.0)
+    u = u + sum((e.rotor_torque(x) for e in plant.effects), 0.0)
+    acc = (u - plant.friction_torque(x)) / rigid_inertia(plant)
+    dz = jnp.zeros_like(x.z) if plant.friction is None else plant.friction.z_dot(x.dq1, x.z)
+    daux = (
+        None if x.aux is None
+        else tuple(e.aux_rhs(a, tau, x) for e, a in zip(plant.effects, x.aux))
+    )
+    return PlantState(q1=x.dq1, dq1=acc, q2=x.dq1, dq2=acc, z=dz, aux=daux)
+
+
+def _vector_field(kind: ModelKind, plant: FlexibleJointPlant) -> Callable:
+    if kind == "flexible":
+        return plant.vector_field
+    if kind == "rigid":
+        return lambda x, tau: rigid_vector_field(plant, x, tau)
+    raise ValueError(f"model must be one of {MODEL_KINDS}, got {kind!r}")
+
+
+def model_step(
+    kind: ModelKind, plant: FlexibleJointPlant, x: PlantState, tau: Float[Array, " n"],
+    h: float | Array, substeps: int,
+) -> PlantState:
+    """Advance the chosen model structure by ``h`` [s] under constant torque ``tau`` [N m].
+
+    Strang splitting per substep: exact z half-step (velocity frozen), RK4 on the rest with z
+    frozen, exact z half-step. Without friction this is plain RK4.
+    """
+    f = _vector_field(kind, plant)
+    hs = h / substeps
+    fr = plant.friction
+
+    def mech(xx):
+        d = f(xx, tau)
+        return eqx.tree_at(lambda s: s.z, d, jnp.zeros_like(d.z))
+
+    def sub(xx, _):
+        if fr is None:
+            return rk4(lambda s: f(s, tau), xx, hs), None
+        xx = eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, 0.5 * hs))
+        xx = rk4(mech, xx, hs)
+        xx = eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, 0.5 * hs))
+        return xx, None
+
+    x, _ = jax.lax.scan(sub, x, None, length=substeps)
+    return x
+
+
+def plant_step(
+    plant: FlexibleJointPlant, x: PlantState, tau: Float[Array, " n"], h: float | Array,
+    substeps: int,
+) -> PlantState:
+    """Advance the flexible plant (eq. 3-5) by ``h`` [s] under constant torque ``tau`` [N m]
+    (the Strang-split step of the module docstring, ``substeps`` substeps)."""
+    return model_step("flexible", plant, x, tau, h, substeps)
+
+
+def rigid_step(
+    plant: FlexibleJointPlant, x: PlantState, tau: Float[Array, " n"], h: float | Array,
+    substeps: int,
+) -> PlantState:
+    """Advance the rigid model (eq. 37) by ``h`` [s] under constant ``tau`` [N m]."""
+    return model_step("rigid", plant, x, tau, h, substeps)
+
+
+def plant_step_diffrax(
+    plant: FlexibleJointPlant, x: PlantState, tau: Float[Array, " n"], h: float,
+    rtol: float = 1e-10, atol: float = 1e-12,
+) -> PlantState:
+    """Advance the plant by ``h`` [s] under constant ``tau`` [N m] with an adaptive stiff
+    solver (diffrax Kvaerno5, PID step control); an accurate reference for ``plant_step``."""
+    term = diffrax.ODETerm(lambda t, y, args: plant.vector_field(y, tau))
+    sol = diffrax.diffeqsolve(
+        term, diffrax.Kvaerno5(), 0.0, h, h / 10, x,
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        max_steps=100_000,
+    )
+    return _tmap(lambda a: a[-1], sol.ys)
+
+
+def warm_effects(
+    plant: FlexibleJointPlant, x0: PlantState, tau_pre: Float[Array, "W n"], dt: float,
+) -> PlantState:
+    """``x0`` with the effects' internal states (actuator lag, delay, ...) brought into line
+    with a torque history: they start in equilibrium with ``tau_pre[0]`` [N m]
+    (``aux_steady``) and follow the held torque over the W samples of ``tau_pre`` (one RK4
+    step per sample of period ``dt`` [s], the mechanical state frozen). Exact for input-path
+    effects; a plant without effects is returned unchanged."""
+    if not plant.effects:
+        return x0
+    aux = tuple(e.aux_steady(tau_pre[0]) for e in plant.effects)
+    rhs = lambda a, u: tuple(e.aux_rhs(ai, u, x0) for e, ai in zip(plant.effects, a))
+    aux, _ = jax.lax.scan(lambda a, u: (rk4(lambda s: rhs(s, u), a, dt), None), aux, tau_pre)
+    return eqx.tree_at(lambda s: s.aux, x0, aux, is_leaf=lambda v: v is None)
+
+
+def replay(
+    kind: ModelKind, plant: FlexibleJointPlant, x0: PlantState, tau: Float[Array, "L n"],
+    dt: float, substeps: int,
+) -> tuple[PlantState, PlantState]:
+    """Replay a torque sequence [N m] (held over each sample of ``dt`` s) from ``x0``.
+
+    Returns (states at the L sample instants, before each step; state after the last step).
+    """
+
+    def body(x, u):
+        return model_step(kind, plant, x, u, dt, substeps), x
+
+    x_end, xs = jax.lax.scan(body, x0, tau)
+    return xs, x_end
