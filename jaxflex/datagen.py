@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 from typing import Any
 
 import equinox as eqx
@@ -24,7 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.controller import CascadeController, CascadeGains
-from jaxflex.effects import EFFECTS, Effect
+from jaxflex.effects import EFFECTS
+from jaxflex.logs import Log
 from jaxflex.params import paper_params
 from jaxflex.simulate import Sensing, simulate_sampled
 from jaxflex.trajectory import Multisine
@@ -53,25 +53,18 @@ _SIGNED = {("asymmetric_friction", "dF"), ("torque_offset", "offset")}
 
 @dataclasses.dataclass
 class GeneratedLog:
-    """A generated log (arrays (N,)) plus the truth: hidden effect names and parameters, the
-    true plant parameters, and the generator settings."""
+    """A generated ``Log`` (columns t, tau, q1, q2, q1d; write it with
+    ``jaxflex.logs.save_log``) plus the truth: hidden effect names and parameters, the true
+    plant parameters, and the generator settings."""
 
-    t: np.ndarray
-    tau: np.ndarray
-    q1: np.ndarray
-    q2: np.ndarray
-    q1d: np.ndarray
+    log: Log
     effects: list[str]
     truth: dict[str, Any]
 
-    def write_csv(self, path: str | Path) -> None:
-        """SPEC section 6 CSV with header ``t,tau,q1,q2,q1d``."""
-        data = np.column_stack([self.t, self.tau, self.q1, self.q2, self.q1d])
-        np.savetxt(path, data, delimiter=",", header="t,tau,q1,q2,q1d", comments="", fmt="%.12g")
 
-
-def draw_effect(name: str, rng: np.random.Generator, scale: float = 1.0) -> Effect:
-    """An effect ``name`` with magnitudes drawn from ``MODERATE`` times ``scale``."""
+def draw_effect(name: str, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+    """Keyword arguments of an effect ``name`` with magnitudes drawn from ``MODERATE`` times
+    ``scale`` (backlash's K is left None, to be set to the true plant's K)."""
     if name not in EFFECTS:
         raise ValueError(f"unknown effect {name!r}; known: {sorted(EFFECTS)}")
     kw: dict[str, Any] = {}
@@ -87,7 +80,7 @@ def draw_effect(name: str, rng: np.random.Generator, scale: float = 1.0) -> Effe
         kw["K"] = None  # filled with the true plant's K by generate_log
     if name == "gravity":
         kw["q0"] = rng.uniform(-0.2, 0.2)
-    return kw  # type: ignore[return-value]
+    return kw
 
 
 def generate_log(
@@ -157,8 +150,7 @@ def generate_log(
         "seed": seed, "bits": bits, "noise_counts": noise_counts, "mismatch": mismatch,
         "scale": scale, "saturation_fraction": float(jnp.ravel(r.metrics.saturation_fraction)[0]),
     }
-    f = lambda a: np.asarray(a)[:, 0]
-    return GeneratedLog(
-        t=np.asarray(r.t), tau=f(r.tau), q1=f(r.q1_meas), q2=f(r.q2_meas), q1d=f(r.q1d),
-        effects=list(effects), truth=truth,
-    )
+    log = Log.from_arrays(t=np.asarray(r.t), tau=np.asarray(r.tau), q1=np.asarray(r.q1_meas),
+                          q2=np.asarray(r.q2_meas), q1d=np.asarray(r.q1d),
+                          source=f"generate_log(effects={list(effects)}, seed={seed})")
+    return GeneratedLog(log=log, effects=list(effects), truth=truth)

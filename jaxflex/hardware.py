@@ -15,7 +15,7 @@ deadline and busy-waits the rest (``time.perf_counter``). Protections a rig need
 The log has the SPEC section 6 columns (t, tau, q1, q2, and q1d when the controller has a
 reference), written as CSV, so it feeds ``identify`` and ``discover`` directly.
 
-``SimulatedRig`` is an ``RigIO`` whose plant (``jaxflex.simulate.plant_step``, jitted) runs in
+``SimulatedRig`` is an ``RigIO`` whose plant (``jaxflex.step.plant_step``, jitted) runs in
 a separate process and advances by one period per written torque (lock-step in plant time),
 so that the loop is exercised as it would be on hardware.
 
@@ -36,10 +36,11 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Protocol, Sequence
 
 import numpy as np
+
+from jaxflex.logs import Log, save_log
 
 
 class RigIO(abc.ABC):
@@ -135,23 +136,6 @@ class LoopResult:
                     "p99_us": float(np.percentile(a, 99) * 1e6), "max_us": float(np.max(a) * 1e6)}
         return {"compute": stats(self.compute_time), "lateness": stats(self.lateness),
                 "misses": self.misses, "samples": self.samples}
-
-
-def write_log_csv(path: str | os.PathLike, t: np.ndarray, columns: dict[str, np.ndarray | None]) -> None:
-    """Write a SPEC section 6 CSV log: header ``t,tau,q1,q2[,q1d]`` for one joint, ``c[i]``
-    per joint for n joints; floats with full precision; atomic."""
-    names, blocks = ["t"], [np.asarray(t, float).reshape(-1, 1)]
-    for c, a in columns.items():
-        if a is None:
-            continue
-        a = np.asarray(a, float).reshape(len(t), -1)
-        names += [c] if a.shape[1] == 1 else [f"{c}[{i}]" for i in range(a.shape[1])]
-        blocks.append(a)
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    np.savetxt(tmp, np.hstack(blocks), delimiter=",", header=",".join(names), comments="",
-               fmt="%.17g")
-    os.replace(tmp, path)
 
 
 def _sleep_until(deadline: float, busy: float) -> None:
@@ -261,7 +245,8 @@ def run_loop(
         faults=faults, stop_reason=stop["reason"] or "completed",
     )
     if log_path is not None and m >= 2:
-        write_log_csv(log_path, res.t, {"tau": res.tau, "q1": res.q1, "q2": res.q2, "q1d": res.q1d})
+        save_log(Log.from_arrays(t=res.t, tau=res.tau, q1=res.q1, q2=res.q2, q1d=res.q1d,
+                                 source="run-loop"), log_path)
     return res
 
 
@@ -308,7 +293,7 @@ def _rig_process(conn: Any, params: dict, dt: float, substeps: int, q1_0: Sequen
         import jax.numpy as jnp
 
         from jaxflex.params import Params
-        from jaxflex.simulate import plant_step
+        from jaxflex.step import plant_step
 
         plant = Params.from_dict(params).to_plant()
         x0 = plant.init_state(q1=jnp.asarray(q1_0, float))

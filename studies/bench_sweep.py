@@ -144,7 +144,8 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
     import jax.numpy as jnp
 
     jax.config.update("jax_enable_x64", True)
-    from jaxflex.simulate import plant_step, simulate_sampled
+    from jaxflex.simulate import simulate_sampled
+    from jaxflex.step import plant_step
     from jaxflex.sweep import build_models, parse_spread, sample_parameters
 
     spec = parse_spread({**SPREAD, "t_final": t_final, "substeps": substeps})

@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     jax.config.update("jax_enable_x64", True)
     from jaxflex.datagen import generate_log
-    from jaxflex.discover import DiscoverConfig, LogData, discover
+    from jaxflex.discover import DiscoverConfig, discover
     from jaxflex.effects import EFFECTS
 
     names = a.effects.split(",") if a.effects else sorted(EFFECTS)
@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> None:
         t0 = time.perf_counter()
         g = generate_log(eff, seed=a.seed + i, t_final=a.t_final)
         tg = time.perf_counter() - t0
-        rep = discover(LogData(g.t, g.tau, g.q1, g.q2, g.q1d), config=cfg)
+        res = discover(g.log, config=cfg)
+        rep = res.to_json()
         row = {
             "true": eff[0] if eff else "none", "found": rep["effect"], "effects": rep["effects"],
             "gap_before": rep["gap_before"], "gap_after": rep["gap_after"],

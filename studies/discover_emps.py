@@ -1,7 +1,7 @@
 """Study: what does discrepancy discovery find in the real EMPS log, and how much does it close
 the held-out gap?
 
-EMPS (nonlinearbenchmark.org; ../shared/data/emps/SOURCE.md) is a prismatic, rigid axis with
+EMPS (nonlinearbenchmark.org; jaxflex/data/SOURCE.md) is a prismatic, rigid axis with
 one motor encoder: q1 = q2 = qm [m], force tau = gtau * vir [N]. jaxflex's plant is a flexible
 joint, so the axis is modelled as two halves of the moving mass joined by a very stiff spring
 (K chosen so that the internal mode is at about 600 rad/s, far above the loop's bandwidth but
@@ -22,19 +22,25 @@ import jax
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared/data/emps/DATA_EMPS.mat"))
+    ap.add_argument("--data", default=None,
+                    help="EMPS .mat file (default: the copy shipped in jaxflex.data)")
     ap.add_argument("--out", default="out/discover_emps")
     ap.add_argument("--small", action="store_true", help="first 6 s, three candidates")
     a = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
-    from jaxflex.discover import DiscoverConfig, LogData, discover, read_log
+    from jaxflex.discover import DiscoverConfig, discover
+    from jaxflex.logs import load_log
     from jaxflex.params import Params, save_params
     from jaxflex.plots.discover import plot_report
 
-    log = read_log(a.data, {"t": "t", "tau": "gtau*vir", "q1": "qm", "q2": "qm", "q1d": "qg"})
+    if a.data is None:
+        from jaxflex.data import load_emps
+
+        log = load_emps("DATA_EMPS")
+    else:
+        log = load_log(a.data, {"t": "t", "tau": "gtau*vir", "q1": "qm", "q2": "qm", "q1d": "qg"})
     if a.small:
-        n = 6000
-        log = LogData(log.t[:n], log.tau[:n], log.q1[:n], log.q2[:n], None)
+        log = log.slice(0, 6000)
     M = 95.1
     half = M / 2
     K = 600.0**2 * half / 2
@@ -44,13 +50,12 @@ def main(argv: list[str] | None = None) -> None:
                      "sigma2": 203.5},
     })
     cands = ["torque_offset", "asymmetric_friction", "motor_friction"] if a.small else None
-    rep = discover(log, nominal, DiscoverConfig(candidates=cands), progress=print)
+    res = discover(log, nominal, DiscoverConfig(candidates=cands), progress=print)
+    rep = res.to_json()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    params = rep.pop("_params")
-    plot = rep.pop("_plot")
-    save_params(params, out / "params.json")
-    rep["figures"] = plot_report(rep, plot, log, out)
+    save_params(res.params, out / "params.json")
+    rep["figures"] = plot_report(res, out)
     rep["model_note"] = ("rigid axis as two half masses with K for a 600 rad/s internal mode; "
                          "units N, m (translational)")
     (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")

@@ -57,7 +57,7 @@ def closed_loop(plant, qg, dt, gains, pulses=None, substeps=2):
     import jax
     import jax.numpy as jnp
 
-    from jaxflex.identify import rigid_step
+    from jaxflex.step import rigid_step
 
     kp, kv, gtau = gains
     pulses = jnp.zeros_like(qg) if pulses is None else jnp.asarray(pulses, float)

@@ -8,7 +8,7 @@ import pytest
 from jaxflex.controller import CascadeController, CascadeGains, paper_gains
 from jaxflex.friction import LuGre, paper_lugre
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant, paper_plant, two_link_plant
-from jaxflex.simulate import _rk4, plant_step
+from jaxflex.step import plant_step, rk4
 from jaxflex.trajectory import paper_sinusoid
 
 
@@ -25,7 +25,7 @@ def test_lugre_constant_velocity_converges_to_static_map(v):
     T = 12.0 / rate
     h = min(0.5 / rate, T / 2000)
     steps = int(T / h)
-    z = jax.lax.fori_loop(0, steps, lambda i, z: _rk4(lambda zz: fr.z_dot(vv, zz), z, h),
+    z = jax.lax.fori_loop(0, steps, lambda i, z: rk4(lambda zz: fr.z_dot(vv, zz), z, h),
                           jnp.zeros(1))
     np.testing.assert_allclose(fr.force(vv, z), fr.steady_state(vv), rtol=1e-5, atol=1e-9)
     # the exact update reaches the same point

@@ -10,20 +10,17 @@ import numpy as np
 import pytest
 
 from jaxflex.datagen import generate_log
-from jaxflex.discover import DiscoverConfig, LogData, discover, gap_metric, make_segments, read_log
+from jaxflex.discover import DiscoverConfig, discover
+from jaxflex.logs import Log, load_log, save_log
 
 # a small candidate set keeps the default tests short (one compile shared by both logs)
 CANDS = ("backlash", "hardening_spring", "torque_offset")
 CFG = DiscoverConfig(candidates=CANDS, max_effects=2)
 
 
-def _log(g):
-    return LogData(g.t, g.tau, g.q1, g.q2, g.q1d)
-
-
 def test_hidden_backlash_is_named_and_gap_halved():
     g = generate_log(("backlash",), seed=3, t_final=8.0)
-    rep = discover(_log(g), config=CFG)
+    rep = discover(g.log, config=CFG).to_json()
     assert rep["effect"] == "backlash"
     assert rep["effects"][0] == "backlash"
     assert rep["gap_after"] <= 0.5 * rep["gap_before"]
@@ -36,34 +33,27 @@ def test_hidden_backlash_is_named_and_gap_halved():
 
 def test_clean_log_gives_none():
     g = generate_log((), seed=4, t_final=8.0)
-    rep = discover(_log(g), config=CFG)
+    rep = discover(g.log, config=CFG).to_json()
     assert rep["effect"] == "none" and rep["effects"] == []
     assert rep["gap_after"] == rep["gap_before"]
     assert not any(s["significant"] for s in rep["candidate_scores"].values())
-
-
-def test_gap_metric_zero_for_exact_replay_and_one_for_standing_still():
-    t = np.arange(2000) * 1e-3
-    q = 0.1 * np.sin(2 * np.pi * t)
-    log = LogData(t, np.zeros_like(t), q, q)
-    segs = make_segments(log, 0, 2000, 250)
-    assert float(gap_metric((segs.q1, segs.q2), segs)) == 0.0
-    still = (np.broadcast_to(segs.q1[:, :1], segs.q1.shape), np.broadcast_to(segs.q2[:, :1], segs.q2.shape))
-    assert float(gap_metric(still, segs)) == pytest.approx(1.0)
 
 
 def test_bad_logs_are_refused(tmp_path):
     p = tmp_path / "bad.csv"
     p.write_text("t,tau,q1\n0,0,0\n0.001,0,0\n")
     with pytest.raises(ValueError, match="missing column"):
-        read_log(p)
+        load_log(p)
     t = np.arange(200) * 1e-3
     with pytest.raises(ValueError, match="NaN"):
-        LogData(t, np.full(200, np.nan), t, t)
+        Log.from_arrays(t=t, tau=np.full(200, np.nan), q1=t, q2=t)
     with pytest.raises(ValueError, match="uniform"):
-        LogData(t**2, t, t, t)
+        Log.from_arrays(t=t**2, tau=t, q1=t, q2=t)
     with pytest.raises(FileNotFoundError):
-        read_log(tmp_path / "missing.csv")
+        load_log(tmp_path / "missing.csv")
+    short = Log.from_arrays(t=t, tau=t, q1=t, q2=t)
+    with pytest.raises(ValueError, match="log too short"):
+        discover(short, config=CFG)
 
 
 def test_cli_reports_bad_log(tmp_path):
@@ -77,7 +67,7 @@ def test_cli_reports_bad_log(tmp_path):
 @pytest.mark.slow
 def test_cli_end_to_end(tmp_path):
     g = generate_log(("hardening_spring",), seed=5, t_final=8.0)
-    g.write_csv(tmp_path / "log.csv")
+    save_log(g.log, tmp_path / "log.csv")
     r = subprocess.run([sys.executable, "-m", "jaxflex", "discover", str(tmp_path / "log.csv"),
                         "--out", str(tmp_path / "o"), "--candidates", ",".join(CANDS)],
                        capture_output=True, text=True)

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from jaxflex.export import build_controller, generate_source, load_module
-from jaxflex.hardware import LoopConfig, RigIO, SimulatedRig, run_loop, write_log_csv
+from jaxflex.hardware import LoopConfig, RigIO, SimulatedRig, run_loop
+from jaxflex.logs import Log, save_log
 from jaxflex.params import paper_params
 
 
@@ -133,8 +134,8 @@ def test_config_validation():
 
 def test_log_csv_two_joints(tmp_path):
     t = np.arange(3) * 1e-3
-    write_log_csv(tmp_path / "l.csv", t, {"tau": np.ones((3, 2)), "q1": np.zeros((3, 2)),
-                                          "q2": np.zeros((3, 2)), "q1d": None})
+    save_log(Log.from_arrays(t=t, tau=np.ones((3, 2)), q1=np.zeros((3, 2)),
+                             q2=np.zeros((3, 2))), tmp_path / "l.csv")
     head = (tmp_path / "l.csv").read_text().splitlines()[0]
     assert head == "t,tau[0],tau[1],q1[0],q1[1],q2[0],q2[1]"
 

@@ -17,6 +17,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("log", help="log file (SPEC section 6; CSV with t,tau,q1,q2)")
+    p.add_argument("--map", default=None,
+                   help="column mapping for files with other variable names, e.g. "
+                        "'tau=gtau*vir,q1=qm,q2=qm' (docs/spec.md section 6)")
     p.add_argument("--params", default=None, help="nominal parameter file (default: the paper's)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--candidates", default=None,
@@ -37,14 +40,15 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from jaxflex.discover import DiscoverConfig, discover, read_log
+    from jaxflex.discover import DiscoverConfig, discover
+    from jaxflex.logs import load_log, parse_mapping
     from jaxflex.params import load_params, paper_params, save_params
 
     if not 0.1 <= args.train_frac <= 0.9:
         raise ValueError(f"--train-frac must be in [0.1, 0.9], got {args.train_frac}")
     if args.segment <= 0:
         raise ValueError(f"--segment must be > 0 s, got {args.segment}")
-    log = read_log(args.log)
+    log = load_log(args.log, parse_mapping(args.map))
     nominal = load_params(args.params) if args.params else paper_params()
     cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
     cfg = DiscoverConfig(
@@ -53,16 +57,16 @@ def run(args: argparse.Namespace) -> int:
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rep = discover(log, nominal, cfg, progress=print)
-    params = rep.pop("_params")
-    plot = rep.pop("_plot")
+    res = discover(log, nominal, cfg, progress=print)
+    rep = res.to_json()
+    params = res.params
     params.extra = dict(params.extra)
     params.extra["discover"] = {"effects": rep["effects"], "stderr": rep["final_stderr"]}
     save_params(params, out / "params.json")
     if not args.no_plots:
         from jaxflex.plots.discover import plot_report
 
-        rep["figures"] = plot_report(rep, plot, log, out)
+        rep["figures"] = plot_report(res, out)
     (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
     print(f"effect: {rep['effect']}  effects: {rep['effects']}  gap {rep['gap_before']:.4f} -> "
           f"{rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})  {rep['seconds']:.0f} s")

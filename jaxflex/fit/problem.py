@@ -149,7 +149,9 @@ class Problem(eqx.Module):
 
     Unknowns ``y``: ``(theta, x0s)`` with free starts, else ``theta`` (dict name -> (n,)).
     ``w_y`` scales output residuals (1 / noise level for identification, 1 / motion for
-    discovery); ``w_def`` (n_state,) scales continuity defects.
+    discovery); ``w_def`` (n_state,) scales continuity defects. ``jac_columns``: with a
+    parameter mask, the most fitted theta entries any mask will have; the structured Jacobian
+    then takes only that many tangents (the fitted directions) instead of all of theta.
     """
 
     space: ParamSpace
@@ -162,6 +164,7 @@ class Problem(eqx.Module):
     outputs: tuple[str, ...] = eqx.field(static=True)
     free_starts: bool = eqx.field(static=True, default=True)
     structured: bool = eqx.field(static=True, default=True)
+    jac_columns: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
@@ -244,15 +247,33 @@ class Problem(eqx.Module):
             th, v0s, d = primals
             dth, dv0s, _ = tangents
             prob = eqx.combine(d, static)
-            argnums = (1, 2) if free else (1,)
+
+            k = th.shape[0]
+            if prob.jac_columns is None:
+                basis = jnp.eye(k, dtype=th.dtype)
+            else:  # unit vectors of the fitted entries (masked ones have zero derivative)
+                fitted = ravel_pytree({nm: jnp.broadcast_to(prob.space.mask[nm], (n,))
+                                       for nm in prob.space.names})[0]
+                idx = jnp.nonzero(fitted, size=prob.jac_columns, fill_value=k)[0]
+                basis = jax.nn.one_hot(idx, k + 1, dtype=th.dtype)[:, :k].T
+
+            P = basis.shape[1]
 
             def seg_and_jac(v0, tau, tau_pre):
-                out = seg_flat(prob, th, v0, tau, tau_pre)
-                jac = jax.jacfwd(seg_flat, argnums=argnums)(prob, th, v0, tau, tau_pre)
-                return out, jac
+                # one forward pass with P (+ n_state*n) tangents: the fitted theta directions
+                # (and the segment's own start state)
+                f = lambda t_, v_: seg_flat(prob, t_, v_, tau, tau_pre)
+                d = v0.shape[0]
+                t_th = basis.T if not free else jnp.concatenate(
+                    [basis.T, jnp.zeros((d, k), th.dtype)])
+                t_v = jnp.zeros((P, d), v0.dtype) if not free else jnp.concatenate(
+                    [jnp.zeros((P, d), v0.dtype), jnp.eye(d, dtype=v0.dtype)])
+                out, cols = jax.vmap(lambda a, b: jax.jvp(f, (th, v0), (a, b)),
+                                     out_axes=(None, 1))(t_th, t_v)
+                return out, (cols[:, :P], cols[:, P:])
 
             out, jac = jax.vmap(seg_and_jac)(v0s, prob.segs.tau, prob.segs.tau_pre)
-            dout = jnp.einsum("smk,k->sm", jac[0], dth)
+            dout = jnp.einsum("smc,c->sm", jac[0], basis.T @ dth)
             if free:
                 dout = dout + jnp.einsum("smd,sd->sm", jac[1], dv0s)
             r = guard(assemble(prob, out, v0s, prob.segs.y_meas))

@@ -13,21 +13,21 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def plot_signature(loc: dict[str, Any], quantity: str, path: Path) -> None:
-    """Binned inverse-dynamics residuals (link and rotor side) against ``quantity``, with the
-    noise floor band; plus their spectra."""
-    sig = loc["signatures"]
+def plot_signature(loc: Any, quantity: str, path: Path) -> None:
+    """Binned inverse-dynamics residuals (link and rotor side) of a ``Localisation`` against
+    ``quantity``, with the noise floor band; plus their spectra."""
+    sig = loc.summary["signatures"]
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     keys = [k for k in (quantity, f"{quantity} (rotor side)") if k in sig] or ["link velocity"]
     for k in keys:
         b = sig[k]
         ax[0].errorbar(b["x"], b["mean"], yerr=b["se"], marker="o", ms=3, label=k)
-    fl = loc["noise_floor_link"] / np.sqrt(max(len(loc["_series"]["t"]) / 15, 1))
+    fl = loc.summary["noise_floor_link"] / np.sqrt(max(len(loc.series["t"]) / 15, 1))
     ax[0].axhspan(-fl, fl, color="0.85", label="noise floor (bin mean)")
     ax[0].set_xlabel(quantity)
     ax[0].set_ylabel("torque residual [N m]")
     ax[0].legend(fontsize=7)
-    sp = loc["spectrum"]
+    sp = loc.summary["spectrum"]
     ax[1].loglog(sp["f"][1:], sp["link"][1:], label="link side")
     ax[1].loglog(sp["f"][1:], sp["rotor"][1:], label="rotor side")
     ax[1].set_xlabel("frequency [Hz]")
@@ -38,15 +38,17 @@ def plot_signature(loc: dict[str, Any], quantity: str, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_replay(plot: dict[str, Any], path: Path, count: int = 4) -> None:
-    """Measured against simulated q1 on a few held-out segments, before and after."""
+def plot_replay(result: Any, path: Path, count: int = 4) -> None:
+    """Measured against simulated q1 on a few held-out segments, before and after (a
+    ``DiscoverResult``)."""
     from jaxflex.discover import held_out_traces
 
-    test, dt, ss = plot["test"], plot["dt"], plot["substeps"]
-    b1, _ = held_out_traces(plot["before"], test, dt, ss)
-    a1, _ = held_out_traces(plot["after"], test, dt, ss)
-    q1 = np.asarray(test.q1)
-    t0 = np.asarray(test.t0)
+    ws = result.workspace
+    dt = ws.test.dt
+    b1 = held_out_traces(ws, result.before)[..., 0]
+    a1 = held_out_traces(ws, result.after)[..., 0]
+    q1 = np.asarray(ws.test.segs.y_meas)[..., 0]
+    t0 = np.asarray(ws.test.segs.t0)
     L = q1.shape[1]
     fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
     for i in range(min(count, q1.shape[0])):
@@ -80,16 +82,16 @@ def plot_scores(scores: dict[str, dict[str, Any]], base_gap: float, path: Path) 
     plt.close(fig)
 
 
-def plot_report(rep: dict[str, Any], plot: dict[str, Any], log: Any, out: Path) -> list[str]:
-    """All figures of one discover run into ``out``; returns their file names."""
+def plot_report(result: Any, out: Path) -> list[str]:
+    """All figures of one ``DiscoverResult`` into ``out``; returns their file names."""
     out = Path(out)
-    q = rep.get("telling_quantity") or "link velocity"
+    q = result.to_json().get("telling_quantity") or "link velocity"
     if q in ("frequency", "time"):
         q = "link velocity"
-    plot_signature(plot["loc_before"], q, out / "signature.png")
-    plot_replay(plot, out / "replay.png")
+    plot_signature(result.localisation, q, out / "signature.png")
+    plot_replay(result, out / "replay.png")
     names = ["signature.png", "replay.png"]
-    if rep["candidate_scores"]:
-        plot_scores(rep["candidate_scores"], rep["gap_before"], out / "scores.png")
+    if result.candidate_scores:
+        plot_scores(result.candidate_scores, result.gap_before, out / "scores.png")
         names.append("scores.png")
     return names

@@ -1,0 +1,165 @@
+"""The fitting engine (``jaxflex.fit``): constraint vocabulary, the multiple-shooting problem
+with measured starts and gated effects, the host-stepped solver (one compilation for problems
+that differ only in data), covariance through the reparametrisation."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxflex.effects import EFFECTS, Gated
+from jaxflex.fit import (
+    ParamSpace,
+    Problem,
+    covariance,
+    least_squares,
+    make_segments,
+    noise_level,
+)
+from jaxflex.fit.space import _parse
+from jaxflex.identify import excitation_torque, synthetic_log
+from jaxflex.logs import Log
+from jaxflex.params import paper_params
+
+
+def _gated_plant(active: tuple[str, ...] = ()):
+    p = paper_params().to_plant(with_effects=False)
+    effs = [Gated(EFFECTS[n].typical(1), jnp.asarray(1.0 if n in active else 0.0))
+            for n in ("actuator_lag", "backlash", "torque_offset")]
+    return p.with_effects(*effs)
+
+
+def _fixed_start_problem(plant, log, free, length=150):
+    space = ParamSpace.build(plant, free)
+    segs = make_segments(log, kind="flexible", outputs=("q1", "q2"), length=length)
+    return Problem(space=space, segs=segs, w_y=jnp.asarray(100.0), w_def=jnp.zeros(5),
+                   dt=log.dt, kind="flexible", substeps=1, outputs=("q1", "q2"),
+                   free_starts=False)
+
+
+def test_constraint_vocabulary():
+    assert _parse("positive>=1.5e-3") == ("lower", 1.5e-3, 0.0)
+    assert _parse("bounded:0.1,2") == ("bounded", 0.1, 2.0)
+    with pytest.raises(ValueError, match="unknown constraint"):
+        _parse("bounded:2,1")
+    with pytest.raises(ValueError, match="unknown constraint"):
+        _parse("sometimes")
+    plant = _gated_plant(("actuator_lag", "backlash"))
+    space = ParamSpace.build(plant, ("Fc", "Fs", "actuator_lag.T", "backlash.b", "K"))
+    rng = np.random.default_rng(1)
+    for _ in range(10):
+        th = {k: jnp.asarray(rng.normal(scale=4.0, size=1)) for k in space.names}
+        ph = space.physical(th)
+        assert float(ph["Fs"][0]) >= float(ph["Fc"][0]) > 0
+        assert float(ph["actuator_lag.T"][0]) >= 1.5e-3
+        p = space.plant(th)
+        # backlash's K is "tied:K": it follows the plant's (fitted) K
+        assert float(p.effects[1].inner.K[0]) == pytest.approx(float(p.K[0]))
+    with pytest.raises(ValueError, match="not fitted"):
+        ParamSpace.build(plant, ("backlash.w",))
+    with pytest.raises(ValueError, match="not in the initial parameters"):
+        ParamSpace.build(plant, ("gravity.mgl",))
+    # round trip through theta
+    th0 = space.theta0()
+    ph0 = space.physical(th0)
+    assert float(ph0["K"][0]) == pytest.approx(6.77, rel=1e-12)
+
+
+def test_gap_is_zero_for_exact_replay_and_one_for_standing_still():
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.6), substeps=2)
+    prob = _fixed_start_problem(p.to_plant(), log, ("Fc",))
+    m = prob.segs.y_meas
+    num = lambda ys: float(jnp.sqrt(jnp.sum((ys - m) ** 2) / jnp.sum((m - m[:, :1]) ** 2)))
+    assert num(m) == 0.0
+    assert num(jnp.broadcast_to(m[:, :1], m.shape)) == pytest.approx(1.0)
+    # the model that made the log replays it from measured starts with a small gap
+    assert float(prob.gap(prob.y0())) < 0.05
+
+
+def test_structured_jacobian_with_gated_effects_and_measured_starts():
+    """The custom JVP equals plain autodiff for a fixed-start problem whose plant holds gated
+    effects with internal states (warm-up over the torque before each segment)."""
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.6), substeps=1)
+    plant = _gated_plant(("actuator_lag",))
+    prob = _fixed_start_problem(plant, log, ("Fc", "Fs", "K", "actuator_lag.T",
+                                             "torque_offset.offset"))
+    plain = dataclasses.replace(prob, structured=False)
+    from jax.flatten_util import ravel_pytree
+
+    flat, unravel = ravel_pytree(prob.y0())
+    f_s = lambda x: prob.residuals(unravel(x))
+    f_p = lambda x: plain.residuals(unravel(x))
+    np.testing.assert_array_equal(np.asarray(f_s(flat)), np.asarray(f_p(flat)))
+    J_s, J_p = np.asarray(jax.jacfwd(f_s)(flat)), np.asarray(jax.jacfwd(f_p)(flat))
+    assert np.max(np.abs(J_s - J_p)) <= 1e-12 * np.max(np.abs(J_p))
+    assert np.max(np.abs(J_p)) > 0
+
+
+def test_masked_parameters_stay_fixed_and_share_one_compilation():
+    """Two problems that differ in which parameters are fitted (mask, gates: data) reuse the
+    solver's compiled step; masked parameters do not move and get no standard error."""
+    truth = paper_params()
+    log, _ = synthetic_log(truth.to_plant(), excitation_torque(t_final=0.9), substeps=1)
+    start = paper_params()
+    start.friction["Fc"] = [0.15]
+    start.friction["Fs"] = [0.2]
+    plant = start.to_plant(with_effects=False).with_effects(
+        Gated(EFFECTS["torque_offset"].typical(1), jnp.asarray(0.0)))
+    prob = _fixed_start_problem(plant, log, ("Fc", "Fs", "sigma2", "torque_offset.offset"))
+    th0 = prob.space.theta0()
+    a = eqx.tree_at(lambda q: q.space, prob, prob.space.with_mask(("Fc", "Fs"), th0))
+    b = eqx.tree_at(lambda q: q.space, prob, prob.space.with_mask(("Fc", "Fs", "sigma2"), th0))
+    traces = []
+
+    def counted(y, prob):  # runs in Python only while JAX traces (compiles)
+        traces.append(1)
+        return prob.residuals(y)
+
+    sa = least_squares(a, th0, fn=counted, max_steps=30)
+    after_first = len(traces)
+    sb = least_squares(b, th0, fn=counted, max_steps=30)
+    assert after_first > 0 and len(traces) == after_first  # b reused a's compilations
+    assert float(sa.y["sigma2"][0]) == float(th0["sigma2"][0])
+    assert float(sb.y["sigma2"][0]) != float(th0["sigma2"][0])
+    assert sb.cost <= sa.cost * (1 + 1e-9)
+    phys = b.space.physical(sb.y)
+    assert float(phys["Fc"][0]) == pytest.approx(0.11, rel=0.02)
+    cov = covariance(a, sa.y)
+    assert np.isnan(cov["stderr"]["sigma2"][0]) and cov["stderr"]["Fc"][0] > 0
+    assert cov["n_free"] == 2
+
+
+def test_solver_reports_a_capped_run_as_unconverged():
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.6), substeps=1)
+    start = paper_params()
+    start.friction["Fc"] = [0.2]
+    start.friction["Fs"] = [0.3]
+    prob = _fixed_start_problem(start.to_plant(), log, ("Fc", "Fs"))
+    sol = least_squares(prob, prob.y0(), max_steps=1)
+    assert not sol.converged and "max_steps" in sol.reason and sol.steps == 1
+    with pytest.raises(ValueError, match="max_steps"):
+        least_squares(prob, prob.y0(), max_steps=0)
+
+
+def test_noise_level_finds_quantisation_step():
+    t = np.arange(5000) * 1e-3
+    step = 2 * np.pi / 2**14
+    q = np.round(0.3 * np.sin(2 * np.pi * 0.7 * t) / step) * step
+    nl = noise_level(q)
+    assert nl["step"] == pytest.approx(step, rel=1e-6)
+    assert nl["total_std"] == pytest.approx(step / np.sqrt(12), rel=0.3)
+
+
+def test_segments_refuse_bad_lengths():
+    t = np.arange(100) * 1e-3
+    log = Log.from_arrays(t=t, tau=t, q1=t, q2=t)
+    with pytest.raises(ValueError, match="segment length"):
+        make_segments(log, length=1)
+    with pytest.raises(ValueError, match="segment length"):
+        make_segments(log, length=101)
