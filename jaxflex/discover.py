@@ -221,7 +221,8 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15,
     the residual autocorrelation time ``tau_int`` (samples)."""
     t0 = time.perf_counter()
     train, test, theta0 = ws.for_model(model)
-    sol = least_squares(train, theta0, rtol=_RTOL, atol=_ATOL, max_steps=max_steps)
+    sol = least_squares(train, theta0, rtol=_RTOL, atol=_ATOL, max_steps=max_steps,
+                        scaling="marquardt")
     cov = covariance(train, sol.y, inflation=tau_int)
     space = train.space
     phys = space.physical(sol.y)

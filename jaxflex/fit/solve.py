@@ -28,7 +28,6 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
@@ -64,21 +63,99 @@ def problem_residuals(y: Any, prob: Problem) -> jax.Array:
     return prob.residuals(y)
 
 
-def _solver(rtol: float, atol: float) -> optx.LevenbergMarquardt:
-    # Damped normal equations by Cholesky: the Jacobian is tall (thousands of residuals, tens
-    # of unknowns); the LM damping keeps J^T J + lambda I positive definite, and float64
-    # leaves ample room for squaring the condition number here.
-    return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
+class _ScaledDescentState(eqx.Module):
+    f_info: optx.FunctionInfo.ResidualJac
+
+
+class ScaledDampedNewtonDescent(optx.AbstractDescent):
+    """Levenberg-Marquardt's damped Gauss-Newton step
+
+        (J^T J + lambda D) dy = -J^T r
+
+    with ``scaling`` "identity" (D = I, as optimistix's ``DampedNewtonDescent``) or
+    "marquardt" (D = diag(J^T J), floored): the step is then invariant to the scale of each
+    unknown, which the discrepancy workflow needs because its unknowns mix log-parameters
+    whose sensitivities differ by many orders of magnitude (a time constant started on its
+    lower bound next to a stiffness); identification with free segment states converges more
+    reliably with the identity (its acceptance tests fall into a local minimum with Marquardt's
+    scaling, which takes large steps along weakly determined directions such as sigma1).
+    lambda = 1 / step_size comes from the trust region (``optx.ClassicalTrustRegion``). The
+    damped normal equations are solved by Cholesky: the Jacobian is tall (thousands of
+    residuals, tens of unknowns) and float64 leaves ample room for squaring its condition
+    number."""
+
+    scaling: str = eqx.field(static=True, default="identity")
+
+    def __check_init__(self) -> None:
+        if self.scaling not in ("identity", "marquardt"):
+            raise ValueError(f"fit: scaling must be 'identity' or 'marquardt', got {self.scaling!r}")
+
+    def init(self, y: Any, f_info_struct: Any) -> _ScaledDescentState:
+        zeros = lambda a: jnp.zeros(a.shape, a.dtype) if isinstance(a, jax.ShapeDtypeStruct) else a
+        return _ScaledDescentState(jax.tree_util.tree_map(zeros, f_info_struct))
+
+    def query(self, y: Any, f_info: Any, state: _ScaledDescentState) -> _ScaledDescentState:
+        return _ScaledDescentState(f_info)
+
+    def step(self, step_size: jax.Array, state: _ScaledDescentState) -> tuple[Any, optx.RESULTS]:
+        jac = state.f_info.jac
+        J = jac.as_matrix()
+        r = state.f_info.residual
+        A = J.T @ J
+        g = J.T @ r
+        if self.scaling == "marquardt":
+            d = jnp.diag(A)
+            d = jnp.maximum(d, 1e-12 * jnp.maximum(jnp.max(d), 1e-300))
+        else:
+            d = jnp.ones(A.shape[0], A.dtype)
+        lam = 1.0 / jnp.maximum(step_size, 1e-30)
+        c, low = jax.scipy.linalg.cho_factor(A + lam * jnp.diag(d))
+        dy = -jax.scipy.linalg.cho_solve((c, low), g)
+        finite = jnp.all(jnp.isfinite(dy))
+        dy = jnp.where(finite, dy, 0.0)
+        y_diff = jax.tree_util.tree_unflatten(
+            jax.tree_util.tree_structure(jac.in_structure()),
+            _split_like(dy, jac.in_structure()))
+        return y_diff, optx.RESULTS.where(finite, optx.RESULTS.successful,
+                                          optx.RESULTS.singular)
+
+
+def _split_like(flat: jax.Array, structure: Any) -> list[jax.Array]:
+    """Cut a flat vector into the leaves of a pytree of ``jax.ShapeDtypeStruct``s."""
+    leaves = jax.tree_util.tree_leaves(structure)
+    out, i = [], 0
+    for leaf in leaves:
+        size = int(np.prod(leaf.shape))
+        out.append(flat[i:i + size].reshape(leaf.shape).astype(leaf.dtype))
+        i += size
+    return out
+
+
+class LevenbergMarquardt(optx.AbstractGaussNewton):
+    """optimistix's Gauss-Newton machinery (trust region, termination) with the scaled
+    damped-Newton descent above: the one least-squares solver of jaxflex."""
+
+    rtol: float
+    atol: float
+    norm: Callable = optx.max_norm
+    descent: ScaledDampedNewtonDescent = ScaledDampedNewtonDescent()
+    search: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion()
+    verbose: Callable = eqx.field(static=True, default=lambda **kw: None)
+
+
+def _solver(rtol: float, atol: float, scaling: str) -> LevenbergMarquardt:
+    return LevenbergMarquardt(rtol=rtol, atol=atol,
+                              descent=ScaledDampedNewtonDescent(scaling=scaling))
 
 
 @eqx.filter_jit
-def _init(solver: optx.LevenbergMarquardt, fn: _WithAux, y: Any, args: Any):
+def _init(solver: LevenbergMarquardt, fn: _WithAux, y: Any, args: Any):
     f_struct = jax.eval_shape(lambda: fn(y, args)[0])
     return solver.init(fn, y, args, {}, f_struct, None, frozenset())
 
 
 @eqx.filter_jit
-def _step(solver: optx.LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: Any):
+def _step(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: Any):
     y, state, _ = solver.step(fn, y, args, {}, state, frozenset())
     done, result = solver.terminate(fn, y, args, {}, state, frozenset())
     cost = 0.5 * jnp.sum(state.f_info.residual ** 2)
@@ -100,7 +177,7 @@ def cost(prob: Problem, y: Any, fn: Callable = problem_residuals) -> float:
 
 def least_squares(
     prob: Any, y0: Any, *, fn: Callable = problem_residuals, rtol: float = 1e-10,
-    atol: float = 1e-10, max_steps: int = 200,
+    atol: float = 1e-10, max_steps: int = 200, scaling: str = "identity",
     progress: Callable[[int, float], None] | None = None,
 ) -> Solution:
     """Levenberg-Marquardt on the residuals ``fn(y, prob)`` from ``y0`` (module docstring).
@@ -108,14 +185,15 @@ def least_squares(
     ``fn``: a module-level function (its identity keys the compilation cache; default
     ``problem_residuals`` for a ``Problem``, other curve fits pass their own with their data
     as ``prob``); ``rtol``/``atol``: optimistix's Cauchy termination on the change of the unknowns and the
-    cost; ``max_steps``: iteration cap (a host-side number, no recompilation);
+    cost; ``max_steps``: iteration cap (a host-side number, no recompilation); ``scaling``:
+    the damping matrix of ``ScaledDampedNewtonDescent`` ("identity" or "marquardt");
     ``progress(step, cost)`` is called after every step. Raises ``ValueError`` for
     ``max_steps < 1``.
     """
     if max_steps < 1:
         raise ValueError(f"fit: max_steps must be >= 1, got {max_steps}")
     t0 = time.perf_counter()
-    solver = _solver(rtol, atol)
+    solver = _solver(rtol, atol, scaling)
     wrapped = _WithAux(fn)
     y = y0
     state = _init(solver, wrapped, y, prob)
