@@ -44,7 +44,7 @@ def main(argv=None) -> dict:
 
     from jaxflex.identify import DEFAULT_FREE, excitation_torque, make_problem, perturb, synthetic_log
     from jaxflex.identify.core import _solve
-    from jaxflex.params import paper_params
+    from jaxflex.presets import paper_params
     from jaxflex.simulate import Sensing
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

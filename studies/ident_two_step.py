@@ -39,7 +39,7 @@ def main(argv=None) -> dict:
         synthetic_log,
         two_step,
     )
-    from jaxflex.params import paper_params
+    from jaxflex.presets import paper_params
     from jaxflex.plots.identify import plot_fit, plot_static_map
     from jaxflex.simulate import Sensing
 

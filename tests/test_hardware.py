@@ -15,7 +15,7 @@ import pytest
 
 from jaxflex.export import build_controller, generate_source, load_module
 from jaxflex.hardware import LoopConfig, RigIO, SimulatedRig, run_loop, write_log_csv
-from jaxflex.params import paper_params
+from jaxflex.presets import paper_params
 
 
 class FakeIO(RigIO):
@@ -192,9 +192,9 @@ def test_cli_run_loop_lockstep(tmp_path, capsys):
     from jaxflex.cli.run_loop import run as run_loop_cmd
 
     ns = argparse.Namespace(
-        params=None, duration=0.1, rate=500.0, log=str(log), controller=str(ctrl),
-        trajectory="sinusoid", q2d=None, tau_limit=2.0, q_limit=10.0, max_misses=10,
-        lockstep=True, encoder_bits=16,
+        params=None, rig_params=None, duration=0.1, rate=500.0, log=str(log),
+        controller=str(ctrl), trajectory=None, q2d=None, tau_limit=None, q_limit=10.0,
+        max_misses=10, lockstep=True, encoder_bits=16,
     )
     with pytest.raises(ValueError, match="dt"):
         run_loop_cmd(ns)
