@@ -83,11 +83,6 @@ class CascadeGains(eqx.Module):
         return jnp.concatenate([getattr(self, k) for k in GAIN_NAMES])
 
 
-def paper_gains() -> CascadeGains:
-    """Table 3 gains for link 1."""
-    return CascadeGains(Ke=0.001, KD1=1.0, KD2=1.0, kv=2.0, L1=200.0, L2=6.0)
-
-
 class ControllerState(eqx.Module):
     """State of the sampled-data controller (all (n,)).
 

@@ -25,8 +25,9 @@ import numpy as np
 from jaxflex.controller import CascadeController, CascadeGains
 from jaxflex.effects import EFFECTS
 from jaxflex.logs import Log
-from jaxflex.params import paper_params
-from jaxflex.simulate import Sensing, simulate_sampled
+from jaxflex.presets import paper_params
+from jaxflex.sensing import Sensing
+from jaxflex.simulate import simulate_sampled
 from jaxflex.trajectory import Multisine
 
 #: Moderate magnitude ranges per effect (uniform draws; a sign is drawn for signed ones).

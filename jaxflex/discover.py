@@ -61,7 +61,8 @@ from jaxflex.fit import (
     savgol,
 )
 from jaxflex.logs import Log
-from jaxflex.params import Params, paper_params
+from jaxflex.params import Params
+from jaxflex.presets import paper_params
 from jaxflex.plant import FlexibleJointPlant
 
 #: Nominal parameters refitted with every model.

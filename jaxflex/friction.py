@@ -125,7 +125,3 @@ def smooth_abs_observer(v: Array, kv: Array) -> Array:
     """m(v) = (2/pi) v arctan(kv v), the observer's smooth |v| (eq. 21)."""
     return (2.0 / math.pi) * v * jnp.arctan(kv * v)
 
-
-def paper_lugre() -> LuGre:
-    """Link-1 LuGre parameters of the paper with SPEC's correction of Table 2."""
-    return LuGre(Fc=0.11, Fs=0.15, vs=0.05, sigma0=100.0, sigma1=0.1, sigma2=0.2)

@@ -3,31 +3,221 @@
     {"plant": {"I": 0.07, "J": 0.005, "K": 6.77},
      "friction": {"Fc": 0.11, "Fs": 0.15, "vs": 0.05, "sigma0": 100.0, "sigma1": 0.1, "sigma2": 0.2},
      "gains": {"Ke": 0.001, "KD1": 1.0, "KD2": 1.0, "kv": 2.0, "L1": 200.0, "L2": 6.0},
-     "effects": {"<name>": {...}}}
+     "effects": {"<name>": {...}},
+     "controller": {"q2d_method": "model", "dt": 0.001, "tau_max": 2.0, "compensation": true,
+                    "sensing": "rig", "trajectory": "sinusoid"}}
 
 ``Params`` is a host-side record (plain floats/lists); ``to_plant`` and ``to_gains`` build the
-JAX modules. Loading validates before any JAX code runs; saving then loading is exact
-(floats are written with ``repr`` precision by ``json``).
+JAX modules. ``build_plant`` is the one place that turns plant, friction and effect values
+into a ``FlexibleJointPlant``; it also takes arrays, traced ones included (the sweep builds
+its sampled plants with it). The optional ``controller`` section (``ControllerConfig``)
+records the controller configuration the gains were tuned and certified for, so that
+``export`` and ``run-loop`` use the same one. Loading validates before any JAX code runs;
+saving then loading is exact (floats are written with ``repr`` precision by ``json``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import math
 import os
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
-from jaxflex.controller import GAIN_NAMES, CascadeGains
+from jaxtyping import ArrayLike
+
+from jaxflex.controller import GAIN_NAMES, Q2D_METHODS, CascadeGains
+from jaxflex.effects import EFFECTS
 from jaxflex.friction import LUGRE_NAMES, LuGre
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.sensing import SENSING_FIELDS, Sensing
 
 PLANT_NAMES: tuple[str, ...] = ("I", "J", "K")
 
 
 class ParamsError(ValueError):
     """A parameter file or mapping that does not follow SPEC section 7."""
+
+
+def build_plant(
+    plant: Mapping[str, ArrayLike],
+    friction: Mapping[str, ArrayLike] | None = None,
+    effects: Mapping[str, Mapping[str, Any]] | None = None,
+) -> FlexibleJointPlant:
+    """The plant of eq. 40 (M = diag(I)) from plant values I, J [kg m^2] and K [N m/rad],
+    the six LuGre values (SPEC section 2; ``None``: no friction) and named effects
+    (``jaxflex.effects.EFFECTS`` name -> keyword arguments), each a number or an (n,) array.
+
+    Traceable: the values may be JAX tracers (the modules' value checks then skip them), so
+    ``vmap`` over sampled parameters builds one plant per sample. Raises ``ParamsError`` for
+    an unknown effect or effect arguments its class does not take, and ``ValueError`` from
+    the modules for concrete non-physical values.
+    """
+    built = FlexibleJointPlant(
+        links=DiagonalInertia(I=plant["I"]), J=plant["J"], K=plant["K"],
+        friction=None if friction is None else LuGre.from_dict(friction),
+    )
+    if not effects:
+        return built
+    effs = []
+    for name, kw in effects.items():
+        if name not in EFFECTS:
+            raise ParamsError(f"unknown effect '{name}'; known effects: {sorted(EFFECTS)}")
+        try:
+            effs.append(EFFECTS[name](**kw))
+        except TypeError as e:
+            raise ParamsError(f"effect '{name}': {e}") from None
+    return built.with_effects(*effs)
+
+
+CONTROLLER_KEYS: tuple[str, ...] = (
+    "q2d_method", "dt", "tau_max", "compensation", "sensing", "trajectory",
+)
+
+
+def _did_you_mean(key: str, known: tuple[str, ...]) -> str:
+    close = difflib.get_close_matches(key, known, n=1) or [k for k in known if k.startswith(key)]
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def _positive_number(where: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise ParamsError(f"{where}: expected a finite number > 0, got {v!r}")
+    return float(v)
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerConfig:
+    """The controller configuration a gain set was tuned and certified for (the parameter
+    file's optional ``controller`` section); ``None`` marks an entry the file does not record.
+
+    q2d_method: how q2d' and q2d'' are obtained (``jaxflex.controller.Q2D_METHODS``);
+    dt [s]: sample period; tau_max [N m]: torque limit; compensation: friction compensation
+    on; sensing: a sensing preset name (``jaxflex.presets.SENSING_PRESETS``) or the fields of
+    a ``jaxflex.sensing.Sensing``; trajectory: a trajectory name
+    (``jaxflex.presets.TRAJECTORIES``) or the names of several (the first is the default).
+    Preset and trajectory *names* are checked where they are resolved
+    (``jaxflex.presets.controller_setup``), which sits above this module.
+    """
+
+    q2d_method: str | None = None
+    dt: float | None = None
+    tau_max: float | None = None
+    compensation: bool | None = None
+    sensing: str | dict[str, Any] | None = None
+    trajectory: str | tuple[str, ...] | None = None
+
+    @classmethod
+    def from_dict(cls, d: Any) -> ControllerConfig:
+        """Validate a ``controller`` section; raises ``ParamsError`` naming the entry (an
+        unknown key with the closest known one)."""
+        if not isinstance(d, dict):
+            raise ParamsError(f"controller: expected an object, got {type(d).__name__}")
+        for k in d:
+            if k not in CONTROLLER_KEYS:
+                raise ParamsError(f"controller: unknown key '{k}'{_did_you_mean(k, CONTROLLER_KEYS)}"
+                                  f"; known: {list(CONTROLLER_KEYS)}")
+        out: dict[str, Any] = {}
+        if "q2d_method" in d:
+            if d["q2d_method"] not in Q2D_METHODS:
+                raise ParamsError(f"controller.q2d_method: expected one of {list(Q2D_METHODS)}, "
+                                  f"got {d['q2d_method']!r}")
+            out["q2d_method"] = d["q2d_method"]
+        for k in ("dt", "tau_max"):
+            if k in d:
+                out[k] = _positive_number(f"controller.{k}", d[k])
+        if "compensation" in d:
+            if not isinstance(d["compensation"], bool):
+                raise ParamsError("controller.compensation: expected true or false, got "
+                                  f"{d['compensation']!r}")
+            out["compensation"] = d["compensation"]
+        if "sensing" in d:
+            out["sensing"] = _sensing_entry(d["sensing"])
+        if "trajectory" in d:
+            tr = d["trajectory"]
+            names = [tr] if isinstance(tr, str) else tr
+            if not isinstance(names, list) or not names or not all(
+                    isinstance(x, str) and x for x in names):
+                raise ParamsError("controller.trajectory: expected a trajectory name or a "
+                                  f"non-empty list of names, got {tr!r}")
+            out["trajectory"] = tr if isinstance(tr, str) else tuple(tr)
+        return cls(**out)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``controller`` section: the recorded entries only."""
+        out: dict[str, Any] = {}
+        for k in CONTROLLER_KEYS:
+            v = getattr(self, k)
+            if v is not None:
+                out[k] = list(v) if isinstance(v, tuple) else (dict(v) if isinstance(v, dict) else v)
+        return out
+
+    @property
+    def trajectory_name(self) -> str | None:
+        """The recorded trajectory, or the first of several (None if none is recorded)."""
+        return self.trajectory[0] if isinstance(self.trajectory, tuple) else self.trajectory
+
+    def resolve(self, given: Mapping[str, Any], flags: Mapping[str, str] | None = None,
+                source: str = "the parameter file") -> ControllerConfig:
+        """This configuration with each entry of ``given`` (field name -> value; ``None``: not
+        given) filled in where nothing is recorded.
+
+        A given value that contradicts a recorded one raises ``ParamsError`` naming the
+        option (``flags``: field name -> option name for the message) and ``source``: gains
+        certified for one configuration are not silently used in another. A given trajectory
+        agrees when it is one of the recorded names (and is then the one used); dt agrees to
+        1e-9 relative.
+        """
+        flags = flags or {}
+        out: dict[str, Any] = {}
+        for k, v in given.items():
+            if k not in CONTROLLER_KEYS:
+                raise ParamsError(f"controller: unknown key '{k}'{_did_you_mean(k, CONTROLLER_KEYS)}")
+            rec = getattr(self, k)
+            if v is None:
+                continue
+            if rec is None:
+                out[k] = v
+                continue
+            if k == "dt":
+                same = math.isclose(float(v), rec, rel_tol=1e-9)
+            elif k == "trajectory" and isinstance(rec, tuple):
+                same = v in rec
+            else:
+                same = v == rec
+            if not same:
+                raise ParamsError(
+                    f"{flags.get(k, k)} {v!r} contradicts controller.{k} = "
+                    f"{self.to_dict()[k]!r} recorded in {source} (the gains were tuned and "
+                    "certified for it); leave the option out, or tune again for the new setting")
+            out[k] = v
+        return dataclasses.replace(self, **out)
+
+    def with_defaults(self, defaults: ControllerConfig) -> ControllerConfig:
+        """Entries not recorded here taken from ``defaults``."""
+        return dataclasses.replace(self, **{
+            k: getattr(defaults, k) for k in CONTROLLER_KEYS
+            if getattr(self, k) is None and getattr(defaults, k) is not None})
+
+
+def _sensing_entry(v: Any) -> str | dict[str, Any]:
+    if isinstance(v, str) and v:
+        return v
+    if not isinstance(v, dict):
+        raise ParamsError("controller.sensing: expected a sensing preset name or an object of "
+                          f"Sensing fields, got {v!r}")
+    for k in v:
+        if k not in SENSING_FIELDS:
+            raise ParamsError(f"controller.sensing: unknown field '{k}'"
+                              f"{_did_you_mean(k, SENSING_FIELDS)}; known: {list(SENSING_FIELDS)}")
+    try:
+        Sensing(**v)
+    except (TypeError, ValueError) as e:
+        raise ParamsError(f"controller.sensing: {e}") from None
+    return dict(v)
 
 
 def _vector(section: str, name: str, value: Any, n: int | None) -> list[float]:
@@ -54,7 +244,8 @@ class Params:
     plant: I [kg m^2], J [kg m^2], K [N m/rad]; friction: the six LuGre parameters (SPEC
     section 2); gains: Ke, KD1, KD2, kv, L1, L2 (SPEC section 3), optional; effects: named
     extra effects (SPEC section 8) with their parameter dicts; extra: other top-level keys kept
-    verbatim (e.g. standard errors written by identification).
+    verbatim (e.g. standard errors written by identification); controller: the controller
+    configuration the gains were tuned for (``ControllerConfig``), optional.
     """
 
     plant: dict[str, list[float]]
@@ -62,6 +253,7 @@ class Params:
     gains: dict[str, list[float]] | None = None
     effects: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
+    controller: ControllerConfig | None = None
 
     @property
     def n(self) -> int:
@@ -98,8 +290,13 @@ class Params:
         effects = d.get("effects") or {}
         if not isinstance(effects, dict):
             raise ParamsError("'effects' must be an object mapping effect names to parameters")
-        extra = {k: v for k, v in d.items() if k not in ("plant", "friction", "gains", "effects")}
-        p = cls(plant=plant, friction=friction, gains=gains, effects=dict(effects), extra=extra)
+        controller = None
+        if d.get("controller") is not None:
+            controller = ControllerConfig.from_dict(d["controller"])
+        extra = {k: v for k, v in d.items()
+                 if k not in ("plant", "friction", "gains", "effects", "controller")}
+        p = cls(plant=plant, friction=friction, gains=gains, effects=dict(effects), extra=extra,
+                controller=controller)
         p.validate()
         return p
 
@@ -119,6 +316,8 @@ class Params:
             d["gains"] = self.gains
         if self.effects:
             d["effects"] = self.effects
+        if self.controller is not None:
+            d["controller"] = self.controller.to_dict()
         d.update(self.extra)
         return d
 
@@ -127,47 +326,15 @@ class Params:
         return LuGre.from_dict(self.friction)
 
     def to_plant(self, with_effects: bool = True) -> FlexibleJointPlant:
-        """The plant of eq. 40 (M = diag(I)) with LuGre friction and, if known, the effects.
-
-        Effects are built from ``jaxflex.effects.EFFECTS``; an unknown name raises.
-        """
-        from jaxflex.effects import EFFECTS
-
-        plant = FlexibleJointPlant(
-            links=DiagonalInertia(I=self.plant["I"]), J=self.plant["J"], K=self.plant["K"],
-            friction=self.to_lugre(),
-        )
-        if with_effects and self.effects:
-            effs = []
-            for name, kw in self.effects.items():
-                if name not in EFFECTS:
-                    raise ParamsError(
-                        f"unknown effect '{name}'; known effects: {sorted(EFFECTS)}"
-                    )
-                try:
-                    effs.append(EFFECTS[name](**kw))
-                except TypeError as e:
-                    raise ParamsError(f"effect '{name}': {e}") from None
-            plant = plant.with_effects(*effs)
-        return plant
+        """The plant of eq. 40 (M = diag(I)) with LuGre friction and, if known, the effects
+        (``build_plant``); an unknown effect name raises ``ParamsError``."""
+        return build_plant(self.plant, self.friction, self.effects if with_effects else None)
 
     def to_gains(self) -> CascadeGains:
         """The controller gains; raises ``ParamsError`` if the file has none."""
         if self.gains is None:
             raise ParamsError("this parameter file has no 'gains' section")
         return CascadeGains(**self.gains)
-
-
-def paper_params() -> Params:
-    """The paper's link-1 parameters (Tables 1-3, SPEC's corrected Table 2)."""
-    return Params.from_dict(
-        {
-            "plant": {"I": 0.07, "J": 0.005, "K": 6.77},
-            "friction": {"Fc": 0.11, "Fs": 0.15, "vs": 0.05, "sigma0": 100.0, "sigma1": 0.1,
-                         "sigma2": 0.2},
-            "gains": {"Ke": 0.001, "KD1": 1.0, "KD2": 1.0, "kv": 2.0, "L1": 200.0, "L2": 6.0},
-        }
-    )
 
 
 def read_json_file(path: str | os.PathLike, error: type[Exception], what: str) -> Any:

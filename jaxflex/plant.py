@@ -262,31 +262,3 @@ class FlexibleJointPlant(eqx.Module):
         if self.friction is None:
             return jnp.zeros(())
         return 0.5 * jnp.sum(self.friction.sigma0 * x.z**2)
-
-
-def paper_plant(friction: bool = True) -> FlexibleJointPlant:
-    """The paper's single horizontal link (Table 1; LuGre with SPEC's Table 2 correction)."""
-    from jaxflex.friction import paper_lugre
-
-    return FlexibleJointPlant(
-        links=DiagonalInertia(I=0.07), J=0.005, K=6.77,
-        friction=paper_lugre() if friction else None,
-    )
-
-
-def two_link_plant(gravity: float = 9.81, friction: bool = True) -> FlexibleJointPlant:
-    """A 2-link planar arm with elastic joints and LuGre friction on both links.
-
-    Link 1 is sized so that its inertia about the joint is close to the paper's prototype;
-    link 2 is lighter. With ``gravity > 0`` the arm moves in a vertical plane.
-    """
-    links = PlanarTwoLink(
-        m1=0.6, m2=0.35, l1=0.3, lc1=0.15, lc2=0.12, I1=0.0045, I2=0.002, g=gravity
-    )
-    lugre = (
-        LuGre(Fc=[0.11, 0.06], Fs=[0.15, 0.08], vs=[0.05, 0.05], sigma0=[100.0, 80.0],
-              sigma1=[0.1, 0.08], sigma2=[0.2, 0.1])
-        if friction else None
-    )
-    return FlexibleJointPlant(links=links, J=[0.005, 0.003], K=[6.77, 5.0], friction=lugre)
-

@@ -18,7 +18,6 @@ Everything is a pure function of the plant and controller modules, so ``jit``, `
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
 import diffrax
@@ -29,64 +28,11 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
 from jaxflex.controller import CascadeController
-from jaxflex.validation import as_param, check_nonnegative
+from jaxflex.sensing import AbstractSensing, Sensing
 from jaxflex.plant import FlexibleJointPlant, PlantState
 from jaxflex.step import plant_step, plant_step_diffrax
 
 _tmap = jax.tree_util.tree_map
-
-
-class Sensing(eqx.Module):
-    """Measurement and actuation realism of the sampled-data loop.
-
-    q1_resolution, q2_resolution [rad]: encoder quantisation steps (0: none);
-    q1_noise, q2_noise [rad]: standard deviation of white angle noise (0: none; needs a key);
-    velocity: "exact" passes true velocities to the controller, "filtered" lets it
-    differentiate the sensed angles; dac_bits: DAC resolution (0: none) over the range
-    +-dac_range [N m].
-    """
-
-    q1_resolution: Array = eqx.field(converter=as_param, default=0.0)
-    q2_resolution: Array = eqx.field(converter=as_param, default=0.0)
-    q1_noise: Array = eqx.field(converter=as_param, default=0.0)
-    q2_noise: Array = eqx.field(converter=as_param, default=0.0)
-    velocity: str = eqx.field(static=True, default="exact")
-    dac_bits: int = eqx.field(static=True, default=0)
-    dac_range: Array = eqx.field(converter=as_param, default=2.0)
-
-    def __check_init__(self) -> None:
-        if self.velocity not in ("exact", "filtered"):
-            raise ValueError(f"Sensing: velocity must be 'exact' or 'filtered', got {self.velocity!r}")
-        check_nonnegative(
-            "Sensing", q1_resolution=self.q1_resolution, q2_resolution=self.q2_resolution,
-            q1_noise=self.q1_noise, q2_noise=self.q2_noise, dac_range=self.dac_range,
-        )
-        if self.dac_bits < 0:
-            raise ValueError(f"Sensing: dac_bits must be >= 0, got {self.dac_bits}")
-
-    def measure(self, q: Array, resolution: Array, noise: Array) -> Array:
-        """Sensed angle: add noise (already scaled), then quantise to ``resolution``."""
-        q = q + noise
-        safe = jnp.where(resolution > 0, resolution, 1.0)
-        return jnp.where(resolution > 0, jnp.round(q / safe) * safe, q)
-
-    def dac(self, tau: Array) -> Array:
-        """Torque after the DAC: quantised to 2 dac_range / 2^dac_bits and clipped to the range."""
-        if self.dac_bits == 0:
-            return tau
-        lsb = 2.0 * self.dac_range / (2**self.dac_bits)
-        return jnp.clip(jnp.round(tau / lsb) * lsb, -self.dac_range, self.dac_range)
-
-
-def paper_sensing() -> Sensing:
-    """The paper's rig (section 6.3): 0.72 deg link encoder, velocities by filtered
-    differentiation, 12-bit DAC over +-2 N m. The rotor encoder is not stated; we take 0.72 deg
-    before a 1:50 gear (0.0144 deg link-referred)."""
-    deg = math.pi / 180.0
-    return Sensing(
-        q1_resolution=0.72 * deg, q2_resolution=0.72 * deg / 50.0, velocity="filtered",
-        dac_bits=12, dac_range=2.0,
-    )
 
 
 class Metrics(eqx.Module):
@@ -168,7 +114,7 @@ def simulate_sampled(
     *,
     x0: PlantState | None = None,
     substeps: int = 10,
-    sensing: Sensing | None = None,
+    sensing: AbstractSensing | None = None,
     key: PRNGKeyArray | None = None,
     save: bool = True,
     integrator: Literal["split", "diffrax"] = "split",

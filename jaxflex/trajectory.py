@@ -2,7 +2,8 @@
 
 The cascade controller needs q1d and its derivatives up to 4th order (q2d'' contains the
 reference's 4th derivative; paper eq. 13, 16). Each trajectory only defines ``position(t)``;
-``derivatives`` obtains the rest with nested forward-mode differentiation.
+``derivatives`` obtains the rest with nested forward-mode differentiation. The paper's tasks
+(and their names) are in ``jaxflex.presets``.
 """
 
 from __future__ import annotations
@@ -123,29 +124,3 @@ class Multisine(Trajectory):
             f, ph, a = (jnp.tile(x[:, None], (1, n)) for x in (f, ph, a))
         return cls(amplitudes=a, frequencies=f, phases=ph)
 
-
-def paper_sinusoid() -> Sinusoid:
-    """The paper's sinusoidal task (Fig. 9-11): 0.05 rad amplitude, 0.5 Hz, 10 s.
-
-    The paper prints neither amplitude nor frequency; the amplitude is read off Fig. 9-10,
-    the frequency is our choice (five periods in the 10 s plot window).
-    """
-    return Sinusoid(amplitude=0.05, frequency=0.5)
-
-
-def paper_polynomial() -> RestToRest:
-    """The paper's polynomial task (Fig. 12-14): rest-to-rest moves between -0.07 and 0.07 rad."""
-    return RestToRest(
-        waypoints=[0.0, 0.07, -0.07, 0.07, -0.07, 0.0],
-        durations=[1.5, 2.0, 2.0, 2.0, 1.5],
-        t0=0.5,
-    )
-
-
-def paper_fast() -> RestToRest:
-    """A faster motion (Fig. 15): 0.5 rad moves in 0.6 s, about 2 rad/s peak link speed."""
-    return RestToRest(
-        waypoints=[0.0, 0.5, -0.5, 0.5, 0.0],
-        durations=[0.6, 0.9, 0.9, 0.6],
-        t0=0.5,
-    )

@@ -14,7 +14,7 @@ How it works:
 - Gains are positive, so the search runs in log-space, theta = log(gains), inside a box of
   +-log(box) around the initial gains; the objective is log(cost), whose gradient has no
   scale. Gradients go through the whole simulation (``jax.value_and_grad`` of a
-  ``lax.scan``); quantisers use a straight-through gradient (``StraightThroughSensing``),
+  ``lax.scan``); quantisers use a straight-through gradient (``jaxflex.sensing.StraightThrough``),
   since rounding has zero derivative and would cut every feedback path out of the gradient.
 - Adam steps, with the certificate *enforced* at every iterate: a step that leaves the
   certified set is cut back (halved) along the segment from the last certified point, and a
@@ -33,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import equinox as eqx
@@ -45,44 +44,10 @@ from jaxtyping import Array, Float
 from jaxflex.certificate import DEFAULT_EPS, certify, lambda_min_curve, ultimate_bound
 from jaxflex.controller import CascadeController, CascadeGains
 from jaxflex.plant import FlexibleJointPlant
-from jaxflex.simulate import Sensing, SimResult, simulate_sampled, tracking_summary
+from jaxflex.presets import rig_sensing
+from jaxflex.sensing import AbstractSensing, StraightThrough
+from jaxflex.simulate import SimResult, simulate_sampled, tracking_summary
 from jaxflex.trajectory import Trajectory
-
-
-class StraightThroughSensing(Sensing):
-    """``Sensing`` whose quantisers pass gradients straight through (value: quantised; derivative:
-    identity). The quantisation error then acts on the gradient like exogenous noise, which
-    is what it is on the rig."""
-
-    def measure(self, q: Array, resolution: Array, noise: Array) -> Array:
-        """Quantised angle with derivative 1 (see ``Sensing.measure``)."""
-        exact = q + noise
-        return exact + jax.lax.stop_gradient(Sensing.measure(self, q, resolution, noise) - exact)
-
-    def dac(self, tau: Array) -> Array:
-        """DAC output; derivative 1 inside the range, 0 where clipped (see ``Sensing.dac``)."""
-        if self.dac_bits == 0:
-            return tau
-        clipped = jnp.clip(tau, -self.dac_range, self.dac_range)
-        return clipped + jax.lax.stop_gradient(Sensing.dac(self, tau) - clipped)
-
-
-def straight_through(sensing: Sensing) -> StraightThroughSensing:
-    """The same sensing with straight-through gradients."""
-    names = [f.name for f in dataclasses.fields(sensing)]
-    return StraightThroughSensing(**{k: getattr(sensing, k) for k in names})
-
-
-def tune_sensing(bits: int = 16, dac_range: float = 2.0) -> Sensing:
-    """Default sensing for tuning: ``bits``-bit link and rotor encoders (rotor behind a 1:50
-    gear), filtered-derivative velocities, 12-bit DAC over +-dac_range [N m].
-
-    The paper's 0.72 deg link encoder (``paper_sensing``) makes the paper's loop (L1 = 200)
-    chatter at the torque limit: one count moves q2d by about L1 KD1 0.0126 / K = 0.37 rad.
-    """
-    res = 2 * math.pi / 2**bits
-    return Sensing(q1_resolution=res, q2_resolution=res / 50.0, velocity="filtered",
-                   dac_bits=12, dac_range=dac_range)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,7 +66,7 @@ class TuneTask:
 
     trajectories: tuple[Trajectory, ...]
     t_final: float = 2.0
-    sensing: Sensing = dataclasses.field(default_factory=tune_sensing)
+    sensing: AbstractSensing = dataclasses.field(default_factory=rig_sensing)
     tau_max: float = 2.0
     q2d_method: str = "model"
     dt: float = 1e-3
@@ -157,7 +122,7 @@ class TuneTask:
 
 def tracking_cost(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask,
                   model: FlexibleJointPlant | None = None,
-                  sensing: Sensing | None = None) -> tuple[Float[Array, ""], dict[str, Array]]:
+                  sensing: AbstractSensing | None = None) -> tuple[Float[Array, ""], dict[str, Array]]:
     """Cost [rad^2] of ``gains`` on ``task``: mean over trajectories and joints of the squared
     RMS link error plus torque_weight x mean squared RMS torque; +inf when a run diverged.
 
@@ -274,7 +239,7 @@ def tune(
     model = plant if model is None else model
     v_task = task.certify_speed()
     vgrid = jnp.linspace(0.0, v_task, grid)
-    st_sensing = straight_through(task.sensing)
+    st_sensing = StraightThrough(task.sensing)
     theta_init = jnp.log(initial.to_vector())
     _check_gains_vector(np.asarray(theta_init))
     lo, hi = theta_init - math.log(box), theta_init + math.log(box)
@@ -456,42 +421,44 @@ def evaluate(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask, *,
     }
 
 
-def write_report(plant: FlexibleJointPlant, result: TuneResult, task: TuneTask,
-                 out: str | Path, *, model: FlexibleJointPlant | None = None,
-                 reference: CascadeGains | None = None,
-                 eps: float = DEFAULT_EPS, vmax: float | None = None) -> dict[str, Any]:
-    """Compare the reference (default: the initial) gains with the tuned gains on ``task`` and
-    write ``report.json`` and figures to the folder ``out``: lambda_min(N2) over speed,
-    certified range (over 0..vmax, default 500 rad/s), RMS link error [rad], torque RMS
-    [N m]. Returns the report dict."""
-    import json
+@dataclasses.dataclass
+class TuneComparison:
+    """Reference (by default the initial) and tuned gains side by side on a task, for a
+    report: the saved runs per trajectory and the numbers of ``evaluate`` (certificate over
+    0..``vmax`` [rad/s]), each keyed "initial" and "tuned"."""
 
-    from jaxflex.plots.tune import plot_history, plot_lambda_min, plot_tracking_comparison
+    runs: dict[str, list[SimResult]]
+    evaluations: dict[str, dict[str, Any]]
+    vmax: float
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    def summary(self, result: TuneResult, task: TuneTask) -> dict[str, Any]:
+        """JSON-ready comparison: the task, both evaluations, the RMS improvement factor and
+        the search history of ``result``."""
+        ev = self.evaluations
+        return {
+            "task": {"trajectories": [type(t).__name__ for t in task.trajectories],
+                     "t_final": task.t_final, "tau_max": task.tau_max,
+                     "q2d_method": task.q2d_method, "dt": task.dt,
+                     "certify_speed": result.v_task, "margin": result.margin},
+            "initial": ev["initial"], "tuned": ev["tuned"],
+            "improvement_rms": ev["initial"]["rms_error"] / ev["tuned"]["rms_error"],
+            "search": result.summary(),
+        }
+
+
+def compare(plant: FlexibleJointPlant, result: TuneResult, task: TuneTask, *,
+            model: FlexibleJointPlant | None = None, reference: CascadeGains | None = None,
+            eps: float = DEFAULT_EPS, vmax: float | None = None) -> TuneComparison:
+    """Simulate and evaluate the reference (default: the initial) gains and the tuned gains
+    of ``result`` on ``task``; the certificate is computed over 0..vmax [rad/s] (default
+    max(500, 5 x the task speed))."""
     model = plant if model is None else model
     reference = result.initial_gains if reference is None else reference
     vmax = max(500.0, 5 * result.v_task) if vmax is None else vmax
     margin = 0.0 if result.margin is None else result.margin
-    runs = {"initial": simulate_task(plant, reference, task, model),
-            "tuned": simulate_task(plant, result.gains, task, model)}
+    gains = {"initial": reference, "tuned": result.gains}
+    runs = {k: simulate_task(plant, g, task, model) for k, g in gains.items()}
     ev = {k: evaluate(plant, g, task, vmax=vmax, margin=margin, model=model, eps=eps,
                       runs=runs[k])
-          for k, g in (("initial", reference), ("tuned", result.gains))}
-    figs = [
-        plot_lambda_min({k: e["certificate"] for k, e in ev.items()}, out / "lambda_min.png",
-                        v_task=result.v_task, margin=result.margin),
-        plot_tracking_comparison(runs, out / "tracking.png"),
-        plot_history(result.summary()["starts"], out / "history.png"),
-    ]
-    report = {
-        "task": {"trajectories": [type(t).__name__ for t in task.trajectories],
-                 "t_final": task.t_final, "tau_max": task.tau_max, "q2d_method": task.q2d_method,
-                 "dt": task.dt, "certify_speed": result.v_task, "margin": result.margin},
-        "initial": ev["initial"], "tuned": ev["tuned"],
-        "improvement_rms": ev["initial"]["rms_error"] / ev["tuned"]["rms_error"],
-        "search": result.summary(), "figures": figs,
-    }
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    return report
+          for k, g in gains.items()}
+    return TuneComparison(runs=runs, evaluations=ev, vmax=vmax)

@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> dict:
     jax.config.update("jax_enable_x64", True)
     from jaxflex.export import build_controller, generate_source, load_module
     from jaxflex.hardware import LoopConfig, SimulatedRig, run_loop
-    from jaxflex.params import paper_params
+    from jaxflex.presets import paper_params
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

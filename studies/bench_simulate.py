@@ -31,10 +31,9 @@ def _single(out: dict, t_final: float) -> None:
     import jax.numpy as jnp
     from scipy.integrate import solve_ivp
 
-    from jaxflex.controller import CascadeController, paper_gains
-    from jaxflex.plant import paper_plant
+    from jaxflex.controller import CascadeController
+    from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid
     from jaxflex.simulate import simulate_sampled
-    from jaxflex.trajectory import paper_sinusoid
 
     plant = paper_plant()
     ctrl = CascadeController(model=plant, gains=paper_gains(), trajectory=paper_sinusoid())
@@ -100,11 +99,11 @@ def _batched(out: dict, B: int, t_final: float, configs: list[tuple[str, int, st
     import jax
     import jax.numpy as jnp
 
-    from jaxflex.controller import CascadeController, paper_gains
+    from jaxflex.controller import CascadeController
     from jaxflex.friction import LuGre
-    from jaxflex.plant import DiagonalInertia, FlexibleJointPlant, paper_plant
+    from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+    from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid
     from jaxflex.simulate import simulate_sampled
-    from jaxflex.trajectory import paper_sinusoid
 
     rng = np.random.default_rng(0)
     scale = rng.uniform(0.8, 1.2, size=(B, 4))

@@ -55,11 +55,8 @@ def main(argv: list[str] | None = None) -> dict:
     jax.config.update("jax_enable_x64", True)
 
     from jaxflex.certificate import certify
-    from jaxflex.controller import paper_gains
-    from jaxflex.plant import paper_plant
     from jaxflex.plots.tune import plot_lambda_min, plot_tracking_comparison, plot_tradeoff
-    from jaxflex.simulate import paper_sensing
-    from jaxflex.trajectory import paper_sinusoid
+    from jaxflex.presets import paper_gains, paper_plant, paper_sensing, paper_sinusoid
     from jaxflex.tune import TuneTask, evaluate, simulate_task, tune
 
     t_final = args.t_final or (0.5 if args.small else 2.0)

@@ -43,8 +43,8 @@ def main(argv=None) -> dict:
 
     from jaxflex.identify import DEFAULT_FREE, excitation_torque, make_problem, perturb, synthetic_log
     from jaxflex.fit import least_squares
-    from jaxflex.params import paper_params
-    from jaxflex.simulate import Sensing
+    from jaxflex.presets import paper_params
+    from jaxflex.sensing import Sensing
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/ident_bench_scipy")

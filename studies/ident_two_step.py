@@ -39,9 +39,9 @@ def main(argv=None) -> dict:
         synthetic_log,
         two_step,
     )
-    from jaxflex.params import paper_params
+    from jaxflex.presets import paper_params
     from jaxflex.plots.identify import plot_fit, plot_static_map
-    from jaxflex.simulate import Sensing
+    from jaxflex.sensing import Sensing
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/ident_two_step")

@@ -12,17 +12,21 @@ import argparse
 
 import jax
 
+from jaxflex.presets import SENSING_PRESETS
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default="out/reproduce_paper")
     ap.add_argument("--small", action="store_true", help="2 s runs (smoke test)")
-    ap.add_argument("--sensing", default="rig", choices=["rig", "ideal", "paper"])
+    ap.add_argument("--sensing", default="rig", choices=SENSING_PRESETS)
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     from jaxflex.experiments import run_paper_experiments
+    from jaxflex.reports import write_paper_experiments
 
-    run_paper_experiments(args.out, sensing=args.sensing, t_final=2.0 if args.small else 10.0)
+    results = run_paper_experiments(sensing=args.sensing, t_final=2.0 if args.small else 10.0)
+    write_paper_experiments(results, args.out)
 
 
 if __name__ == "__main__":

@@ -21,11 +21,11 @@ from jaxflex.certificate import (
     psi_sharp,
     ultimate_bound,
 )
-from jaxflex.controller import CascadeGains, paper_gains
+from jaxflex.controller import CascadeGains
 from jaxflex.friction import LuGre
-from jaxflex.params import paper_params, save_params
-from jaxflex.plant import DiagonalInertia, FlexibleJointPlant, paper_plant
-from jaxflex.trajectory import paper_sinusoid
+from jaxflex.params import save_params
+from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.presets import paper_gains, paper_params, paper_plant, paper_sinusoid
 
 
 def _lyapunov_derivative(n: int):

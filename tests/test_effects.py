@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from jaxflex.effects import EFFECTS
-from jaxflex.params import Params, paper_params
-from jaxflex.plant import paper_plant
+from jaxflex.params import Params
+from jaxflex.presets import paper_params
+from jaxflex.presets import paper_plant
 
 SPEC_NAMES = {
     "asymmetric_friction", "gravity", "cogging", "backlash", "hardening_spring",

@@ -23,7 +23,7 @@ from jaxflex.export import (
     parity_ok,
 )
 from jaxflex.export.codegen import function_source
-from jaxflex.params import paper_params
+from jaxflex.presets import paper_params
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ from jaxflex.fit import (
 from jaxflex.fit.space import _parse
 from jaxflex.identify import excitation_torque, synthetic_log
 from jaxflex.logs import Log
-from jaxflex.params import paper_params
+from jaxflex.presets import paper_params
 
 
 def _gated_plant(active: tuple[str, ...] = ()):

@@ -16,7 +16,7 @@ import pytest
 from jaxflex.export import build_controller, generate_source, load_module
 from jaxflex.hardware import LoopConfig, RigIO, SimulatedRig, run_loop
 from jaxflex.logs import Log, save_log
-from jaxflex.params import paper_params
+from jaxflex.presets import paper_params
 
 
 class FakeIO(RigIO):
@@ -145,7 +145,8 @@ def test_exported_controller_on_simulated_rig_matches_jax(tmp_path):
     encoders) reproduces the JAX sampled-data simulation of the same run."""
     import jax
 
-    from jaxflex.simulate import Sensing, simulate_sampled
+    from jaxflex.sensing import Sensing
+    from jaxflex.simulate import simulate_sampled
 
     jax.config.update("jax_enable_x64", True)
     p = paper_params()
@@ -193,9 +194,9 @@ def test_cli_run_loop_lockstep(tmp_path, capsys):
     from jaxflex.cli.run_loop import run as run_loop_cmd
 
     ns = argparse.Namespace(
-        params=None, duration=0.1, rate=500.0, log=str(log), controller=str(ctrl),
-        trajectory="sinusoid", q2d=None, tau_limit=2.0, q_limit=10.0, max_misses=10,
-        lockstep=True, encoder_bits=16,
+        params=None, rig_params=None, duration=0.1, rate=500.0, log=str(log),
+        controller=str(ctrl), trajectory=None, q2d=None, tau_limit=None, q_limit=10.0,
+        max_misses=10, lockstep=True, encoder_bits=16,
     )
     with pytest.raises(ValueError, match="dt"):
         run_loop_cmd(ns)

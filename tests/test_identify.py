@@ -26,8 +26,8 @@ from jaxflex.identify import (
     synthetic_log,
     two_step,
 )
-from jaxflex.params import paper_params
-from jaxflex.simulate import Sensing
+from jaxflex.presets import paper_params
+from jaxflex.sensing import Sensing
 
 FACTORS = (2.0, 0.6, 2.0, 0.5, 2.0, 0.5)  # Fc, Fs, vs, sigma0, sigma1, sigma2: up to 2x off
 

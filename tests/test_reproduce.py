@@ -3,7 +3,8 @@
 import json
 
 from jaxflex.cli import main
-from jaxflex.params import paper_params, save_params
+from jaxflex.params import save_params
+from jaxflex.presets import paper_params
 
 
 def test_reproduce_cli_writes_results(tmp_path):

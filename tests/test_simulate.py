@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.controller import CascadeController, CascadeGains, paper_gains
+from jaxflex.controller import CascadeController, CascadeGains
 from jaxflex.friction import LuGre
-from jaxflex.plant import paper_plant, two_link_plant
+from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid, two_link_plant
 from jaxflex.simulate import simulate_continuous, simulate_sampled
-from jaxflex.trajectory import RestToRest, Sinusoid, paper_sinusoid
+from jaxflex.trajectory import RestToRest, Sinusoid
 
 
 def _ctrl(plant=None, comp=True, method="model", dt=1e-3, traj=None, gains=None):

@@ -153,7 +153,8 @@ def test_src_recovers_known_linear_sensitivities_and_chunks_merge_exactly():
         n = sl.stop - sl.start
         return {"theta": theta[sl], "rms_error": y[sl], "max_error": 2 * y[sl], "tau_rms": y[sl],
                 "saturation_fraction": np.zeros(n), "diverged": np.zeros(n, bool),
-                "fs_raised": np.zeros(n, bool), "band_hist": np.zeros((1, T, 400), np.int64)}
+                "fs_raised": np.arange(sl.start, sl.stop) % 7 == 0,
+                "band_hist": np.zeros((1, T, 400), np.int64)}
 
     one = Accumulator(spec)
     one.add(np.arange(S), out(slice(0, S)))
@@ -174,6 +175,14 @@ def test_src_recovers_known_linear_sensitivities_and_chunks_merge_exactly():
             {k: x for k, x in w.items() if k != "quantiles_from"}, rel=1e-12, abs=1e-15)
         assert v["q95"] == r2.summary["metrics"][m]["q95"]
     assert r1.summary["worst"] == r2.summary["worst"]
+    # samples whose Fs draw was raised to Fc are counted, also across merged accumulators
+    assert r1.summary["fs_raised_to_fc"] == r2.summary["fs_raised_to_fc"] == len(range(0, S, 7))
+
+
+def test_band_grid_stride_is_a_property_of_the_spec():
+    spec = parse_spread({"band_dt": 0.0104, "dt": 1e-3})
+    assert spec.band_stride == 10 and Accumulator(spec).band_dt == pytest.approx(0.01)
+    assert parse_spread({"band_dt": 1e-4}).band_stride == 1
 
 
 # ----- simulation ---------------------------------------------------------------------------

@@ -15,26 +15,17 @@ import numpy as np
 import pytest
 
 from jaxflex.certificate import certify, lambda_min_curve
-from jaxflex.controller import CascadeGains, paper_gains
-from jaxflex.params import load_params, paper_params, save_params
-from jaxflex.plant import paper_plant
-from jaxflex.simulate import Sensing
-from jaxflex.trajectory import paper_sinusoid
-from jaxflex.tune import (
-    StraightThroughSensing,
-    TuneTask,
-    simulate_task,
-    straight_through,
-    tracking_cost,
-    tune,
-    tune_sensing,
-)
+from jaxflex.controller import CascadeGains
+from jaxflex.params import load_params, save_params
+from jaxflex.presets import paper_gains, paper_params, paper_plant, paper_sinusoid, rig_sensing
+from jaxflex.sensing import Sensing
+from jaxflex.tune import TuneTask, simulate_task, tracking_cost, tune
 
 T_FINAL = 1.0
 
 
 def _task() -> TuneTask:
-    return TuneTask(trajectories=(paper_sinusoid(),), t_final=T_FINAL, sensing=tune_sensing())
+    return TuneTask(trajectories=(paper_sinusoid(),), t_final=T_FINAL, sensing=rig_sensing())
 
 
 def _rms(plant, gains, task) -> tuple[float, float]:
@@ -101,16 +92,34 @@ def test_uncertified_initial_gains_and_bad_settings_raise():
 
 
 def test_straight_through_sensing_values_and_gradient():
-    s = tune_sensing(bits=8)
-    st = straight_through(s)
-    assert isinstance(st, StraightThroughSensing)
+    """The wrapper gives the wrapped sensing's values and a straight-through gradient."""
+    from jaxflex.sensing import AbstractSensing, StraightThrough
+
+    s = rig_sensing(bits=8)
+    st = StraightThrough(s)
+    assert isinstance(st, AbstractSensing) and not isinstance(st, Sensing)
+    for name in ("q1_resolution", "q2_resolution", "q1_noise", "q2_noise", "dac_range"):
+        assert jnp.array_equal(getattr(st, name), getattr(s, name))
+    assert (st.velocity, st.dac_bits) == (s.velocity, s.dac_bits)
     q = jnp.array([0.01234])
     res = s.q1_resolution
     assert jnp.array_equal(st.measure(q, res, 0.0), s.measure(q, res, 0.0))
-    assert jnp.array_equal(st.dac(q * 100), s.dac(q * 100))
+    for tau in (q * 100, jnp.array([0.3337]), jnp.array([-1.0001]), jnp.array([5.0])):
+        assert jnp.array_equal(st.dac(tau), s.dac(tau))
     assert float(jax.grad(lambda x: s.measure(x, res, 0.0).sum())(q)[0]) == 0.0
+    assert float(jax.grad(lambda x: s.dac(x).sum())(jnp.array([0.3337]))[0]) == 0.0
     assert float(jax.grad(lambda x: st.measure(x, res, 0.0).sum())(q)[0]) == 1.0
+    assert float(jax.grad(lambda x: st.dac(x).sum())(jnp.array([0.3337]))[0]) == 1.0
     assert float(jax.grad(lambda x: st.dac(x).sum())(jnp.array([5.0]))[0]) == 0.0  # clipped
+    # the loop sees the same values through the wrapper (a gradient through it is nonzero)
+    plant, gains = paper_plant(), paper_gains()
+    task = TuneTask(trajectories=(paper_sinusoid(),), t_final=0.05, sensing=s, substeps=2)
+    c_s = tracking_cost(plant, gains, task, sensing=s)[0]
+    c_st = tracking_cost(plant, gains, task, sensing=st)[0]
+    assert float(c_s) == float(c_st)
+    g = jax.grad(lambda k: tracking_cost(
+        plant, eqx.tree_at(lambda g: g.KD1, gains, k), task, sensing=st)[0])(gains.KD1)
+    assert float(jnp.abs(g).sum()) > 0
 
 
 def test_tracking_cost_gradient_matches_finite_difference():
@@ -144,6 +153,10 @@ def test_cli_tune_writes_gains_and_report(tmp_path, capsys):
     tuned = load_params(out)
     assert set(tuned.gains) == {"Ke", "KD1", "KD2", "kv", "L1", "L2"}
     assert tuned.plant == paper_params().plant
+    # the configuration the gains were certified for travels with them (export, run-loop)
+    assert tuned.controller.to_dict() == {
+        "q2d_method": "model", "dt": 1e-3, "tau_max": 2.0, "compensation": True,
+        "sensing": "rig", "trajectory": "sinusoid"}
     rep = json.loads((tmp_path / "gains_report" / "report.json").read_text())
     for k in ("initial", "tuned"):
         assert {"rms_error", "tau_rms", "certificate", "lambda_min_at_task_speed"} <= set(rep[k])

@@ -42,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
 
     from jaxflex.discover import DiscoverConfig, discover
     from jaxflex.logs import load_log, parse_mapping
-    from jaxflex.params import load_params, paper_params, save_params
+    from jaxflex.params import load_params, save_params
+    from jaxflex.presets import paper_params
 
     if not 0.1 <= args.train_frac <= 0.9:
         raise ValueError(f"--train-frac must be in [0.1, 0.9], got {args.train_frac}")

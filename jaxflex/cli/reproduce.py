@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from jaxflex.presets import SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``reproduce`` subcommand."""
@@ -15,13 +17,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--params", help="parameter file (SPEC section 7); default: the paper's")
-    p.add_argument("--sensing", default="rig", choices=["rig", "ideal", "paper"],
-                   help="measurement realism (default: rig = 16-bit encoders, filtered "
-                   "velocities, 12-bit DAC)")
+    p.add_argument("--sensing", default="rig", choices=SENSING_PRESETS,
+                   help="measurement realism (default: rig); " + "; ".join(
+                       f"{k}: {v}" for k, v in SENSING_DESCRIPTIONS.items()))
     p.add_argument("--q2d", default="model", choices=["model", "filtered", "reference"],
                    help="how the controller gets q2d' and q2d'' (default: model)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds per run (default 10)")
-    p.add_argument("--tasks", nargs="+", default=None, choices=["sinusoid", "polynomial", "fast"],
+    p.add_argument("--tasks", nargs="+", default=None, choices=TRAJECTORIES,
                    help="run only these experiments (default: all)")
     p.add_argument("--no-q2d-comparison", action="store_true",
                    help="skip the comparison of the three q2d options")
@@ -32,12 +34,14 @@ def run(args: argparse.Namespace) -> int:
     """Run the experiments and print a table of the results."""
     from jaxflex.experiments import run_paper_experiments
     from jaxflex.params import load_params
+    from jaxflex.reports import write_paper_experiments
 
     params = load_params(args.params) if args.params else None
-    res = run_paper_experiments(
-        args.out, params=params, sensing=args.sensing, q2d_method=args.q2d,
-        t_final=args.duration, compare_q2d=not args.no_q2d_comparison, tasks=args.tasks,
+    results = run_paper_experiments(
+        params=params, sensing=args.sensing, q2d_method=args.q2d, t_final=args.duration,
+        compare_q2d=not args.no_q2d_comparison, tasks=args.tasks,
     )
+    res = write_paper_experiments(results, args.out)
     print(f"\n{'experiment':<12} {'compensation':<13} {'RMS err (rad)':>14} {'max err (rad)':>14} {'torque RMS (N m)':>17}")
     for name, e in res["experiments"].items():
         for key in ("without_compensation", "with_compensation"):

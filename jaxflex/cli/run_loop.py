@@ -3,6 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import types
+from typing import Any
+
+from jaxflex.params import ControllerConfig
+from jaxflex.presets import TRAJECTORIES
+
+# option of each controller-section entry, for the messages of a contradiction
+CONTROLLER_FLAGS: dict[str, str] = {
+    "trajectory": "--trajectory", "q2d_method": "--q2d", "dt": "--rate (dt = 1/rate)",
+    "tau_max": "--tau-limit",
+}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -12,20 +23,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="run an exported controller in the real-time loop against the simulated rig",
         description="Fixed-period loop (torque limit, NaN/range guard, deadline watchdog, "
         "zero torque on stop) around a simulated rig whose plant runs in a separate process. "
-        "Writes a SPEC section 6 CSV log.",
+        "Writes a SPEC section 6 CSV log. The controller is either an exported file "
+        "(--controller, which carries its own gains) or exported now from --params; the two "
+        "are not combined, so a parameter file never replaces exported gains. The rig's "
+        "plant is --rig-params, by default the controller's own plant. The loop's rate, "
+        "torque limit, trajectory and q2d method follow the controller's configuration (the "
+        "'controller' section of --params, or the constants of --controller): an option that "
+        "contradicts it is refused; an option it does not record fills it in.",
     )
-    p.add_argument("--params", help="rig plant and controller parameters (SPEC section 7); "
-                   "default: the paper's")
+    p.add_argument("--params", help="the controller's parameter file (SPEC section 7: model, "
+                   "gains, 'controller' section) to export a controller from now; default: "
+                   "the paper's. Not with --controller")
+    p.add_argument("--controller", help="exported controller file (jaxflex export); its gains "
+                   "and model are used as exported")
+    p.add_argument("--rig-params", help="the simulated rig's plant (SPEC section 7, effects "
+                   "included); default: the controller's own plant")
     p.add_argument("--duration", type=float, default=5.0, help="seconds (default 5)")
-    p.add_argument("--rate", type=float, default=1000.0, help="loop rate [Hz] (default 1000)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="loop rate [Hz] (default: 1/dt of the controller, else 1000)")
     p.add_argument("--log", required=True, help="output CSV log (SPEC section 6)")
-    p.add_argument("--controller", help="exported controller file (jaxflex export); default: "
-                   "export one now from --params with dt = 1/rate")
-    p.add_argument("--trajectory", default="sinusoid", choices=["sinusoid", "polynomial", "fast"],
-                   help="reference task when exporting now (default: sinusoid)")
+    p.add_argument("--trajectory", default=None, choices=TRAJECTORIES,
+                   help="reference task when exporting now (default: the file's, else sinusoid)")
     p.add_argument("--q2d", default=None, choices=["model", "filtered", "reference"],
-                   help="q2d derivative method when exporting now (default: the controller's)")
-    p.add_argument("--tau-limit", type=float, default=2.0, help="torque limit [N m] (default 2)")
+                   help="q2d derivative method when exporting now (default: the file's, else "
+                   "model)")
+    p.add_argument("--tau-limit", type=float, default=None,
+                   help="torque limit [N m] (default: the controller's tau_max, else 2)")
     p.add_argument("--q-limit", type=float, default=10.0,
                    help="guard: stop with zero torque beyond |q| [rad] (default 10)")
     p.add_argument("--max-misses", type=int, default=10,
@@ -33,39 +56,76 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lockstep", action="store_true",
                    help="do not wait for deadlines (timing-independent run)")
     p.add_argument("--encoder-bits", type=int, default=16,
-                   help="simulated encoder resolution, 0 for exact angles (default 16)")
+                   help="simulated rig's encoder resolution, 0 for exact angles (default 16)")
     p.set_defaults(func=run)
+
+
+def exported_plant(mod: types.ModuleType) -> dict[str, Any]:
+    """The controller model baked into an exported module, as a SPEC section 7 mapping of
+    its plant and friction entries (SI units)."""
+    d: dict[str, Any] = {}
+    for key, name in mod.SPEC_MAP.items():
+        section, entry = key.split(".")
+        if section in ("plant", "friction"):
+            d.setdefault(section, {})[entry] = list(mod.DEFAULT_PARAMS[name][1])
+    return d
+
+
+def exported_config(mod: types.ModuleType) -> ControllerConfig:
+    """The controller configuration of an exported module: q2d method, dt [s] and (when
+    finite and the same on every joint) the torque limit tau_max [N m]."""
+    import math
+
+    taus = set(mod.DEFAULT_PARAMS.get("tau_max", ((), []))[1])
+    tau = taus.pop() if len(taus) == 1 else None
+    return ControllerConfig(q2d_method=mod.Q2D_METHOD, dt=float(mod.DT),
+                            tau_max=float(tau) if tau is not None and math.isfinite(tau) else None)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the loop; returns 0 when it completed, 1 when a protection stopped it."""
+    import dataclasses
     import json
     import math
 
     from jaxflex.export import build_controller, generate_source, load_module
     from jaxflex.hardware import LoopConfig, SimulatedRig, run_loop
-    from jaxflex.params import load_params, paper_params
+    from jaxflex.params import Params, load_params
+    from jaxflex.presets import controller_config, paper_params
 
-    params = load_params(args.params) if args.params else paper_params()
-    cfg = LoopConfig(rate=args.rate, duration=args.duration, tau_limit=args.tau_limit,
-                     q_limit=args.q_limit, max_consecutive_misses=args.max_misses,
-                     realtime=not args.lockstep)
+    given = {"trajectory": args.trajectory, "q2d_method": args.q2d,
+             "dt": None if args.rate is None else 1.0 / args.rate, "tau_max": args.tau_limit}
     if args.controller:
+        if args.params:
+            raise ValueError("--params and --controller: the exported controller carries its "
+                             "own gains and model; give the rig's plant with --rig-params, or "
+                             "export again from the parameter file")
+        for flag, v in (("--trajectory", args.trajectory), ("--q2d", args.q2d)):
+            if v is not None:
+                raise ValueError(f"{flag} applies when exporting now; {args.controller} was "
+                                 "exported with its own (export it again to change it)")
         mod = load_module(args.controller)
-        if abs(mod.DT - cfg.period) > 1e-12 * cfg.period:
-            raise ValueError(f"{args.controller} was exported for dt = {mod.DT} s but the loop "
-                             f"runs at {args.rate} Hz (dt = {cfg.period} s); export it again "
-                             "with --dt")
-        ctrl = mod.Controller.from_json(args.params) if args.params else mod.Controller()
+        own = Params.from_dict(exported_plant(mod))
+        cfg = controller_config(dataclasses.replace(own, controller=exported_config(mod)),
+                                given, CONTROLLER_FLAGS, source=args.controller)
+        ctrl = mod.Controller()
     else:
-        c = build_controller(params, args.trajectory, q2d_method=args.q2d, dt=cfg.period)
+        own = load_params(args.params) if args.params else paper_params()
+        cfg = controller_config(own, given, CONTROLLER_FLAGS,
+                                source=args.params or "the paper's parameters")
+        c = build_controller(own, cfg.trajectory_name, q2d_method=cfg.q2d_method, dt=cfg.dt,
+                             tau_max=cfg.tau_max, compensation=cfg.compensation)
         ctrl = load_module(generate_source(c)).Controller()
-    if ctrl.n != params.n:
-        raise ValueError(f"controller is for {ctrl.n} joint(s), the rig has {params.n}")
+    rig_params = load_params(args.rig_params) if args.rig_params else own
+    loop = LoopConfig(rate=1.0 / cfg.dt, duration=args.duration, tau_limit=cfg.tau_max,
+                      q_limit=args.q_limit, max_consecutive_misses=args.max_misses,
+                      realtime=not args.lockstep)
+    if ctrl.n != rig_params.n:
+        raise ValueError(f"controller is for {ctrl.n} joint(s), the rig has {rig_params.n}")
     res = 2 * math.pi / 2**args.encoder_bits if args.encoder_bits > 0 else 0.0
     q1_0 = ctrl.reference(0.0)
-    with SimulatedRig(params, cfg.period, q1_0=q1_0, resolution=(res, res / 50.0)) as rig:
-        out = run_loop(rig, ctrl, cfg, log_path=args.log)
+    with SimulatedRig(rig_params, loop.period, q1_0=q1_0, resolution=(res, res / 50.0)) as rig:
+        out = run_loop(rig, ctrl, loop, log_path=args.log)
     summ = out.timing_summary()
     err = None
     if out.q1d is not None and out.samples:
@@ -73,5 +133,7 @@ def run(args: argparse.Namespace) -> int:
     print(json.dumps({"stop_reason": out.stop_reason, "samples": out.samples,
                       "deadline_misses": out.misses, "faults": out.faults[:5],
                       "compute_us": summ["compute"], "lateness_us": summ["lateness"],
-                      "rms_tracking_error_rad": err, "log": args.log}, indent=2))
+                      "rms_tracking_error_rad": err, "log": args.log,
+                      "rig_params": args.rig_params or "the controller's plant",
+                      "rate_hz": loop.rate, "tau_limit": loop.tau_limit}, indent=2))
     return 0 if out.stop_reason == "completed" else 1

@@ -84,6 +84,9 @@ def run(args: argparse.Namespace) -> int:
             np.savetxt(out / "samples.csv", table, delimiter=",", header=",".join(["index"] + cols),
                        comments="", fmt="%.17g")
         m = res.summary["metrics"]["rms_error"]
+        if res.summary["fs_raised_to_fc"]:
+            print(f"note: {res.summary['fs_raised_to_fc']} sample(s) drew Fs < Fc; their Fs was "
+                  "raised to Fc (LuGre needs Fs >= Fc)")
         print(
             f"{res.summary['samples']} samples, {res.summary['diverged']} diverged; RMS link error "
             f"median {m['q50']:.3g} rad, 95% {m['q95']:.3g} rad; "

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-TRAJECTORIES = ("sinusoid", "polynomial", "fast")
+from jaxflex.presets import SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -17,7 +17,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Gradient-based multi-start tuning of Ke, KD1, KD2, kv, L1, L2 (log-space "
         "Adam through the sampled-data simulation) minimising the RMS link error, with "
         "lambda_min(N2) >= margin enforced for all link speeds of the task. Writes the tuned "
-        "parameter file (SPEC section 7) and a report folder comparing initial and tuned gains.",
+        "parameter file (SPEC section 7) and a report folder comparing initial and tuned gains. "
+        "The controller configuration (trajectory, sensing, torque limit, q2d method, dt) is "
+        "taken from the options, then from the 'controller' section of --params, then the "
+        "defaults; it is recorded in the 'controller' section of --out, which 'jaxflex export' "
+        "and 'jaxflex run-loop' then follow.",
     )
     p.add_argument("--params", required=True,
                    help="parameter file (plant, friction; its gains, or the paper's, start the search)")
@@ -33,11 +37,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=int, default=30, help="Adam steps per start (default 30)")
     p.add_argument("--starts", type=int, default=3, help="multi-start count (default 3)")
     p.add_argument("--lr", type=float, default=0.1, help="step size in log-gain units (default 0.1)")
-    p.add_argument("--sensing", default="rig", choices=["rig", "ideal", "paper"],
-                   help="rig: 16-bit encoders, filtered velocities, 12-bit DAC (default); "
-                   "paper: 0.72 deg link encoder; ideal: exact")
-    p.add_argument("--tau-max", type=float, default=2.0, help="torque limit [N m] (default 2)")
-    p.add_argument("--q2d", default="model", choices=["model", "filtered"],
+    p.add_argument("--sensing", default=None, choices=SENSING_PRESETS,
+                   help="sensing preset (default rig); " + "; ".join(
+                       f"{k}: {v}" for k, v in SENSING_DESCRIPTIONS.items()))
+    p.add_argument("--tau-max", type=float, default=None, help="torque limit [N m] (default 2)")
+    p.add_argument("--dt", type=float, default=None, help="sample period [s] (default 1e-3)")
+    p.add_argument("--q2d", default=None, choices=["model", "filtered"],
                    help="how the controller gets q2d', q2d'' (default model)")
     p.add_argument("--torque-weight", type=float, default=1e-6,
                    help="weight of mean squared torque in the cost [rad^2/(N m)^2] (default "
@@ -47,21 +52,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _sensing(name: str):
-    from jaxflex.simulate import Sensing, paper_sensing
-    from jaxflex.tune import tune_sensing
-
-    return {"rig": tune_sensing, "ideal": Sensing, "paper": paper_sensing}[name]()
-
-
 def run(args: argparse.Namespace) -> int:
-    """Tune, write the gains and the report, print a comparison."""
+    """Tune, write the gains (with their controller section) and the report, print a
+    comparison."""
     import dataclasses
 
-    from jaxflex.controller import paper_gains
-    from jaxflex.params import load_params, save_params
-    from jaxflex.trajectory import paper_fast, paper_polynomial, paper_sinusoid
-    from jaxflex.tune import TuneTask, tune, write_report
+    from jaxflex.params import ControllerConfig, load_params, save_params
+    from jaxflex.presets import controller_config, paper_gains, sensing_of, trajectory_preset
+    from jaxflex.reports import write_tune_report
+    from jaxflex.tune import TuneTask, compare, tune
 
     if args.margin < 0:
         raise ValueError(f"--margin must be >= 0, got {args.margin}")
@@ -70,14 +69,22 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     plant = params.to_plant()
     initial = params.to_gains() if params.gains is not None else paper_gains()
-    makers = {"sinusoid": paper_sinusoid, "polynomial": paper_polynomial, "fast": paper_fast}
-    names = args.trajectory or ["sinusoid"]
     if plant.n != 1:
         raise ValueError("jaxflex tune: the built-in trajectories are for one joint; use "
                          "jaxflex.tune.tune from Python for n joints")
-    task = TuneTask(trajectories=tuple(makers[n]() for n in names), t_final=args.t_final,
-                    sensing=_sensing(args.sensing), tau_max=args.tau_max, q2d_method=args.q2d,
-                    torque_weight=args.torque_weight, velocity_factor=args.velocity_factor)
+    trajectory = None
+    if args.trajectory:
+        trajectory = args.trajectory[0] if len(args.trajectory) == 1 else tuple(args.trajectory)
+    options = {"q2d_method": args.q2d, "dt": args.dt, "tau_max": args.tau_max,
+               "sensing": args.sensing, "trajectory": trajectory, "compensation": True}
+    recorded = params.controller or ControllerConfig()
+    cfg = controller_config(dataclasses.replace(params, controller=dataclasses.replace(
+        recorded, **{k: v for k, v in options.items() if v is not None})))
+    names = (cfg.trajectory,) if isinstance(cfg.trajectory, str) else cfg.trajectory
+    task = TuneTask(trajectories=tuple(trajectory_preset(n) for n in names), t_final=args.t_final,
+                    sensing=sensing_of(cfg.sensing), tau_max=cfg.tau_max, dt=cfg.dt,
+                    q2d_method=cfg.q2d_method, torque_weight=args.torque_weight,
+                    velocity_factor=args.velocity_factor)
     total = args.starts * (args.iterations + 1)
     bar = None
     if not args.quiet:
@@ -95,9 +102,9 @@ def run(args: argparse.Namespace) -> int:
     if bar is not None:
         bar.close()
     out = Path(args.out)
-    save_params(dataclasses.replace(params, gains=res.gains.to_dict()), out)
+    save_params(dataclasses.replace(params, gains=res.gains.to_dict(), controller=cfg), out)
     report_dir = Path(args.report) if args.report else out.with_name(out.stem + "_report")
-    rep = write_report(plant, res, task, report_dir)
+    rep = write_tune_report(res, task, compare(plant, res, task), report_dir)
     print(f"{'':<8} {'RMS err (rad)':>14} {'torque RMS (N m)':>17} {'lambda_min@task':>16} "
           f"{'certified to (rad/s)':>21}")
     for k in ("initial", "tuned"):

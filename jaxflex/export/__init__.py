@@ -29,47 +29,39 @@ from jaxflex.export.codegen import generate_source
 from jaxflex.export.translate import UnsupportedPrimitive
 
 __all__ = [
-    "TRAJECTORIES", "ParityResult", "UnsupportedPrimitive", "build_controller",
-    "check_parity", "export_controller", "parity_ok", "generate_source", "load_module", "parity_sensing",
-    "trajectory_by_name",
+    "ParityResult", "UnsupportedPrimitive", "build_controller", "check_parity",
+    "export_controller", "parity_ok", "generate_source", "load_module", "parity_sensing",
 ]
-
-TRAJECTORIES: tuple[str, ...] = ("sinusoid", "polynomial", "fast")
-
-
-def trajectory_by_name(name: str):
-    """The paper's reference tasks: 'sinusoid' (Fig. 9-11), 'polynomial' (Fig. 12-14),
-    'fast' (Fig. 15); see ``jaxflex.trajectory``."""
-    from jaxflex import trajectory as tr
-
-    table = {"sinusoid": tr.paper_sinusoid, "polynomial": tr.paper_polynomial,
-             "fast": tr.paper_fast}
-    if name not in table:
-        raise ValueError(f"trajectory must be one of {TRAJECTORIES}, got {name!r}")
-    return table[name]()
 
 
 def build_controller(
     params: Any = None,
-    trajectory: Any = "sinusoid",
+    trajectory: Any = None,
     *,
     q2d_method: str | None = None,
-    dt: float = 1e-3,
-    tau_max: float = 2.0,
-    compensation: bool = True,
+    dt: float | None = None,
+    tau_max: float | None = None,
+    compensation: bool | None = None,
     **controller_kw: Any,
 ):
     """A ``CascadeController`` from a parameter set (``Params``, a SPEC section 7 mapping, a
-    path, or None for the paper's) and a trajectory (name or ``Trajectory``).
+    path, or None for the paper's) and a trajectory (a name of
+    ``jaxflex.presets.TRAJECTORIES`` or a ``Trajectory``).
 
-    ``tau_max`` [N m] defaults to the rig's +-2 N m DAC range; ``q2d_method`` None keeps
-    ``CascadeController``'s default. The model ignores the file's effects (as the controller
-    does); n-joint trajectories are broadcast from the one-joint tasks.
+    The configuration -- ``q2d_method``, sample period ``dt`` [s], torque limit ``tau_max``
+    [N m], ``compensation`` and the trajectory name -- is what the parameter file's
+    ``controller`` section records (the configuration its gains were tuned for); an argument
+    left at None takes the recorded value, or ``jaxflex.presets.DEFAULT_CONTROLLER``'s where
+    nothing is recorded (1 kHz, the rig's 2 N m, "model", compensation on, the sinusoid). An
+    argument that contradicts the section raises ``ParamsError``. The model ignores the
+    file's effects (as the controller does); n-joint trajectories are broadcast from the
+    one-joint tasks.
     """
     import jax.numpy as jnp
 
     from jaxflex.controller import CascadeController
-    from jaxflex.params import Params, load_params, paper_params
+    from jaxflex.params import Params, load_params
+    from jaxflex.presets import controller_config, paper_params, trajectory_preset
     from jaxflex.trajectory import Trajectory
 
     if params is None:
@@ -78,21 +70,24 @@ def build_controller(
         params = load_params(params)
     elif isinstance(params, dict):
         params = Params.from_dict(params)
-    traj = trajectory_by_name(trajectory) if isinstance(trajectory, str) else trajectory
-    if not isinstance(traj, Trajectory):
-        raise ValueError(f"trajectory must be a name in {TRAJECTORIES} or a Trajectory")
+    if trajectory is not None and not isinstance(trajectory, (str, Trajectory)):
+        raise ValueError("trajectory must be a trajectory name or a Trajectory")
+    cfg = controller_config(params, {
+        "q2d_method": q2d_method, "dt": dt, "tau_max": tau_max, "compensation": compensation,
+        "trajectory": trajectory if isinstance(trajectory, str) else None,
+    })
+    traj = trajectory_preset(cfg.trajectory_name) if not isinstance(trajectory, Trajectory) \
+        else trajectory
     n = params.n
     q = traj.position(jnp.asarray(0.0))
     if q.shape[-1] != n:
         if q.shape[-1] != 1:
             raise ValueError(f"trajectory is for {q.shape[-1]} joints, parameters for {n}")
         traj = _broadcast_trajectory(traj, n)
-    kw = dict(controller_kw)
-    if q2d_method is not None:
-        kw["q2d_method"] = q2d_method
     return CascadeController(
         model=params.to_plant(with_effects=False), gains=params.to_gains(), trajectory=traj,
-        compensation=compensation, dt=dt, tau_max=tau_max, **kw,
+        compensation=cfg.compensation, q2d_method=cfg.q2d_method, dt=cfg.dt,
+        tau_max=cfg.tau_max, **controller_kw,
     )
 
 
@@ -139,12 +134,11 @@ def export_controller(controller: Any, path: str | os.PathLike, description: str
 
 
 def parity_sensing():
-    """Sensing of the parity run: 16-bit encoders (rotor behind a 1:50 gear), velocities
-    estimated by the controller, no DAC (torques compared before it)."""
-    from jaxflex.simulate import Sensing
+    """Sensing of the parity run: the rig's 16-bit encoders (``jaxflex.presets.rig_sensing``),
+    velocities estimated by the controller, no DAC (torques are compared before it)."""
+    from jaxflex.presets import rig_sensing
 
-    res = 2 * math.pi / 2**16
-    return Sensing(q1_resolution=res, q2_resolution=res / 50.0, velocity="filtered", dac_bits=0)
+    return rig_sensing(dac_bits=0)
 
 
 @dataclass

@@ -30,7 +30,7 @@ from jaxflex.logs import Log
 from jaxflex.params import Params
 from jaxflex.friction import LuGre
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
-from jaxflex.simulate import Sensing
+from jaxflex.sensing import Sensing
 from jaxflex.step import ModelKind, replay, rigid_step
 
 STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")

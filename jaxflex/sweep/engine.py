@@ -32,17 +32,13 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxflex.controller import CascadeController
-from jaxflex.friction import LuGre
-from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
-from jaxflex.simulate import Sensing, simulate_sampled
+from jaxflex.params import build_plant
+from jaxflex.plant import FlexibleJointPlant
+from jaxflex.presets import trajectory_preset
+from jaxflex.sensing import Sensing
+from jaxflex.simulate import simulate_sampled
 from jaxflex.sweep.spec import SweepSpec
 from jaxflex.sweep.summary import Accumulator, SweepResult, band_bins
-
-
-def _trajectory(name: str):
-    from jaxflex.experiments import PAPER_TASKS
-
-    return PAPER_TASKS[name][0]()
 
 
 def sample_parameters(spec: SweepSpec, index: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -64,11 +60,11 @@ def build_models(
 ) -> tuple[FlexibleJointPlant, CascadeController, Sensing, jax.Array]:
     """True plant, controller (nominal model and gains) and sensing of one sample.
 
-    Returns also ``fs_raised`` (bool): whether Fs was raised to Fc for this sample.
+    A draw with Fs < Fc (possible when both are sampled independently) breaks the LuGre
+    constraint Fs >= Fc (SPEC section 2): Fs is then raised to Fc, and the returned
+    ``fs_raised`` (bool) says so; the summary counts these samples (``fs_raised_to_fc``).
     Traceable in ``theta`` (the modules' value checks skip traced values).
     """
-    from jaxflex.effects import EFFECTS
-
     n = spec.n
     nom = spec.nominal
     vals: dict[str, dict[str, jax.Array]] = {
@@ -93,15 +89,10 @@ def build_models(
     fr = vals["friction"]
     fs_raised = jnp.any(fr["Fs"] < fr["Fc"])
     fr["Fs"] = jnp.maximum(fr["Fs"], fr["Fc"])
-    p = vals["plant"]
-    plant = FlexibleJointPlant(
-        links=DiagonalInertia(I=p["I"]), J=p["J"], K=p["K"], friction=LuGre(**fr),
-    )
-    if eff:
-        plant = plant.with_effects(*(EFFECTS[k](**kw) for k, kw in eff.items()))
+    plant = build_plant(vals["plant"], fr, eff)
     model = nom.to_plant(with_effects=False)
     ctrl = CascadeController(
-        model=model, gains=nom.to_gains(), trajectory=_trajectory(spec.trajectory),
+        model=model, gains=nom.to_gains(), trajectory=trajectory_preset(spec.trajectory),
         compensation=spec.compensation, q2d_method=spec.q2d_method, dt=spec.dt,
         tau_max=vals["limits"]["tau_max"],
     )
@@ -112,10 +103,6 @@ def build_models(
         dac_bits=spec.sensing["dac_bits"], dac_range=spec.sensing["dac_range"],
     )
     return plant, ctrl, sensing, fs_raised
-
-
-def _band_stride(spec: SweepSpec) -> int:
-    return max(1, round(spec.band_dt / spec.dt))
 
 
 def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
@@ -139,7 +126,7 @@ def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
     return {
         "theta": theta, "rms_error": jnp.max(m.rms_error), "max_error": jnp.max(m.max_error),
         "tau_rms": jnp.max(m.tau_rms), "saturation_fraction": jnp.max(m.saturation_fraction),
-        "diverged": m.diverged, "fs_raised": fs_raised, "e1_band": r.e1[:: _band_stride(spec)],
+        "diverged": m.diverged, "fs_raised": fs_raised, "e1_band": r.e1[:: spec.band_stride],
     }
 
 

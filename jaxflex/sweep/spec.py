@@ -48,21 +48,15 @@ import numpy as np
 
 from jaxflex.controller import Q2D_METHODS
 from jaxflex.friction import LUGRE_NAMES
-from jaxflex.params import (
-    PLANT_NAMES,
-    Params,
-    ParamsError,
-    load_params,
-    paper_params,
-    read_json_file,
-)
+from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
+from jaxflex.presets import SENSING_PRESETS, TRAJECTORIES, paper_params, sensing_of
+from jaxflex.sensing import SENSING_FIELDS
 
 SENSING_NAMES: tuple[str, ...] = ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")
 LIMIT_NAMES: tuple[str, ...] = ("tau_max",)
 GROUPS: dict[str, tuple[str, ...]] = {
     "plant": PLANT_NAMES, "friction": LUGRE_NAMES, "sensing": SENSING_NAMES, "limits": LIMIT_NAMES,
 }
-TRAJECTORIES: tuple[str, ...] = ("sinusoid", "polynomial", "fast")
 # Lower bound of each quantity's physical range: (bound, strict). Effects are checked by their
 # own classes at build time (concrete values only), so only their declared support is used.
 _POSITIVE = {f"plant.{k}" for k in PLANT_NAMES} | {
@@ -259,6 +253,12 @@ class SweepSpec:
         return self.nominal.n
 
     @property
+    def band_stride(self) -> int:
+        """Controller samples between two points of the error-band time grid (``band_dt``
+        rounded to a multiple of ``dt``, at least 1)."""
+        return max(1, round(self.band_dt / self.dt))
+
+    @property
     def labels(self) -> list[str]:
         """Column labels, in sample-vector order."""
         return [c.label for c in self.columns]
@@ -280,8 +280,6 @@ class SweepSpec:
         }
 
 
-_SENSING_PRESETS = ("ideal", "rig", "paper")
-_SENSING_KEYS = set(SENSING_NAMES) | {"velocity", "dac_bits", "dac_range"}
 _TOP_KEYS = {
     "nominal", "trajectory", "t_final", "dt", "substeps", "controller", "sensing", "samples",
     "seed", "uncertain", "band_dt",
@@ -305,26 +303,21 @@ def _nominal(d: Any, base: Path | None) -> Params:
 
 
 def _sensing(d: Any) -> dict[str, Any]:
-    from jaxflex.experiments import sensing_by_name
-
     if d is None:
         d = "ideal"
     if isinstance(d, str):
-        if d not in _SENSING_PRESETS:
-            raise SpreadError(f"sensing: preset must be one of {_SENSING_PRESETS}, got {d!r}")
-        s = sensing_by_name(d)
+        if d not in SENSING_PRESETS:
+            raise SpreadError(f"sensing: preset must be one of {SENSING_PRESETS}, got {d!r}")
     elif isinstance(d, dict):
-        bad = set(d) - _SENSING_KEYS
+        bad = set(d) - set(SENSING_FIELDS)
         if bad:
-            raise SpreadError(f"sensing: unknown field(s) {sorted(bad)}; known: {sorted(_SENSING_KEYS)}")
-        from jaxflex.simulate import Sensing
-
-        try:
-            s = Sensing(**d)
-        except (TypeError, ValueError) as e:
-            raise SpreadError(f"sensing: {e}") from None
+            raise SpreadError(f"sensing: unknown field(s) {sorted(bad)}; known: {sorted(SENSING_FIELDS)}")
     else:
-        raise SpreadError(f"sensing: expected a preset name {_SENSING_PRESETS} or an object, got {d!r}")
+        raise SpreadError(f"sensing: expected a preset name {SENSING_PRESETS} or an object, got {d!r}")
+    try:
+        s = sensing_of(d)
+    except (TypeError, ValueError) as e:
+        raise SpreadError(f"sensing: {e}") from None
     out = {k: float(np.asarray(getattr(s, k)).reshape(-1)[0]) for k in SENSING_NAMES}
     out.update(velocity=s.velocity, dac_bits=int(s.dac_bits), dac_range=float(np.asarray(s.dac_range).reshape(-1)[0]))
     return out

@@ -128,8 +128,6 @@ class Accumulator:
     """Streaming summary of a sweep (see the module docstring)."""
 
     def __init__(self, spec: SweepSpec, keep_samples: bool = True, n_worst: int = 10) -> None:
-        from jaxflex.sweep.engine import _band_stride
-
         self.spec = spec
         self.keep = keep_samples
         self.n_worst = n_worst
@@ -138,8 +136,8 @@ class Accumulator:
         self.center = np.array([c for c, _ in cs], float)
         self.scale = np.array([s for _, s in cs], float)
         N = round(spec.t_final / spec.dt)
-        self.T = len(range(0, N, _band_stride(spec)))
-        self.band_dt = spec.dt * _band_stride(spec)
+        self.T = len(range(0, N, spec.band_stride))
+        self.band_dt = spec.dt * spec.band_stride
         self.count = 0
         self.diverged = 0
         self.fs_raised = 0

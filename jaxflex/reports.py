@@ -1,0 +1,59 @@
+"""Report folders of the workflows (app layer): figures and a JSON of the numbers.
+
+The workflows (``jaxflex.tune``, ``jaxflex.experiments``) return typed results and write
+nothing; the command line and the studies call these writers. Figures come from
+``jaxflex.plots``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from jaxflex.experiments import PaperExperiments
+from jaxflex.plots.tracking import plot_q2d_comparison, plot_torque_friction, plot_tracking
+from jaxflex.plots.tune import plot_history, plot_lambda_min, plot_tracking_comparison
+from jaxflex.tune import TuneComparison, TuneResult, TuneTask
+
+
+def write_json(doc: dict[str, Any], path: str | Path) -> None:
+    """Write ``doc`` as indented JSON (with a final newline) to ``path``."""
+    Path(path).write_text(json.dumps(doc, indent=2) + "\n")
+
+
+def write_tune_report(result: TuneResult, task: TuneTask, comparison: TuneComparison,
+                      out: str | Path) -> dict[str, Any]:
+    """Write ``report.json`` and figures (lambda_min(N2) over speed [rad/s], tracking of the
+    initial and tuned gains, search history) to the folder ``out``; returns the report
+    (``comparison.summary`` plus the figure names)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = comparison.summary(result, task)
+    report["figures"] = [
+        plot_lambda_min({k: e["certificate"] for k, e in comparison.evaluations.items()},
+                        out / "lambda_min.png", v_task=result.v_task, margin=result.margin),
+        plot_tracking_comparison(comparison.runs, out / "tracking.png"),
+        plot_history(report["search"]["starts"], out / "history.png"),
+    ]
+    write_json(report, out / "report.json")
+    return report
+
+
+def write_paper_experiments(results: PaperExperiments, out: str | Path) -> dict[str, Any]:
+    """Write the figures of the paper's experiments (tracking per experiment, torque and
+    friction of the compensated sinusoid, the q2d comparison) and ``results.json`` to the
+    folder ``out``; returns the results document (with figure names per experiment)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = results.to_dict()
+    for name, e in results.experiments.items():
+        figs = plot_tracking(e.runs, e.title, out / f"{name}_tracking.png")
+        if name == "sinusoid":
+            figs += plot_torque_friction(e.runs["with_compensation"],
+                                         out / "sinusoid_torque_friction.png")
+        doc["experiments"][name]["figures"] = figs
+    if results.q2d_comparison is not None:
+        plot_q2d_comparison(results.q2d_comparison, out / "q2d_comparison.png")
+    write_json(doc, out / "results.json")
+    return doc
