@@ -1,5 +1,5 @@
 """Stability certificate of the cascade controller: the matrix N2 (paper section 4, eq. 24-33;
-SPEC section 4).
+docs/spec.md section 4).
 
 With rho = [e1, e1', e2, e2', eta] (each block (n,)), eta = Psi_hat(q1') z_tilde and
 z_tilde = z - z_hat, the Lyapunov function V = V1 + V2 of eq. 24-26 has

@@ -1,4 +1,4 @@
-"""Cascade controller with LuGre friction compensation (paper eq. 9-22, 41-42; SPEC section 3).
+"""Cascade controller with LuGre friction compensation (paper eq. 9-22, 41-42; docs/spec.md section 3).
 
     e1 = q1 - q1d,  qr1' = q1d' - L1 e1,  s1 = e1' + L1 e1                       (eq. 9)
     ud  = M(q1) qr1'' + C(q1, q1') qr1' + G(q1) - KD1 s1 + F_hat                (eq. 13)
@@ -6,7 +6,7 @@
     e2 = q2 - q2d,  s2 = e2' + L2 e2
     tau = J (q2d'' - L2 e2') - KD2 s2 + K (q2 - q1)                              (eq. 16)
 
-q2d' and q2d'' are not measurable; ``q2d_method`` chooses how to get them (SPEC section 3):
+q2d' and q2d'' are not measurable; ``q2d_method`` chooses how to get them (docs/spec.md section 3):
 
 - ``"model"``: differentiate q2d along the controller's own estimate of the closed-loop vector
   field (q1'' from the model with F_hat, z_hat' from the observer) with ``jax.jvp``;
@@ -64,7 +64,7 @@ class CascadeGains(eqx.Module):
         return int(self.Ke.shape[0])
 
     def to_dict(self) -> dict[str, list[float]]:
-        """Gains as plain lists (SPEC section 7 'gains' entry)."""
+        """Gains as plain lists (docs/spec.md section 7 'gains' entry)."""
         return {k: [float(v) for v in getattr(self, k)] for k in GAIN_NAMES}
 
     @classmethod

@@ -1,14 +1,14 @@
 """Synthetic identification logs with hidden effects (for testing the discrepancy workflow).
 
-A case is a closed-loop identification experiment on the paper's link (SPEC section 1-3): the
+A case is a closed-loop identification experiment on the paper's link (docs/spec.md section 1-3): the
 paper's cascade controller (its nominal model = the paper's parameters, gentler gains
 ``IDENT_GAINS``) tracks a randomised
 Schroeder multisine around a true plant that differs from the nominal one by (a) a random
 parameter mismatch of I, J, K, Fc, Fs, sigma2 (so that a refit is needed) and (b) zero, one or
-two hidden effects from SPEC section 8 with randomised magnitudes. Sensing: encoders with
+two hidden effects from docs/spec.md section 8 with randomised magnitudes. Sensing: encoders with
 ``bits`` counts per revolution on the link and 50x finer on the rotor (a 1:50 gear), white
 angle noise, filtered velocities, 12-bit DAC over +-2 N m. The log holds the applied (DAC)
-torque, the sensed angles and the reference, at 1 kHz (SPEC section 6 columns t,tau,q1,q2,q1d).
+torque, the sensed angles and the reference, at 1 kHz (docs/spec.md section 6 columns t,tau,q1,q2,q1d).
 """
 
 from __future__ import annotations

@@ -53,12 +53,15 @@ from jaxflex.fit import (
     ParamSpace,
     Problem,
     covariance,
+    gap,
     is_fitted,
     least_squares,
     make_segments,
     noise_level,
     params_of_plant,
+    residuals,
     savgol,
+    simulated_outputs,
 )
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -179,21 +182,6 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
                      universe=universe)
 
 
-@eqx.filter_jit
-def _gap(prob: Problem, y: Any) -> jax.Array:
-    return prob.gap(y)
-
-
-@eqx.filter_jit
-def _simulate(prob: Problem, y: Any) -> jax.Array:
-    return prob.simulate(y)[0]
-
-
-@eqx.filter_jit
-def _residuals(prob: Problem, y: Any) -> jax.Array:
-    return prob.residuals(y)
-
-
 @dataclasses.dataclass
 class CandidateFit:
     """One fitted model: the model, engine coordinates ``theta``, fitted physical ``values``
@@ -238,8 +226,8 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15,
     fitted_model = Model(params, effects, model.starts)
     return CandidateFit(
         model=fitted_model, theta=sol.y, values=values, stderr=stderr, rss=cov["rss"],
-        n_res=cov["n_res"], n_par=cov["n_free"], gap_train=float(_gap(train, sol.y)),
-        gap_test=float(_gap(test, sol.y)), steps=sol.steps, converged=sol.converged,
+        n_res=cov["n_res"], n_par=cov["n_free"], gap_train=float(gap(train, sol.y)),
+        gap_test=float(gap(test, sol.y)), steps=sol.steps, converged=sol.converged,
         seconds=time.perf_counter() - t0,
     )
 
@@ -248,7 +236,7 @@ def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     """Simulated outputs (S, L, 2) = (q1, q2) [rad] of a fitted model on the held-out
     segments (for plots)."""
     _, test, _ = ws.for_model(fit.model)
-    return np.asarray(_simulate(test, fit.theta))
+    return np.asarray(simulated_outputs(test, fit.theta))
 
 
 # ---------------------------------------------------------------------------- localisation
@@ -557,7 +545,7 @@ def discover(
     S, L = ws.train.segs.count, ws.train.segs.length
     while len(added) < cfg.max_effects:
         train, _, _ = ws.for_model(current.model)
-        r = np.asarray(_residuals(train, current.theta)).reshape(S, L, -1)
+        r = np.asarray(residuals(train, current.theta)).reshape(S, L, -1)
         tau_int = max(effective_count(r[..., c]) for c in range(r.shape[-1]))
         n_eff = current.n_res / tau_int
         series = localise(log, current.model.params).series

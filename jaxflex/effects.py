@@ -8,7 +8,7 @@ An effect says where it acts by overriding one or more hooks; the defaults do no
 - ``applied_torque(tau, aux)`` maps the commanded motor torque to the applied one [N m]
 - ``aux_init(n)``, ``aux_rhs(aux, tau, x)``  internal states (e.g. an actuator lag), if any
 
-Plant equations with effects (SPEC section 1 plus effects):
+Plant equations with effects (docs/spec.md section 1 plus effects):
 
     M q1'' + C q1' + G + F = T_s + sum link_torque
     J q2''                 = tau_a - T_s + sum rotor_torque
@@ -20,7 +20,7 @@ integrator stable), "free": identity, "fixed": not fitted, e.g. a smoothing widt
 structural frequency, "tied:K": copied from the plant's K), and ``typical(n)`` gives a small instance to start a
 fit from. ``Params.to_plant`` rebuilds an effect as ``EFFECTS[name](**params)``.
 
-Concrete effects register themselves by their SPEC section 8 name in ``EFFECTS``; the
+Concrete effects register themselves by their docs/spec.md section 8 name in ``EFFECTS``; the
 discrepancy workflow looks them up there. Every effect's parameters are array leaves so that
 ``grad`` reaches them.
 """
@@ -41,7 +41,7 @@ EFFECTS: dict[str, type[AbstractEffect]] = {}
 
 
 def register_effect(cls: type[AbstractEffect]) -> type[AbstractEffect]:
-    """Class decorator: make an effect known by its ``name`` (SPEC section 8)."""
+    """Class decorator: make an effect known by its ``name`` (docs/spec.md section 8)."""
     if not getattr(cls, "name", None):
         raise ValueError(f"effect class {cls.__name__} has no name")
     EFFECTS[cls.name] = cls
@@ -93,7 +93,7 @@ class AbstractEffect(eqx.Module):
         return self.aux_init(int(jnp.shape(tau)[-1]))
 
     def params(self) -> dict[str, list[float]]:
-        """The effect's parameters as plain lists (SPEC section 7 'effects' entry)."""
+        """The effect's parameters as plain lists (docs/spec.md section 7 'effects' entry)."""
         out = {}
         for k, v in self.__dict__.items():
             if eqx.is_array(v):
@@ -156,7 +156,7 @@ def _softplus(x: Array, w: Array) -> Array:
 @register_effect
 class AsymmetricFriction(AbstractEffect):
     """Direction-dependent Coulomb level on the link: the Coulomb level is Fc + dF when moving
-    forward and Fc - dF when moving backward (SPEC section 8). Added as a link torque
+    forward and Fc - dF when moving backward (docs/spec.md section 8). Added as a link torque
 
         link_torque = -dF |tanh(q1' / width)|      [N m]
 

@@ -1,7 +1,7 @@
 """The paper's experiment section (section 6.5, Fig. 9-15) re-run in simulation.
 
 Each experiment closes the sampled-data loop (1 kHz, zero-order hold) around the paper's plant
-(Table 1, LuGre with SPEC's corrected Table 2) with the paper's gains (Table 3), with and
+(Table 1, LuGre with the corrected Table 2 of docs/spec.md) with the paper's gains (Table 3), with and
 without friction compensation, and reports RMS and max link tracking error [rad] and torque RMS
 [N m]. ``run_paper_experiments`` returns the runs and numbers (``PaperExperiments``);
 ``jaxflex reproduce`` and ``studies/reproduce_paper.py`` write its figures and
@@ -118,7 +118,7 @@ def run_paper_experiments(
     """Run the paper's experiments (``tasks``: trajectory names, default all of
     ``jaxflex.presets.TRAJECTORIES``) with and without compensation under the sensing preset
     ``sensing``, ``t_final`` [s] per run; with ``compare_q2d`` also compare the three
-    q2d-derivative options (SPEC section 3). Writes nothing (see
+    q2d-derivative options (docs/spec.md section 3). Writes nothing (see
     ``jaxflex.reports.write_paper_experiments``).
     """
     params = paper_params() if params is None else params

@@ -1,4 +1,4 @@
-"""LuGre friction (paper eq. 4-7 and 35; SPEC section 2).
+"""LuGre friction (paper eq. 4-7 and 35; docs/spec.md section 2).
 
     F  = sigma0 z + sigma1 z' + sigma2 v                       (eq. 4)
     z' = v - sigma0 |v| / g(v) z                               (eq. 5)
@@ -30,7 +30,7 @@ def relax(z: Array, rate: Array, target_rate: Array, h: float | Array) -> Array:
     ``z(h) = z exp(-rate h) + target_rate (1 - exp(-rate h)) / rate``; as ``rate -> 0`` the
     second term tends to ``target_rate h``. Used for the stiff LuGre state (eq. 5) and the
     observer state (eq. 20): the update is stable for any ``rate >= 0`` and step ``h``
-    (SPEC section 9, first pitfall). The double ``where`` keeps gradients finite at rate 0.
+    (docs/spec.md section 9, first pitfall). The double ``where`` keeps gradients finite at rate 0.
     """
     small = rate * h < 1e-8
     safe_rate = jnp.where(small, 1.0, rate)
@@ -44,7 +44,7 @@ def smooth_abs(v: Array, eps: float = 1e-12) -> Array:
 
 
 class LuGre(eqx.Module):
-    """LuGre friction model parameters for n joints (SPEC section 2, paper eq. 4-7).
+    """LuGre friction model parameters for n joints (docs/spec.md section 2, paper eq. 4-7).
 
     Constraints: Fc, Fs, vs, sigma0 > 0; sigma1, sigma2 >= 0; Fs >= Fc. Violations raise
     ``ValueError`` naming the parameter when the model is built from concrete values.
@@ -105,16 +105,16 @@ class LuGre(eqx.Module):
         return relax(z, self.z_rate(v), v, h)
 
     def stiff_step_bound(self, v: Float[Array, " n"], J: ArrayLike) -> Array:
-        """Largest explicit RK4 step [s] for the z dynamics at speed v (SPEC section 9)."""
+        """Largest explicit RK4 step [s] for the z dynamics at speed v (docs/spec.md section 9)."""
         return 2.8 / (self.sigma1 / jnp.asarray(J) + self.z_rate(v))
 
     def to_dict(self) -> dict[str, list[float]]:
-        """Parameters as plain lists (SPEC section 7 'friction' entry)."""
+        """Parameters as plain lists (docs/spec.md section 7 'friction' entry)."""
         return {k: np.asarray(getattr(self, k)).tolist() for k in LUGRE_NAMES}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> LuGre:
-        """Build from a mapping with the six SPEC names; a missing name raises ``ValueError``."""
+        """Build from a mapping with the six names of docs/spec.md section 2; a missing name raises ``ValueError``."""
         missing = [k for k in LUGRE_NAMES if k not in d]
         if missing:
             raise ValueError(f"LuGre: missing friction parameter(s) {missing}")

@@ -12,7 +12,7 @@ deadline and busy-waits the rest (``time.perf_counter``). Protections a rig need
 - clean stop: whatever happens (end of run, fault, exception, SIGINT/SIGTERM) zero torque is
   written in a ``finally`` before the I/O is closed.
 
-The log has the SPEC section 6 columns (t, tau, q1, q2, and q1d when the controller has a
+The log has the docs/spec.md section 6 columns (t, tau, q1, q2, and q1d when the controller has a
 reference), written as CSV, so it feeds ``identify`` and ``discover`` directly.
 
 ``SimulatedRig`` is an ``RigIO`` whose plant (``jaxflex.step.plant_step``, jitted) runs in
@@ -334,7 +334,7 @@ def _rig_process(conn: Any, params: dict, dt: float, substeps: int, q1_0: Sequen
 
 
 class SimulatedRig(RigIO):
-    """A simulated rig: the plant (``params``, SPEC section 7, effects included) runs in a
+    """A simulated rig: the plant (``params``, docs/spec.md section 7, effects included) runs in a
     separate process and advances by ``dt`` [s] (``substeps`` integrator steps) each time a
     torque is written; ``read`` returns its angles quantised to ``resolution`` = (q1, q2)
     encoder steps [rad] (0: exact). Starts at rest at ``q1_0`` [rad]. Use as a context

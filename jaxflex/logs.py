@@ -1,4 +1,4 @@
-"""Logs of measured (or simulated) runs (SPEC section 6): load, validate, save.
+"""Logs of measured (or simulated) runs (docs/spec.md section 6): load, validate, save.
 
 A log is a table sampled at a fixed period with columns (SI units, link-referred)
 
@@ -33,7 +33,7 @@ _UNITS = {"t": "s", "tau": "N m", "q1": "rad", "q2": "rad", "q1d": "rad", "F": "
 
 
 class LogError(ValueError):
-    """A log that does not follow SPEC section 6 (the message names the problem)."""
+    """A log that does not follow docs/spec.md section 6 (the message names the problem)."""
 
 
 @dataclasses.dataclass(frozen=True)

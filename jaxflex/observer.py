@@ -1,4 +1,4 @@
-"""LuGre friction observer (paper eq. 18-22; SPEC section 3).
+"""LuGre friction observer (paper eq. 18-22; docs/spec.md section 3).
 
     m(v)     = (2/pi) v arctan(kv v)                     (eq. 21, smooth |v|)
     Psi_hat  = m(q1') / g(q1')                           (eq. 19)

@@ -1,4 +1,4 @@
-"""Parameter files (SPEC section 7): one JSON document, SI units, per-joint lists.
+"""Parameter files (docs/spec.md section 7): one JSON document, SI units, per-joint lists.
 
     {"plant": {"I": 0.07, "J": 0.005, "K": 6.77},
      "friction": {"Fc": 0.11, "Fs": 0.15, "vs": 0.05, "sigma0": 100.0, "sigma1": 0.1, "sigma2": 0.2},
@@ -39,7 +39,7 @@ PLANT_NAMES: tuple[str, ...] = ("I", "J", "K")
 
 
 class ParamsError(ValueError):
-    """A parameter file or mapping that does not follow SPEC section 7."""
+    """A parameter file or mapping that does not follow docs/spec.md section 7."""
 
 
 def build_plant(
@@ -48,7 +48,7 @@ def build_plant(
     effects: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> FlexibleJointPlant:
     """The plant of eq. 40 (M = diag(I)) from plant values I, J [kg m^2] and K [N m/rad],
-    the six LuGre values (SPEC section 2; ``None``: no friction) and named effects
+    the six LuGre values (docs/spec.md section 2; ``None``: no friction) and named effects
     (``jaxflex.effects.EFFECTS`` name -> keyword arguments), each a number or an (n,) array.
 
     Traceable: the values may be JAX tracers (the modules' value checks then skip them), so
@@ -241,9 +241,9 @@ def _vector(section: str, name: str, value: Any, n: int | None) -> list[float]:
 class Params:
     """Plant, friction, gains and effects for n joints, as plain lists of floats (SI units).
 
-    plant: I [kg m^2], J [kg m^2], K [N m/rad]; friction: the six LuGre parameters (SPEC
-    section 2); gains: Ke, KD1, KD2, kv, L1, L2 (SPEC section 3), optional; effects: named
-    extra effects (SPEC section 8) with their parameter dicts; extra: other top-level keys kept
+    plant: I [kg m^2], J [kg m^2], K [N m/rad]; friction: the six LuGre parameters (docs/spec.md
+    section 2); gains: Ke, KD1, KD2, kv, L1, L2 (docs/spec.md section 3), optional; effects: named
+    extra effects (docs/spec.md section 8) with their parameter dicts; extra: other top-level keys kept
     verbatim (e.g. standard errors written by identification); controller: the controller
     configuration the gains were tuned for (``ControllerConfig``), optional.
     """
@@ -262,12 +262,12 @@ class Params:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Params:
-        """Validate a SPEC section 7 mapping; raises ``ParamsError`` naming the problem."""
+        """Validate a docs/spec.md section 7 mapping; raises ``ParamsError`` naming the problem."""
         if not isinstance(d, dict):
             raise ParamsError(f"parameters must be a JSON object, got {type(d).__name__}")
         for sec in ("plant", "friction"):
             if sec not in d or not isinstance(d[sec], dict):
-                raise ParamsError(f"missing section '{sec}' (SPEC section 7)")
+                raise ParamsError(f"missing section '{sec}' (docs/spec.md section 7)")
         n = None
         plant = {}
         for k in PLANT_NAMES:
@@ -310,7 +310,7 @@ class Params:
             raise ParamsError(str(e)) from None
 
     def to_dict(self) -> dict[str, Any]:
-        """The SPEC section 7 mapping."""
+        """The docs/spec.md section 7 mapping."""
         d: dict[str, Any] = {"plant": self.plant, "friction": self.friction}
         if self.gains is not None:
             d["gains"] = self.gains
@@ -350,7 +350,7 @@ def read_json_file(path: str | os.PathLike, error: type[Exception], what: str) -
 
 
 def load_params(path: str | os.PathLike) -> Params:
-    """Read and validate a parameter file (SPEC section 7)."""
+    """Read and validate a parameter file (docs/spec.md section 7)."""
     d = read_json_file(path, ParamsError, "parameter file")
     try:
         return Params.from_dict(d)

@@ -1,4 +1,4 @@
-"""Flexible-joint robot plant (SPEC section 1; paper eq. 3, 8, 40).
+"""Flexible-joint robot plant (docs/spec.md section 1; paper eq. 3, 8, 40).
 
     M(q1) q1'' + C(q1, q1') q1' + G(q1) + F = K (q2 - q1)      link side, LuGre friction F
     J q2''     + K (q2 - q1)                  = tau             rotor side (link-referred)

@@ -1,6 +1,6 @@
 """The paper's tables and every named preset, in one place.
 
-- The paper's link-1 values: Table 1 (plant), Table 2 with SPEC's correction (LuGre),
+- The paper's link-1 values: Table 1 (plant), Table 2 with the correction in docs/spec.md (Appendix B) (LuGre),
   Table 3 (gains), and the modules and ``Params`` built from them (``paper_plant``,
   ``paper_lugre``, ``paper_gains``, ``paper_params``); a 2-link arm (``two_link_plant``).
 - Sensing presets (``SENSING_PRESETS``, ``sensing_preset``): ``"rig"`` (16-bit encoders,
@@ -37,7 +37,7 @@ stiffness K [N m/rad]."""
 
 PAPER_FRICTION: Mapping[str, float] = MappingProxyType(
     {"Fc": 0.11, "Fs": 0.15, "vs": 0.05, "sigma0": 100.0, "sigma1": 0.1, "sigma2": 0.2})
-"""Table 2 with SPEC's correction: Fc, Fs [N m], vs [rad/s], sigma0 [N m/rad], sigma1,
+"""Table 2 with the correction in docs/spec.md (Appendix B): Fc, Fs [N m], vs [rad/s], sigma0 [N m/rad], sigma1,
 sigma2 [N m s/rad]."""
 
 PAPER_GAINS: Mapping[str, float] = MappingProxyType(
@@ -46,7 +46,7 @@ PAPER_GAINS: Mapping[str, float] = MappingProxyType(
 
 
 def paper_lugre() -> LuGre:
-    """Link-1 LuGre parameters of the paper (Table 2 with SPEC's correction)."""
+    """Link-1 LuGre parameters of the paper (Table 2 with the correction in docs/spec.md (Appendix B))."""
     return LuGre.from_dict(PAPER_FRICTION)
 
 
@@ -62,7 +62,7 @@ def paper_gains() -> CascadeGains:
 
 
 def paper_params() -> Params:
-    """The paper's link-1 parameters (Tables 1-3, SPEC's corrected Table 2) as ``Params``."""
+    """The paper's link-1 parameters (Tables 1-3, the corrected Table 2 of docs/spec.md) as ``Params``."""
     return Params.from_dict({"plant": dict(PAPER_PLANT), "friction": dict(PAPER_FRICTION),
                              "gains": dict(PAPER_GAINS)})
 

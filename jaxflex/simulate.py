@@ -7,7 +7,7 @@ plant is integrated over [t_k, t_k + dt] in ``substeps`` steps.
 Plant integrator (``integrator="split"``, the default): Strang splitting per substep h,
 z-half-step / mechanics RK4 step / z-half-step. The LuGre bristle state z is advanced exactly
 with the link velocity frozen (eq. 5 is linear in z at fixed v), so the stiff rate
-sigma0 |v| / g(v) never limits the step (SPEC section 9); the mechanical part has no such
+sigma0 |v| / g(v) never limits the step (docs/spec.md section 9); the mechanical part has no such
 stiffness. The scheme is second order in h; ``tests/test_simulate.py`` shows convergence to a
 diffrax solution of the same sampled-data loop (``integrator="diffrax"``, Kvaerno5 per sample
 interval, which restarts at every jump of the held torque).

@@ -1,4 +1,4 @@
-"""The plant's state (SPEC section 1): one record shared by the plant, its effects, the
+"""The plant's state (docs/spec.md section 1): one record shared by the plant, its effects, the
 simulator and the fitting engine (its own module so that effects and plant need not import
 each other)."""
 

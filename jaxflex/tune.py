@@ -1,4 +1,4 @@
-"""Gain tuning against the N2 stability certificate (paper section 4; SPEC section 4).
+"""Gain tuning against the N2 stability certificate (paper section 4; docs/spec.md section 4).
 
 Choose the cascade gains (Ke, KD1, KD2, kv, L1, L2 per joint, Table 3) that minimise a
 simulated tracking cost over a task, subject to

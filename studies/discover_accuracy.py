@@ -1,7 +1,7 @@
 """Study: how often does `discover` name the hidden effect, how often does it cry wolf on clean
 data, and how much does the named effect close the held-out gap?
 
-Generated cases (``jaxflex.datagen.generate_log``): each SPEC section 8 effect hidden at
+Generated cases (``jaxflex.datagen.generate_log``): each docs/spec.md section 8 effect hidden at
 moderate magnitude (``MODERATE``) in a closed-loop identification experiment with encoder
 quantisation, noise and a random nominal-parameter mismatch, plus clean cases (no effect).
 Reports the confusion matrix (true effect -> first effect named, or none), accuracy on effect

@@ -48,8 +48,10 @@ J_FIXED = 1e-3  # kg; the rigid model identifies Jx = I + J, J is a fixed small 
 
 
 def default_data_dir() -> Path:
-    """``../shared/data/emps`` relative to the project root."""
-    return Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
+    """The EMPS files shipped with jaxflex (``jaxflex/data``)."""
+    import jaxflex.data
+
+    return Path(jaxflex.data.__file__).parent
 
 
 def closed_loop(plant, qg, dt, gains, pulses=None, substeps=2):

@@ -2,7 +2,7 @@
 when every plant and LuGre parameter is off by up to +-20 %?
 
 10,000 samples (paired: the same plants with and without compensation) of the paper's link
-(Table 1, SPEC's corrected Table 2) with I, J, K, Fc, Fs, vs, sigma0, sigma1, sigma2 each
+(Table 1, the corrected Table 2 of docs/spec.md) with I, J, K, Fc, Fs, vs, sigma0, sigma1, sigma2 each
 uniform within +-20 % of nominal; the controller keeps the nominal model and Table 3 gains;
 the paper's sinusoid (0.05 rad, 0.5 Hz), 2 N m torque limit, ideal sensing. Reports RMS/max
 link error quantiles, divergence, the worst plants, which parameter drives the error (SRC and

@@ -1,4 +1,4 @@
-"""The N2 stability certificate (paper section 4, eq. 24-33; SPEC section 4)."""
+"""The N2 stability certificate (paper section 4, eq. 24-33; docs/spec.md section 4)."""
 
 from __future__ import annotations
 

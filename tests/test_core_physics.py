@@ -33,7 +33,7 @@ def test_lugre_constant_velocity_converges_to_static_map(v):
 
 
 def test_exact_z_update_is_stable_for_stiff_rates():
-    """A tiny Fc and a large step: explicit RK4 would blow up (SPEC section 9), the exact
+    """A tiny Fc and a large step: explicit RK4 would blow up (docs/spec.md section 9), the exact
     update relaxes monotonically to the steady deflection."""
     fr = LuGre(Fc=1e-4, Fs=1e-4, vs=0.05, sigma0=1e5, sigma1=0.1, sigma2=0.0)
     v = jnp.array([2.0])

@@ -1,4 +1,4 @@
-"""Effects library (SPEC section 8): names, construction from params, where each acts, the
+"""Effects library (docs/spec.md section 8): names, construction from params, where each acts, the
 physics of each hook, constraints, gradients."""
 
 import math

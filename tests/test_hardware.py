@@ -1,6 +1,6 @@
 """Hardware loop runner (jaxflex.hardware): the exported controller against the simulated rig
 in lock-step equals the JAX closed loop; protections (torque limit, NaN/range guard,
-watchdog, clean stop on exceptions and signals) always leave zero torque; SPEC section 6 log."""
+watchdog, clean stop on exceptions and signals) always leave zero torque; docs/spec.md section 6 log."""
 
 from __future__ import annotations
 

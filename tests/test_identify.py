@@ -1,4 +1,4 @@
-"""Identification (SPEC section 5): synthetic logs with known parameters are recovered.
+"""Identification (docs/spec.md section 5): synthetic logs with known parameters are recovered.
 
 The acceptance checks (all six from factor-2 guesses within 0.5%, noisy logs within 10% with
 consistent standard errors, the two-step procedure within 2%) run by default (about 20 s

@@ -1,4 +1,4 @@
-"""Logs (SPEC section 6): round trips and a clear error for every malformed case."""
+"""Logs (docs/spec.md section 6): round trips and a clear error for every malformed case."""
 
 from pathlib import Path
 

@@ -1,4 +1,4 @@
-"""Parameter files (SPEC section 7): save/load round trip is exact; bad files give clear errors."""
+"""Parameter files (docs/spec.md section 7): save/load round trip is exact; bad files give clear errors."""
 
 import json
 

@@ -1,16 +1,21 @@
 """The ``jaxflex`` command line. Each subcommand lives in a module of this package that defines
 ``register(subparsers)``; ``main`` discovers them, so a new command needs no edit here.
 
-Commands turn on float64 (identification and certificates need it) and turn the library's
-``ValueError``s (bad logs, bad parameters, bad gains) into a one-line message and exit code 2.
+Commands turn on float64 (identification and certificates need it), turn on JAX's persistent
+compilation cache (in ``$JAXFLEX_CACHE_DIR``, default ``~/.cache/jaxflex/jax``; ``--no-cache``
+turns it off), so a second run on the same machine does not compile again, and turn the
+library's ``ValueError``s (bad logs, bad parameters, bad gains) into a one-line message and exit
+code 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
+from pathlib import Path
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,6 +25,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Flexible-joint robots with LuGre friction: simulate, identify, tune, "
         "certify, sweep, export, discover.",
     )
+    parser.add_argument("--no-cache", action="store_true",
+                        help="do not use the persistent JAX compilation cache "
+                             "($JAXFLEX_CACHE_DIR, default ~/.cache/jaxflex/jax)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -30,12 +38,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def enable_compilation_cache() -> Path | None:
+    """Turn on JAX's persistent compilation cache in ``$JAXFLEX_CACHE_DIR`` (default
+    ``~/.cache/jaxflex/jax``); every compilation that takes over 0.5 s is kept. Returns the
+    folder, or None (with a note on stderr) if it cannot be created."""
+    import jax
+
+    folder = Path(os.environ.get("JAXFLEX_CACHE_DIR", Path.home() / ".cache" / "jaxflex" / "jax"))
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        print(f"jaxflex: note: compilation cache off ({folder}: {e})", file=sys.stderr)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    return folder
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxflex`` command; returns the exit status."""
     args = build_parser().parse_args(argv)
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    if not args.no_cache:
+        enable_compilation_cache()
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, KeyError) as e:

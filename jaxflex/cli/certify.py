@@ -1,5 +1,5 @@
 """``jaxflex certify --params P.json [--vmax V] [--json]``: where a gain set is certified by the
-N2 matrix of the paper's stability analysis (section 4, eq. 29-33; SPEC section 4)."""
+N2 matrix of the paper's stability analysis (section 4, eq. 29-33; docs/spec.md section 4)."""
 
 from __future__ import annotations
 

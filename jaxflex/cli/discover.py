@@ -2,7 +2,7 @@
 
 Writes ``DIR/report.json`` (first effect added or ``none``, all effects, held-out gap before
 and after, fitted effect parameters with standard errors, candidate scores, localisation),
-``DIR/params.json`` (the augmented model, SPEC section 7) and figures.
+``DIR/params.json`` (the augmented model, docs/spec.md section 7) and figures.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "discover", help="find the effect a model misses in a log, add it, report the gap",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("log", help="log file (SPEC section 6; CSV with t,tau,q1,q2)")
+    p.add_argument("log", help="log file (docs/spec.md section 6; CSV with t,tau,q1,q2)")
     p.add_argument("--map", default=None,
                    help="column mapping for files with other variable names, e.g. "
                         "'tau=gtau*vir,q1=qm,q2=qm' (docs/spec.md section 6)")

@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "the section is refused (tune again for another configuration); an option the "
         "section does not record fills it in; the rest take the defaults below.",
     )
-    p.add_argument("--params", help="parameter file (SPEC section 7); default: the paper's")
+    p.add_argument("--params", help="parameter file (docs/spec.md section 7); default: the paper's")
     p.add_argument("--out", required=True, help="output Python file, e.g. controller.py")
     p.add_argument("--trajectory", default=None, choices=TRAJECTORIES,
                    help="reference task baked into the controller (default: the file's, "

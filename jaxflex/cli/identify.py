@@ -1,6 +1,6 @@
 """``jaxflex identify LOG --params INIT.json --out RESULT.json``: fit parameters to a log.
 
-Writes the identified parameters in the SPEC section 7 format with standard errors under
+Writes the identified parameters in the docs/spec.md section 7 format with standard errors under
 ``"stderr"``, a figure of measured against simulated response next to it, and prints a short
 table. ``--free`` picks the free parameters, ``--map`` maps a ``.mat`` file's variables to the
 log columns (e.g. ``t=t,tau=gtau*vir,q1=qm,q2=qm``).
@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "by gradient through the simulator (Levenberg-Marquardt, multiple shooting).",
     )
     p.add_argument("log", help="log file (.csv with header, .npz or .mat)")
-    p.add_argument("--params", required=True, help="initial parameter file (JSON, SPEC section 7)")
+    p.add_argument("--params", required=True, help="initial parameter file (JSON, docs/spec.md section 7)")
     p.add_argument("--out", required=True, help="where to write the identified parameters (JSON)")
     p.add_argument("--free", default="Fc,Fs,vs,sigma0,sigma1,sigma2",
                    help="comma-separated free parameters: Fc,Fs,vs,sigma0,sigma1,sigma2,I,J,K "

@@ -16,7 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "derivative options) in simulation and write PNG figures and DIR/results.json.",
     )
     p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--params", help="parameter file (SPEC section 7); default: the paper's")
+    p.add_argument("--params", help="parameter file (docs/spec.md section 7); default: the paper's")
     p.add_argument("--sensing", default="rig", choices=SENSING_PRESETS,
                    help="measurement realism (default: rig); " + "; ".join(
                        f"{k}: {v}" for k, v in SENSING_DESCRIPTIONS.items()))

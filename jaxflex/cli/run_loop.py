@@ -23,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="run an exported controller in the real-time loop against the simulated rig",
         description="Fixed-period loop (torque limit, NaN/range guard, deadline watchdog, "
         "zero torque on stop) around a simulated rig whose plant runs in a separate process. "
-        "Writes a SPEC section 6 CSV log. The controller is either an exported file "
+        "Writes a docs/spec.md section 6 CSV log. The controller is either an exported file "
         "(--controller, which carries its own gains) or exported now from --params; the two "
         "are not combined, so a parameter file never replaces exported gains. The rig's "
         "plant is --rig-params, by default the controller's own plant. The loop's rate, "
@@ -31,17 +31,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "'controller' section of --params, or the constants of --controller): an option that "
         "contradicts it is refused; an option it does not record fills it in.",
     )
-    p.add_argument("--params", help="the controller's parameter file (SPEC section 7: model, "
+    p.add_argument("--params", help="the controller's parameter file (docs/spec.md section 7: model, "
                    "gains, 'controller' section) to export a controller from now; default: "
                    "the paper's. Not with --controller")
     p.add_argument("--controller", help="exported controller file (jaxflex export); its gains "
                    "and model are used as exported")
-    p.add_argument("--rig-params", help="the simulated rig's plant (SPEC section 7, effects "
+    p.add_argument("--rig-params", help="the simulated rig's plant (docs/spec.md section 7, effects "
                    "included); default: the controller's own plant")
     p.add_argument("--duration", type=float, default=5.0, help="seconds (default 5)")
     p.add_argument("--rate", type=float, default=None,
                    help="loop rate [Hz] (default: 1/dt of the controller, else 1000)")
-    p.add_argument("--log", required=True, help="output CSV log (SPEC section 6)")
+    p.add_argument("--log", required=True, help="output CSV log (docs/spec.md section 6)")
     p.add_argument("--trajectory", default=None, choices=TRAJECTORIES,
                    help="reference task when exporting now (default: the file's, else sinusoid)")
     p.add_argument("--q2d", default=None, choices=["model", "filtered", "reference"],
@@ -61,7 +61,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def exported_plant(mod: types.ModuleType) -> dict[str, Any]:
-    """The controller model baked into an exported module, as a SPEC section 7 mapping of
+    """The controller model baked into an exported module, as a docs/spec.md section 7 mapping of
     its plant and friction entries (SI units)."""
     d: dict[str, Any] = {}
     for key, name in mod.SPEC_MAP.items():

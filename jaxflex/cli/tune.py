@@ -1,5 +1,5 @@
 """``jaxflex tune --params P.json --out GAINS.json``: tune the cascade gains on a simulated task
-under the N2 stability certificate (paper section 4; SPEC section 4)."""
+under the N2 stability certificate (paper section 4; docs/spec.md section 4)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Gradient-based multi-start tuning of Ke, KD1, KD2, kv, L1, L2 (log-space "
         "Adam through the sampled-data simulation) minimising the RMS link error, with "
         "lambda_min(N2) >= margin enforced for all link speeds of the task. Writes the tuned "
-        "parameter file (SPEC section 7) and a report folder comparing initial and tuned gains. "
+        "parameter file (docs/spec.md section 7) and a report folder comparing initial and tuned gains. "
         "The controller configuration (trajectory, sensing, torque limit, q2d method, dt) is "
         "taken from the options, then from the 'controller' section of --params, then the "
         "defaults; it is recorded in the 'controller' section of --out, which 'jaxflex export' "

@@ -44,7 +44,7 @@ def build_controller(
     compensation: bool | None = None,
     **controller_kw: Any,
 ):
-    """A ``CascadeController`` from a parameter set (``Params``, a SPEC section 7 mapping, a
+    """A ``CascadeController`` from a parameter set (``Params``, a docs/spec.md section 7 mapping, a
     path, or None for the paper's) and a trajectory (a name of
     ``jaxflex.presets.TRAJECTORIES`` or a ``Trajectory``).
 
@@ -178,7 +178,7 @@ def check_parity(
 ) -> ParityResult:
     """Closed loop in JAX (``simulate_sampled``, ``plant`` defaults to the controller's model),
     then the exported controller (``module``, generated if None) on the recorded measured
-    angles; returns the largest torque difference (before any DAC, SPEC: 1e-12 in float64)
+    angles; returns the largest torque difference (before any DAC, docs/spec.md: 1e-12 in float64)
     and, at the ``n_worst`` worst samples, the comparison with JAX evaluated op by op."""
     import equinox as eqx
     import jax

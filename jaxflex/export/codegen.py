@@ -31,7 +31,7 @@ from jaxflex.export.translate import (
     sym_array,
 )
 
-# SPEC section 7 entries -> controller leaf names
+# docs/spec.md section 7 entries -> controller leaf names
 _SPEC_MAP: dict[str, str] = {
     "plant.I": "model.links.I", "plant.J": "model.J", "plant.K": "model.K",
     **{f"friction.{k}": f"model.friction.{k}" for k in ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")},
@@ -263,7 +263,7 @@ controller and export again. Imports only numpy and the Python standard library.
 Joints: {n}; sample period dt = {dt} s; q2d_method = {method!r}; friction compensation: {compensation}.
 
     ctrl = Controller()                      # the exported parameters
-    ctrl = Controller.from_json("P.json")    # other plant/friction/gains (SPEC section 7)
+    ctrl = Controller.from_json("P.json")    # other plant/friction/gains (docs/spec.md section 7)
     ctrl = Controller(params={{"gains.L1": [150.0]}})
     ctrl.reset()
     tau = ctrl.step(t, q1, q2)               # t [s], q1, q2 [rad] -> tau [N m]
@@ -289,7 +289,7 @@ _NAN = float("nan")
 DEFAULT_PARAMS = {{
 {defaults}
 }}
-# SPEC section 7 parameter-file entries -> names above
+# docs/spec.md section 7 parameter-file entries -> names above
 SPEC_MAP = {spec_map}
 STATE_NAMES = {state_names}
 
@@ -391,7 +391,7 @@ class Controller:
 
     @classmethod
     def from_json(cls, path):
-        """Controller with the plant, friction and gains of a SPEC section 7 parameter file."""
+        """Controller with the plant, friction and gains of a docs/spec.md section 7 parameter file."""
         with open(path) as f:
             doc = _json.load(f)
         params = {{}}

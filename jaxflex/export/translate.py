@@ -6,7 +6,7 @@ variable name in the generated code). Structural primitives (reshape, broadcast,
 concatenate, transpose, pad, ...) only rearrange atoms and emit no code; elementwise
 primitives emit one statement per element; reductions and ``dot_general`` emit sums of
 products. For a one-joint controller this gives plain float code with ``math`` functions,
-which is ~10x faster than numpy on size-1 arrays (SPEC section 9).
+which is ~10x faster than numpy on size-1 arrays (docs/spec.md section 9).
 
 Inputs are either *parameters* (controller constants that may be overridden when the exported
 controller is built) or *signals* (state, time, angles). Statements whose inputs are all

@@ -19,7 +19,16 @@ from jaxflex.fit.problem import (
     savgol,
     unpack_state,
 )
-from jaxflex.fit.solve import Solution, cost, covariance, least_squares, problem_residuals
+from jaxflex.fit.solve import (
+    Solution,
+    cost,
+    covariance,
+    gap,
+    least_squares,
+    problem_residuals,
+    residuals,
+    simulated_outputs,
+)
 from jaxflex.fit.space import (
     NOMINAL_CONSTRAINTS,
     ParamSpace,
@@ -33,8 +42,8 @@ from jaxflex.fit.space import (
 
 __all__ = [
     "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "ParamSpace", "Problem", "Segments", "Solution",
-    "constraint_of", "cost", "covariance", "get_value", "is_fitted", "least_squares",
+    "constraint_of", "cost", "covariance", "gap", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
-    "problem_residuals",
+    "problem_residuals", "residuals", "simulated_outputs",
     "relative", "savgol", "set_values", "unpack_state",
 ]

@@ -223,6 +223,24 @@ def least_squares(
 
 
 @eqx.filter_jit
+def simulated_outputs(prob: Problem, y: Any) -> jax.Array:
+    """Simulated outputs (S, L, n_out) [rad] of ``prob`` at ``y`` (compiled once per shape)."""
+    return prob.simulate(y)[0]
+
+
+@eqx.filter_jit
+def gap(prob: Problem, y: Any) -> jax.Array:
+    """``prob.gap(y)`` (normalised RMS output error), compiled once per problem shape."""
+    return prob.gap(y)
+
+
+@eqx.filter_jit
+def residuals(prob: Problem, y: Any) -> jax.Array:
+    """``prob.residuals(y)``, compiled once per problem shape."""
+    return prob.residuals(y)
+
+
+@eqx.filter_jit
 def _jacobian(prob: Problem, y: Any):
     flat, unravel = ravel_pytree(y)
     return prob.residuals(y), jax.jacfwd(lambda f: prob.residuals(unravel(f)))(flat)

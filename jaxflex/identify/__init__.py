@@ -1,4 +1,4 @@
-"""Identification from logs (SPEC section 5; paper section 5, eq. 34-39).
+"""Identification from logs (docs/spec.md section 5; paper section 5, eq. 34-39).
 
 Public API (a workflow on the fitting engine ``jaxflex.fit``):
 

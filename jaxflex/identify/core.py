@@ -35,6 +35,7 @@ from jaxflex.fit import (
     noise_level,
     output_columns,
     set_values,
+    simulated_outputs,
 )
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -243,7 +244,7 @@ def finish(
     for m in msgs:
         warnings.warn(m, IdentificationWarning, stacklevel=3)
     cost = 0.5 * (cov["rss"] + cov["defects_ss"])
-    ys, _ = prob.simulate(y)
+    ys = simulated_outputs(prob, y)
     rms = float(np.sqrt(np.mean((np.asarray(ys) - np.asarray(prob.segs.y_meas)) ** 2)))
     out = set_values(init, phys)
     out.extra = dict(out.extra)

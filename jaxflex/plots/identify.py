@@ -14,7 +14,9 @@ def plot_fit(result: Any, path: str | Path, max_points: int = 20000) -> list[str
     their difference; segment starts are marked by thin vertical lines."""
     path = Path(path)
     prob = result.problem
-    ys, _ = prob.simulate(result.solution)
+    from jaxflex.fit import simulated_outputs
+
+    ys = simulated_outputs(prob, result.solution)
     ys, ym = np.asarray(ys), np.asarray(prob.segs.y_meas)
     S, L, m = ys.shape
     t = np.arange(S * L) * prob.dt

@@ -44,7 +44,7 @@ from jaxflex.sweep.summary import Accumulator, SweepResult, band_bins
 def sample_parameters(spec: SweepSpec, index: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(theta, noise_key) of sample ``index``: theta (d,) in ``spec.labels`` order.
 
-    Fs is raised to Fc where a draw gives Fs < Fc (the LuGre constraint, SPEC section 2).
+    Fs is raised to Fc where a draw gives Fs < Fc (the LuGre constraint, docs/spec.md section 2).
     """
     key = jax.random.fold_in(jax.random.PRNGKey(spec.seed), index)
     k_theta, k_noise = jax.random.split(key)
@@ -61,7 +61,7 @@ def build_models(
     """True plant, controller (nominal model and gains) and sensing of one sample.
 
     A draw with Fs < Fc (possible when both are sampled independently) breaks the LuGre
-    constraint Fs >= Fc (SPEC section 2): Fs is then raised to Fc, and the returned
+    constraint Fs >= Fc (docs/spec.md section 2): Fs is then raised to Fc, and the returned
     ``fs_raised`` (bool) says so; the summary counts these samples (``fs_raised_to_fc``).
     Traceable in ``theta`` (the modules' value checks skip traced values).
     """

@@ -14,7 +14,7 @@ A spread file is one JSON document (SI units), for example::
         "limits.tau_max":   {"dist": "normal", "rel_std": 0.05, "low": 1.0},
         "effects.torque_offset.offset": {"dist": "normal", "mean": 0.0, "std": 0.01}}}
 
-``nominal`` is ``"paper"``, a parameter-file path (SPEC section 7, relative to the spread file)
+``nominal`` is ``"paper"``, a parameter-file path (docs/spec.md section 7, relative to the spread file)
 or an inline parameter mapping; the controller always uses the nominal model and gains, the
 true plant of each sample is drawn from the spread (robustness, not adaptation).
 
