@@ -349,13 +349,54 @@ def read_json_file(path: str | os.PathLike, error: type[Exception], what: str) -
         raise error(f"{path}: not valid JSON ({e})") from None
 
 
-def load_params(path: str | os.PathLike) -> Params:
-    """Read and validate a parameter file (docs/spec.md section 7)."""
+def identification_problems(params: Params, rel_limit: float = 0.5) -> list[str]:
+    """What makes an identification result unfit for downstream use, in words (empty if
+    nothing): the fit did not converge (``extra["identification"]["converged"]`` false), or a
+    parameter's relative standard error exceeds ``rel_limit`` without the result marking it
+    ``"identified": false`` (files written before identify marked them)."""
+    ident = params.extra.get("identification")
+    if not isinstance(ident, dict):
+        return []
+    out = []
+    if ident.get("converged") is False:
+        out.append(f"the identification did not converge ({ident.get('reason', 'no reason given')})")
+    marked = ident.get("parameters", {})
+    stderr = params.extra.get("stderr", {})
+    for name, se in stderr.items() if isinstance(stderr, dict) else ():
+        if name in marked:
+            continue
+        try:
+            val = (params.plant.get(name) or params.friction.get(name))
+            rel = max(abs(float(s)) / max(abs(float(v)), 1e-300) for s, v in zip(se, val))
+        except (TypeError, ValueError):
+            continue
+        if rel > rel_limit:
+            out.append(f"{name} has a relative standard error of {100 * rel:.3g}% and is not "
+                       "marked as unidentified")
+    return out
+
+
+def load_params(path: str | os.PathLike, *, accept_unconverged: bool | None = None) -> Params:
+    """Read and validate a parameter file (docs/spec.md section 7).
+
+    A file written by ``identify`` that did not converge, or that holds parameters the data
+    could not determine without marking them, is refused (``ParamsError`` naming why) unless
+    ``accept_unconverged`` is true. ``None`` reads the environment variable
+    ``JAXFLEX_ACCEPT_UNCONVERGED`` (set by the command line's ``--accept-unconverged``)."""
     d = read_json_file(path, ParamsError, "parameter file")
     try:
-        return Params.from_dict(d)
+        params = Params.from_dict(d)
     except ParamsError as e:
         raise ParamsError(f"{path}: {e}") from None
+    if accept_unconverged is None:
+        accept_unconverged = os.environ.get("JAXFLEX_ACCEPT_UNCONVERGED", "") not in ("", "0")
+    problems = [] if accept_unconverged else identification_problems(params)
+    if problems:
+        raise ParamsError(
+            f"{path}: refused: {'; '.join(problems)}. Re-run the identification, or use the "
+            "file anyway with --accept-unconverged"
+        )
+    return params
 
 
 def save_params(params: Params, path: str | os.PathLike) -> None:

@@ -166,3 +166,26 @@ def test_segments_refuse_bad_lengths():
         make_segments(log, length=1)
     with pytest.raises(ValueError, match="segment length"):
         make_segments(log, length=101)
+
+
+@pytest.mark.parametrize("scaling", ["identity", "marquardt"])
+def test_shooting_solve_equals_dense_solve(scaling):
+    """The block-tridiagonal/Schur solve of the multiple-shooting normal equations gives the
+    same damped Gauss-Newton step as the dense solve, to 1e-10."""
+    import lineax as lx
+    from jax.flatten_util import ravel_pytree
+
+    from jaxflex.fit.solve import dense_newton_step, shooting_newton_step
+    from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
+
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.5), substeps=1)
+    init = perturb(p, DEFAULT_FREE, (1.5, 1.5, 0.5, 1.5, 0.5, 1.5))
+    prob, y0 = make_problem(log, init, DEFAULT_FREE + ("K",), segment_length=100, substeps=1)
+    assert prob.segs.count == 5
+    r, lin = jax.linearize(prob.residuals, y0)
+    jac = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: y0))
+    for lam in (1e-6, 1.0, 1e4):
+        a = ravel_pytree(dense_newton_step(jac, r, jnp.asarray(lam), scaling))[0]
+        b = ravel_pytree(shooting_newton_step(jac, r, jnp.asarray(lam), scaling))[0]
+        assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(a)), lam

@@ -25,6 +25,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Flexible-joint robots with LuGre friction: simulate, identify, tune, "
         "certify, sweep, export, discover.",
     )
+    parser.add_argument("--accept-unconverged", action="store_true",
+                        help="use parameter files from an identification that did not converge "
+                             "or that holds unmarked unidentifiable parameters (refused otherwise)")
     parser.add_argument("--no-cache", action="store_true",
                         help="do not use the persistent JAX compilation cache "
                              "($JAXFLEX_CACHE_DIR, default ~/.cache/jaxflex/jax)")
@@ -63,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)
     if not args.no_cache:
         enable_compilation_cache()
+    if args.accept_unconverged:
+        os.environ["JAXFLEX_ACCEPT_UNCONVERGED"] = "1"
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, KeyError) as e:

@@ -38,12 +38,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--figure", default=None,
                    help="figure path (default: RESULT.json with .png suffix)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--accept-unconverged", dest="accept_result", action="store_true",
+                   help="exit 0 even when the fit does not converge (the result file is still "
+                        "marked unconverged)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the identification; returns the exit code."""
     import json
+    import sys
     import warnings
     from pathlib import Path
 
@@ -54,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     required = REQUIRED_COLUMNS if args.model == "flexible" else ("t", "tau", "q1")
     log = load_log(args.log, parse_mapping(args.mapping), required=required)
     log = log.slice(args.start, args.stop)
-    init = load_params(args.params)
+    init = load_params(args.params, accept_unconverged=True)  # a start guess
     free = [s.strip() for s in args.free.split(",") if s.strip()]
     seg = None if args.segment <= 0 else min(args.segment, log.N)
     say = (lambda s: None) if args.quiet else print
@@ -77,4 +81,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: {w}")
     say(f"[identify] wrote {out} and {fig} ({res.wall_s:.1f} s solve)")
     del json
+    if not res.converged:
+        print(f"jaxflex identify: not converged: {res.reason}. {out} is marked unconverged; "
+              "downstream commands refuse it unless given --accept-unconverged",
+              file=sys.stderr)
+        return 0 if args.accept_result else 3
     return 0

@@ -82,13 +82,17 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
     lambda = 1 / step_size comes from the trust region (``optx.ClassicalTrustRegion``). The
     damped normal equations are solved by Cholesky: the Jacobian is tall (thousands of
     residuals, tens of unknowns) and float64 leaves ample room for squaring its condition
-    number."""
+    number. ``structure`` "shooting" solves the same equations of a multiple-shooting problem
+    with free starts in time linear in the log length (``shooting_newton_step``)."""
 
     scaling: str = eqx.field(static=True, default="identity")
+    structure: str = eqx.field(static=True, default="dense")
 
     def __check_init__(self) -> None:
         if self.scaling not in ("identity", "marquardt"):
             raise ValueError(f"fit: scaling must be 'identity' or 'marquardt', got {self.scaling!r}")
+        if self.structure not in ("dense", "shooting"):
+            raise ValueError(f"fit: structure must be 'dense' or 'shooting', got {self.structure!r}")
 
     def init(self, y: Any, f_info_struct: Any) -> _ScaledDescentState:
         zeros = lambda a: jnp.zeros(a.shape, a.dtype) if isinstance(a, jax.ShapeDtypeStruct) else a
@@ -98,26 +102,119 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
         return _ScaledDescentState(f_info)
 
     def step(self, step_size: jax.Array, state: _ScaledDescentState) -> tuple[Any, optx.RESULTS]:
-        jac = state.f_info.jac
-        J = jac.as_matrix()
-        r = state.f_info.residual
-        A = J.T @ J
-        g = J.T @ r
-        if self.scaling == "marquardt":
-            d = jnp.diag(A)
-            d = jnp.maximum(d, 1e-12 * jnp.maximum(jnp.max(d), 1e-300))
-        else:
-            d = jnp.ones(A.shape[0], A.dtype)
         lam = 1.0 / jnp.maximum(step_size, 1e-30)
-        c, low = jax.scipy.linalg.cho_factor(A + lam * jnp.diag(d))
-        dy = -jax.scipy.linalg.cho_solve((c, low), g)
-        finite = jnp.all(jnp.isfinite(dy))
-        dy = jnp.where(finite, dy, 0.0)
-        y_diff = jax.tree_util.tree_unflatten(
-            jax.tree_util.tree_structure(jac.in_structure()),
-            _split_like(dy, jac.in_structure()))
+        solve = shooting_newton_step if self.structure == "shooting" else dense_newton_step
+        dy = solve(state.f_info.jac, state.f_info.residual, lam, self.scaling)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree_util.tree_leaves(dy)]))
+        y_diff = jax.tree_util.tree_map(lambda a: -jnp.where(finite, a, 0.0), dy)
         return y_diff, optx.RESULTS.where(finite, optx.RESULTS.successful,
                                           optx.RESULTS.singular)
+
+
+def _damping(diag: jax.Array, scaling: str) -> jax.Array:
+    if scaling == "marquardt":
+        return jnp.maximum(diag, 1e-12 * jnp.maximum(jnp.max(diag), 1e-300))
+    return jnp.ones_like(diag)
+
+
+def dense_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -> Any:
+    """The damped Gauss-Newton step dy solving (J^T J + lam D) dy = J^T r with the Jacobian
+    materialised (an m x p matrix; every column is one Jacobian-vector product). Returns dy
+    in the structure of the unknowns."""
+    J = jac.as_matrix()
+    A = J.T @ J
+    d = _damping(jnp.diag(A), scaling)
+    c, low = jax.scipy.linalg.cho_factor(A + lam * jnp.diag(d))
+    dy = jax.scipy.linalg.cho_solve((c, low), J.T @ r)
+    return jax.tree_util.tree_unflatten(
+        jax.tree_util.tree_structure(jac.in_structure()), _split_like(dy, jac.in_structure()))
+
+
+def shooting_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -> Any:
+    """The same step as ``dense_newton_step`` for the multiple-shooting problem with free
+    segment starts, at a cost linear in the number of segments S (never forming the m x p
+    Jacobian).
+
+    Unknowns ``(theta, x0s)``, x0s (S, n_state, n); residual rows ordered as in
+    ``Problem.residuals``: the outputs of every segment, then the S - 1 continuity defects.
+    The rows of segment s (its outputs and its defect) depend on theta and x_s; its defect
+    also on x_{s+1}. The Jacobian blocks come from k + 2 d Jacobian-vector products (d =
+    n_state n; the start-state tangents are switched on in every other segment, so that a
+    segment's own block and its coupling to the next start separate). The normal equations
+    are then an arrow matrix: block-tridiagonal in the starts, dense in theta. The starts are
+    eliminated by a block Thomas (block LU) recursion and theta solved from the k x k Schur
+    complement; the system is symmetric positive definite (damped), so no pivoting is needed.
+    """
+    th_struct, x_struct = jac.in_structure()
+    S = x_struct.shape[0]
+    d = int(np.prod(x_struct.shape[1:]))
+    zeros_th = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), th_struct)
+    flat0, unravel = ravel_pytree(zeros_th)
+    k = flat0.shape[0]
+    dt = r.dtype
+    m = r.shape[0]
+    my = (m - (S - 1) * d) // S
+
+    def mv(v_th, v_x):
+        return jac.mv((unravel(v_th), v_x.reshape(x_struct.shape)))
+
+    def rows(v):  # (..., m) -> (..., S, my + d): the rows of each segment
+        lead = v.shape[:-1]
+        out = v[..., : S * my].reshape(*lead, S, my)
+        de = v[..., S * my:].reshape(*lead, S - 1, d)
+        de = jnp.concatenate([de, jnp.zeros((*lead, 1, d), dt)], axis=-2)
+        return jnp.concatenate([out, de], axis=-1)
+
+    zx = jnp.zeros((S, d), dt)
+    G = jnp.moveaxis(rows(jax.vmap(lambda e: mv(e, zx))(jnp.eye(k, dtype=dt))), 0, -1)
+    even = (jnp.arange(S) % 2 == 0)[:, None]
+    on = lambda mask: jax.vmap(lambda e: mv(jnp.zeros(k, dt), jnp.where(mask, e[None, :], 0.0)))
+    Xe = jnp.moveaxis(rows(on(even)(jnp.eye(d, dtype=dt))), 0, -1)   # (S, my+d, d)
+    Xo = jnp.moveaxis(rows(on(~even)(jnp.eye(d, dtype=dt))), 0, -1)
+    A = jnp.where(even[:, :, None], Xe, Xo)          # own block of segment s
+    C = jnp.where(even[:, :, None], Xo, Xe)[:, my:]  # its defect rows w.r.t. x_{s+1}: (S, d, d)
+    R = rows(r)                                      # (S, my + d)
+    Gd = G[:, my:]                                   # theta part of the defect rows (S, d, k)
+    Ad = A[:, my:]
+    sh = lambda a: jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]])  # value of segment s - 1
+    T = lambda a: jnp.swapaxes(a, -1, -2)
+    Ntt = jnp.einsum("smk,sml->kl", G, G)
+    gt = jnp.einsum("smk,sm->k", G, R)
+    Dx = jnp.einsum("smd,sme->sde", A, A) + sh(T(C) @ C)
+    U = T(Ad) @ C                                    # N(x_s, x_{s+1}); zero for the last
+    Nxt = T(A) @ G + sh(T(C) @ Gd)                   # (S, d, k)
+    gx = jnp.einsum("smd,sm->sd", A, R) + sh(jnp.einsum("sed,se->sd", C, R[:, my:]))
+    dam_t = _damping(jnp.diag(Ntt), scaling)
+    dam_x = _damping(jnp.diagonal(Dx, axis1=1, axis2=2).reshape(-1), scaling).reshape(S, d)
+    Ntt = Ntt + lam * jnp.diag(dam_t)
+    Dx = Dx + lam * jax.vmap(jnp.diag)(dam_x)
+    B = jnp.concatenate([Nxt, gx[:, :, None]], axis=-1)  # right-hand sides (S, d, k + 1)
+
+    def forward(carry, inp):
+        Dp, Yp, Up = carry
+        Ds, Bs, Us = inp
+        M = T(jnp.linalg.solve(Dp, Up))              # U_{s-1}^T D'_{s-1}^{-1}
+        Dn = Ds - M @ Up
+        Yn = Bs - M @ Yp
+        return (Dn, Yn, Us), (Dn, Yn)
+
+    eye = jnp.eye(d, dtype=dt)
+    init = (eye, jnp.zeros((d, k + 1), dt), jnp.zeros((d, d), dt))
+    _, (Dn, Yn) = jax.lax.scan(forward, init, (Dx, B, U))
+
+    def backward(Xnext, inp):
+        Ds, Ys, Us = inp
+        X = jnp.linalg.solve(Ds, Ys - Us @ Xnext)
+        return X, X
+
+    _, X = jax.lax.scan(backward, jnp.zeros((d, k + 1), dt), (Dn, Yn, U), reverse=True)
+    Xt, Xg = X[..., :k], X[..., k]
+    St = Ntt - jnp.einsum("sdk,sdl->kl", Nxt, Xt)
+    rt = gt - jnp.einsum("sdk,sd->k", Nxt, Xg)
+    c, low = jax.scipy.linalg.cho_factor(St)
+    dth = jax.scipy.linalg.cho_solve((c, low), rt)
+    dx = Xg - jnp.einsum("sdk,k->sd", Xt, dth)
+    return unravel(dth), dx.reshape(x_struct.shape)
 
 
 def _split_like(flat: jax.Array, structure: Any) -> list[jax.Array]:
@@ -143,9 +240,10 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
     verbose: Callable = eqx.field(static=True, default=lambda **kw: None)
 
 
-def _solver(rtol: float, atol: float, scaling: str) -> LevenbergMarquardt:
+def _solver(rtol: float, atol: float, scaling: str, structure: str) -> LevenbergMarquardt:
     return LevenbergMarquardt(rtol=rtol, atol=atol,
-                              descent=ScaledDampedNewtonDescent(scaling=scaling))
+                              descent=ScaledDampedNewtonDescent(scaling=scaling,
+                                                                structure=structure))
 
 
 @eqx.filter_jit
@@ -178,7 +276,7 @@ def cost(prob: Problem, y: Any, fn: Callable = problem_residuals) -> float:
 def least_squares(
     prob: Any, y0: Any, *, fn: Callable = problem_residuals, rtol: float = 1e-10,
     atol: float = 1e-10, max_steps: int = 200, scaling: str = "identity",
-    progress: Callable[[int, float], None] | None = None,
+    structure: str = "auto", progress: Callable[[int, float], None] | None = None,
 ) -> Solution:
     """Levenberg-Marquardt on the residuals ``fn(y, prob)`` from ``y0`` (module docstring).
 
@@ -187,13 +285,18 @@ def least_squares(
     as ``prob``); ``rtol``/``atol``: optimistix's Cauchy termination on the change of the unknowns and the
     cost; ``max_steps``: iteration cap (a host-side number, no recompilation); ``scaling``:
     the damping matrix of ``ScaledDampedNewtonDescent`` ("identity" or "marquardt");
+    ``structure``: "dense", "shooting" (free-start multiple shooting, linear in the log
+    length) or "auto" (shooting for a ``Problem`` with free starts and several segments);
     ``progress(step, cost)`` is called after every step. Raises ``ValueError`` for
     ``max_steps < 1``.
     """
     if max_steps < 1:
         raise ValueError(f"fit: max_steps must be >= 1, got {max_steps}")
     t0 = time.perf_counter()
-    solver = _solver(rtol, atol, scaling)
+    if structure == "auto":
+        shooting = isinstance(prob, Problem) and prob.free_starts and prob.segs.count > 1
+        structure = "shooting" if shooting else "dense"
+    solver = _solver(rtol, atol, scaling, structure)
     wrapped = _WithAux(fn)
     y = y0
     state = _init(solver, wrapped, y, prob)

@@ -9,11 +9,14 @@ Public API (a workflow on the fitting engine ``jaxflex.fit``):
 - ``make_problem`` / ``Problem.residuals``: the same residual for other solvers;
 - ``simulate_log``: replay a log's torque through a parameter set;
 - ``two_step``, ``static_map_experiment``, ``fit_static_map``: the paper's procedure;
+- ``static_map_from_log``: friction against velocity from a log by inverse dynamics (the
+  start ``identify`` takes for Fc, Fs, vs, sigma2);
 - ``synthetic_log``, ``excitation_torque``: simulated identification experiments;
 - ``ParamSpace``, ``get_value``, ``set_values``, ``Problem``, ``covariance``: from the
   fitting engine ``jaxflex.fit``, re-exported for convenience.
 """
 
+from jaxflex.fit import ParamSpace, Problem, covariance, get_value, set_values
 from jaxflex.identify.core import (
     DEFAULT_FREE,
     IdentificationWarning,
@@ -24,17 +27,14 @@ from jaxflex.identify.core import (
     simulate_log,
 )
 from jaxflex.identify.experiments import (
-    STATIC_NAMES,
-    StaticMap,
     TwoStepResult,
     excitation_torque,
-    fit_static_map,
     perturb,
     static_map_experiment,
     synthetic_log,
     two_step,
 )
-from jaxflex.fit import ParamSpace, Problem, covariance, get_value, set_values
+from jaxflex.identify.static import STATIC_NAMES, StaticMap, fit_static_map, static_map_from_log
 from jaxflex.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
 
 __all__ = [
@@ -42,5 +42,6 @@ __all__ = [
     "ParamSpace", "Problem", "StaticMap", "TwoStepResult", "covariance", "excitation_torque",
     "finish", "fit_static_map", "get_value", "identify", "make_problem", "perturb", "replay",
     "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",
+    "static_map_from_log",
     "synthetic_log", "two_step",
 ]

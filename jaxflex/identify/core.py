@@ -58,10 +58,15 @@ class IdentResult:
     cost: final 0.5 sum r^2 (output and continuity residuals, in the weighted units);
     rms: RMS output residual [rad]; rank, n_free: numerical rank of the Jacobian over all
     unknowns and their number; singular_values of the column-scaled Jacobian; unidentifiable:
-    names the data cannot identify; warnings: messages; steps: solver steps; converged;
-    wall_s: solve time [s]; problem: the ``Problem`` (for re-simulation and benchmarks);
-    solution: the solver's final unknowns (theta and segment states); attempts: the
-    continuation schedules tried, with their final costs.
+    names the data cannot identify (they keep their initial values in ``params`` and are
+    marked ``"identified": false`` with the reason in the file); warnings: messages; steps:
+    solver steps; converged: the final cost is explained by the measurement noise (0.5 ||r||^2
+    <= accept_cost x n_out / 2, residuals in units of the noise estimated from the log);
+    reason: why not, or "cost explained by noise"; noise_cost: that bound; wall_s: solve time
+    [s]; problem: the ``Problem`` (for re-simulation and benchmarks); solution: the solver's
+    final unknowns (theta and segment states); attempts: the continuation schedules tried, with
+    their final costs; why: per unidentifiable name, the reason. rank, n_free, singular_values describe the fit with every free
+    parameter (before the unidentifiable ones were fixed).
     """
 
     params: Params
@@ -80,18 +85,29 @@ class IdentResult:
     problem: Problem
     solution: Any
     attempts: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    reason: str = ""
+    noise_cost: float = math.nan
+    why: dict[str, str] = dataclasses.field(default_factory=dict)
 
     def table(self) -> str:
-        """A short text table: name, value, standard error, relative standard error."""
-        rows = [f"{'param':<24}{'value':>14}{'stderr':>12}{'rel':>9}"]
-        for name in self.problem.space.names:
+        """A short text table: name, value, standard error, relative standard error (or
+        "unidentified", with the value kept at its initial guess)."""
+        rows = [f"{'param':<24}{'value':>14}{'stderr':>12}{'rel':>12}"]
+        for name in self.stderr:
             vals = _value_of(self.params, name)
             for j, v in enumerate(vals):
                 label = name if len(vals) == 1 else f"{name}[{j}]"
+                if name in self.unidentifiable:
+                    rows.append(f"{label:<24}{v:>14.6g}{'-':>12}{'unidentified':>12}")
+                    continue
                 se, rel = self.stderr[name][j], self.rel_stderr[name][j]
-                rows.append(f"{label:<24}{v:>14.6g}{se:>12.3g}{100 * rel:>8.2f}%")
-        rows.append(f"RMS output residual {self.rms:.3g}; Jacobian rank {self.rank}/"
-                    f"{self.n_free}; {self.steps} steps; converged: {self.converged}")
+                rel_s = f"{100 * rel:.2f}%" if rel <= 10 else "> 1e3 %"
+                rows.append(f"{label:<24}{v:>14.6g}{se:>12.3g}{rel_s:>12}")
+        rows.append(f"RMS output residual {self.rms:.3g}; cost {self.cost:.4g} (noise explains "
+                    f"<= {self.noise_cost:.4g}); Jacobian rank {self.rank}/{self.n_free}; "
+                    f"{self.steps} steps; converged: {self.converged} ({self.reason})")
+        if self.unidentifiable:
+            rows.append(f"unidentified (kept at their initial values): {self.unidentifiable}")
         return "\n".join(rows)
 
 
@@ -152,7 +168,7 @@ def identify(
     warm_start: float | None | Sequence[float | None] = (1e-3, None, 1e-2),
     warm_steps: int = 40, accept_cost: float = 4.0,
     rtol: float = 1e-10, atol: float = 1e-10, max_steps: int = 200,
-    rel_stderr_limit: float = 0.5, progress: bool | int = False,
+    rel_stderr_limit: float = 0.5, progress: bool | int = False, static_start: bool = True,
 ) -> IdentResult:
     """Identify the ``free`` parameters of ``init`` from ``log`` (docs/spec.md section 5).
 
@@ -170,11 +186,23 @@ def identify(
     until one ends with a cost the noise explains (0.5 ||r||^2 <= ``accept_cost`` x n_out / 2,
     the residuals being scaled by the estimated noise level); otherwise the lowest cost wins.
     All stages share one compilation (the engine's solver loops on the host).
+    ``static_start``: for the flexible model on a log with both encoders, a first start takes
+    the free static parameters (Fc, Fs, vs, sigma2) from a fit of eq. 35 to the friction the
+    log shows by inverse dynamics (``static_map_from_log``), where that fit determines them;
+    the user's ``init`` is the second start, tried when the first does not reach the noise
+    level (a portfolio of starts x schedules, stopping at the first success).
+    Parameters the data cannot determine keep their initial values and are marked (see
+    ``finish``); a converged fit is then repeated without them.
     """
+    start = _static_start(log, init, free) if (static_start and model == "flexible") else None
     prob, y0 = make_problem(
         log, init, free, model=model, segment_length=segment_length, substeps=substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
     )
+    starts = [("user", y0)]
+    if start:
+        th = prob.space.theta_of({**{k: get_value(init, k) for k in prob.space.names}, **start})
+        starts.insert(0, ("static map of the log", (th, y0[1])))
     every = int(progress)
     say = None
     if progress:
@@ -188,45 +216,122 @@ def identify(
     t0 = time.perf_counter()
     best = None
     attempts = []
-    for factor in schedules:
-        y = y0
-        if factor is not None:
-            loose = eqx.tree_at(lambda q: q.w_def, prob, prob.w_def * factor)
-            y = least_squares(loose, y, rtol=rtol, atol=atol, max_steps=warm_steps,
-                              progress=say).y
-        sol = least_squares(prob, y, rtol=rtol, atol=atol, max_steps=max_steps, progress=say)
-        attempts.append({"warm_start": factor, "cost": sol.cost, "steps": sol.steps,
-                         "reason": sol.reason})
-        if progress:
-            print(f"  [identify] schedule warm_start={factor}: cost {sol.cost:.6e}"
-                  f" (noise explains <= {good:.3e}); {sol.reason}")
-        if best is None or sol.cost < best.cost:
-            best = sol
-        if sol.cost <= good:
+    for origin, y_start in starts:
+        for factor in schedules:
+            y = y_start
+            if factor is not None:
+                loose = eqx.tree_at(lambda q: q.w_def, prob, prob.w_def * factor)
+                y = least_squares(loose, y, rtol=rtol, atol=atol, max_steps=warm_steps,
+                                  progress=say).y
+            sol = least_squares(prob, y, rtol=rtol, atol=atol, max_steps=max_steps,
+                                progress=say)
+            attempts.append({"start": origin, "warm_start": factor, "cost": sol.cost,
+                             "steps": sol.steps, "reason": sol.reason})
+            if progress:
+                print(f"  [identify] start {origin}, warm_start={factor}: cost {sol.cost:.6e}"
+                      f" (noise explains <= {good:.3e}); {sol.reason}")
+            if best is None or sol.cost < best.cost:
+                best = sol
+            if sol.cost <= good:
+                break
+        if best.cost <= good:
             break
-    wall = time.perf_counter() - t0
-    res = finish(prob, init, best.y, steps=best.steps, converged=best.converged, wall_s=wall,
-                 rel_stderr_limit=rel_stderr_limit)
+    res = finish(prob, init, best.y, steps=best.steps, converged=best.cost <= good,
+                 wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
+                 reason=_reason(best, good), noise_cost=good, log=log)
     res.attempts = attempts
+    if start:
+        attempts.insert(0, {"static_start": start})
+    bad = [k for k in res.unidentifiable if k in prob.space.names]
+    keep = [k for k in prob.space.names if k not in bad]
+    if bad and keep and res.converged:
+        # Fix what the data cannot determine at its initial value and refit the rest, so that
+        # the identified values do not absorb a meaningless direction.
+        sub, _ = make_problem(log, init, keep, model=model, segment_length=segment_length,
+                              substeps=substeps, outputs=outputs, output_scale=output_scale,
+                              continuity_weight=continuity_weight)
+        theta = {k: best.y[0][k] for k in keep}
+        sol = least_squares(sub, (theta, best.y[1]), rtol=rtol, atol=atol,
+                            max_steps=max_steps, progress=say)
+        attempts.append({"refit_without": bad, "cost": sol.cost, "steps": sol.steps,
+                         "reason": sol.reason})
+        first = res
+        res = finish(sub, init, sol.y, steps=best.steps + sol.steps,
+                     converged=sol.cost <= good, wall_s=time.perf_counter() - t0,
+                     rel_stderr_limit=rel_stderr_limit, reason=_reason(sol, good),
+                     noise_cost=good, log=log, unidentified=first.why)
+        res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
+        res.warnings = first.warnings + res.warnings
+        res.attempts = attempts
     res.params.extra["identification"]["attempts"] = attempts
     return res
 
 
+def _static_start(log: Log, init: Params, free: Sequence[str]) -> dict[str, float] | None:
+    """Start values of the free static friction parameters from the log's own static map,
+    or None when the log cannot give one (no q2, too little motion, a failed or non-physical
+    fit)."""
+    from jaxflex.identify.static import STATIC_NAMES, fit_static_map, static_map_from_log
+
+    names = [k for k in STATIC_NAMES if k in free]
+    if not names or log.q2 is None or log.n != 1:
+        return None
+    try:
+        data = static_map_from_log(log, init.to_plant())
+        fit = fit_static_map(data, {k: float(init.friction[k][0]) for k in STATIC_NAMES})
+    except (ValueError, FloatingPointError):
+        return None
+    top = float(np.max(np.abs(data.F)))
+    # keep a value only where the map determines it (relative standard error below 30%; a
+    # Stribeck peak below the slowest velocity seen is an extrapolation)
+    vals = {k: v for k, (v, se) in fit.items()
+            if math.isfinite(v) and v > 0 and se < 0.3 * v and not (k == "Fs" and v > top)}
+    if "Fc" not in vals or "sigma2" not in vals:  # the map does not even fix the Coulomb level
+        return None
+    out = {k: vals[k] for k in names if k in vals}
+    if "Fs" in names and "Fs" not in out and float(init.friction["Fs"][0]) < vals["Fc"]:
+        out["Fs"] = 1.05 * vals["Fc"]
+    return out
+
+
+def _reason(sol: Any, good: float) -> str:
+    if sol.cost <= good:
+        return "cost explained by noise"
+    return (f"cost {sol.cost:.4g} is above what the measurement noise explains ({good:.4g}): "
+            f"a local minimum or a model that lacks something; solver: {sol.reason}")
+
+
 def finish(
     prob: Problem, init: Params, y: Any, *, steps: int, converged: bool, wall_s: float,
-    rel_stderr_limit: float = 0.5,
+    rel_stderr_limit: float = 0.5, reason: str = "", noise_cost: float = math.nan,
+    log: Log | None = None, unidentified: dict[str, str] | None = None,
 ) -> IdentResult:
     """Build an ``IdentResult`` from a solution ``y`` of ``prob`` (also used by the scipy
-    benchmark so that both solvers are judged alike)."""
+    benchmark so that both solvers are judged alike).
+
+    A free parameter is unidentifiable when it lies in a numerically null direction of the
+    Jacobian, its relative standard error exceeds ``rel_stderr_limit``, or (Fs, Fc) it exceeds
+    the largest torque in ``log``; ``unidentified`` names parameters already fixed at their
+    initial values, with the reason."""
     theta, _ = prob.split(y)
     phys = {k: np.asarray(v) for k, v in prob.space.physical(theta).items()}
     cov = covariance(prob, y)
     se = {k: cov["stderr"][k].tolist() for k in phys}
     rel = {k: (np.asarray(se[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist() for k in phys}
     msgs, bad = [], list(cov["null_names"])
+    why = {k: "numerically null direction of the Jacobian (the data cannot separate it)"
+           for k in bad}
     for k in phys:
         if max(rel[k]) > rel_stderr_limit and k not in bad:
             bad.append(k)
+            why[k] = f"relative standard error {100 * max(rel[k]):.3g}% > {100 * rel_stderr_limit:g}%"
+    if log is not None and log.tau is not None:
+        top = float(np.max(np.abs(log.tau)))
+        for k in ("Fs", "Fc"):
+            if k in phys and float(np.max(phys[k])) > top and k not in bad:
+                bad.append(k)
+                why[k] = (f"{k} = {float(np.max(phys[k])):.4g} exceeds the largest logged torque "
+                          f"{top:.4g}: the log never breaks away")
     if cov["null_names"]:
         msgs.append(
             f"Jacobian rank {cov['rank']} < {cov['n_free']} unknowns: the data cannot separate "
@@ -239,27 +344,40 @@ def finish(
             f"{100 * rel_stderr_limit:g}% for {huge}: not identifiable from this log "
             "(vs, sigma0, sigma1 need low-speed dwell and frequent reversals)"
         )
-    if not converged:
-        msgs.append(f"solver stopped after {steps} steps without meeting its tolerance")
     for m in msgs:
         warnings.warn(m, IdentificationWarning, stacklevel=3)
     cost = 0.5 * (cov["rss"] + cov["defects_ss"])
     ys = simulated_outputs(prob, y)
     rms = float(np.sqrt(np.mean((np.asarray(ys) - np.asarray(prob.segs.y_meas)) ** 2)))
-    out = set_values(init, phys)
+    if not converged and reason:
+        msgs.append(f"not converged: {reason}")
+    fixed = dict(unidentified or {})
+    for k, w in fixed.items():
+        if k not in bad:
+            bad.append(k)
+            why[k] = w
+    out = set_values(init, {k: v for k, v in phys.items() if k not in bad})
     out.extra = dict(out.extra)
-    out.extra["stderr"] = {k: se[k] for k in phys}
+    out.extra["stderr"] = {k: se[k] for k in phys if k not in bad}
+    marks = {k: {"identified": k not in bad, **({"reason": why[k]} if k in bad else {})}
+             for k in list(phys) + list(fixed)}
     out.extra["identification"] = {
-        "free": list(prob.space.names), "model": prob.kind, "cost": cost, "rms_residual": rms,
-        "jacobian_rank": cov["rank"], "unknowns": cov["n_free"], "steps": steps,
-        "converged": converged, "unidentifiable": bad,
+        "free": list(prob.space.names) + list(fixed), "model": prob.kind, "cost": cost,
+        "noise_cost": noise_cost, "rms_residual": rms, "jacobian_rank": cov["rank"],
+        "unknowns": cov["n_free"], "steps": steps, "converged": converged,
+        "reason": reason or ("cost explained by noise" if converged else "not converged"),
+        "unidentifiable": bad, "parameters": marks,
     }
-    return IdentResult(
+    for k in fixed:
+        se[k] = [math.nan] * len(get_value(init, k))
+        rel[k] = [math.inf] * len(get_value(init, k))
+    res = IdentResult(
         params=out, stderr=se, rel_stderr=rel, cost=cost, rms=rms, rank=cov["rank"],
         n_free=cov["n_free"], singular_values=cov["singular_values"], unidentifiable=bad,
         warnings=msgs, steps=steps, converged=converged, wall_s=wall_s, problem=prob,
-        solution=y,
+        solution=y, reason=out.extra["identification"]["reason"], noise_cost=noise_cost, why=why,
     )
+    return res
 
 
 def simulate_log(

@@ -24,16 +24,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray
 
+from jaxflex.fit import get_value, set_values
 from jaxflex.identify.core import IdentResult, identify
-from jaxflex.fit import ParamSpace, covariance, get_value, least_squares, set_values
+from jaxflex.identify.static import STATIC_NAMES, StaticMap, fit_static_map
 from jaxflex.logs import Log
 from jaxflex.params import Params
-from jaxflex.friction import LuGre
-from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.plant import FlexibleJointPlant
 from jaxflex.sensing import Sensing
 from jaxflex.step import ModelKind, replay, rigid_step
-
-STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")
 
 
 def excitation_torque(
@@ -74,14 +72,6 @@ def synthetic_log(
     log = Log.from_arrays(t=t, tau=np.asarray(tau), q1=q1, q2=q2, v=np.asarray(xs.dq1),
                           source="synthetic")
     return log, xs
-
-
-@dataclasses.dataclass(frozen=True)
-class StaticMap:
-    """Constant-velocity friction data (eq. 35): v [rad/s] and F [N m], shape (m,) each."""
-
-    v: np.ndarray
-    F: np.ndarray
 
 
 def static_map_experiment(
@@ -127,60 +117,6 @@ def static_map_experiment(
 
     vs, Fs = eqx.filter_jit(jax.vmap(run))(vel, keys)
     return StaticMap(v=np.asarray(vs), F=np.asarray(Fs))
-
-
-class StaticMapProblem(eqx.Module):
-    """The curve fit of eq. 35 as a problem of the fitting engine: residuals
-    ``F_ss(v; theta) - F`` [N m] over the static-map data, parameters in ``space``."""
-
-    space: ParamSpace
-    v: jax.Array
-    F: jax.Array
-
-    def split(self, y: dict[str, jax.Array]) -> tuple[dict[str, jax.Array], None]:
-        """(theta, no start states)."""
-        return y, None
-
-    def residuals(self, y: dict[str, jax.Array], args: object = None) -> jax.Array:
-        """F_ss(v) - F of the friction of ``space.plant(y)`` (eq. 35) [N m]."""
-        fr = self.space.plant(y).friction
-        return jax.vmap(lambda vi: fr.steady_state(vi[None])[0])(self.v) - self.F
-
-    @property
-    def n_out(self) -> int:
-        """Number of residuals."""
-        return int(self.v.shape[0])
-
-
-def fit_static_map(
-    data: StaticMap, init: dict[str, float], *, rtol: float = 1e-12, atol: float = 1e-12,
-) -> dict[str, tuple[float, float]]:
-    """Fit Fc, Fs, vs, sigma2 of one joint to static-map data by eq. 35 (``LuGre.steady_state``)
-    with the fitting engine (its constraints: Fc, vs, sigma2 positive, Fs >= Fc; its solver;
-    its covariance). ``init`` holds starting values for the four names. Returns name ->
-    (value [N m, rad/s or N m s/rad], standard error)."""
-    v, F = jnp.asarray(data.v, float), jnp.asarray(data.F, float)
-    if v.shape != F.shape or v.ndim != 1 or v.size < 5:
-        raise ValueError(f"fit_static_map: need >= 5 (v, F) pairs of equal length, got "
-                         f"{v.shape} and {F.shape}")
-    missing = [k for k in STATIC_NAMES if k not in init]
-    if missing:
-        raise ValueError(f"fit_static_map: missing starting value(s) {missing}")
-    # A unit plant holds the friction: eq. 35 does not involve I, J, K, sigma0, sigma1.
-    lugre = LuGre(Fc=init["Fc"], Fs=max(init["Fs"], 1.001 * init["Fc"]), vs=init["vs"],
-                  sigma0=1.0, sigma1=0.0, sigma2=max(init["sigma2"], 1e-9))
-    holder = FlexibleJointPlant(links=DiagonalInertia(I=1.0), J=1.0, K=1.0, friction=lugre)
-    space = ParamSpace.build(holder, STATIC_NAMES)
-    prob = StaticMapProblem(space=space, v=v, F=F)
-    sol = least_squares(prob, space.theta0(), fn=_static_residuals, rtol=rtol, atol=atol,
-                        max_steps=500)
-    phys = space.physical(sol.y)
-    se = covariance(prob, sol.y)["stderr"]
-    return {k: (float(phys[k][0]), float(se[k][0])) for k in STATIC_NAMES}
-
-
-def _static_residuals(y: dict[str, jax.Array], prob: StaticMapProblem) -> jax.Array:
-    return prob.residuals(y)
 
 
 @dataclasses.dataclass

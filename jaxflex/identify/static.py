@@ -1,0 +1,127 @@
+"""The static friction map (eq. 35) as a fit of the engine, and its data: from constant-velocity
+runs (``experiments.static_map_experiment``) or from any log with both encoders, by inverse
+dynamics (``static_map_from_log``), which gives identification a start for Fc, Fs, vs, sigma2
+that does not depend on the user's guess."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflex.fit import ParamSpace, covariance, least_squares, savgol
+from jaxflex.friction import LuGre
+from jaxflex.logs import Log
+from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+
+STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")
+
+
+@dataclasses.dataclass(frozen=True)
+class StaticMap:
+    """Constant-velocity friction data (eq. 35): v [rad/s] and F [N m], shape (m,) each."""
+
+    v: np.ndarray
+    F: np.ndarray
+
+
+class StaticMapProblem(eqx.Module):
+    """The curve fit of eq. 35 as a problem of the fitting engine: residuals
+    ``F_ss(v; theta) - F`` [N m] over the static-map data, parameters in ``space``."""
+
+    space: ParamSpace
+    v: jax.Array
+    F: jax.Array
+
+    def split(self, y: dict[str, jax.Array]) -> tuple[dict[str, jax.Array], None]:
+        """(theta, no start states)."""
+        return y, None
+
+    def residuals(self, y: dict[str, jax.Array], args: object = None) -> jax.Array:
+        """F_ss(v) - F of the friction of ``space.plant(y)`` (eq. 35) [N m]."""
+        fr = self.space.plant(y).friction
+        return jax.vmap(lambda vi: fr.steady_state(vi[None])[0])(self.v) - self.F
+
+    @property
+    def n_out(self) -> int:
+        """Number of residuals."""
+        return int(self.v.shape[0])
+
+
+def fit_static_map(
+    data: StaticMap, init: dict[str, float], *, rtol: float = 1e-12, atol: float = 1e-12,
+) -> dict[str, tuple[float, float]]:
+    """Fit Fc, Fs, vs, sigma2 of one joint to static-map data by eq. 35 (``LuGre.steady_state``)
+    with the fitting engine (its constraints: Fc, vs, sigma2 positive, Fs >= Fc; its solver;
+    its covariance). ``init`` holds starting values for the four names. Returns name ->
+    (value [N m, rad/s or N m s/rad], standard error)."""
+    v, F = jnp.asarray(data.v, float), jnp.asarray(data.F, float)
+    if v.shape != F.shape or v.ndim != 1 or v.size < 5:
+        raise ValueError(f"fit_static_map: need >= 5 (v, F) pairs of equal length, got "
+                         f"{v.shape} and {F.shape}")
+    missing = [k for k in STATIC_NAMES if k not in init]
+    if missing:
+        raise ValueError(f"fit_static_map: missing starting value(s) {missing}")
+    # A unit plant holds the friction: eq. 35 does not involve I, J, K, sigma0, sigma1.
+    lugre = LuGre(Fc=init["Fc"], Fs=max(init["Fs"], 1.001 * init["Fc"]), vs=init["vs"],
+                  sigma0=1.0, sigma1=0.0, sigma2=max(init["sigma2"], 1e-9))
+    holder = FlexibleJointPlant(links=DiagonalInertia(I=1.0), J=1.0, K=1.0, friction=lugre)
+    space = ParamSpace.build(holder, STATIC_NAMES)
+    prob = StaticMapProblem(space=space, v=v, F=F)
+    sol = least_squares(prob, space.theta0(), fn=_static_residuals, rtol=rtol, atol=atol,
+                        max_steps=500)
+    phys = space.physical(sol.y)
+    se = covariance(prob, sol.y)["stderr"]
+    return {k: (float(phys[k][0]), float(se[k][0])) for k in STATIC_NAMES}
+
+
+def _static_residuals(y: dict[str, jax.Array], prob: StaticMapProblem) -> jax.Array:
+    return prob.residuals(y)
+
+
+
+
+def static_map_from_log(
+    log: Log, plant: FlexibleJointPlant, *, joint: int = 0, window: int = 31, bins: int = 40,
+    min_speed: float | None = None,
+) -> StaticMap:
+    """Friction against link velocity from a log with both encoders, by inverse dynamics:
+    F = K (q2 - q1) + effects - M q1'' - C q1' - G (``FlexibleJointPlant.torque_residuals`` of
+    the frictionless plant, Savitzky-Golay derivatives over ``window`` samples), binned by
+    velocity (median per bin, ``bins`` bins per direction, log-spaced above ``min_speed``
+    [rad/s], default 2% of the largest speed). Raises ``ValueError`` if the log lacks q2 or
+    has too few moving samples in either direction."""
+    if log.q2 is None or log.tau is None:
+        raise ValueError("static map from a log: needs columns tau, q1 and q2")
+    dt = log.dt
+    q1, q2, tau = log.q1, log.q2, log.tau
+    v1, v2 = savgol(q1, dt, 1, window), savgol(q2, dt, 1, window)
+    a1, a2 = savgol(q1, dt, 2, window), savgol(q2, dt, 2, window)
+    bare = eqx.tree_at(lambda p: p.friction, plant, None, is_leaf=lambda x: x is None)
+
+    def resid(x1, w1, b1, x2, w2, b2, u):
+        x = bare.init_state(q1=x1, dq1=w1, q2=x2, dq2=w2)
+        return bare.torque_residuals(x, b1, b2, u)[0]
+
+    F = -np.asarray(jax.vmap(resid)(*(jnp.asarray(a) for a in (
+        savgol(q1, dt, 0, window), v1, a1, savgol(q2, dt, 0, window), v2, a2, tau))))[:, joint]
+    v = v1[:, joint]
+    top = float(np.quantile(np.abs(v), 0.99))
+    lo = 0.02 * top if min_speed is None else min_speed
+    vs_out, F_out = [], []
+    for sign in (-1.0, 1.0):
+        sel = sign * v > lo
+        if sel.sum() < 4 * bins:
+            raise ValueError(f"static map from a log: too few samples moving "
+                             f"{'forward' if sign > 0 else 'backward'} above {lo:.3g} rad/s")
+        edges = np.geomspace(lo, top, bins + 1)
+        k = np.digitize(sign * v[sel], edges) - 1
+        for b in range(bins):
+            m = k == b
+            if m.sum() >= 5:
+                vs_out.append(sign * float(np.median(sign * v[sel][m])))
+                F_out.append(float(np.median(F[sel][m])))
+    return StaticMap(v=np.asarray(vs_out), F=np.asarray(F_out))
