@@ -223,3 +223,86 @@ def test_studies_run_small(tmp_path, name):
         res = mod.main(["--small", "--out", str(tmp_path)])
     assert (tmp_path / "results.json").exists()
     assert isinstance(res, dict)
+
+
+def _closed_loop_log(t_final, seed=7):
+    from jaxflex.datagen import generate_log
+    from jaxflex.params import Params
+
+    g = generate_log((), seed=seed, t_final=t_final, bits=20, noise_counts=0.5)
+    return g.log, Params.from_dict(g.truth["plant"])
+
+
+def test_local_minimum_is_reported_unconverged_and_refused_downstream(tmp_path):
+    """From a start 50% off without the log's static map, the closed-loop 3 s log lands in a
+    local minimum: the result says converged False with the reason, keeps the parameters it
+    cannot determine at their start, and the file it writes is refused downstream."""
+    import subprocess
+    import sys
+
+    from jaxflex.params import load_params, save_params
+
+    log, truth = _closed_loop_log(3.0)
+    init = perturb(truth, DEFAULT_FREE, (1.5, 1.5, 0.5, 1.5, 0.5, 1.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        r = identify(log, init, DEFAULT_FREE, segment_length=300, substeps=2, max_steps=60,
+                     static_start=False, warm_start=(1e-3,))
+    assert not r.converged and "above what the measurement noise explains" in r.reason
+    ident = r.params.extra["identification"]
+    assert ident["converged"] is False
+    for k in r.unidentifiable:
+        assert ident["parameters"][k]["identified"] is False and ident["parameters"][k]["reason"]
+        assert r.params.friction[k] == init.friction[k]
+    path = tmp_path / "unconverged.json"
+    save_params(r.params, path)
+    with pytest.raises(ValueError, match="did not converge"):
+        load_params(path)
+    assert load_params(path, accept_unconverged=True).n == 1
+    out = subprocess.run([sys.executable, "-m", "jaxflex", "certify", "--params", str(path)],
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and "did not converge" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_the_logs_static_map_start_converges_on_a_closed_loop_log():
+    """The same log and start, with the start from the log's own static map: all six within
+    2% and converged (cost explained by the noise)."""
+    log, truth = _closed_loop_log(3.0)
+    init = perturb(truth, DEFAULT_FREE, (1.5, 1.5, 0.5, 1.5, 0.5, 1.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        r = identify(log, init, DEFAULT_FREE, segment_length=300, substeps=2, max_steps=100)
+    assert r.converged, r.reason
+    err = _rel_err(r.params, truth)
+    assert max(err.values()) < 0.02, err
+
+
+def test_unidentifiable_vs_is_marked_and_keeps_its_prior():
+    """A log that never dwells at low speed (a biased torque keeps the link spinning one way)
+    cannot determine vs: it is marked unidentified and keeps its initial value."""
+    p = paper_params()
+    tau = excitation_torque(t_final=1.5, amplitude=0.05, bias=0.5, periods=(0.7, 0.3))
+    log, xs = synthetic_log(p.to_plant(), tau, substeps=2)
+    assert float(np.min(np.asarray(xs.dq1)[300:])) > 0.5  # never near zero after the start
+    init = perturb(p, DEFAULT_FREE, (1.2, 1.2, 2.0, 1.2, 1.2, 1.2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        r = identify(log.slice(300), init, DEFAULT_FREE, segment_length=300, substeps=2,
+                     max_steps=60)
+    assert "vs" in r.unidentifiable
+    assert r.params.friction["vs"] == init.friction["vs"]
+    assert r.params.extra["identification"]["parameters"]["vs"]["identified"] is False
+    assert "unidentified" in r.table()
+
+
+@pytest.mark.slow
+def test_twenty_second_closed_loop_log_converges_from_fifty_percent_off():
+    log, truth = _closed_loop_log(20.0)
+    init = perturb(truth, DEFAULT_FREE, (1.5, 1.5, 0.5, 1.5, 0.5, 1.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        r = identify(log, init, DEFAULT_FREE, segment_length=300, substeps=2, max_steps=100)
+    assert r.converged, r.reason
+    err = _rel_err(r.params, truth)
+    assert max(err.values()) < 0.02, err
