@@ -61,7 +61,8 @@ class IdentResult:
     names the data cannot identify (they keep their initial values in ``params`` and are
     marked ``"identified": false`` with the reason in the file); warnings: messages; steps:
     solver steps; converged: the final cost is explained by the measurement noise (0.5 ||r||^2
-    <= accept_cost x n_out / 2, residuals in units of the noise estimated from the log);
+    <= accept_cost x n_out / 2, residuals in units of the noise estimated from the log) and
+    the solver met its tolerance;
     reason: why not, or "cost explained by noise"; noise_cost: that bound; wall_s: solve time
     [s]; problem: the ``Problem`` (for re-simulation and benchmarks); solution: the solver's
     final unknowns (theta and segment states); attempts: the continuation schedules tried, with
@@ -225,6 +226,12 @@ def identify(
                                   progress=say).y
             sol = least_squares(prob, y, rtol=rtol, atol=atol, max_steps=max_steps,
                                 progress=say)
+            if sol.cost <= good and not sol.converged:
+                # at the noise level but still moving: let it settle before judging
+                more = least_squares(prob, sol.y, rtol=rtol, atol=atol, max_steps=max_steps,
+                                     progress=say)
+                sol = dataclasses.replace(more, steps=sol.steps + more.steps,
+                                          seconds=sol.seconds + more.seconds)
             attempts.append({"start": origin, "warm_start": factor, "cost": sol.cost,
                              "steps": sol.steps, "reason": sol.reason})
             if progress:
@@ -232,11 +239,11 @@ def identify(
                       f" (noise explains <= {good:.3e}); {sol.reason}")
             if best is None or sol.cost < best.cost:
                 best = sol
-            if sol.cost <= good:
+            if _settled(sol, good):
                 break
-        if best.cost <= good:
+        if _settled(best, good):
             break
-    res = finish(prob, init, best.y, steps=best.steps, converged=best.cost <= good,
+    res = finish(prob, init, best.y, steps=best.steps, converged=_settled(best, good),
                  wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                  reason=_reason(best, good), noise_cost=good, log=log)
     res.attempts = attempts
@@ -257,7 +264,7 @@ def identify(
                          "reason": sol.reason})
         first = res
         res = finish(sub, init, sol.y, steps=best.steps + sol.steps,
-                     converged=sol.cost <= good, wall_s=time.perf_counter() - t0,
+                     converged=_settled(sol, good), wall_s=time.perf_counter() - t0,
                      rel_stderr_limit=rel_stderr_limit, reason=_reason(sol, good),
                      noise_cost=good, log=log, unidentified=first.why)
         res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
@@ -294,9 +301,16 @@ def _static_start(log: Log, init: Params, free: Sequence[str]) -> dict[str, floa
     return out
 
 
+def _settled(sol: Any, good: float) -> bool:
+    """Converged: the cost is explained by the noise and the solver met its tolerance."""
+    return sol.cost <= good and sol.converged
+
+
 def _reason(sol: Any, good: float) -> str:
-    if sol.cost <= good:
+    if _settled(sol, good):
         return "cost explained by noise"
+    if sol.cost <= good:
+        return f"cost explained by noise but the solver did not settle ({sol.reason})"
     return (f"cost {sol.cost:.4g} is above what the measurement noise explains ({good:.4g}): "
             f"a local minimum or a model that lacks something; solver: {sol.reason}")
 
