@@ -176,22 +176,26 @@ def closed_loop_errors(
             "series": {"q": q_sim, "v": v_sim, "v_meas": v, "tau": tau_sim}}
 
 
-def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
-                      window: int = 31) -> np.ndarray:
-    """Torque [N m] the model needs for the measured motion of ``log`` (module docstring),
-    (N, n), from ``FlexibleJointPlant.torque_residuals``."""
-    _need_x64("torque_prediction")
+def motion_of(log: Log, kind: str = "flexible", window: int = 31) -> dict[str, np.ndarray]:
+    """The measured motion of a log for ``predicted_torque``: q1, q2 [rad] and their first
+    and second Savitzky-Golay derivatives (``jaxflex.fit.savgol``), and tau [N m]; (N, n)
+    each (q2 = q1 for the rigid model)."""
     if kind not in MODEL_KINDS:
         raise ValueError(f"validate: model must be one of {MODEL_KINDS}, got {kind!r}")
-    plant = params.to_plant()
-    dt = log.dt
-    q1 = log.q1
-    q2 = q1 if (kind == "rigid" or log.q2 is None) else log.q2
     if kind != "rigid" and log.q2 is None:
         raise ValueError(f"validate: the {kind} model needs the motor angle q2 in the log")
-    d1, dd1 = savgol(q1, dt, 1, window), savgol(q1, dt, 2, window)
-    d2, dd2 = savgol(q2, dt, 1, window), savgol(q2, dt, 2, window)
+    dt = log.dt
+    q1 = log.q1
+    q2 = q1 if kind == "rigid" else log.q2
+    return {"q1": q1, "d1": savgol(q1, dt, 1, window), "dd1": savgol(q1, dt, 2, window),
+            "q2": q2, "d2": savgol(q2, dt, 1, window), "dd2": savgol(q2, dt, 2, window),
+            "tau": log.tau}
 
+
+def predicted_torque(plant: FlexibleJointPlant, kind: str,
+                     motion: Mapping[str, Any]) -> jax.Array:
+    """Torque [N m] (N, n) the model needs for a measured ``motion`` (``motion_of``), from
+    ``FlexibleJointPlant.torque_residuals`` (module docstring); traceable in the plant."""
     def one(a1, v1, ac1, a2, v2, ac2, tau):
         if kind == "rotor":
             a1, v1 = link_reading(plant, a1, v1, ac1)
@@ -201,8 +205,17 @@ def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
         r_link, r_rotor = plant.torque_residuals(x, ac1, ac2, tau)
         return tau + (r_link + r_rotor if kind == "rigid" else r_rotor)
 
-    arrs = [jnp.asarray(a) for a in (q1, d1, dd1, q2, d2, dd2, log.tau)]
-    return np.asarray(jax.jit(jax.vmap(one))(*arrs))
+    keys = ("q1", "d1", "dd1", "q2", "d2", "dd2", "tau")
+    return jax.vmap(one)(*[jnp.asarray(motion[k]) for k in keys])
+
+
+def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
+                      window: int = 31) -> np.ndarray:
+    """Torque [N m] the model needs for the measured motion of ``log`` (module docstring),
+    (N, n)."""
+    _need_x64("torque_prediction")
+    motion = motion_of(log, kind, window)
+    return np.asarray(eqx.filter_jit(predicted_torque)(params.to_plant(), kind, motion))
 
 
 def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int | None = None,
