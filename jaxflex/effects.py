@@ -429,3 +429,30 @@ def unwrap(effect: AbstractEffect) -> AbstractEffect:
     while isinstance(effect, Gated):
         effect = effect.inner
     return effect
+
+
+@register_effect
+class EncoderSkew(AbstractEffect):
+    """Link-encoder reading relative to the motor encoder: a time skew and an offset, the
+    per-log sensor nuisances of real two-encoder logs (issue 14; KUKA KR300: about 3 ms).
+    The link angle used is ``q1 + skew q1' + offset`` [rad] (a first-order shift of the
+    measured link angle by ``skew`` [s]; skew > 0: the link encoder reads late).
+
+    Acts only where a model takes the *measured* link motion as an input (the "rotor" model
+    kind of ``jaxflex.step``, ``link_reading``); it adds no torque anywhere.
+    skew [s], offset [rad]: free (any sign).
+    """
+
+    name: ClassVar[str] = "encoder_skew"
+    where: ClassVar[str] = "link encoder reading"
+    constraints: ClassVar[dict[str, str]] = {"skew": "free", "offset": "free"}
+    skew: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
+    offset: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
+
+    @classmethod
+    def typical(cls, n: int) -> EncoderSkew:
+        return cls(skew=jnp.zeros(n), offset=jnp.zeros(n))
+
+    def link_reading(self, q1: Array, dq1: Array, ddq1: Array) -> tuple[Array, Array]:
+        """(q1 + skew q1' + offset [rad], q1' + skew q1'' [rad/s])."""
+        return q1 + self.skew * dq1 + self.offset, dq1 + self.skew * ddq1

@@ -7,9 +7,12 @@ A log is a table sampled at a fixed period with columns (SI units, link-referred
 
 For n joints a column ``c`` is stored as ``c[0]``, ..., ``c[n-1]`` in a CSV header (a single
 joint may use the bare name). Formats: CSV with a header row, ``.npz`` and MATLAB ``.mat``
-(v5/v7, read with scipy). A ``mapping`` renames the file's variables to the log columns; a
-mapping value may be a product such as ``"gtau*vir"`` (variables or numbers joined by ``*``),
-which is how the EMPS benchmark stores its force.
+(v5/v7, read with scipy; structs become nested dicts, row vectors are accepted). A
+``mapping`` builds each log column from the file's variables (docs/spec.md section 6.4): struct
+paths (``rec.time_cont``), selections (``x[0]``, ``x[:,1]``), products and quotients with
+numbers or factors from the file (``para.u[0]*rec.act_torque_abs_nm[0]``, ``gtau*vir``) and a
+unit suffix converting to SI (``:deg``, ``:ms``); ``@FILE`` reads a map file.
+``inspect_file`` lists a file's variables for writing a mapping.
 
 Everything here is host-side numpy; a bad log raises ``LogError`` (a ``ValueError``) naming
 the problem before any JAX code runs.
@@ -20,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -201,63 +205,255 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
     if len(set(names)) != len(names):
         raise LogError(f"{path}: duplicate column names in header {names}")
     try:
-        data = np.genfromtxt(path, delimiter=",", skip_header=1, dtype=float,
-                             invalid_raise=True, ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # numpy's "Empty input file"
+            data = np.genfromtxt(path, delimiter=",", skip_header=1, dtype=float,
+                                 invalid_raise=True, ndmin=2)
     except ValueError as e:
         raise LogError(f"{path}: rows of unequal length or bad values ({e})") from None
     if data.size == 0:
-        raise LogError(f"{path}: no data rows")
+        raise LogError(f"{path}: no data rows (the file has only a header, with columns "
+                       f"{names})")
     if data.shape[1] != len(names):
         raise LogError(f"{path}: header has {len(names)} columns, rows have {data.shape[1]}")
     return {n: data[:, i] for i, n in enumerate(names)}
 
 
-def _read_mat(path: Path) -> dict[str, np.ndarray]:
+def _struct_to_dict(v: Any) -> Any:
+    """A MATLAB struct (scipy ``mat_struct``) as a nested dict; arrays unchanged."""
+    if hasattr(v, "_fieldnames"):
+        return {f: _struct_to_dict(getattr(v, f)) for f in v._fieldnames}
+    return v
+
+
+def _read_mat(path: Path) -> dict[str, Any]:
     import scipy.io
 
     try:
-        d = scipy.io.loadmat(path)
+        # squeeze_me: row vectors (1, N) (what MATLAB and scipy save for 1-D arrays) and
+        # column vectors (N, 1) both become (N,); (1, 1) scalars become 0-d
+        d = scipy.io.loadmat(path, squeeze_me=True, struct_as_record=False)
     except NotImplementedError:
         raise LogError(
             f"{path}: MATLAB v7.3 (HDF5) files are not supported; save with -v7 or export CSV"
         ) from None
     except Exception as e:  # noqa: BLE001 - scipy raises many types for a bad file
         raise LogError(f"{path}: not a readable MATLAB file ({e})") from None
-    return {k: np.asarray(v) for k, v in d.items() if not k.startswith("__")}
+    return {k: _struct_to_dict(v) for k, v in d.items() if not k.startswith("__")}
 
 
-def _evaluate(expr: str, raw: Mapping[str, np.ndarray], where: str) -> np.ndarray:
-    """A variable name or a product of names and numbers, e.g. ``"gtau*vir"``."""
-    out: Any = 1.0
-    for term in (s.strip() for s in expr.split("*")):
-        if term in raw:
-            val = np.asarray(raw[term], dtype=float)
-            out = out * (val.reshape(-1) if val.size == 1 else val)
+def read_variables(path: str | os.PathLike) -> dict[str, Any]:
+    """The variables of a CSV, ``.npz`` or ``.mat`` file as stored: name -> numpy array, or
+    a nested dict for a MATLAB struct (field -> array or dict). Raises ``LogError`` for an
+    unreadable file or unknown format and ``FileNotFoundError`` for a missing one."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"log file not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        return _read_csv(path)
+    if suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except (ValueError, OSError) as e:
+            raise LogError(f"{path}: not a readable .npz file ({e})") from None
+    if suffix == ".mat":
+        return _read_mat(path)
+    raise LogError(f"{path}: unknown log format '{suffix}' (use .csv, .npz or .mat)")
+
+
+#: Unit suffixes of a mapping expression (``q1=enc_deg:deg``): factor to SI.
+UNIT_FACTORS: dict[str, float] = {
+    "rad": 1.0, "deg": np.pi / 180.0, "s": 1.0, "ms": 1e-3, "us": 1e-6, "m": 1.0,
+    "mm": 1e-3, "rad/s": 1.0, "deg/s": np.pi / 180.0, "rpm": 2.0 * np.pi / 60.0,
+    "Nm": 1.0, "N": 1.0, "mNm": 1e-3,
+}
+# Units guessed from a variable's name suffix (inspect); the log columns have their own.
+_NAME_UNITS: tuple[tuple[str, str], ...] = (
+    ("_deg", "deg"), ("_rad", "rad"), ("_nm", "N m"), ("_Nm", "N m"), ("_ms", "ms"),
+    ("_mm", "mm"), ("_s", "s"), ("_m", "m"), ("_V", "V"), ("_A", "A"),
+)
+#: A time column advancing by this much or more per sample [s] is taken for milliseconds.
+MS_SUSPECT_PERIOD: float = 0.5
+
+
+def flatten_variables(raw: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Struct fields as dotted paths (``rec.time_cont``) -> array; arrays stay as they are."""
+    out: dict[str, Any] = {}
+    for k, v in raw.items():
+        if isinstance(v, dict):
+            out.update(flatten_variables(v, f"{prefix}{k}."))
         else:
-            try:
-                out = out * float(term)
-            except ValueError:
-                raise LogError(
-                    f"{where}mapping refers to variable '{term}' which is not in the file "
-                    f"(variables: {sorted(raw)})"
-                ) from None
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _describe(raw: Mapping[str, Any], limit: int = 40) -> str:
+    """'name (shape), ...' of a file's variables, struct fields as paths."""
+    items = [f"{k} {tuple(np.shape(v))}" for k, v in flatten_variables(raw).items()]
+    more = f", ... ({len(items) - limit} more)" if len(items) > limit else ""
+    return ", ".join(items[:limit]) + more if items else "none"
+
+
+def _split_top(text: str, seps: str) -> list[tuple[str, str]]:
+    """Split at separator characters outside brackets: [(separator before, piece), ...]."""
+    out, depth, cur, sep = [], 0, "", ""
+    for ch in text:
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth -= 1
+        if ch in seps and depth == 0:
+            out.append((sep, cur))
+            cur, sep = "", ch
+        else:
+            cur += ch
+    out.append((sep, cur))
+    return out
+
+
+def _split_unit(expr: str) -> tuple[str, str | None]:
+    """``"x[:,1]:deg"`` -> (``"x[:,1]"``, ``"deg"``); no suffix -> (expr, None)."""
+    parts = _split_top(expr, ":")
+    if len(parts) > 1:
+        unit = parts[-1][1].strip()
+        if unit in UNIT_FACTORS:
+            return expr[: len(expr) - len(parts[-1][1]) - 1], unit
+        if re.fullmatch(r"[A-Za-z/]+", unit):
+            raise LogError(f"unknown unit suffix ':{unit}' in '{expr}'; known: "
+                           f"{sorted(UNIT_FACTORS)}")
+    return expr, None
+
+
+_TERM = re.compile(r"^(?P<neg>-?)(?P<path>[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)"
+                   r"(?:\[(?P<idx>[^\]]*)\])?$")
+
+
+def _index(spec: str, term: str) -> tuple:
+    out: list[Any] = []
+    for part in (p.strip() for p in spec.split(",")):
+        try:
+            if ":" in part:
+                out.append(slice(*[int(s) if s.strip() else None for s in part.split(":")]))
+            else:
+                out.append(int(part))
+        except ValueError:
+            raise LogError(f"mapping term '{term}': bad selection [{spec}] (use integers and "
+                           "slices, e.g. [0], [:,1], [0:3])") from None
+    return tuple(out)
+
+
+def _lookup(term: str, raw: Mapping[str, Any], where: str) -> np.ndarray:
+    """One factor of a mapping expression: a variable, a struct path, with a selection."""
+    if term in raw and not isinstance(raw[term], dict):  # e.g. a CSV header "tau[0]"
+        try:
+            return np.asarray(raw[term], dtype=float)
+        except (TypeError, ValueError):
+            raise LogError(f"{where}variable '{term}' is not numeric") from None
+    m = _TERM.match(term)
+    if not m:
+        raise LogError(f"{where}mapping term '{term}' is neither a number nor a variable "
+                       "(name, struct path a.b, optional selection [i] or [:,j])")
+    node: Any = raw
+    walked = ""
+    for name in m.group("path").split("."):
+        if not isinstance(node, Mapping):
+            raise LogError(f"{where}mapping term '{term}': '{walked}' is an array, not a struct")
+        if name not in node:
+            what = f"struct '{walked}' has no field '{name}' (fields: {sorted(node)})" if walked \
+                else (f"mapping refers to variable '{name}' which is not in the file "
+                      f"(variables: {_describe(raw)})")
+            raise LogError(f"{where}{what}")
+        node = node[name]
+        walked = f"{walked}.{name}" if walked else name
+    if isinstance(node, Mapping):
+        fields = sorted(node)
+        raise LogError(f"{where}variable '{walked}' is a struct with fields {fields}; name one, "
+                       f"e.g. '{walked}.{fields[0] if fields else 'field'}'")
+    a = np.asarray(node)
+    if a.dtype == object:
+        raise LogError(f"{where}variable '{walked}' holds MATLAB cells or objects, not numbers")
+    if m.group("idx") is not None:
+        idx = _index(m.group("idx"), term)
+        try:
+            a = a[idx]
+        except IndexError:
+            raise LogError(f"{where}mapping term '{term}': selection [{m.group('idx')}] is out "
+                           f"of range for shape {a.shape}") from None
+    try:
+        a = np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        raise LogError(f"{where}variable '{walked}' is not numeric") from None
+    return -a if m.group("neg") else a
+
+
+def evaluate(expr: str, raw: Mapping[str, Any], where: str = "") -> np.ndarray:
+    """Evaluate a mapping expression (docs/spec.md section 6.4) on a file's variables.
+
+    ``expr``: factors joined by ``*`` or ``/``; a factor is a number or a variable with an
+    optional struct path and selection (``para.u[0]``, ``rec.pos[:,1]``); an optional unit
+    suffix (``:deg``, ``:ms``, ... ``UNIT_FACTORS``) converts the result to SI. A single-value
+    factor acts as a scalar. Returns the array; raises ``LogError`` naming the problem.
+    """
+    body, unit = _split_unit(expr.strip())
+    out: Any = None
+    for sep, term in _split_top(body, "*/"):
+        term = term.strip()
+        if not term:
+            raise LogError(f"{where}mapping expression '{expr}' has an empty factor")
+        try:
+            val: Any = float(term)
+        except ValueError:
+            val = _lookup(term, raw, where)
+            val = val.reshape(()) if val.size == 1 else val
+        try:
+            out = val if out is None else (out / val if sep == "/" else out * val)
+        except ValueError:
+            raise LogError(f"{where}mapping expression '{expr}': factors of shapes "
+                           f"{np.shape(out)} and {np.shape(val)} do not multiply") from None
     a = np.asarray(out, dtype=float)
+    if unit is not None:
+        a = a * UNIT_FACTORS[unit]
     return a.reshape(()) if a.size == 1 else a
 
 
-def parse_mapping(text: str | None) -> dict[str, str] | None:
-    """Parse ``"tau=gtau*vir,q1=qm,q2=qm"`` (a CLI mapping) into a dict; None stays None."""
-    if text is None or not text.strip():
-        return None
+def _parse_items(text: str, source: str) -> dict[str, str]:
     out = {}
-    for item in text.split(","):
+    for _, item in _split_top(text.replace("\n", ","), ","):
+        item = item.strip()
+        if not item:
+            continue
         if "=" not in item:
-            raise LogError(f"mapping item {item!r} must look like column=variable")
+            raise LogError(f"{source}mapping item {item!r} must look like column=variable")
         k, v = (s.strip() for s in item.split("=", 1))
         if k not in LOG_COLUMNS:
-            raise LogError(f"mapping: unknown log column '{k}'; known columns: {list(LOG_COLUMNS)}")
+            raise LogError(f"{source}mapping: unknown log column '{k}'; known columns: "
+                           f"{list(LOG_COLUMNS)}")
+        if k in out:
+            raise LogError(f"{source}mapping: column '{k}' mapped twice")
         out[k] = v
     return out
+
+
+def parse_mapping(text: str | None) -> dict[str, str] | None:
+    """Parse a CLI mapping into a dict (None stays None).
+
+    ``text``: comma-separated ``column=expression`` items (``"tau=gtau*vir,q1=qm,q2=qm"``;
+    commas inside ``[...]`` belong to the selection), or ``@FILE``: a map file with one item
+    per line (or comma-separated), ``#`` starting a comment. Raises ``LogError`` for an item
+    without ``=``, an unknown column, a column mapped twice, or a missing map file.
+    """
+    if text is None or not text.strip():
+        return None
+    text = text.strip()
+    if text.startswith("@"):
+        path = Path(text[1:])
+        if not path.exists():
+            raise LogError(f"map file not found: {path}")
+        lines = [ln.split("#", 1)[0] for ln in path.read_text().splitlines()]
+        return _parse_items("\n".join(lines), f"{path}: ")
+    return _parse_items(text, "")
 
 
 def load_log(
@@ -266,27 +462,25 @@ def load_log(
 ) -> Log:
     """Read and validate a log from CSV (header row), ``.npz`` or ``.mat``.
 
-    ``mapping`` maps a log column (``t``, ``tau``, ``q1``, ...) to a variable of the file or a
-    product like ``"gtau*vir"``; unmapped columns are looked up by their own name. Only log
-    columns are kept; other variables are ignored. ``required`` lists the columns that must be
-    present (static-map logs need only ``t``, ``v``, ``F``). Raises ``LogError`` with a clear
-    message for a missing file, column or variable, NaN, bad time axis or mismatched lengths.
+    ``mapping`` maps a log column (``t``, ``tau``, ``q1``, ...) to an expression on the
+    file's variables (docs/spec.md section 6.4: struct paths, selections, products, unit
+    suffixes, e.g. ``"para.u[0]*rec.act_torque_abs_nm[0]"``, ``"rec.act_pos_se_deg[0]:deg"``);
+    unmapped columns are looked up by their own name. Only log columns are kept. An (n, N)
+    array (one row per joint, as lab recorders store signals) is transposed to (N, n) when
+    N is the length of ``t``. ``required`` lists the columns that must be present (static-map
+    logs need only ``t``, ``v``, ``F``). A time column advancing by ``MS_SUSPECT_PERIOD``
+    (0.5) or more per sample is refused as probably milliseconds unless its mapping carries a
+    unit (``t=time:ms`` or ``t=time:s``). Raises ``LogError`` with a clear message for a
+    missing column (listing what the file has) or variable, a struct without a field path,
+    NaN, a bad time axis or mismatched lengths; ``FileNotFoundError`` for a missing file.
     """
     path = Path(path)
     where = f"{path}: "
-    if not path.exists():
-        raise FileNotFoundError(f"log file not found: {path}")
-    suffix = path.suffix.lower()
-    if suffix == ".csv":
-        raw = _read_csv(path)
-    elif suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            raw = {k: z[k] for k in z.files}
-    elif suffix == ".mat":
-        raw = _read_mat(path)
-    else:
-        raise LogError(f"{path}: unknown log format '{suffix}' (use .csv, .npz or .mat)")
-    raw = _gather_indexed(raw, where)
+    raw = read_variables(path)
+    arrays = {k: v for k, v in raw.items() if not isinstance(v, dict)}
+    # joined c[0], c[1], ... columns, and the originals so that 'tau[0]' still names one
+    raw = {**{k: v for k, v in raw.items() if isinstance(v, dict)}, **arrays,
+           **_gather_indexed(arrays, where)}
     mapping = dict(mapping or {})
     bad = sorted(set(mapping) - set(LOG_COLUMNS))
     if bad:
@@ -294,15 +488,60 @@ def load_log(
     cols: dict[str, Any] = {}
     for c in LOG_COLUMNS:
         if c in mapping:
-            cols[c] = _evaluate(mapping[c], raw, where)
+            cols[c] = evaluate(mapping[c], raw, where)
         elif c in raw:
+            if isinstance(raw[c], dict):
+                raise LogError(f"{where}variable '{c}' is a struct with fields "
+                               f"{sorted(raw[c])}; map the column to one, e.g. --map "
+                               f"'{c}={c}.{sorted(raw[c])[0] if raw[c] else 'field'}'")
             cols[c] = raw[c]
-    if cols.get("t") is not None and np.asarray(cols["t"]).ndim == 2:
-        cols["t"] = np.asarray(cols["t"]).reshape(-1)
+    missing = [c for c in required if c not in cols]
+    if missing:
+        raise LogError(
+            f"{where}missing column(s) {missing} (required: {list(required)}); the file has "
+            f"variables: {_describe(raw)}. Map them with --map, e.g. "
+            f"--map '{missing[0]}=<variable>' (docs/spec.md section 6.4)")
+    if cols.get("t") is not None:
+        t = np.asarray(cols["t"], dtype=float)
+        cols["t"] = t.reshape(-1) if t.ndim == 2 and 1 in t.shape else t
+        t = cols["t"]
+        if t.ndim == 1 and t.shape[0] > 1:
+            N = t.shape[0]
+            for c, a in cols.items():
+                a = np.asarray(a)
+                if c != "t" and a.ndim == 2 and a.shape[1] == N and a.shape[0] != N:
+                    cols[c] = a.T
+            period = (t[-1] - t[0]) / (N - 1)
+            unit = _split_unit(mapping["t"])[1] if "t" in mapping else None
+            if unit is None and period >= MS_SUSPECT_PERIOD:
+                expr = mapping.get("t", "t")
+                raise LogError(
+                    f"{where}time column t advances by {period:g} per sample: this looks like "
+                    f"milliseconds (or another unit), not seconds. Map it with a unit: "
+                    f"--map 't={expr}:ms' (or 't={expr}:s' if it really is in seconds)")
     for c, a in list(cols.items()):
         if np.ndim(a) == 0:
             raise LogError(f"{where}column {c} is a single number, expected one value per sample")
     return Log.from_arrays(required=required, time_rtol=time_rtol, source=str(path), **cols)
+
+
+def inspect_file(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """The variables of a log file (struct fields as dotted paths), for ``jaxflex inspect``:
+    a list of {"name", "shape", "dtype", "unit" (guessed from a log-column name or a name
+    suffix such as ``_deg``; "" when unknown), "value" (for a single number)}."""
+    rows = []
+    for name, v in flatten_variables(read_variables(path)).items():
+        a = np.asarray(v)
+        leaf = name.rsplit(".", 1)[-1]
+        unit = _UNITS.get(leaf, "")
+        if not unit:
+            unit = next((u for suf, u in _NAME_UNITS if leaf.endswith(suf)), "")
+        row: dict[str, Any] = {"name": name, "shape": tuple(a.shape), "dtype": str(a.dtype),
+                               "unit": unit}
+        if a.size == 1 and a.dtype.kind in "biuf":
+            row["value"] = float(a.reshape(()))
+        rows.append(row)
+    return rows
 
 
 def save_log(log: Log, path: str | os.PathLike) -> None:

@@ -17,6 +17,13 @@ Two model structures share that step (``ModelKind``):
 - ``"rigid"``: the rigid model of the paper's identification step (eq. 37-39),
   ``Jx q1'' = u - F`` with ``Jx = I + J`` (rotor locked to the link, q2 = q1). Effects act
   through their link, rotor and input hooks; spring effects have no meaning there.
+- ``"rotor"``: the rotor subsystem alone, ``J q2'' + K (q2 - q1) - rotor effects = tau_a``
+  (the rotor line of eq. 3), driven by the *measured* link motion: no model of the link side
+  is needed (the paper's cascade idea applied to fitting; issue 14). Its input per sample is
+  an array (4, n): tau [N m], q1 [rad], q1' [rad/s], q1'' [rad/s^2] measured; within a sample
+  q1 follows the measured velocity and acceleration. Friction on the motor side is the
+  ``motor_friction`` effect (the plant's LuGre acts on the link and is not used); a link
+  encoder's time skew and offset are the ``encoder_skew`` effect (``link_reading``).
 
 Both are ``lax.scan`` loops, so forward-mode Jacobians work (docs/spec.md section 9).
 """
@@ -35,8 +42,10 @@ from jaxtyping import Array, Float
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 from jaxflex.state import PlantState
 
-ModelKind = Literal["flexible", "rigid"]
-MODEL_KINDS: tuple[str, ...] = ("flexible", "rigid")
+ModelKind = Literal["flexible", "rigid", "rotor"]
+MODEL_KINDS: tuple[str, ...] = ("flexible", "rigid", "rotor")
+#: Rows of the per-sample input of the "rotor" kind: tau, measured q1, q1', q1''.
+ROTOR_INPUTS: tuple[str, ...] = ("tau", "q1", "dq1", "ddq1")
 
 _tmap = jax.tree_util.tree_map
 
@@ -75,11 +84,40 @@ def rigid_vector_field(plant: FlexibleJointPlant, x: PlantState, tau: Array) -> 
     return PlantState(q1=x.dq1, dq1=acc, q2=x.dq1, dq2=acc, z=dz, aux=daux)
 
 
+def link_reading(
+    plant: FlexibleJointPlant, q1: Array, dq1: Array, ddq1: Array,
+) -> tuple[Array, Array]:
+    """The link angle [rad] and velocity [rad/s] the plant's link-encoder effects
+    (``encoder_skew``: ``q1 + skew q1' + offset``) make of a measured link motion; unchanged
+    without such an effect."""
+    for e in plant.effects:
+        read = getattr(e, "link_reading", None)
+        if read is not None:
+            q1, dq1 = read(q1, dq1, ddq1)
+    return q1, dq1
+
+
+def rotor_vector_field(plant: FlexibleJointPlant, x: PlantState, u: Array) -> PlantState:
+    """Time derivative of the rotor subsystem (module docstring) under the input ``u`` (4, n)
+    (``ROTOR_INPUTS``): q2'' [rad/s^2] from the rotor line of eq. 3
+    (``FlexibleJointPlant.accelerations``) with the link state ``x.q1``, ``x.dq1`` taken from
+    the measurement; the link moves with the measured acceleration; z is frozen."""
+    tau = u[0]
+    _, ddq2 = plant.accelerations(x, tau)
+    daux = (
+        None if x.aux is None
+        else tuple(e.aux_rhs(a, tau, x) for e, a in zip(plant.effects, x.aux))
+    )
+    return PlantState(q1=x.dq1, dq1=u[3], q2=x.dq2, dq2=ddq2, z=jnp.zeros_like(x.z), aux=daux)
+
+
 def _vector_field(kind: ModelKind, plant: FlexibleJointPlant) -> Callable:
     if kind == "flexible":
         return plant.vector_field
     if kind == "rigid":
         return lambda x, tau: rigid_vector_field(plant, x, tau)
+    if kind == "rotor":
+        return lambda x, u: rotor_vector_field(plant, x, u)
     raise ValueError(f"model must be one of {MODEL_KINDS}, got {kind!r}")
 
 
@@ -95,6 +133,13 @@ def model_step(
     f = _vector_field(kind, plant)
     hs = h / substeps
     fr = plant.friction
+    if kind == "rotor":  # the measured link motion sets the link state at each sample
+        if tau.ndim != 2 or tau.shape[0] != len(ROTOR_INPUTS):
+            raise ValueError(f"rotor model: input per sample must be {ROTOR_INPUTS} stacked "
+                             f"as (4, n), got shape {tau.shape}")
+        q1, dq1 = link_reading(plant, tau[1], tau[2], tau[3])
+        x = eqx.tree_at(lambda s: (s.q1, s.dq1), x, (q1, dq1))
+        fr = None  # the plant's LuGre acts on the link, which is not modelled here
 
     def mech(xx):
         d = f(xx, tau)
@@ -164,7 +209,8 @@ def replay(
     kind: ModelKind, plant: FlexibleJointPlant, x0: PlantState, tau: Float[Array, "L n"],
     dt: float, substeps: int,
 ) -> tuple[PlantState, PlantState]:
-    """Replay a torque sequence [N m] (held over each sample of ``dt`` s) from ``x0``.
+    """Replay a torque sequence [N m] (held over each sample of ``dt`` s) from ``x0``
+    (for the "rotor" kind, ``tau`` is the (L, 4, n) input of the module docstring).
 
     Returns (states at the L sample instants, before each step; state after the last step).
     """

@@ -81,6 +81,8 @@ class Segments(eqx.Module):
 def output_columns(log: Log, kind: ModelKind, outputs: Sequence[str] | None) -> tuple[str, ...]:
     """The measured position channels fitted: default ("q1", "q2") for the flexible model when
     the log has q2, else ("q1",); raises ``ValueError`` for a channel the log lacks."""
+    if outputs is None and kind == "rotor":  # the rotor subsystem predicts the motor angle
+        outputs = ("q2",)
     if outputs is None:
         outputs = ("q1", "q2") if (kind == "flexible" and log.q2 is not None) else ("q1",)
     outputs = tuple(outputs)
@@ -96,7 +98,9 @@ def make_segments(
     window: int = 31, z_of_velocity: Any = None,
 ) -> Segments:
     """Non-overlapping segments of ``length`` samples within samples [start, stop) of a log
-    (a tail shorter than one segment is dropped; ``length`` None: one segment).
+    (a tail shorter than one segment is dropped; ``length`` None: one segment). For the
+    "rotor" kind ``tau`` holds (S, L, 4, n): the torque and the measured link angle, velocity
+    and acceleration (``jaxflex.step.ROTOR_INPUTS``).
 
     Start states: angles from the log, velocities by Savitzky-Golay differentiation over
     ``window`` samples, z from ``z_of_velocity`` (e.g. ``LuGre.z_steady``; zeros if None).
@@ -122,8 +126,13 @@ def make_segments(
     else:
         x0 = np.stack([q1[starts], v1[starts], q2[starts], v2[starts], z0], axis=1)
     y = np.concatenate([getattr(log, o) for o in outputs], axis=-1)
+    u = log.tau
+    if kind == "rotor":  # input (N, 4, n): tau and the measured link motion
+        if log.q2 is None:
+            raise ValueError("fit: the rotor model needs the motor angle q2 in the log")
+        u = np.stack([log.tau, q1, v1, savgol(q1, dt, 2, window)], axis=1)
     return Segments(
-        tau=jnp.asarray(log.tau[idx]), y_meas=jnp.asarray(y[idx]),
+        tau=jnp.asarray(u[idx]), y_meas=jnp.asarray(y[idx]),
         tau_pre=jnp.asarray(log.tau[pre]), x0=jnp.asarray(x0), t0=jnp.asarray(log.t[starts]),
     )
 

@@ -1,0 +1,256 @@
+"""Validation of a parameter set on measured logs (issue 14): a workflow on the engine.
+
+Per log, three numbers (each from the one implementation of its equation):
+
+- **segment replay gap** (open loop): the log cut into segments, each replayed under the
+  logged torque from its measured start (``jaxflex.fit.Problem`` with ``free_starts=False``,
+  ``jaxflex.fit.gap``): 0 is perfect, 1 as bad as predicting no motion;
+- **torque prediction error** from the measured motion, ``100 ||tau - tau_hat|| / ||tau||``
+  [%], with ``tau_hat`` from the inverse dynamics ``FlexibleJointPlant.torque_residuals``
+  (velocities and accelerations by Savitzky-Golay, ``jaxflex.fit.savgol``; LuGre z at its
+  steady state, eq. 35): rigid model ``tau_hat = tau + r_link + r_rotor`` with q2 = q1;
+  flexible and rotor models ``tau_hat = tau + r_rotor`` (the rotor line of eq. 3 with the
+  measured q1 and q2; for "rotor" the link reading passes the ``encoder_skew`` effect);
+- **closed-loop simulation error** in the benchmark metric ``100 ||y - y_sim|| / ||y||`` [%]
+  for position, velocity and torque, when the parameters declare the controller that ran
+  (``PPCascade``: the EMPS P position / P velocity cascade, in the parameter file's
+  top-level ``loop_controller`` section) and the log has a reference ``q1d``.
+
+Returns plain dicts; figures and files are written by ``jaxflex.cli.validate``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflex.fit import ParamSpace, Problem, gap, make_segments, output_columns, savgol
+from jaxflex.logs import Log
+from jaxflex.params import Params, ParamsError
+from jaxflex.plant import FlexibleJointPlant
+from jaxflex.state import PlantState
+from jaxflex.step import MODEL_KINDS, link_reading, model_step
+
+#: Top-level parameter-file section declaring the controller that ran during a log.
+LOOP_SECTION = "loop_controller"
+
+
+@dataclasses.dataclass(frozen=True)
+class PPCascade:
+    """The EMPS benchmark controller (Janot et al. 2019): P position / P velocity cascade.
+
+        qf(k) = 0.5 q(k) + 0.5 q(k-1),  qf'(k) = (qf(k) - qf(k-1)) / dt
+        v(k) = clip(kp kv (r(k) - q(k)) - kv qf'(k), -vmax, vmax) + d(k)       [V]
+        tau(k) = gtau v(k)                                                      [N or N m]
+
+    kp [1/s], kv [V s/m or V s/rad], gtau [N/V], vmax [V]; d: a disturbance in volts (the
+    EMPS pulses enter here). Declared in a parameter file as
+    ``"loop_controller": {"type": "pp_cascade", "kp": ..., "kv": ..., "gtau": ..., "vmax": 10}``.
+    """
+
+    kp: float
+    kv: float
+    gtau: float
+    vmax: float = 10.0
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> PPCascade:
+        """Validate a ``loop_controller`` section; raises ``ParamsError`` naming the key."""
+        if not isinstance(d, Mapping) or d.get("type") != "pp_cascade":
+            raise ParamsError(f"{LOOP_SECTION}: expected an object with \"type\": "
+                              f"\"pp_cascade\", got {d!r}")
+        known = ("type", "kp", "kv", "gtau", "vmax")
+        for k in d:
+            if k not in known:
+                raise ParamsError(f"{LOOP_SECTION}: unknown key '{k}'; known: {list(known)}")
+        out = {}
+        for k in ("kp", "kv", "gtau", "vmax"):
+            if k not in d and k != "vmax":
+                raise ParamsError(f"{LOOP_SECTION}.{k} is missing")
+            if k in d:
+                v = d[k]
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                    raise ParamsError(f"{LOOP_SECTION}.{k}: expected a number > 0, got {v!r}")
+                out[k] = float(v)
+        return cls(**out)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``loop_controller`` section."""
+        return {"type": "pp_cascade", **dataclasses.asdict(self)}
+
+
+def loop_controller(params: Params) -> PPCascade | None:
+    """The controller a parameter file declares for its logs (None if none)."""
+    d = params.extra.get(LOOP_SECTION)
+    return None if d is None else PPCascade.from_dict(d)
+
+
+def _need_x64(what: str) -> None:
+    if not jax.config.jax_enable_x64:
+        raise ValueError(f"{what} needs float64: call jax.config.update('jax_enable_x64', True) "
+                         "first (the jaxflex command does)")
+
+
+@eqx.filter_jit
+def _pp_loop(plant: FlexibleJointPlant, kind: str, ctrl: jax.Array, r: jax.Array,
+             d: jax.Array, x0: PlantState, dt: float, substeps: int):
+    kp, kv, gtau, vmax = ctrl
+
+    def body(carry, inp):
+        x, q_prev, qf_prev = carry
+        rk, dk = inp
+        q = x.q1[0]
+        qf = 0.5 * q + 0.5 * q_prev
+        v = jnp.clip(kp * kv * (rk - q) - kv * (qf - qf_prev) / dt, -vmax, vmax) + dk
+        x = model_step(kind, plant, x, jnp.atleast_1d(gtau * v), dt, substeps)
+        return (x, q, qf), (q, gtau * v)
+
+    q0 = x0.q1[0]
+    _, (q, tau) = jax.lax.scan(body, (x0, q0, q0), (r, d))
+    return q, tau
+
+
+def simulate_pp_cascade(
+    params: Params, ctrl: PPCascade, q_ref: np.ndarray, dt: float, *, kind: str = "rigid",
+    disturbance: np.ndarray | None = None, substeps: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closed loop of ``PPCascade`` around the model (one joint) following ``q_ref`` [rad or
+    m], sample period ``dt`` [s], ``disturbance`` [V] added to the controller output; the plant
+    is advanced by ``jaxflex.step.model_step``. Returns (position (N,), torque (N,) [N m or
+    N]) at the sample instants (position before each step)."""
+    _need_x64("simulate_pp_cascade")
+    if kind not in ("rigid", "flexible"):
+        raise ValueError(f"closed loop: model must be 'rigid' or 'flexible', got {kind!r}")
+    plant = params.to_plant()
+    if plant.n != 1:
+        raise ValueError(f"closed loop: the P/P cascade drives one joint, parameters have {plant.n}")
+    r = jnp.asarray(q_ref, float).reshape(-1)
+    d = jnp.zeros_like(r) if disturbance is None else jnp.asarray(disturbance, float).reshape(-1)
+    x0 = plant.init_state(q1=r[0])
+    if plant.friction is not None:
+        x0 = eqx.tree_at(lambda s: s.z, x0, plant.friction.z_steady(x0.dq1))
+    c = jnp.asarray([ctrl.kp, ctrl.kv, ctrl.gtau, ctrl.vmax], float)
+    q, tau = _pp_loop(plant, kind, c, r, d, x0, float(dt), int(substeps))
+    return np.asarray(q), np.asarray(tau)
+
+
+def benchmark_derivative(q: np.ndarray, dt: float) -> np.ndarray:
+    """Velocity of a measured position as the EMPS benchmark computes it: 4th-order 100 Hz
+    (or 0.4 x Nyquist, whichever is lower) Butterworth filtfilt, then central differences."""
+    from scipy.signal import butter, filtfilt
+
+    b, a = butter(4, min(100.0 / (0.5 / dt), 0.4))
+    return np.gradient(filtfilt(b, a, q), dt)
+
+
+def rel_error_pct(y: np.ndarray, y_hat: np.ndarray, drop: int = 0) -> float:
+    """``100 ||y - y_hat|| / ||y||`` [%] after dropping the first ``drop`` samples."""
+    y, y_hat = np.asarray(y)[drop:], np.asarray(y_hat)[drop:]
+    return float(100.0 * np.linalg.norm(y - y_hat) / np.linalg.norm(y))
+
+
+def closed_loop_errors(
+    params: Params, log: Log, *, kind: str = "rigid", disturbance: np.ndarray | None = None,
+    substeps: int = 2, drop: int = 49,
+) -> dict[str, Any] | None:
+    """The benchmark metric of the declared closed loop on ``log`` (None when the parameters
+    declare no controller or the log has no reference ``q1d``): position, velocity and
+    torque errors [%] (``drop`` first samples left out, as the EMPS benchmark does), and the
+    simulated series under ``"series"``."""
+    ctrl = loop_controller(params)
+    if ctrl is None or log.q1d is None:
+        return None
+    q_sim, tau_sim = simulate_pp_cascade(params, ctrl, log.q1d[:, 0], log.dt, kind=kind,
+                                         disturbance=disturbance, substeps=substeps)
+    q, tau = log.q1[:, 0], log.tau[:, 0]
+    v, v_sim = benchmark_derivative(q, log.dt), np.gradient(q_sim, log.dt)
+    return {"position_pct": rel_error_pct(q, q_sim, drop),
+            "velocity_pct": rel_error_pct(v, v_sim, drop),
+            "torque_pct": rel_error_pct(tau, tau_sim, drop),
+            "series": {"q": q_sim, "v": v_sim, "v_meas": v, "tau": tau_sim}}
+
+
+def motion_of(log: Log, kind: str = "flexible", window: int = 31) -> dict[str, np.ndarray]:
+    """The measured motion of a log for ``predicted_torque``: q1, q2 [rad] and their first
+    and second Savitzky-Golay derivatives (``jaxflex.fit.savgol``), and tau [N m]; (N, n)
+    each (q2 = q1 for the rigid model)."""
+    if kind not in MODEL_KINDS:
+        raise ValueError(f"validate: model must be one of {MODEL_KINDS}, got {kind!r}")
+    if kind != "rigid" and log.q2 is None:
+        raise ValueError(f"validate: the {kind} model needs the motor angle q2 in the log")
+    dt = log.dt
+    q1 = log.q1
+    q2 = q1 if kind == "rigid" else log.q2
+    return {"q1": q1, "d1": savgol(q1, dt, 1, window), "dd1": savgol(q1, dt, 2, window),
+            "q2": q2, "d2": savgol(q2, dt, 1, window), "dd2": savgol(q2, dt, 2, window),
+            "tau": log.tau}
+
+
+def predicted_torque(plant: FlexibleJointPlant, kind: str,
+                     motion: Mapping[str, Any]) -> jax.Array:
+    """Torque [N m] (N, n) the model needs for a measured ``motion`` (``motion_of``), from
+    ``FlexibleJointPlant.torque_residuals`` (module docstring); traceable in the plant."""
+    def one(a1, v1, ac1, a2, v2, ac2, tau):
+        if kind == "rotor":
+            a1, v1 = link_reading(plant, a1, v1, ac1)
+        z = plant.friction.z_steady(v1) if plant.friction is not None else jnp.zeros_like(v1)
+        aux = tuple(e.aux_steady(tau) for e in plant.effects) if plant.effects else None
+        x = PlantState(q1=a1, dq1=v1, q2=a2, dq2=v2, z=z, aux=aux)
+        r_link, r_rotor = plant.torque_residuals(x, ac1, ac2, tau)
+        return tau + (r_link + r_rotor if kind == "rigid" else r_rotor)
+
+    keys = ("q1", "d1", "dd1", "q2", "d2", "dd2", "tau")
+    return jax.vmap(one)(*[jnp.asarray(motion[k]) for k in keys])
+
+
+def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
+                      window: int = 31) -> np.ndarray:
+    """Torque [N m] the model needs for the measured motion of ``log`` (module docstring),
+    (N, n)."""
+    _need_x64("torque_prediction")
+    motion = motion_of(log, kind, window)
+    return np.asarray(eqx.filter_jit(predicted_torque)(params.to_plant(), kind, motion))
+
+
+def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int | None = None,
+                substeps: int = 4) -> float:
+    """Open-loop segment replay gap of ``params`` on ``log`` (module docstring): segments of
+    ``length`` samples (default: 0.5 s, at least 20 samples) started from the measured state."""
+    _need_x64("segment_gap")
+    plant = params.to_plant()
+    L = min(log.N, length or max(20, int(round(0.5 / log.dt))))
+    outputs = output_columns(log, kind, None)
+    segs = make_segments(log, kind=kind, outputs=outputs, length=L,
+                         z_of_velocity=plant.friction.z_steady if plant.friction else None)
+    space = ParamSpace.build(plant, ["J"])  # evaluated at the base values: nothing is fitted
+    n_state = segs.x0.shape[1]
+    prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
+                   dt=log.dt, kind=kind, substeps=substeps, outputs=outputs, free_starts=False)
+    return float(gap(prob, space.theta0()))
+
+
+def validate(
+    params: Params, log: Log, *, kind: str = "flexible", segment: int | None = None,
+    substeps: int = 4, disturbance: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """All validation numbers of ``params`` on one ``log`` (module docstring): ``gap``,
+    ``torque_pct``, and ``closed_loop`` (dict of position/velocity/torque errors [%], or
+    None). ``series`` holds the measured and predicted signals for figures."""
+    tau_hat = torque_prediction(params, log, kind=kind)
+    out: dict[str, Any] = {
+        "model": kind, "samples": log.N, "dt": log.dt,
+        "gap": segment_gap(params, log, kind=kind, length=segment, substeps=substeps),
+        "torque_pct": rel_error_pct(log.tau, tau_hat),
+    }
+    cl = closed_loop_errors(params, log, kind=kind if kind != "rotor" else "rigid",
+                            disturbance=disturbance, substeps=max(2, substeps // 2))
+    out["closed_loop"] = None if cl is None else {k: v for k, v in cl.items() if k != "series"}
+    out["series"] = {"t": log.t, "tau": log.tau, "tau_hat": tau_hat, "q": log.q1,
+                     "closed_loop": None if cl is None else cl["series"]}
+    return out

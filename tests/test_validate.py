@@ -1,0 +1,61 @@
+"""Validation workflow and the rotor model kind (issue 14): known answers on synthetic data."""
+
+import jax
+import numpy as np
+import pytest
+
+from jaxflex.logs import Log
+from jaxflex.params import Params, ParamsError
+from jaxflex.validate import PPCascade, rel_error_pct, segment_gap, torque_prediction
+
+jax.config.update("jax_enable_x64", True)
+
+
+def _rotor_params(K=2e4, skew=0.0, off=0.0):
+    return Params.from_dict({
+        "plant": {"I": 1.0, "J": 2.0, "K": K},
+        "friction": {"Fc": 1.0, "Fs": 1.0, "vs": 0.1, "sigma0": 1e5, "sigma1": 0.0, "sigma2": 0.0},
+        "effects": {"motor_friction": {"Fm": [3.0], "bm": [5.0], "width": [0.01]},
+                    "encoder_skew": {"skew": [skew], "offset": [off]}}})
+
+
+def _rotor_log(p, N=1500, dt=2e-3):
+    """A log whose torque obeys the rotor line of eq. 3 exactly for a smooth motion."""
+    t = np.arange(N) * dt
+    q1 = 0.3 * np.sin(2.0 * t) + 0.1 * np.sin(5.3 * t)
+    v1 = 0.6 * np.cos(2.0 * t) + 0.53 * np.cos(5.3 * t)
+    a1 = -1.2 * np.sin(2.0 * t) - 2.809 * np.sin(5.3 * t)
+    d = 1e-3 * np.sin(3.1 * t)
+    q2, v2, a2 = q1 + d, v1 + 3.1e-3 * np.cos(3.1 * t), a1 - 9.61e-3 * np.sin(3.1 * t)
+    e, sk = p.effects["motor_friction"], p.effects["encoder_skew"]
+    q1c = q1 + sk["skew"][0] * v1 + sk["offset"][0]
+    tau = (p.plant["J"][0] * a2 + p.plant["K"][0] * (q2 - q1c)
+           + e["Fm"][0] * np.tanh(v2 / e["width"][0]) + e["bm"][0] * v2)
+    return Log.from_arrays(t=t, tau=tau, q1=q1, q2=q2)
+
+
+def test_rotor_torque_prediction_is_exact_for_the_true_model():
+    p = _rotor_params(skew=2e-3, off=1e-4)
+    log = _rotor_log(p)
+    err = rel_error_pct(log.tau[100:-100], torque_prediction(p, log, kind="rotor")[100:-100])
+    assert err < 0.2  # Savitzky-Golay derivative error only
+    wrong = _rotor_params(K=3e4, skew=2e-3, off=1e-4)
+    assert rel_error_pct(log.tau, torque_prediction(wrong, log, kind="rotor")) > 10 * err
+    no_skew = _rotor_params(skew=0.0, off=1e-4)
+    assert rel_error_pct(log.tau, torque_prediction(no_skew, log, kind="rotor")) > 10 * err
+
+
+def test_rotor_replay_gap_small_for_true_model_and_larger_for_wrong_one():
+    p = _rotor_params()
+    log = _rotor_log(p)
+    g = segment_gap(p, log, kind="rotor", length=50)
+    g_wrong = segment_gap(_rotor_params(K=1e4), log, kind="rotor", length=50)
+    assert g < 0.05 and g_wrong > 3 * g
+
+
+def test_loop_controller_section_is_checked():
+    assert PPCascade.from_dict({"type": "pp_cascade", "kp": 1.0, "kv": 2.0, "gtau": 3.0}).vmax == 10
+    with pytest.raises(ParamsError, match="unknown key 'kpp'"):
+        PPCascade.from_dict({"type": "pp_cascade", "kpp": 1.0, "kv": 2.0, "gtau": 3.0})
+    with pytest.raises(ParamsError, match="gtau is missing"):
+        PPCascade.from_dict({"type": "pp_cascade", "kp": 1.0, "kv": 2.0})
