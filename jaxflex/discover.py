@@ -48,7 +48,7 @@ import numpy as np
 import scipy.signal
 import scipy.stats
 
-from jaxflex.effects import EFFECTS, AbstractEffect, Gated
+from jaxflex.effects import EFFECTS, AbstractEffect, Gated, candidate_effects
 from jaxflex.fit import (
     ParamSpace,
     Problem,
@@ -526,7 +526,7 @@ def discover(
     if log.q2 is None or log.tau is None:
         raise ValueError("discover: the log needs columns tau, q1 and q2")
     say = progress or (lambda s: None)
-    cands = list(cfg.candidates or sorted(EFFECTS))
+    cands = list(cfg.candidates or candidate_effects())
     for c in cands:
         if c not in EFFECTS:
             raise ValueError(f"unknown candidate effect {c!r}; known: {sorted(EFFECTS)}")

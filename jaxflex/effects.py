@@ -40,6 +40,11 @@ from jaxflex.validation import as_param, check_nonnegative, check_positive
 EFFECTS: dict[str, type[AbstractEffect]] = {}
 
 
+def candidate_effects() -> list[str]:
+    """Names of the effects the discrepancy workflow tries by default (``candidate``)."""
+    return sorted(k for k, c in EFFECTS.items() if c.candidate)
+
+
 def register_effect(cls: type[AbstractEffect]) -> type[AbstractEffect]:
     """Class decorator: make an effect known by its ``name`` (docs/spec.md section 8)."""
     if not getattr(cls, "name", None):
@@ -57,6 +62,9 @@ class AbstractEffect(eqx.Module):
     name: ClassVar[str] = ""
     where: ClassVar[str] = ""
     constraints: ClassVar[dict[str, str]] = {}
+    #: Whether the discrepancy workflow tries it by default (a sensor nuisance that adds no
+    #: torque, such as an encoder skew, is not a candidate for missing physics).
+    candidate: ClassVar[bool] = True
 
     @classmethod
     def typical(cls, n: int) -> AbstractEffect:
@@ -446,6 +454,7 @@ class EncoderSkew(AbstractEffect):
     name: ClassVar[str] = "encoder_skew"
     where: ClassVar[str] = "link encoder reading"
     constraints: ClassVar[dict[str, str]] = {"skew": "free", "offset": "free"}
+    candidate: ClassVar[bool] = False
     skew: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
     offset: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 

@@ -52,9 +52,9 @@ def main(argv: list[str] | None = None) -> None:
     jax.config.update("jax_enable_x64", True)
     from jaxflex.datagen import generate_log
     from jaxflex.discover import DiscoverConfig, discover
-    from jaxflex.effects import EFFECTS
+    from jaxflex.effects import candidate_effects
 
-    names = a.effects.split(",") if a.effects else sorted(EFFECTS)
+    names = a.effects.split(",") if a.effects else candidate_effects()
     hidden = a.hidden.split(",") if a.hidden else names
     if a.small:
         hidden, a.per_effect, a.clean, a.t_final = hidden[:1], 1, 1, 6.0

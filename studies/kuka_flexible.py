@@ -62,7 +62,7 @@ def torque_fit_residuals(theta: dict, data: TorqueFit) -> jax.Array:
 
 def fit(params, log, free, max_steps=50):
     """Equation-error fit of ``free`` on ``log``; returns (params, stderr dict, theta)."""
-    from jaxflex.fit import ParamSpace, least_squares, set_values
+    from jaxflex.fit import ParamSpace, covariance, least_squares, set_values
     from jaxflex.validate import motion_of
 
     motion = {k: jnp.asarray(v) for k, v in motion_of(log, "rotor").items()}
@@ -71,22 +71,9 @@ def fit(params, log, free, max_steps=50):
     sol = least_squares(data, space.theta0(), fn=torque_fit_residuals, max_steps=max_steps,
                         scaling="marquardt")
     theta = sol.y
-    # covariance s^2 (J^T J)^-1 over the fitted coordinates, mapped to physical values
-    from jax.flatten_util import ravel_pytree
-
-    flat, unravel = ravel_pytree(theta)
-    r = torque_fit_residuals(theta, data)
-    Jm = np.asarray(jax.jacfwd(lambda f: torque_fit_residuals(unravel(f), data))(flat))
-    fitted = np.asarray(space.fitted_flat())
-    Jf = Jm[:, fitted]
-    s2 = float(np.sum(np.asarray(r) ** 2)) / max(r.size - Jf.shape[1], 1)
-    cov = np.zeros((flat.size, flat.size))
-    cov[np.ix_(fitted, fitted)] = s2 * np.linalg.pinv(Jf.T @ Jf)
-    T = space.physical_jacobian(theta)
-    se_flat = np.sqrt(np.maximum(np.diag(T @ cov @ T.T), 0.0)) * data.scale
+    cov = covariance(data, theta, fn=torque_fit_residuals)  # the engine's, through the space
     phys = {k: np.asarray(v) for k, v in space.physical(theta).items()}
-    _, unr = ravel_pytree(space.physical(theta))
-    se = {k: float(np.asarray(v)[0]) for k, v in unr(jnp.asarray(se_flat)).items()}
+    se = {k: float(np.asarray(v)[0]) for k, v in cov["stderr"].items()}
     return set_values(params, phys), se, sol
 
 

@@ -27,8 +27,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", dest="mapping", default=None,
                    help="column mapping for .mat/.npz/.csv variables, e.g. "
                    "'t=t,tau=gtau*vir,q1=qm,q2=qm'")
-    p.add_argument("--model", choices=("flexible", "rigid"), default="flexible",
-                   help="flexible joint (eq. 3) or rigid Jx x'' = u - F (eq. 37)")
+    p.add_argument("--model", choices=("flexible", "rigid", "rotor"), default="flexible",
+                   help="flexible joint (eq. 3), rigid Jx x'' = u - F (eq. 37), or rotor: the "
+                        "rotor subsystem J q2'' + K (q2 - q1) + motor effects = tau driven by "
+                        "the measured link motion (subsystem identification, no link model)")
     p.add_argument("--segment", type=int, default=500,
                    help="samples per multiple-shooting segment (default 500; 0: whole log)")
     p.add_argument("--substeps", type=int, default=4, help="integrator substeps per sample")
@@ -55,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params
 
-    required = REQUIRED_COLUMNS if args.model == "flexible" else ("t", "tau", "q1")
+    required = REQUIRED_COLUMNS if args.model != "rigid" else ("t", "tau", "q1")
     log = load_log(args.log, parse_mapping(args.mapping), required=required)
     log = log.slice(args.start, args.stop)
     init = load_params(args.params, accept_unconverged=True)  # a start guess

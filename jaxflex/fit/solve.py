@@ -344,17 +344,20 @@ def residuals(prob: Problem, y: Any) -> jax.Array:
 
 
 @eqx.filter_jit
-def _jacobian(prob: Problem, y: Any):
+def _jacobian(fn: Callable, prob: Any, y: Any):
     flat, unravel = ravel_pytree(y)
-    return prob.residuals(y), jax.jacfwd(lambda f: prob.residuals(unravel(f)))(flat)
+    return fn(y, prob), jax.jacfwd(lambda f: fn(unravel(f), prob))(flat)
 
 
 def covariance(
-    prob: Problem, y: Any, *, inflation: float = 1.0, rank_rtol: float = 1e-9,
+    prob: Any, y: Any, *, fn: Callable = problem_residuals, inflation: float = 1.0,
+    rank_rtol: float = 1e-9,
 ) -> dict[str, Any]:
     """Covariance and standard errors of the physical parameters at ``y`` (module docstring).
 
-    Only the fitted unknowns enter (masked parameters are left out). ``inflation`` multiplies
+    ``prob`` is a ``Problem`` or any fit with a ``space`` (``ParamSpace``) whose unknowns are
+    theta alone; ``fn(y, prob)`` its residuals (as for ``least_squares``). Only the fitted
+    unknowns enter (masked parameters are left out). ``inflation`` multiplies
     the residual variance (e.g. the integrated autocorrelation time of the residuals, in
     samples). Returns a dict: ``stderr`` (name -> (n,) array, physical units; NaN for names
     not fitted), ``cov_phys`` (physical covariance over the flattened names), ``rank``,
@@ -363,8 +366,9 @@ def covariance(
     (sum of squared output residuals, weighted units), ``defects_ss`` (the same of the
     continuity defects), ``n_res`` (output residuals).
     """
-    theta, _ = prob.split(y)
-    r, Jm = (np.asarray(a) for a in _jacobian(prob, y))
+    theta = prob.split(y)[0] if hasattr(prob, "split") else y
+    r, Jm = (np.asarray(a) for a in _jacobian(fn, prob, y))
+    n_out = int(getattr(prob, "n_out", r.size))
     th_flat, th_unravel = ravel_pytree(theta)
     k = th_flat.shape[0]
     fitted_theta = prob.space.fitted_flat()
@@ -372,8 +376,8 @@ def covariance(
     cols[:k] = fitted_theta
     J = Jm[:, cols]
     m, p = J.shape
-    rss = float(np.sum(r[: prob.n_out] ** 2))
-    s2 = rss / max(prob.n_out - p, 1) * inflation
+    rss = float(np.sum(r[: n_out] ** 2))
+    s2 = rss / max(n_out - p, 1) * inflation
     scale = np.linalg.norm(J, axis=0)
     scale = np.where(scale > 0, scale, 1.0)
     _, sv, Vt = np.linalg.svd(J / scale, full_matrices=False)
@@ -402,4 +406,4 @@ def covariance(
         null_names = [prob.space.names[int(i)] for i in np.unique(ids[mark])]
     return {"stderr": se, "rank": rank, "n_free": p, "singular_values": sv.tolist(),
             "null_names": null_names, "s2": s2, "cov_phys": cov_phys, "rss": rss,
-            "defects_ss": float(np.sum(r[prob.n_out:] ** 2)), "n_res": prob.n_out}
+            "defects_ss": float(np.sum(r[n_out:] ** 2)), "n_res": n_out}

@@ -152,6 +152,8 @@ def make_problem(
     dt = log.dt
     if model == "rigid":
         w_def = np.array([1.0, L * dt / 2, 1.0])
+    elif model == "rotor":  # the link motion is measured, not simulated: only q2, q2' join
+        w_def = np.array([0.0, 0.0, 1.0, L * dt / 2, 0.0])
     else:
         w_def = np.array([1.0, L * dt / 2, 1.0, L * dt / 2, 1.0])
     w_def = w_def * continuity_weight * math.sqrt(L) / output_scale
