@@ -510,6 +510,7 @@ def _gap_floor(log: Log, ws: Workspace, window: int = 31) -> float:
     return float(math.sqrt(err2 / den))
 
 
+@__import__("jaxflex.validation").validation.requires_float64
 def discover(
     log: Log, nominal: Params | None = None, config: DiscoverConfig | None = None,
     progress: Callable[[str], None] | None = None,

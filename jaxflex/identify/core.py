@@ -144,6 +144,7 @@ def make_problem(
     return prob, prob.y0()
 
 
+@__import__("jaxflex.validation").validation.requires_float64
 def identify(
     log: Log, init: Params, free: Sequence[str] = DEFAULT_FREE, *,
     model: ModelKind = "flexible", segment_length: int | None = None, substeps: int = 4,
