@@ -51,6 +51,8 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params
 
+    from jaxflex.cli.outputs import check_outputs
+    check_outputs(args.force, files=[args.out, args.figure or Path(args.out).with_suffix(".png")])
     required = REQUIRED_COLUMNS if args.model == "flexible" else ("t", "tau", "q1")
     log = load_log(args.log, parse_mapping(args.mapping), required=required)
     log = log.slice(args.start, args.stop)
