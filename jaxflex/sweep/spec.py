@@ -263,6 +263,28 @@ class SweepSpec:
         """Column labels, in sample-vector order."""
         return [c.label for c in self.columns]
 
+    def fs_fc_pairs(self) -> list[tuple[int, float, int, float]]:
+        """Per joint where Fc or Fs is sampled: (column of Fc or -1, nominal Fc, column of Fs
+        or -1, nominal Fs) [N m]; the sampler redraws a pair that breaks Fs >= Fc."""
+        col = {(c.name, c.joint): i for i, c in enumerate(self.columns)}
+        out = []
+        for j in range(self.n):
+            i_fc, i_fs = col.get(("friction.Fc", j), -1), col.get(("friction.Fs", j), -1)
+            if i_fc >= 0 or i_fs >= 0:
+                out.append((i_fc, float(self.nominal.friction["Fc"][j]), i_fs,
+                            float(self.nominal.friction["Fs"][j])))
+        return out
+
+    def fs_below_fc_possible(self) -> bool:
+        """Whether a draw can give Fs < Fc on some joint (both supports overlap): such draws
+        are redrawn, so the sweep samples the spread conditioned on Fs >= Fc."""
+        for i_fc, fc0, i_fs, fs0 in self.fs_fc_pairs():
+            fc_hi = self.columns[i_fc].dist.support()[1] if i_fc >= 0 else fc0
+            fs_lo = self.columns[i_fs].dist.support()[0] if i_fs >= 0 else fs0
+            if fs_lo < fc_hi:
+                return True
+        return False
+
     def with_(self, **changes: Any) -> SweepSpec:
         """A copy with some fields replaced (e.g. ``compensation=False``)."""
         return dataclasses.replace(self, **changes)
@@ -470,6 +492,18 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
         except ValueError:
             pass  # value checks happen per sample; only the structure is checked here
     samples = pos("samples", 1000, integer=True)
+    for j in range(n):  # LuGre needs Fs >= Fc (docs/spec.md section 2)
+        sup = {}
+        for nm in ("Fc", "Fs"):
+            c = next((c for c in columns if c.name == f"friction.{nm}" and c.joint == j), None)
+            v = float(nominal.friction[nm][j])
+            sup[nm] = c.dist.support() if c is not None else (v, v)
+        if sup["Fs"][1] < sup["Fc"][0] or (sup["Fs"][1] == sup["Fc"][0] and sup["Fs"] != sup["Fc"]):
+            where = "" if n == 1 else f"[{j}]"
+            raise SpreadError(
+                f"friction.Fs{where} is always drawn below friction.Fc{where} (Fs up to "
+                f"{sup['Fs'][1]:g}, Fc from {sup['Fc'][0]:g} N m); LuGre needs Fs >= Fc: give "
+                "Fs a range above Fc's")
     return SweepSpec(
         nominal=nominal, columns=columns, trajectory=traj, t_final=t_final, dt=dt,
         substeps=pos("substeps", 10, integer=True), compensation=ctrl.get("compensation", True),
