@@ -6,8 +6,9 @@ checks stay out of the way under ``jit``/``vmap``/``grad`` (STYLE: two tiers of 
 
 from __future__ import annotations
 
+import difflib
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
 import jax
@@ -92,3 +93,10 @@ def requires_float64(fn: F) -> F:
 
     wrapper.__requires_float64__ = True  # type: ignore[attr-defined]
     return wrapper  # type: ignore[return-value]
+
+
+def did_you_mean(key: str, known: Sequence[str]) -> str:
+    """`` (did you mean 'X'?)`` with the known name closest to ``key`` (difflib), or ``""``."""
+    known = tuple(known)
+    close = difflib.get_close_matches(key, known, n=1) or [k for k in known if k.startswith(key)]
+    return f" (did you mean '{close[0]}'?)" if close else ""

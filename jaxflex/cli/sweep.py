@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import argparse
 
-EXAMPLE = ("jaxflex sweep studies/spreads/sweep_friction.json --out out/sweep --samples 2000\n"
-           "  (after Ctrl-C)  jaxflex sweep studies/spreads/sweep_friction.json --out out/sweep "
+EXAMPLE = ("jaxflex sweep studies/spreads/sweep_paper_20pct.json --out out/sweep --samples 2000\n"
+           "  (after Ctrl-C)  jaxflex sweep studies/spreads/sweep_paper_20pct.json --out out/sweep "
            "--samples 2000 --resume")
 CHECKPOINT = "checkpoint.pkl"
 

@@ -51,6 +51,7 @@ from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
 from jaxflex.presets import SENSING_PRESETS, TRAJECTORIES, paper_params, sensing_of
 from jaxflex.sensing import SENSING_FIELDS
+from jaxflex.validation import did_you_mean
 
 SENSING_NAMES: tuple[str, ...] = ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")
 LIMIT_NAMES: tuple[str, ...] = ("tau_max",)
@@ -375,9 +376,10 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
 
     if not isinstance(d, dict):
         raise SpreadError(f"a spread must be a JSON object, got {type(d).__name__}")
-    bad = set(d) - _TOP_KEYS
-    if bad:
-        raise SpreadError(f"unknown top-level key(s) {sorted(bad)}; known: {sorted(_TOP_KEYS)}")
+    for k in d:
+        if k not in _TOP_KEYS:
+            raise SpreadError(f"unknown top-level key '{k}'{did_you_mean(k, sorted(_TOP_KEYS))}; "
+                              f"known: {sorted(_TOP_KEYS)}")
     nominal = _nominal(d.get("nominal"), base)
     n = nominal.n
     traj = d.get("trajectory", "sinusoid")
@@ -388,9 +390,11 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
     ctrl = d.get("controller", {}) or {}
     if not isinstance(ctrl, dict):
         raise SpreadError("controller: expected an object")
-    bad = set(ctrl) - {"compensation", "q2d_method", "tau_max"}
-    if bad:
-        raise SpreadError(f"controller: unknown field(s) {sorted(bad)}")
+    for k in ctrl:
+        if k not in ("compensation", "q2d_method", "tau_max"):
+            raise SpreadError(f"controller: unknown field '{k}'"
+                              f"{did_you_mean(k, ('compensation', 'q2d_method', 'tau_max'))}; "
+                              "known: ['compensation', 'q2d_method', 'tau_max']")
     if ctrl.get("q2d_method", "model") not in Q2D_METHODS:
         raise SpreadError(f"controller.q2d_method must be one of {Q2D_METHODS}, got {ctrl['q2d_method']!r}")
     if not isinstance(ctrl.get("compensation", True), bool):
@@ -433,7 +437,8 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
             if len(parts) != 3:
                 raise SpreadError(f"uncertain.{key}: effect entries are named effects.<effect>.<parameter>")
             if parts[1] not in EFFECTS:
-                raise SpreadError(f"uncertain.{key}: unknown effect {parts[1]!r}; known: {sorted(EFFECTS)}")
+                raise SpreadError(f"uncertain.{key}: unknown effect {parts[1]!r}"
+                                  f"{did_you_mean(parts[1], sorted(EFFECTS))}; known: {sorted(EFFECTS)}")
             names = [base_name]
         elif parts[0] in GROUPS and len(parts) == 2:
             if parts[1] == "*":
@@ -442,13 +447,13 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
                 names = [base_name]
             else:
                 raise SpreadError(
-                    f"uncertain.{key}: unknown name {parts[1]!r} in group {parts[0]!r}; "
-                    f"known: {list(GROUPS[parts[0]])}"
+                    f"uncertain.{key}: unknown name {parts[1]!r} in group {parts[0]!r}"
+                    f"{did_you_mean(parts[1], GROUPS[parts[0]])}; known: {list(GROUPS[parts[0]])}"
                 )
         else:
             raise SpreadError(
                 f"uncertain.{key}: names are <group>.<name> with group in {sorted(GROUPS)} "
-                "or effects.<effect>.<parameter>"
+                f"or effects.<effect>.<parameter>{did_you_mean(parts[0], sorted(GROUPS) + ['effects'])}"
             )
         if parts[0] == "limits" and not math.isfinite(tau_max) and isinstance(dist, dict) and (
             {"rel", "rel_std", "factor"} & set(dist) or (dist.get("dist") == "normal" and "mean" not in dist)
