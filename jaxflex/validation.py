@@ -98,5 +98,7 @@ def requires_float64(fn: F) -> F:
 def did_you_mean(key: str, known: Sequence[str]) -> str:
     """`` (did you mean 'X'?)`` with the known name closest to ``key`` (difflib), or ``""``."""
     known = tuple(known)
-    close = difflib.get_close_matches(key, known, n=1) or [k for k in known if k.startswith(key)]
+    same_case = [k for k in known if k.lower() == key.lower()]
+    close = (same_case or difflib.get_close_matches(key, known, n=1)
+             or [k for k in known if k.startswith(key)])
     return f" (did you mean '{close[0]}'?)" if close else ""
