@@ -41,6 +41,7 @@ from jaxtyping import Array, ArrayLike, Float
 from jaxflex.controller import CascadeGains
 from jaxflex.observer import FrictionObserver
 from jaxflex.plant import FlexibleJointPlant
+from jaxflex.validation import requires_float64
 
 DEFAULT_EPS: float = 1e-3
 """Tolerance eps [rad/s] of eq. 30 below which Psi# is held at 1/eps."""
@@ -57,6 +58,7 @@ def _friction(plant: FlexibleJointPlant):
     return plant.friction
 
 
+@requires_float64
 def psi_sharp(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
               eps: float = DEFAULT_EPS) -> Float[Array, " n"]:
     """Psi#(v) of eq. 30 [N m s/rad]: the inverse of the observer's Psi_hat(v) = m(v)/g(v)
@@ -71,6 +73,7 @@ def psi_sharp(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
     return jnp.where(small, 1.0 / eps, 1.0 / obs.psi_hat(safe_v))
 
 
+@requires_float64
 def n2_matrix(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
               eps: float = DEFAULT_EPS) -> Float[Array, "5n 5n"]:
     """The matrix N2 of eq. 29 at link velocity ``v`` [rad/s] (shape (n,) or a scalar for all
@@ -95,6 +98,7 @@ def n2_matrix(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
     return jnp.block([[jnp.diag(jnp.broadcast_to(e, Ke.shape)) for e in row] for row in rows])
 
 
+@requires_float64
 def d_vector(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike, z: ArrayLike,
              eps: float = DEFAULT_EPS) -> Float[Array, " 5n"]:
     """The perturbation D of eq. 29 at link velocity ``v`` [rad/s] and bristle state ``z``
@@ -110,6 +114,7 @@ def d_vector(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike, z: Ar
     return jnp.concatenate([gains.L1 * s01 * w, s01 * w, zero, zero, last])
 
 
+@requires_float64
 def lambda_min(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
                eps: float = DEFAULT_EPS) -> Float[Array, ""]:
     """Smallest eigenvalue of N2(v) (eq. 29, 31); ``v`` [rad/s] (n,) or a scalar for all joints.
@@ -117,6 +122,7 @@ def lambda_min(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
     return jnp.linalg.eigvalsh(n2_matrix(plant, gains, v, eps))[0]
 
 
+@requires_float64
 def lambda_min_curve(plant: FlexibleJointPlant, gains: CascadeGains, velocities: ArrayLike,
                      eps: float = DEFAULT_EPS) -> Float[Array, " N"]:
     """lambda_min(N2) at each speed of ``velocities`` [rad/s] (every joint at that speed).
@@ -175,6 +181,7 @@ def _check_range(vmax: float, num: int, margin: float, eps: float) -> None:
         raise ValueError(f"certify: eps must be > 0 rad/s, got {eps}")
 
 
+@requires_float64
 def certify(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAULT_VMAX, *,
             num: int = DEFAULT_NUM, margin: float = 0.0, eps: float = DEFAULT_EPS,
             refine: int = 40) -> CertificateResult:
@@ -204,6 +211,7 @@ def certify(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAUL
     return CertificateResult(vel, lam, up_to, bool(ok.all()), float(margin), float(eps))
 
 
+@requires_float64
 def ultimate_bound(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAULT_VMAX,
                    *, num: int = DEFAULT_NUM, eps: float = DEFAULT_EPS) -> dict[str, float]:
     """The ultimate bound of eq. 32-33 over link speeds |q1'| <= vmax [rad/s].

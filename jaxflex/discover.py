@@ -65,8 +65,9 @@ from jaxflex.fit import (
 )
 from jaxflex.logs import Log
 from jaxflex.params import Params
-from jaxflex.presets import paper_params
 from jaxflex.plant import FlexibleJointPlant
+from jaxflex.presets import paper_params
+from jaxflex.validation import requires_float64
 
 #: Nominal parameters refitted with every model.
 NOMINAL_FIT: tuple[str, ...] = ("I", "J", "K", "Fc", "Fs", "sigma2")
@@ -510,6 +511,7 @@ def _gap_floor(log: Log, ws: Workspace, window: int = 31) -> float:
     return float(math.sqrt(err2 / den))
 
 
+@requires_float64
 def discover(
     log: Log, nominal: Params | None = None, config: DiscoverConfig | None = None,
     progress: Callable[[str], None] | None = None,

@@ -108,7 +108,8 @@ class LoopConfig:
 class LoopResult:
     """What happened: the log columns (t (N,), tau, q1, q2, q1d (N, n); q1d None without a
     reference), per-sample compute time [s] (controller step), lateness of each sample's
-    start after its scheduled time [s], the deadline misses, guard trips, and why it stopped."""
+    start after its scheduled time [s], the deadline misses, guard trips, why it stopped, and
+    the log written (None: no log asked for, or fewer than 2 samples)."""
 
     t: np.ndarray
     tau: np.ndarray
@@ -121,6 +122,7 @@ class LoopResult:
     max_consecutive_misses: int
     faults: list[str] = field(default_factory=list)
     stop_reason: str = "completed"
+    log_path: str | None = None
 
     @property
     def samples(self) -> int:
@@ -154,8 +156,13 @@ def run_loop(
     """Run ``controller`` around ``io`` at ``config.rate`` for ``config.duration`` seconds.
 
     Sample k is scheduled at t_k = k / rate after the start; the controller gets t_k (the
-    nominal sample time, as in the simulation) and the angles read at that sample. Always
-    leaves zero torque commanded. The log (if ``log_path``) is written even after a fault.
+    nominal sample time, as in the simulation) and the angles read at that sample.
+
+    Every way out ends at zero torque and returns a result whose log (if ``log_path``) is
+    written: completion, a guard trip (NaN or out-of-range angle, non-finite torque), the
+    watchdog (overrun), SIGINT/SIGTERM (Ctrl-C; stops after the current sample), a
+    controller that raises, or a rig that fails (e.g. its process died); ``stop_reason``
+    says which. Exceptions are reported there, not raised.
     """
     cfg = LoopConfig() if config is None else config
     n = int(getattr(io, "n", 1))
@@ -181,6 +188,7 @@ def run_loop(
     if threading.current_thread() is threading.main_thread():
         for s in (signal.SIGINT, signal.SIGTERM):
             old[s] = signal.signal(s, on_signal)
+    k = -1
     try:
         controller.reset()
         io.read()  # warm the I/O path (reads have no side effect) before the clock starts
@@ -193,7 +201,11 @@ def run_loop(
                 _sleep_until(t_start + t_k, cfg.busy_wait)
             if cfg.realtime:
                 late[k] = time.perf_counter() - (t_start + t_k)
-            q1, q2 = io.read()
+            try:
+                q1, q2 = io.read()
+            except Exception as e:
+                stop["reason"] = f"rig: reading the encoders failed at sample {k}: {_describe(e)}"
+                break
             q1 = np.asarray(q1, float).reshape(n)
             q2 = np.asarray(q2, float).reshape(n)
             fault = None
@@ -204,14 +216,22 @@ def run_loop(
                 fault = f"sample {k}: angle beyond +-{cfg.q_limit} rad (q1={q1.tolist()}, q2={q2.tolist()})"
             else:
                 c0 = time.perf_counter()
-                u = controller.step(t_k, float(q1[0]), float(q2[0])) if n == 1 else controller.step(t_k, q1, q2)
+                try:
+                    u = controller.step(t_k, float(q1[0]), float(q2[0])) if n == 1 else controller.step(t_k, q1, q2)
+                    u = np.asarray(u, float).reshape(n)
+                except Exception as e:
+                    stop["reason"] = f"controller: step raised at sample {k}: {_describe(e)}"
+                    break
                 comp[k] = time.perf_counter() - c0
-                u = np.asarray(u, float).reshape(n)
                 if not np.all(np.isfinite(u)):
                     fault = f"sample {k}: non-finite torque command {u.tolist()}"
                 else:
                     tau = np.clip(u, -cfg.tau_limit, cfg.tau_limit)
-            io.write(tau)
+            try:
+                io.write(tau)
+            except Exception as e:
+                stop["reason"] = f"rig: writing the torque failed at sample {k}: {_describe(e)}"
+                break
             done = time.perf_counter()
             T[k], TAU[k], Q1[k], Q2[k] = t_k, tau, q1, q2
             if Q1D is not None:
@@ -231,23 +251,48 @@ def run_loop(
                     break
             else:
                 consec = 0
+    except Exception as e:  # reset() or the warm-up read
+        stop["reason"] = f"error before the first sample: {_describe(e)}"
     finally:
+        # a second Ctrl-C while stopping must not skip the zero torque or the log
+        for s in old:
+            signal.signal(s, on_signal)
         try:
             io.write(zero)
-        finally:
+        except Exception as e:
+            faults.append(f"zero torque could not be written: {_describe(e)}")
+        try:
             io.close()
-            for s, h in old.items():
-                signal.signal(s, h)
+        except Exception as e:
+            faults.append(f"closing the rig failed: {_describe(e)}")
+        for s, h in old.items():
+            signal.signal(s, h)
     m = int(np.sum(np.isfinite(T)))  # samples are filled in order
     res = LoopResult(
         t=T[:m], tau=TAU[:m], q1=Q1[:m], q2=Q2[:m], q1d=None if Q1D is None else Q1D[:m],
         compute_time=comp[:m], lateness=late[:m], misses=misses, max_consecutive_misses=worst,
         faults=faults, stop_reason=stop["reason"] or "completed",
     )
-    if log_path is not None and m >= 2:
-        save_log(Log.from_arrays(t=res.t, tau=res.tau, q1=res.q1, q2=res.q2, q1d=res.q1d,
-                                 source="run-loop"), log_path)
+    # a log holds finite samples only (docs/spec.md section 6): it ends before the first
+    # sample with a non-finite angle (that sample is in ``faults``)
+    finite = np.all(np.isfinite(res.q1), axis=1) & np.all(np.isfinite(res.q2), axis=1)
+    m_log = int(np.argmin(finite)) if not finite.all() else m
+    if log_path is not None and m_log >= 2:
+        sl = slice(0, m_log)
+        try:
+            save_log(Log.from_arrays(t=res.t[sl], tau=res.tau[sl], q1=res.q1[sl], q2=res.q2[sl],
+                                     q1d=None if res.q1d is None else res.q1d[sl],
+                                     source="run-loop"), log_path)
+            res.log_path = str(log_path)
+            if m_log < m:
+                res.faults.append(f"log ends at sample {m_log - 1}, before the non-finite angle")
+        except (OSError, ValueError) as e:
+            res.faults.append(f"log not written: {_describe(e)}")
     return res
+
+
+def _describe(e: BaseException) -> str:
+    return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
 
 
 # ----- simulated rig ---------------------------------------------------------------------------
@@ -256,10 +301,18 @@ def run_loop(
 def _rig_main(read_fd: int, write_fd: int) -> None:
     """Entry of the rig's child process (started with ``python -c``, so that no user script is
     re-imported, unlike multiprocessing's spawn)."""
+    # Ctrl-C in a terminal reaches the whole process group: the loop (the parent) stops the
+    # plant itself after its zero-torque write, so the plant ignores SIGINT/SIGTERM; a parent
+    # that dies closes the pipes, and the plant then exits quietly.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     conn_in = mp_connection.Connection(read_fd, writable=False)
     conn_out = mp_connection.Connection(write_fd, readable=False)
-    params, dt, substeps, q1_0, resolution = conn_in.recv()
-    _rig_process(_Duplex(conn_in, conn_out), params, dt, substeps, q1_0, resolution)
+    try:
+        params, dt, substeps, q1_0, resolution = conn_in.recv()
+        _rig_process(_Duplex(conn_in, conn_out), params, dt, substeps, q1_0, resolution)
+    except (EOFError, OSError):
+        pass
 
 
 class _Duplex:

@@ -34,6 +34,7 @@ from jaxflex.effects import EFFECTS
 from jaxflex.friction import LUGRE_NAMES, LuGre
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 from jaxflex.sensing import SENSING_FIELDS, Sensing
+from jaxflex.validation import did_you_mean
 
 PLANT_NAMES: tuple[str, ...] = ("I", "J", "K")
 
@@ -78,9 +79,20 @@ CONTROLLER_KEYS: tuple[str, ...] = (
 )
 
 
-def _did_you_mean(key: str, known: tuple[str, ...]) -> str:
-    close = difflib.get_close_matches(key, known, n=1) or [k for k in known if k.startswith(key)]
-    return f" (did you mean '{close[0]}'?)" if close else ""
+_did_you_mean = did_you_mean
+
+
+# top-level keys the tools write besides the sections (kept verbatim on reading)
+EXTRA_KEYS: tuple[str, ...] = ("stderr", "identification", "discover", "source", "description",
+                               "comment", "notes", "units", "meta")
+SECTIONS: tuple[str, ...] = ("plant", "friction", "gains", "effects", "controller")
+
+
+def _check_keys(where: str, d: Mapping[str, Any], known: tuple[str, ...]) -> None:
+    for k in d:
+        if k not in known:
+            raise ParamsError(f"{where}unknown key '{k}'{_did_you_mean(k, known)}; "
+                              f"known: {list(known)}")
 
 
 def _positive_number(where: str, v: Any) -> float:
@@ -222,12 +234,13 @@ def _sensing_entry(v: Any) -> str | dict[str, Any]:
 
 def _vector(section: str, name: str, value: Any, n: int | None) -> list[float]:
     vals = value if isinstance(value, (list, tuple)) else [value]
-    try:
-        out = [float(v) for v in vals]
-    except (TypeError, ValueError):
+    # a JSON string ("6.77") or boolean (true) is a mistake, not a number to convert
+    if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in vals):
+        hint = " (write the number without quotes)" if any(isinstance(v, str) for v in vals) else ""
         raise ParamsError(
-            f"{section}.{name}: expected a number or a list of numbers, got {value!r}"
-        ) from None
+            f"{section}.{name}: expected a number or a list of numbers, got {value!r}{hint}"
+        )
+    out = [float(v) for v in vals]
     if not out:
         raise ParamsError(f"{section}.{name}: empty list")
     if any(not math.isfinite(v) for v in out):
@@ -265,9 +278,21 @@ class Params:
         """Validate a docs/spec.md section 7 mapping; raises ``ParamsError`` naming the problem."""
         if not isinstance(d, dict):
             raise ParamsError(f"parameters must be a JSON object, got {type(d).__name__}")
+        for k in d:  # a misspelled section ('gain') is refused, not kept as an extra key
+            if k not in SECTIONS + EXTRA_KEYS:
+                close = difflib.get_close_matches(k, SECTIONS, n=1, cutoff=0.6)
+                if close or not k.startswith("x_"):
+                    raise ParamsError(
+                        f"unknown top-level key '{k}'{_did_you_mean(k, SECTIONS)}; sections: "
+                        f"{list(SECTIONS)}; other keys written by the tools: {list(EXTRA_KEYS)} "
+                        "(prefix your own with 'x_')")
         for sec in ("plant", "friction"):
-            if sec not in d or not isinstance(d[sec], dict):
+            if sec not in d:
                 raise ParamsError(f"missing section '{sec}' (docs/spec.md section 7)")
+            if not isinstance(d[sec], dict):
+                raise ParamsError(f"section '{sec}' must be an object, got {type(d[sec]).__name__}")
+        _check_keys("plant: ", d["plant"], PLANT_NAMES)
+        _check_keys("friction: ", d["friction"], LUGRE_NAMES)
         n = None
         plant = {}
         for k in PLANT_NAMES:
@@ -282,6 +307,9 @@ class Params:
             friction[k] = _vector("friction", k, d["friction"][k], n)
         gains = None
         if d.get("gains") is not None:
+            if not isinstance(d["gains"], dict):
+                raise ParamsError(f"section 'gains' must be an object, got {type(d['gains']).__name__}")
+            _check_keys("gains: ", d["gains"], GAIN_NAMES)
             gains = {}
             for k in GAIN_NAMES:
                 if k not in d["gains"]:
@@ -290,6 +318,18 @@ class Params:
         effects = d.get("effects") or {}
         if not isinstance(effects, dict):
             raise ParamsError("'effects' must be an object mapping effect names to parameters")
+        for name, kw in effects.items():
+            if name not in EFFECTS:
+                raise ParamsError(f"effects: unknown effect '{name}'"
+                                  f"{_did_you_mean(name, tuple(EFFECTS))}; known: {sorted(EFFECTS)}")
+            if not isinstance(kw, dict):
+                raise ParamsError(f"effects.{name}: expected an object of parameters, got {kw!r}")
+            fields = tuple(f.name for f in dataclasses.fields(EFFECTS[name]))
+            for k, v in kw.items():
+                if k not in fields:
+                    raise ParamsError(f"effects.{name}: unknown parameter '{k}'"
+                                      f"{_did_you_mean(k, fields)}; known: {list(fields)}")
+                _vector(f"effects.{name}", k, v, None)
         controller = None
         if d.get("controller") is not None:
             controller = ControllerConfig.from_dict(d["controller"])

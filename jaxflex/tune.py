@@ -48,6 +48,7 @@ from jaxflex.presets import rig_sensing
 from jaxflex.sensing import AbstractSensing, StraightThrough
 from jaxflex.simulate import SimResult, simulate_sampled, tracking_summary
 from jaxflex.trajectory import Trajectory
+from jaxflex.validation import requires_float64
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,6 +200,7 @@ def _check_gains_vector(theta: np.ndarray) -> None:
         raise ValueError("tune: gains must be finite and > 0")
 
 
+@requires_float64
 def tune(
     plant: FlexibleJointPlant,
     initial: CascadeGains,
@@ -388,6 +390,7 @@ def max_link_speed(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTas
     return max(float(jnp.max(jnp.abs(r.dq1))) for r in runs)
 
 
+@requires_float64
 def evaluate(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask, *,
              vmax: float | None = None, margin: float = 0.0,
              model: FlexibleJointPlant | None = None, eps: float = DEFAULT_EPS,
@@ -446,6 +449,7 @@ class TuneComparison:
         }
 
 
+@requires_float64
 def compare(plant: FlexibleJointPlant, result: TuneResult, task: TuneTask, *,
             model: FlexibleJointPlant | None = None, reference: CascadeGains | None = None,
             eps: float = DEFAULT_EPS, vmax: float | None = None) -> TuneComparison:

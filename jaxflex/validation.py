@@ -6,7 +6,10 @@ checks stay out of the way under ``jit``/``vmap``/``grad`` (STYLE: two tiers of 
 
 from __future__ import annotations
 
-from typing import Any
+import difflib
+import functools
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -52,3 +55,50 @@ def check_nonnegative(owner: str, **values: ArrayLike) -> None:
             raise ValueError(f"{owner}: parameter {name} must be finite, got {a.tolist()}")
         if np.any(a < 0):
             raise ValueError(f"{owner}: parameter {name} must be >= 0, got {a.tolist()}")
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _to_float64(tree: Any) -> Any:
+    """Every floating array leaf of ``tree`` (JAX or numpy) as float64; other leaves as given."""
+
+    def cast(x: Any) -> Any:
+        if isinstance(x, (jax.Array, np.ndarray)) and jnp.issubdtype(x.dtype, jnp.floating):
+            return jnp.asarray(x, dtype=jnp.float64)
+        return x
+
+    return jax.tree_util.tree_map(cast, tree)
+
+
+def requires_float64(fn: F) -> F:
+    """Run ``fn`` in float64 whatever the global JAX setting (docs/spec.md section 9).
+
+    The N2 certificate, identification, tuning and discovery are ill-conditioned in float32
+    (``certify`` of the paper's gains gives lambda_min = -6.95, "not certified", instead of
+    +0.544). When ``jax_enable_x64`` is off, the call runs inside ``jax.enable_x64(True)``
+    (thread-local; the global setting is left as it was) with every floating array leaf of
+    its arguments cast to float64, so a model built in float32 is computed in float64 too.
+    JIT caches key on the x64 mode, so nothing compiled in one mode is reused in the other.
+    Results keep their float64 arrays.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        if jax.config.jax_enable_x64:
+            return fn(*args, **kwargs)
+        with jax.enable_x64(True):
+            args, kwargs = _to_float64((args, kwargs))
+            return fn(*args, **kwargs)
+
+    wrapper.__requires_float64__ = True  # type: ignore[attr-defined]
+    return wrapper  # type: ignore[return-value]
+
+
+def did_you_mean(key: str, known: Sequence[str]) -> str:
+    """`` (did you mean 'X'?)`` with the known name closest to ``key`` (difflib), or ``""``."""
+    known = tuple(known)
+    same_case = [k for k in known if k.lower() == key.lower()]
+    close = (same_case or difflib.get_close_matches(key, known, n=1)
+             or [k for k in known if k.startswith(key)])
+    return f" (did you mean '{close[0]}'?)" if close else ""

@@ -97,13 +97,14 @@ def test_cli_export_reads_the_section_and_refuses_a_contradicting_flag(tuned_fil
     assert (mod.Q2D_METHOD, mod.DT) == ("filtered", 0.002)
     assert mod.DEFAULT_PARAMS["tau_max"][1] == [1.5]
     capsys.readouterr()
-    assert main(["export", "--params", str(tuned_file), "--out", str(out), "--q2d", "model"]) == 2
+    assert main(["export", "--params", str(tuned_file), "--out", str(out), "--q2d", "model",
+                 "--force"]) == 2
     err = capsys.readouterr().err
     assert "--q2d 'model' contradicts controller.q2d_method = 'filtered'" in err
     assert str(tuned_file) in err
     # a flag that agrees with the file is accepted
     assert main(["export", "--params", str(tuned_file), "--out", str(out), "--dt", "0.002",
-                 "--trajectory", "polynomial"]) == 0
+                 "--trajectory", "polynomial", "--force"]) == 0
 
 
 def _run_loop(capsys, *argv: str) -> tuple[int, str, str]:

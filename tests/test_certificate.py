@@ -122,11 +122,18 @@ def test_n2_matches_symbolic_lyapunov_derivative():
 def test_psi_sharp_below_eps_and_finite_gradient():
     plant, gains = paper_plant(), paper_gains()
     assert float(psi_sharp(plant, gains, 1e-4, eps=1e-3)[0]) == pytest.approx(1e3)
-    # above eps: g/m
-    v = 0.5
-    m = 2 / math.pi * v * math.atan(2.0 * v)
-    g = 0.11 + 0.04 * math.exp(-((v / 0.05) ** 2))
-    assert float(psi_sharp(plant, gains, v)[0]) == pytest.approx(g / m, rel=1e-12)
+    # Above eps, Psi# = g(v)/m(v) is checked through its limits, not by restating it: at high
+    # speed m(v) -> |v| and g -> Fc (Coulomb), so Psi# |v| -> Fc; just above eps, m(v) ~
+    # (2/pi) kv v^2 and g ~ Fs (Stribeck plateau), so Psi# v^2 -> pi Fs / (2 kv).
+    Fc, Fs, kv = 0.11, 0.15, float(gains.kv[0])
+    assert float(psi_sharp(plant, gains, 1e4)[0]) * 1e4 == pytest.approx(Fc, rel=1e-4)
+    assert float(psi_sharp(plant, gains, -1e4)[0]) * 1e4 == pytest.approx(Fc, rel=1e-4)
+    v = 2e-3
+    assert float(psi_sharp(plant, gains, v)[0]) * v**2 == pytest.approx(
+        math.pi * Fs / (2 * kv), rel=2e-3)
+    # it falls with speed (the reason the certificate holds only up to some speed)
+    vs = np.linspace(2e-3, 50.0, 400)
+    assert np.all(np.diff(np.asarray([float(psi_sharp(plant, gains, x)[0]) for x in vs])) < 0)
     grad = jax.grad(lambda s: lambda_min(plant, gains, s))(0.0)
     assert np.isfinite(grad)
     dg = jax.grad(lambda gg: lambda_min(plant, gg, 1.0))(gains)
@@ -229,3 +236,33 @@ def test_cli_certify_bad_input(tmp_path, capsys):
     bad.write_text(json.dumps(d))
     rc, _, err = _cli(capsys, "--params", str(bad))
     assert rc == 2 and "KD2" in err
+
+
+def test_certify_is_float64_without_the_global_setting():
+    """From Python with float64 off (the default), certify computes in float64 anyway: the
+    paper's gains are certified up to 5 rad/s (float32 arithmetic would say lambda_min =
+    -6.95, not certified), and the global setting is left off."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import jax\n"
+        "from jaxflex.certificate import certify\n"
+        "from jaxflex.presets import paper_gains, paper_plant\n"
+        "r = certify(paper_plant(), paper_gains(), 5.0)\n"
+        "print(r.certified, r.to_dict()['min_lambda_min'], r.lambda_min.dtype, "
+        "jax.config.jax_enable_x64)\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    env = {k: v for k, v in __import__("os").environ.items() if k != "JAX_ENABLE_X64"}
+    env["PYTHONPATH"] = str(root)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       cwd=root)
+    assert r.returncode == 0, r.stderr
+    certified, lam, dtype, x64 = r.stdout.split()
+    assert certified == "True" and dtype == "float64" and x64 == "False"
+    # the float64 answer (the model's float32-rounded parameters move it by ~1e-8)
+    assert float(lam) == pytest.approx(float(certify(paper_plant(), paper_gains(), 5.0)
+                                             .to_dict()["min_lambda_min"]), rel=1e-6)
+    assert float(lam) > 0.5

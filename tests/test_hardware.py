@@ -96,15 +96,59 @@ def test_watchdog_stops_after_consecutive_misses():
     assert np.all(io.written[-1] == 0.0) and io.closed
 
 
-def test_exception_still_writes_zero():
+def test_raising_controller_ends_at_zero_torque_and_writes_the_log(tmp_path):
     def boom(k):
         if k == 4:
             raise RuntimeError("controller crashed")
 
     io = FakeIO(_still)
-    with pytest.raises(RuntimeError, match="crashed"):
-        run_loop(io, ConstController(0.7, on_step=boom), LoopConfig(duration=0.1, realtime=False))
-    assert np.all(io.written[-1] == 0.0) and io.closed
+    res = run_loop(io, ConstController(0.7, on_step=boom), LoopConfig(duration=0.1, realtime=False),
+                   log_path=tmp_path / "log.csv")
+    assert res.stop_reason.startswith("controller: step raised at sample 3")
+    assert "RuntimeError: controller crashed" in res.stop_reason
+    assert res.samples == 3 and np.all(res.tau == 0.7)
+    # three torques, then the final zero; nothing is written for the failed sample
+    assert [float(w[0]) for w in io.written] == [0.7, 0.7, 0.7, 0.0] and io.closed
+    from jaxflex.logs import load_log
+
+    log = load_log(tmp_path / "log.csv")
+    assert log.N == 3 and res.log_path == str(tmp_path / "log.csv")
+
+
+def test_dead_rig_stops_with_its_reason_and_keeps_the_log(tmp_path):
+    class DyingIO(FakeIO):
+        dead = False
+
+        def read(self):
+            if self.k >= 5:
+                self.dead = True
+                raise EOFError()
+            return super().read()
+
+        def write(self, tau):
+            if self.dead:
+                raise BrokenPipeError("rig process gone")
+            super().write(tau)
+
+    io = DyingIO(_still)
+    res = run_loop(io, ConstController(0.2), LoopConfig(duration=0.1, realtime=False),
+                   log_path=tmp_path / "log.csv")
+    assert res.stop_reason == "rig: reading the encoders failed at sample 5: EOFError"
+    assert res.samples == 5 and io.closed
+    assert any("zero torque could not be written" in f and "rig process gone" in f
+               for f in res.faults)
+    assert (tmp_path / "log.csv").read_text().count("\n") == 6  # header and 5 samples
+
+
+def test_nan_angle_stops_at_zero_and_writes_the_log(tmp_path):
+    io = FakeIO(lambda k: (np.array([math.nan if k == 4 else 0.0]), np.zeros(1)))
+    res = run_loop(io, ConstController(0.5), LoopConfig(duration=0.1, realtime=False),
+                   log_path=tmp_path / "log.csv")
+    assert res.stop_reason.startswith("guard: sample 4: non-finite angle")
+    assert res.log_path is not None and np.all(io.written[-1] == 0.0)
+    from jaxflex.logs import load_log
+
+    assert load_log(tmp_path / "log.csv").N == 4  # the samples before the NaN
 
 
 def test_signal_stops_cleanly():
@@ -118,11 +162,27 @@ def test_signal_stops_cleanly():
 
 
 def test_realtime_timing_is_measured():
+    """A controller step that sleeps 5 ms at sample 10 of a 500 Hz loop (2 ms period): its
+    compute time is at least 5 ms, sample 11 starts at least 3 ms late (its slot began 2 ms
+    after sample 10's, whose torque was written 5 ms after it), and that is a deadline miss.
+    Lower bounds only, so a loaded machine cannot make it fail."""
+    ctrl = ConstController(0.1)
+
+    def step(t, q1, q2):
+        ctrl.calls += 1
+        if ctrl.calls == 11:
+            time.sleep(5e-3)
+        return 0.1
+
+    ctrl.step = step
     io = FakeIO(_still)
-    res = run_loop(io, ConstController(0.1), LoopConfig(rate=500.0, duration=0.1))
+    res = run_loop(io, ctrl, LoopConfig(rate=500.0, duration=0.1, max_consecutive_misses=50))
     s = res.timing_summary()
-    assert res.samples == 50 and s["lateness"]["median_us"] >= 0.0
-    assert s["compute"]["max_us"] < 1e5
+    assert res.samples == 50 and res.stop_reason == "completed"
+    assert res.compute_time[10] >= 5e-3 and s["compute"]["max_us"] >= 5e3
+    assert res.lateness[11] >= 3e-3 - 1e-4
+    assert res.misses >= 1
+    assert np.all(res.lateness >= 0.0) and np.all(np.diff(res.t) == pytest.approx(2e-3))
 
 
 def test_config_validation():
@@ -168,10 +228,8 @@ def test_exported_controller_on_simulated_rig_matches_jax(tmp_path):
     assert np.sqrt(np.mean(e_loop**2)) < 0.02  # it tracks (0.05 rad reference amplitude)
     text = (tmp_path / "run.csv").read_text().splitlines()
     assert text[0] == "t,tau,q1,q2,q1d" and len(text) == 1501
-    try:
-        from jaxflex.logs import load_log
-    except ImportError:
-        return
+    from jaxflex.logs import load_log
+
     log = load_log(tmp_path / "run.csv")
     assert log.N == 1500 and abs(log.dt - 1e-3) < 1e-12
 
@@ -189,6 +247,11 @@ def test_cli_run_loop_lockstep(tmp_path, capsys):
     assert rc == 0, text
     assert '"stop_reason": "completed"' in text
     assert log.read_text().splitlines()[0] == "t,tau,q1,q2,q1d"
+    assert len(log.read_text().splitlines()) == 501
+    import json
+
+    summary = json.loads((tmp_path / "out.summary.json").read_text())
+    assert summary["completed"] and summary["samples"] == 500
     import argparse
 
     from jaxflex.cli.run_loop import run as run_loop_cmd
@@ -196,7 +259,7 @@ def test_cli_run_loop_lockstep(tmp_path, capsys):
     ns = argparse.Namespace(
         params=None, rig_params=None, duration=0.1, rate=500.0, log=str(log),
         controller=str(ctrl), trajectory=None, q2d=None, tau_limit=None, q_limit=10.0,
-        max_misses=10, lockstep=True, encoder_bits=16,
+        max_misses=10, lockstep=True, encoder_bits=16, force=True,
     )
     with pytest.raises(ValueError, match="dt"):
         run_loop_cmd(ns)

@@ -115,8 +115,21 @@ def test_samples_follow_their_distributions_and_respect_fs_ge_fc():
     # same index, same draw (independent of batching); different index, different draw
     a = np.asarray(sample_parameters(spec, jnp.uint32(7))[0])
     np.testing.assert_allclose(a, th[7], rtol=1e-14)
-    plant, *_, raised = build_models(spec, jnp.asarray(th[np.argmin(Fs)]))
+    # draws with Fs < Fc (= 0.11) are redrawn: Fs follows the spread conditioned on Fs >= Fc
+    assert spec.fs_below_fc_possible() and Fs.min() >= 0.11
+    assert scipy.stats.kstest(Fs, "uniform", args=(0.11, 0.2 - 0.11)).pvalue > 1e-3
+    # a theta that still breaks it (beyond the redraws) is raised to Fc and flagged
+    bad = th[0].copy()
+    bad[3] = 0.05
+    plant, *_, raised = build_models(spec, jnp.asarray(bad))
     assert bool(raised) and float(plant.friction.Fs[0]) == float(plant.friction.Fc[0])
+    *_, raised = build_models(spec, jnp.asarray(th[np.argmin(Fs)]))
+    assert not bool(raised)
+
+
+def test_spread_with_fs_always_below_fc_is_refused():
+    with pytest.raises(SpreadError, match="friction.Fs is always drawn below friction.Fc"):
+        parse_spread({"uncertain": {"friction.Fs": {"dist": "uniform", "low": 0.01, "high": 0.1}}})
 
 
 # ----- summaries (no simulation) ---------------------------------------------------------------

@@ -164,7 +164,7 @@ def test_cli_tune_writes_gains_and_report(tmp_path, capsys):
     assert all((tmp_path / "gains_report" / f).exists() for f in rep["figures"])
     assert main(["certify", "--params", str(out), "--json"]) == 0
     capsys.readouterr()
-    assert main(["tune", "--params", str(p), "--out", str(out), "--margin", "-1"]) == 2
+    assert main(["tune", "--params", str(p), "--out", str(out), "--margin", "-1", "--force"]) == 2
     assert "margin" in capsys.readouterr().err
 
 

@@ -4,8 +4,10 @@
 Commands turn on float64 (identification and certificates need it), turn on JAX's persistent
 compilation cache (in ``$JAXFLEX_CACHE_DIR``, default ``~/.cache/jaxflex/jax``; ``--no-cache``
 turns it off), so a second run on the same machine does not compile again, and turn the
-library's ``ValueError``s (bad logs, bad parameters, bad gains) into a one-line message and exit
-code 2.
+library's ``ValueError``s (bad logs, bad parameters, bad gains, bad output paths) and OS errors
+into a one-line message and exit code 2 (Ctrl-C: exit 130, no traceback). Every command with
+outputs gets ``--force`` and checks its outputs before computing (``jaxflex.cli.outputs``); its
+``--help`` shows the defaults and ends with a worked example (the module's ``EXAMPLE``).
 """
 
 from __future__ import annotations
@@ -15,7 +17,22 @@ import importlib
 import os
 import pkgutil
 import sys
+import warnings
 from pathlib import Path
+
+from jaxflex.cli.outputs import add_force_option
+
+# worked examples of the commands whose modules do not define EXAMPLE yet
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the description's line breaks and appends ``(default: X)`` to each option whose
+    help does not already state its default."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        h = action.help or ""
+        if ("default" in h or action.default in (None, False, argparse.SUPPRESS)
+                or not action.option_strings):
+            return h
+        return h + " (default: %(default)s)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,7 +55,22 @@ def build_parser() -> argparse.ArgumentParser:
         mod = importlib.import_module(f"{__name__}.{info.name}")
         if hasattr(mod, "register"):
             mod.register(sub)
+            name = next(reversed(sub.choices))
+            p = sub.choices[name]
+            p.formatter_class = HelpFormatter
+            example = getattr(mod, "EXAMPLE", None)
+            if example and not p.epilog:
+                p.epilog = "example:\n  " + example
+            opts = p._option_string_actions
+            if ("--out" in opts or "--log" in opts) and "--force" not in opts:
+                add_force_option(p)
     return parser
+
+
+def _show_warning(command: str):
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"jaxflex {command}: warning: {category.__name__}: {message}", file=sys.stderr)
+    return show
 
 
 def enable_compilation_cache() -> Path | None:
@@ -68,11 +100,23 @@ def main(argv: list[str] | None = None) -> int:
         enable_compilation_cache()
     if args.accept_unconverged:
         os.environ["JAXFLEX_ACCEPT_UNCONVERGED"] = "1"
+    old_show = warnings.showwarning
+    warnings.showwarning = _show_warning(args.command)  # one line, no source excerpt
     try:
-        return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, KeyError) as e:
-        print(f"jaxflex {args.command}: error: {e}", file=sys.stderr)
+        with warnings.catch_warnings():
+            # numpy's overflow/invalid warnings in a fit's rejected trial steps are expected
+            warnings.filterwarnings("ignore", "overflow encountered", RuntimeWarning)
+            warnings.filterwarnings("ignore", "invalid value encountered", RuntimeWarning)
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print(f"jaxflex {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, KeyError, OSError, RuntimeError, SyntaxError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        print(f"jaxflex {args.command}: error: {msg}", file=sys.stderr)
         return 2
+    finally:
+        warnings.showwarning = old_show
 
 
 if __name__ == "__main__":

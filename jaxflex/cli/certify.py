@@ -7,6 +7,8 @@ import argparse
 import json
 
 
+EXAMPLE = "jaxflex certify --params tuned.json --vmax 5 --bound"
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``certify`` subcommand."""
     p = sub.add_parser(

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 
+EXAMPLE = "jaxflex discover log.csv --params nominal.json --out out/discover"
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``discover`` subcommand."""
@@ -45,6 +47,8 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.params import load_params, save_params
     from jaxflex.presets import paper_params
 
+    from jaxflex.cli.outputs import check_outputs
+    check_outputs(args.force, folders=[args.out], marker="report.json")
     if not 0.1 <= args.train_frac <= 0.9:
         raise ValueError(f"--train-frac must be in [0.1, 0.9], got {args.train_frac}")
     if args.segment <= 0:

@@ -13,6 +13,8 @@ CONTROLLER_FLAGS: dict[str, str] = {
 }
 
 
+EXAMPLE = "jaxflex export --params tuned.json --out controller.py --check"
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``export`` subcommand."""
     p = subparsers.add_parser(
@@ -59,9 +61,11 @@ def run(args: argparse.Namespace) -> int:
         load_module,
         parity_ok,
     )
+    from jaxflex.cli.outputs import check_outputs
     from jaxflex.params import load_params
     from jaxflex.presets import controller_config, paper_params
 
+    check_outputs(args.force, files=[args.out])
     params = load_params(args.params) if args.params else paper_params()
     cfg = controller_config(params, {
         "trajectory": args.trajectory, "q2d_method": args.q2d, "dt": args.dt,

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import argparse
 
+EXAMPLE = ("jaxflex identify log.csv --params init.json --out identified.json "
+           "--free Fc,Fs,vs,sigma0,sigma1,sigma2")
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``identify`` subcommand."""
@@ -57,6 +60,9 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params
 
+    from jaxflex.cli.outputs import check_outputs
+
+    check_outputs(args.force, files=[args.out, args.figure or Path(args.out).with_suffix(".png")])
     required = REQUIRED_COLUMNS if args.model != "rigid" else ("t", "tau", "q1")
     log = load_log(args.log, parse_mapping(args.mapping), required=required)
     log = log.slice(args.start, args.stop)

@@ -7,6 +7,8 @@ import argparse
 from jaxflex.presets import SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES
 
 
+EXAMPLE = "jaxflex reproduce --out out/paper --duration 10"
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``reproduce`` subcommand."""
     p = sub.add_parser(
@@ -34,8 +36,10 @@ def run(args: argparse.Namespace) -> int:
     """Run the experiments and print a table of the results."""
     from jaxflex.experiments import run_paper_experiments
     from jaxflex.params import load_params
+    from jaxflex.cli.outputs import check_outputs
     from jaxflex.reports import write_paper_experiments
 
+    check_outputs(args.force, folders=[args.out], marker="results.json")
     params = load_params(args.params) if args.params else None
     results = run_paper_experiments(
         params=params, sensing=args.sensing, q2d_method=args.q2d, t_final=args.duration,

@@ -4,10 +4,17 @@ from __future__ import annotations
 
 import argparse
 import types
+from pathlib import Path
 from typing import Any
 
 from jaxflex.params import ControllerConfig
 from jaxflex.presets import TRAJECTORIES
+
+EXAMPLE = ("jaxflex export --params tuned.json --out controller.py\n"
+           "  jaxflex run-loop --controller controller.py --duration 5 --log run.csv\n"
+           "  (writes run.csv and run.summary.json, also after Ctrl-C or a fault)")
+# what run-loop reads from an exported controller module (jaxflex export)
+EXPORTED_NAMES: tuple[str, ...] = ("Controller", "DT", "Q2D_METHOD", "SPEC_MAP", "DEFAULT_PARAMS")
 
 # option of each controller-section entry, for the messages of a contradiction
 CONTROLLER_FLAGS: dict[str, str] = {
@@ -29,7 +36,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "plant is --rig-params, by default the controller's own plant. The loop's rate, "
         "torque limit, trajectory and q2d method follow the controller's configuration (the "
         "'controller' section of --params, or the constants of --controller): an option that "
-        "contradicts it is refused; an option it does not record fills it in.",
+        "contradicts it is refused; an option it does not record fills it in. Every way out "
+        "(completion, Ctrl-C, SIGTERM, a guard trip, the watchdog, a controller that raises, a "
+        "dead rig) ends at zero torque and writes the log and LOG.summary.json (the summary "
+        "also printed); the exit status is 0 only when the run completed.",
     )
     p.add_argument("--params", help="the controller's parameter file (docs/spec.md section 7: model, "
                    "gains, 'controller' section) to export a controller from now; default: "
@@ -60,6 +70,40 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def summary_path(log: str) -> Path:
+    """Where the run's summary goes: the log's path with the suffix ``.summary.json``."""
+    return Path(log).with_suffix(".summary.json")
+
+
+def load_exported(path: str) -> types.ModuleType:
+    """Import an exported controller file, refusing (``ValueError``, naming the file and what
+    is wrong) one that does not compile, fails on import, or lacks what ``jaxflex export``
+    writes (``EXPORTED_NAMES``)."""
+    from jaxflex.export import load_module
+
+    try:
+        mod = load_module(path)
+    except SyntaxError as e:
+        raise ValueError(f"controller file {path}: syntax error at line {e.lineno}: {e.msg}; "
+                         "write it again with 'jaxflex export'") from None
+    except FileNotFoundError:
+        raise
+    except Exception as e:
+        raise ValueError(f"controller file {path}: importing it raised {type(e).__name__}: "
+                         f"{e}") from None
+    missing = [k for k in EXPORTED_NAMES if not hasattr(mod, k)]
+    if missing:
+        raise ValueError(f"controller file {path}: no {', '.join(missing)}; run-loop needs a "
+                         "file written by 'jaxflex export'")
+    try:
+        dt = float(mod.DT)
+    except (TypeError, ValueError):
+        dt = float("nan")
+    if not dt > 0 or dt == float("inf"):
+        raise ValueError(f"controller file {path}: DT must be a number > 0 [s], got {mod.DT!r}")
+    return mod
+
+
 def exported_plant(mod: types.ModuleType) -> dict[str, Any]:
     """The controller model baked into an exported module, as a docs/spec.md section 7 mapping of
     its plant and friction entries (SI units)."""
@@ -87,11 +131,15 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
     import json
     import math
+    import sys
 
+    from jaxflex.cli.outputs import check_outputs
     from jaxflex.export import build_controller, generate_source, load_module
     from jaxflex.hardware import LoopConfig, SimulatedRig, run_loop
     from jaxflex.params import Params, load_params
     from jaxflex.presets import controller_config, paper_params
+
+    check_outputs(args.force, files=[args.log, summary_path(args.log)], flag="--log")
 
     given = {"trajectory": args.trajectory, "q2d_method": args.q2d,
              "dt": None if args.rate is None else 1.0 / args.rate, "tau_max": args.tau_limit}
@@ -104,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
             if v is not None:
                 raise ValueError(f"{flag} applies when exporting now; {args.controller} was "
                                  "exported with its own (export it again to change it)")
-        mod = load_module(args.controller)
+        mod = load_exported(args.controller)
         own = Params.from_dict(exported_plant(mod))
         cfg = controller_config(dataclasses.replace(own, controller=exported_config(mod)),
                                 given, CONTROLLER_FLAGS, source=args.controller)
@@ -125,15 +173,25 @@ def run(args: argparse.Namespace) -> int:
     res = 2 * math.pi / 2**args.encoder_bits if args.encoder_bits > 0 else 0.0
     q1_0 = ctrl.reference(0.0)
     with SimulatedRig(rig_params, loop.period, q1_0=q1_0, resolution=(res, res / 50.0)) as rig:
+        print(f"[run-loop] rig ready; running {args.duration:g} s at {loop.rate:g} Hz "
+              "(Ctrl-C stops at zero torque and writes the log)", file=sys.stderr, flush=True)
         out = run_loop(rig, ctrl, loop, log_path=args.log)
     summ = out.timing_summary()
     err = None
     if out.q1d is not None and out.samples:
         err = float(((out.q1 - out.q1d) ** 2).mean() ** 0.5)
-    print(json.dumps({"stop_reason": out.stop_reason, "samples": out.samples,
-                      "deadline_misses": out.misses, "faults": out.faults[:5],
-                      "compute_us": summ["compute"], "lateness_us": summ["lateness"],
-                      "rms_tracking_error_rad": err, "log": args.log,
-                      "rig_params": args.rig_params or "the controller's plant",
-                      "rate_hz": loop.rate, "tau_limit": loop.tau_limit}, indent=2))
+    doc = {"stop_reason": out.stop_reason, "completed": out.stop_reason == "completed",
+           "samples": out.samples, "deadline_misses": out.misses, "faults": out.faults[:5],
+           "compute_us": summ["compute"], "lateness_us": summ["lateness"],
+           "rms_tracking_error_rad": err,
+           "log": out.log_path or f"not written ({out.samples} sample(s); a log needs 2)",
+           "rig_params": args.rig_params or "the controller's plant",
+           "rate_hz": loop.rate, "tau_limit": loop.tau_limit}
+    summary_path(args.log).write_text(json.dumps(doc, indent=2) + "\n")
+    print(json.dumps(doc, indent=2))
+    if out.stop_reason != "completed":
+        print(f"jaxflex run-loop: stopped early ({out.stop_reason}); zero torque written; "
+              f"wrote {doc['log']} and {summary_path(args.log)}", file=sys.stderr)
+    if out.stop_reason.startswith("signal"):
+        return 130
     return 0 if out.stop_reason == "completed" else 1

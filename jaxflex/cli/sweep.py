@@ -1,14 +1,24 @@
 """``jaxflex sweep SPREAD.json``: Monte Carlo robustness sweep from a spread file.
 
-Writes ``summary.json`` (quantiles, worst cases with their parameters, sensitivities, error
-bands, timing), the figures, and with ``--keep-samples`` (the default) ``samples.csv`` of each
-sample's parameters and metrics. Multi-process: start the same command in every process with
-``--coordinator HOST:PORT --num-processes P --process-id i``; process 0 writes the files.
+Writes summary.json (quantiles, worst cases with their parameters, sensitivities, error
+bands, timing), the figures, and (unless --no-samples) samples.csv of each sample's
+parameters and metrics. Multi-process: start the same command in every process with
+--coordinator HOST:PORT --num-processes P --process-id i; process 0 writes the files.
+
+Ctrl-C (or SIGTERM) stops between chunks: summary.json then summarises the chunks done and
+says "partial": true, and --resume continues from the checkpoint kept in the output folder
+(single process). A draw with Fs < Fc is redrawn (the sweep samples the spread conditioned on
+Fs >= Fc); a spread whose Fs is always below Fc is refused.
 """
 
 from __future__ import annotations
 
 import argparse
+
+EXAMPLE = ("jaxflex sweep studies/spreads/sweep_paper_20pct.json --out out/sweep --samples 2000\n"
+           "  (after Ctrl-C)  jaxflex sweep studies/spreads/sweep_paper_20pct.json --out out/sweep "
+           "--samples 2000 --resume")
+CHECKPOINT = "checkpoint.pkl"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -19,6 +29,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("spread", help="spread file (JSON; see jaxflex.sweep.spec)")
     p.add_argument("--out", default="out/sweep", help="output folder (default out/sweep)")
+    p.add_argument("--resume", action="store_true",
+                   help=f"continue an interrupted sweep from OUT/{CHECKPOINT} (same spread "
+                   "and options)")
     p.add_argument("--samples", type=int, help="number of samples (overrides the file)")
     p.add_argument("--seed", type=int, help="random seed (overrides the file)")
     p.add_argument("--t-final", type=float, help="horizon per sample [s] (overrides the file)")
@@ -30,22 +43,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--worst", type=int, default=10, help="worst cases to keep (default 10)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--coordinator", help="jax.distributed coordinator HOST:PORT")
-    p.add_argument("--num-processes", type=int, default=1)
-    p.add_argument("--process-id", type=int, default=0)
+    p.add_argument("--num-processes", type=int, default=1,
+                   help="number of jax.distributed processes")
+    p.add_argument("--process-id", type=int, default=0, help="this process's number")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the sweep and write its files; returns the exit status."""
     import json
+    import os
+    import pickle
+    import sys
     from pathlib import Path
 
     import jax
     import numpy as np
 
+    from jaxflex.cli.outputs import OutputError, check_folder
     from jaxflex.sweep import load_spread, nominal_run, run_sweep
 
     spec = load_spread(args.spread)  # validate before starting any process group
+    ckpt_path = Path(args.out) / CHECKPOINT
+    if ckpt_path.exists() and not (args.resume or args.force):
+        raise OutputError(f"--out {args.out}: holds an interrupted sweep ({CHECKPOINT}); pass "
+                          "--resume to continue it or --force to start again")
+    out = check_folder(args.out, force=args.force, marker="summary.json", resume=args.resume)
+    resume = None
+    if args.resume:
+        if args.coordinator:
+            raise ValueError("--resume is for single-process sweeps")
+        if not ckpt_path.is_file():
+            raise OutputError(f"--resume: no checkpoint {ckpt_path} (nothing to resume; run "
+                              "without --resume)")
+        try:
+            resume = pickle.loads(ckpt_path.read_bytes())
+        except Exception as e:  # a truncated or foreign file
+            raise OutputError(f"--resume: {ckpt_path} is not a readable checkpoint ({e})") from None
     if args.coordinator:
         jax.distributed.initialize(
             coordinator_address=args.coordinator, num_processes=args.num_processes,
@@ -63,30 +97,58 @@ def run(args: argparse.Namespace) -> int:
     if args.no_compensation:
         changes["compensation"] = False
     spec = spec.with_(**changes)
+    writer = jax.process_index() == 0 and not args.coordinator
+
+    def save_checkpoint(ck) -> None:
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = ckpt_path.with_name(CHECKPOINT + ".tmp")
+        tmp.write_bytes(pickle.dumps(ck))
+        os.replace(tmp, ckpt_path)
+
+    if spec.fs_below_fc_possible():
+        print("note: the spread can draw Fs < Fc (LuGre needs Fs >= Fc); such (Fc, Fs) draws "
+              "are redrawn, so the sweep samples the spread conditioned on Fs >= Fc")
     res = run_sweep(
         spec, chunk_size=args.chunk_size, shard=not args.no_shard,
         keep_samples=not args.no_samples, n_worst=args.worst, progress=not args.no_progress,
-        float32=args.float32,
+        float32=args.float32, resume=resume, on_chunk=save_checkpoint if writer else None,
     )
+    if res is None:
+        print("jaxflex sweep: interrupted before the first chunk finished; nothing written",
+              file=sys.stderr)
+        return 130
+    partial = bool(res.summary.get("partial"))
     if jax.process_index() == 0:
-        from jaxflex.plots.sweep import plot_sweep
-
-        out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        figs = plot_sweep(res, out, nominal=nominal_run(spec))
         doc = res.to_json()
-        doc["figures"] = figs
-        (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
+        doc["fs_below_fc"] = ("redrawn: sampled conditioned on Fs >= Fc"
+                              if spec.fs_below_fc_possible() else "cannot occur")
+        doc["figures"] = []
+        tmp = out / "summary.json.tmp"
+        tmp.write_text(json.dumps(doc, indent=2) + "\n")
+        os.replace(tmp, out / "summary.json")
         if res.samples is not None:
             cols = spec.labels + ["rms_error", "max_error", "tau_rms", "saturation_fraction", "diverged"]
             s = res.samples
             table = np.column_stack([s["index"], s["theta"]] + [s[c] for c in cols[len(spec.labels):]])
             np.savetxt(out / "samples.csv", table, delimiter=",", header=",".join(["index"] + cols),
                        comments="", fmt="%.17g")
+        if partial:
+            print(f"jaxflex sweep: interrupted after {res.summary['chunks_done']} of "
+                  f"{res.summary['chunks']} chunks ({res.summary['samples']} samples); wrote the "
+                  f"partial summary {out / 'summary.json'} (\"partial\": true, no figures); "
+                  f"continue with: jaxflex sweep {args.spread} --out {out} --resume (and the "
+                  "same options)", file=sys.stderr)
+            return 130
+        from jaxflex.plots.sweep import plot_sweep
+
+        doc["figures"] = plot_sweep(res, out, nominal=nominal_run(spec))
+        (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
+        ckpt_path.unlink(missing_ok=True)
         m = res.summary["metrics"]["rms_error"]
         if res.summary["fs_raised_to_fc"]:
-            print(f"note: {res.summary['fs_raised_to_fc']} sample(s) drew Fs < Fc; their Fs was "
-                  "raised to Fc (LuGre needs Fs >= Fc)")
+            print(f"note: {res.summary['fs_raised_to_fc']} sample(s) kept Fs < Fc after "
+                  "their redraws; their Fs was raised to Fc")
         print(
             f"{res.summary['samples']} samples, {res.summary['diverged']} diverged; RMS link error "
             f"median {m['q50']:.3g} rad, 95% {m['q95']:.3g} rad; "

@@ -9,6 +9,9 @@ from pathlib import Path
 from jaxflex.presets import SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES
 
 
+EXAMPLE = ("jaxflex tune --params identified.json --out tuned.json --trajectory sinusoid "
+           "--margin 0.05   (report in tuned_report/)")
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``tune`` subcommand."""
     p = sub.add_parser(
@@ -62,6 +65,12 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.reports import write_tune_report
     from jaxflex.tune import TuneTask, compare, tune
 
+    from jaxflex.cli.outputs import check_outputs
+
+    out = Path(args.out)
+    report_dir = Path(args.report) if args.report else out.with_name(out.stem + "_report")
+    check_outputs(args.force, files=[out])
+    check_outputs(args.force, folders=[report_dir], marker="report.json", flag="--report")
     if args.margin < 0:
         raise ValueError(f"--margin must be >= 0, got {args.margin}")
     if args.iterations < 0 or args.starts < 1:
@@ -101,9 +110,7 @@ def run(args: argparse.Namespace) -> int:
                starts=args.starts, learning_rate=args.lr, seed=args.seed, progress=progress)
     if bar is not None:
         bar.close()
-    out = Path(args.out)
     save_params(dataclasses.replace(params, gains=res.gains.to_dict(), controller=cfg), out)
-    report_dir = Path(args.report) if args.report else out.with_name(out.stem + "_report")
     rep = write_tune_report(res, task, compare(plant, res, task), report_dir)
     print(f"{'':<8} {'RMS err (rad)':>14} {'torque RMS (N m)':>17} {'lambda_min@task':>16} "
           f"{'certified to (rad/s)':>21}")

@@ -40,6 +40,7 @@ from jaxflex.fit import (
 from jaxflex.logs import Log
 from jaxflex.params import Params
 from jaxflex.state import PlantState
+from jaxflex.validation import requires_float64
 from jaxflex.step import MODEL_KINDS, ModelKind, replay
 
 DEFAULT_FREE: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")
@@ -163,6 +164,7 @@ def make_problem(
     return prob, prob.y0()
 
 
+@requires_float64
 def identify(
     log: Log, init: Params, free: Sequence[str] = DEFAULT_FREE, *,
     model: ModelKind = "flexible", segment_length: int | None = None, substeps: int = 4,
@@ -361,7 +363,7 @@ def finish(
             "(vs, sigma0, sigma1 need low-speed dwell and frequent reversals)"
         )
     for m in msgs:
-        warnings.warn(m, IdentificationWarning, stacklevel=3)
+        warnings.warn(m, IdentificationWarning, stacklevel=4)
     cost = 0.5 * (cov["rss"] + cov["defects_ss"])
     ys = simulated_outputs(prob, y)
     rms = float(np.sqrt(np.mean((np.asarray(ys) - np.asarray(prob.segs.y_meas)) ** 2)))

@@ -32,10 +32,10 @@ def plot_fit(result: Any, path: str | Path, max_points: int = 20000) -> list[str
         for ax in axes:
             for s in range(1, S):
                 ax.axvline(s * L * prob.dt, color="0.85", lw=0.5, zorder=0)
-    axes[0].set_ylabel("position")
+    axes[0].set_ylabel("position [rad] (m: prismatic)")
     axes[0].legend(fontsize=7, loc="upper right")
-    axes[1].set_ylabel("simulated - measured")
-    axes[1].set_xlabel("time from first fitted sample (s)")
+    axes[1].set_ylabel("simulated - measured [rad]")
+    axes[1].set_xlabel("time from first fitted sample [s]")
     axes[1].legend(fontsize=7, loc="upper right")
     axes[0].set_title(f"identification ({prob.kind} model, {S} segment(s)); RMS residual "
                       f"{result.rms:.3g}", fontsize=9)
@@ -58,6 +58,7 @@ def plot_static_map(v: np.ndarray, F: np.ndarray, curve: Any, path: str | Path,
     ax.set_xlabel("velocity (rad/s)")
     ax.set_ylabel("friction torque (N m)")
     ax.legend(fontsize=8)
+    ax.set_title("Static friction map (eq. 35)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -23,8 +23,9 @@ def _as_runs(results: SweepResult | dict[str, SweepResult]) -> dict[str, SweepRe
 def plot_error_histograms(results, path: str | Path) -> str:
     """Histograms of RMS and max link tracking error [rad] (log axis), non-diverged samples.
 
-    From the kept samples when there are (60 log-spaced bins over the joint range of all
-    runs), else from the fixed-grid histograms of the summary (40 bins per decade)."""
+    From the kept samples when there are (log-spaced bins over the joint range of all runs,
+    as many as Rice's rule 2 n^(1/3) gives for n samples, 10 to 60), else from the fixed-grid
+    histograms of the summary (40 bins per decade)."""
     runs = _as_runs(results)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for ax, m, title in zip(axes, ("rms_error", "max_error"), ("RMS link error", "max link error")):
@@ -33,7 +34,9 @@ def plot_error_histograms(results, path: str | Path) -> str:
         fine = None
         if len(kept) == len(runs) and all(v.size for v in kept):
             lo, hi = min(v.min() for v in kept), max(v.max() for v in kept)
-            fine = np.geomspace(lo, hi * (1 + 1e-9), 61) if hi > lo else None
+            n_min = min(v.size for v in kept)
+            bins = int(np.clip(round(2 * n_min ** (1 / 3)), 10, 60))
+            fine = np.geomspace(lo, hi * (1 + 1e-9), bins + 1) if hi > lo else None
         for label, r in runs.items():
             if fine is not None:
                 v = r.samples[m][~r.samples["diverged"]]
@@ -73,6 +76,7 @@ def plot_error_bands(results, path: str | Path, joint: int = 0, nominal: dict | 
     ax.set_xlabel("time (s)")
     ax.set_ylabel("link error e1 (rad)")
     ax.legend(fontsize=8, loc="upper right")
+    ax.set_title("Link error bands over the sweep", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -99,6 +103,7 @@ def plot_sensitivity(results, path: str | Path, top: int = 12) -> str:
         r2 = rows[0]["r2_linear"]
         ax.set_title(f"{label} (linear R^2 = {r2:.2f})", fontsize=9)
         ax.legend(fontsize=8)
+    fig.suptitle("Sensitivity of RMS link error to each sampled parameter", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -19,8 +19,11 @@ c = p, p + P, ... on its own devices and the accumulators are combined with
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
+import signal
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -44,15 +47,45 @@ from jaxflex.sweep.summary import Accumulator, SweepResult, band_bins
 def sample_parameters(spec: SweepSpec, index: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(theta, noise_key) of sample ``index``: theta (d,) in ``spec.labels`` order.
 
-    Fs is raised to Fc where a draw gives Fs < Fc (the LuGre constraint, docs/spec.md section 2).
+    A draw with Fs < Fc breaks the LuGre constraint Fs >= Fc (docs/spec.md section 2): its Fc
+    and Fs columns are redrawn (rejection sampling, up to ``_MAX_REDRAWS`` times), so the
+    sweep samples the spread conditioned on Fs >= Fc; the other columns keep their first draw.
+    ``SweepSpec.fs_below_fc_possible`` says whether this can happen, and a spread where Fs is
+    always below Fc is refused when it is read.
     """
     key = jax.random.fold_in(jax.random.PRNGKey(spec.seed), index)
     k_theta, k_noise = jax.random.split(key)
     if not spec.columns:
         return jnp.zeros((0,), jnp.result_type(float)), k_noise
-    keys = jax.random.split(k_theta, len(spec.columns))
-    theta = jnp.stack([c.dist.sample(k) for c, k in zip(spec.columns, keys)])
+
+    def draw(k):
+        keys = jax.random.split(k, len(spec.columns))
+        return jnp.stack([c.dist.sample(kk) for c, kk in zip(spec.columns, keys)])
+
+    theta = draw(k_theta)
+    pairs = spec.fs_fc_pairs() if spec.fs_below_fc_possible() else []
+    if pairs:
+        redo = jnp.asarray([i for p in pairs for i in (p[0], p[2]) if i >= 0])
+
+        def violated(th):
+            bad = jnp.asarray(False)
+            for i_fc, fc0, i_fs, fs0 in pairs:
+                fc = th[i_fc] if i_fc >= 0 else fc0
+                fs = th[i_fs] if i_fs >= 0 else fs0
+                bad = bad | (fs < fc)
+            return bad
+
+        def body(carry):
+            th, i = carry
+            new = draw(jax.random.fold_in(k_theta, i + 1))
+            return th.at[redo].set(new[redo]), i + 1
+
+        theta, _ = jax.lax.while_loop(
+            lambda c: violated(c[0]) & (c[1] < _MAX_REDRAWS), body, (theta, jnp.asarray(0)))
     return theta, k_noise
+
+
+_MAX_REDRAWS = 100  # a spread with P(Fs >= Fc) of 1e-2 leaves 1 sample in e^100 unresolved
 
 
 def build_models(
@@ -60,8 +93,8 @@ def build_models(
 ) -> tuple[FlexibleJointPlant, CascadeController, Sensing, jax.Array]:
     """True plant, controller (nominal model and gains) and sensing of one sample.
 
-    A draw with Fs < Fc (possible when both are sampled independently) breaks the LuGre
-    constraint Fs >= Fc (docs/spec.md section 2): Fs is then raised to Fc, and the returned
+    ``sample_parameters`` redraws pairs with Fs < Fc; should one remain after its redraws
+    (LuGre needs Fs >= Fc, docs/spec.md section 2), Fs is raised to Fc and the returned
     ``fs_raised`` (bool) says so; the summary counts these samples (``fs_raised_to_fc``).
     Traceable in ``theta`` (the modules' value checks skip traced values).
     """
@@ -169,6 +202,40 @@ def _make_chunk_fn(spec: SweepSpec) -> Callable[[jax.Array, jax.Array], dict[str
 _BAND_SCALE = 1e-6  # [rad]; band histograms are uniform in asinh(e1 / _BAND_SCALE)
 
 
+@dataclasses.dataclass
+class SweepCheckpoint:
+    """The state of a sweep after some chunks: ``run`` identifies the run (spec, sample
+    count, chunk size, precision, kept summaries) so that a resume continues the same one;
+    ``done`` lists the chunk numbers folded into ``acc``."""
+
+    run: str
+    done: list[int]
+    acc: Accumulator
+
+
+@contextlib.contextmanager
+def _deferred_interrupts():
+    """SIGINT/SIGTERM raise ``KeyboardInterrupt`` except inside ``state["critical"]``
+    sections (folding a chunk in, checkpointing), where they only set ``state["stop"]``, so
+    an interrupt never leaves a half-added chunk."""
+    state = {"stop": False, "critical": False}
+    if threading.current_thread() is not threading.main_thread():
+        yield state
+        return
+
+    def handler(signum, frame):
+        state["stop"] = True
+        if not state["critical"]:
+            raise KeyboardInterrupt
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield state
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
 def run_sweep(
     spec: SweepSpec,
     *,
@@ -179,7 +246,9 @@ def run_sweep(
     n_worst: int = 10,
     progress: bool = True,
     float32: bool = False,
-) -> SweepResult:
+    resume: SweepCheckpoint | None = None,
+    on_chunk: Callable[[SweepCheckpoint], None] | None = None,
+) -> SweepResult | None:
     """Run the Monte Carlo sweep of ``spec`` and return its summary.
 
     ``samples`` overrides ``spec.samples``; ``chunk_size`` samples run together (rounded up
@@ -189,6 +258,11 @@ def run_sweep(
     ``float32`` runs the loop in single precision (faster on CPU/GPU; see the benchmark
     for its accuracy). With ``jax.distributed`` initialised, each process runs its share of
     the chunks and every process returns the combined result.
+
+    Interrupts (single process): Ctrl-C or SIGTERM stop the sweep between chunks; the result
+    then summarises the chunks done, with ``summary["partial"] = True`` (``None`` if no chunk
+    was done). ``on_chunk`` gets a ``SweepCheckpoint`` after each chunk (the CLI saves it);
+    ``resume`` continues from one (refused if it belongs to another run).
     """
     n_samples = spec.samples if samples is None else int(samples)
     if n_samples < 1:
@@ -203,37 +277,72 @@ def run_sweep(
     mine = list(range(pid, n_chunks, nproc))
     sharding = NamedSharding(Mesh(np.array(devices[:nd]), ("batch",)), PartitionSpec("batch")) if shard else None
 
-    acc = Accumulator(spec, keep_samples=keep_samples, n_worst=n_worst)
+    run_id = json.dumps({"spec": spec.to_dict(), "samples": n_samples, "chunk_size": chunk_size,
+                         "float32": float32, "keep_samples": keep_samples, "n_worst": n_worst},
+                        sort_keys=True, default=str)
+    if resume is not None:
+        if nproc > 1:
+            raise ValueError("run_sweep: resume is for single-process sweeps")
+        if resume.run != run_id:
+            raise ValueError("run_sweep: the checkpoint belongs to another sweep (spread, "
+                             "samples, chunk size, precision or kept summaries differ)")
+        acc, done = resume.acc, list(resume.done)
+    else:
+        acc, done = Accumulator(spec, keep_samples=keep_samples, n_worst=n_worst), []
+    todo = [c for c in mine if c not in set(done)]
+    count0 = acc.count
     ctx = jax.enable_x64(False) if float32 else contextlib.nullcontext()
     t0, c0 = time.perf_counter(), time.process_time()
     t_compile = 0.0
-    with ctx:
-        fn = make_chunk_fn(spec, float32)
+    interrupted = False
+    stops = _deferred_interrupts() if nproc == 1 else contextlib.nullcontext({"stop": False, "critical": False})
+    with ctx, stops as state:
         bar = None
-        if progress:
-            from tqdm.auto import tqdm
+        try:
+            fn = make_chunk_fn(spec, float32)
+            if progress:
+                from tqdm.auto import tqdm
 
-            bar = tqdm(total=len(mine), unit="chunk", desc=f"sweep[{pid}/{nproc}]" if nproc > 1 else "sweep")
-        for k, c in enumerate(mine):
-            idx = np.arange(c * chunk_size, (c + 1) * chunk_size)
-            valid = idx < n_samples
-            idx = np.where(valid, idx, 0).astype(np.uint32)
-            a_idx, a_valid = jnp.asarray(idx), jnp.asarray(valid)
-            if sharding is not None:
-                a_idx, a_valid = jax.device_put(a_idx, sharding), jax.device_put(a_valid, sharding)
-            out = jax.device_get(fn(a_idx, a_valid))
-            if k == 0:
-                t_compile = time.perf_counter() - t0
-            acc.add(idx[valid], {k2: (v if k2 == "band_hist" else v[valid]) for k2, v in out.items()})
+                bar = tqdm(total=len(mine), initial=len(mine) - len(todo), unit="chunk",
+                           desc=f"sweep[{pid}/{nproc}]" if nproc > 1 else "sweep")
+            for k, c in enumerate(todo):
+                idx = np.arange(c * chunk_size, (c + 1) * chunk_size)
+                valid = idx < n_samples
+                idx = np.where(valid, idx, 0).astype(np.uint32)
+                a_idx, a_valid = jnp.asarray(idx), jnp.asarray(valid)
+                if sharding is not None:
+                    a_idx, a_valid = jax.device_put(a_idx, sharding), jax.device_put(a_valid, sharding)
+                out = jax.device_get(fn(a_idx, a_valid))
+                if k == 0:
+                    t_compile = time.perf_counter() - t0
+                state["critical"] = True
+                acc.add(idx[valid], {k2: (v if k2 == "band_hist" else v[valid]) for k2, v in out.items()})
+                done.append(c)
+                if on_chunk is not None:
+                    on_chunk(SweepCheckpoint(run_id, list(done), acc))
+                state["critical"] = False
+                if bar is not None:
+                    bar.update(1)
+                if state["stop"]:
+                    raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            if nproc > 1:
+                raise
+            interrupted = True
+        finally:
             if bar is not None:
-                bar.update(1)
-        if bar is not None:
-            bar.close()
+                bar.close()
     if nproc > 1:
         acc = acc.allgather()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    if acc.count == 0:
+        return None
     res = acc.result()
-    steps = n_samples * round(spec.t_final / spec.dt)
+    res.summary["partial"] = interrupted
+    res.summary["chunks_done"] = len(done)
+    res.summary["chunks"] = n_chunks
+    # controller steps run in this call (a resumed run counts only its own chunks)
+    steps = (acc.count - count0 if nproc == 1 else n_samples) * round(spec.t_final / spec.dt)
     res.timing = {
         "wall_s": wall, "cpu_s": cpu, "first_chunk_s": t_compile, "chunk_size": chunk_size, "chunks": n_chunks,
         "devices": nd, "processes": nproc, "controller_steps": steps,

@@ -51,6 +51,7 @@ from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
 from jaxflex.presets import SENSING_PRESETS, TRAJECTORIES, paper_params, sensing_of
 from jaxflex.sensing import SENSING_FIELDS
+from jaxflex.validation import did_you_mean
 
 SENSING_NAMES: tuple[str, ...] = ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")
 LIMIT_NAMES: tuple[str, ...] = ("tau_max",)
@@ -263,6 +264,28 @@ class SweepSpec:
         """Column labels, in sample-vector order."""
         return [c.label for c in self.columns]
 
+    def fs_fc_pairs(self) -> list[tuple[int, float, int, float]]:
+        """Per joint where Fc or Fs is sampled: (column of Fc or -1, nominal Fc, column of Fs
+        or -1, nominal Fs) [N m]; the sampler redraws a pair that breaks Fs >= Fc."""
+        col = {(c.name, c.joint): i for i, c in enumerate(self.columns)}
+        out = []
+        for j in range(self.n):
+            i_fc, i_fs = col.get(("friction.Fc", j), -1), col.get(("friction.Fs", j), -1)
+            if i_fc >= 0 or i_fs >= 0:
+                out.append((i_fc, float(self.nominal.friction["Fc"][j]), i_fs,
+                            float(self.nominal.friction["Fs"][j])))
+        return out
+
+    def fs_below_fc_possible(self) -> bool:
+        """Whether a draw can give Fs < Fc on some joint (both supports overlap): such draws
+        are redrawn, so the sweep samples the spread conditioned on Fs >= Fc."""
+        for i_fc, fc0, i_fs, fs0 in self.fs_fc_pairs():
+            fc_hi = self.columns[i_fc].dist.support()[1] if i_fc >= 0 else fc0
+            fs_lo = self.columns[i_fs].dist.support()[0] if i_fs >= 0 else fs0
+            if fs_lo < fc_hi:
+                return True
+        return False
+
     def with_(self, **changes: Any) -> SweepSpec:
         """A copy with some fields replaced (e.g. ``compensation=False``)."""
         return dataclasses.replace(self, **changes)
@@ -353,9 +376,10 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
 
     if not isinstance(d, dict):
         raise SpreadError(f"a spread must be a JSON object, got {type(d).__name__}")
-    bad = set(d) - _TOP_KEYS
-    if bad:
-        raise SpreadError(f"unknown top-level key(s) {sorted(bad)}; known: {sorted(_TOP_KEYS)}")
+    for k in d:
+        if k not in _TOP_KEYS:
+            raise SpreadError(f"unknown top-level key '{k}'{did_you_mean(k, sorted(_TOP_KEYS))}; "
+                              f"known: {sorted(_TOP_KEYS)}")
     nominal = _nominal(d.get("nominal"), base)
     n = nominal.n
     traj = d.get("trajectory", "sinusoid")
@@ -366,9 +390,11 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
     ctrl = d.get("controller", {}) or {}
     if not isinstance(ctrl, dict):
         raise SpreadError("controller: expected an object")
-    bad = set(ctrl) - {"compensation", "q2d_method", "tau_max"}
-    if bad:
-        raise SpreadError(f"controller: unknown field(s) {sorted(bad)}")
+    for k in ctrl:
+        if k not in ("compensation", "q2d_method", "tau_max"):
+            raise SpreadError(f"controller: unknown field '{k}'"
+                              f"{did_you_mean(k, ('compensation', 'q2d_method', 'tau_max'))}; "
+                              "known: ['compensation', 'q2d_method', 'tau_max']")
     if ctrl.get("q2d_method", "model") not in Q2D_METHODS:
         raise SpreadError(f"controller.q2d_method must be one of {Q2D_METHODS}, got {ctrl['q2d_method']!r}")
     if not isinstance(ctrl.get("compensation", True), bool):
@@ -411,7 +437,8 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
             if len(parts) != 3:
                 raise SpreadError(f"uncertain.{key}: effect entries are named effects.<effect>.<parameter>")
             if parts[1] not in EFFECTS:
-                raise SpreadError(f"uncertain.{key}: unknown effect {parts[1]!r}; known: {sorted(EFFECTS)}")
+                raise SpreadError(f"uncertain.{key}: unknown effect {parts[1]!r}"
+                                  f"{did_you_mean(parts[1], sorted(EFFECTS))}; known: {sorted(EFFECTS)}")
             names = [base_name]
         elif parts[0] in GROUPS and len(parts) == 2:
             if parts[1] == "*":
@@ -420,13 +447,13 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
                 names = [base_name]
             else:
                 raise SpreadError(
-                    f"uncertain.{key}: unknown name {parts[1]!r} in group {parts[0]!r}; "
-                    f"known: {list(GROUPS[parts[0]])}"
+                    f"uncertain.{key}: unknown name {parts[1]!r} in group {parts[0]!r}"
+                    f"{did_you_mean(parts[1], GROUPS[parts[0]])}; known: {list(GROUPS[parts[0]])}"
                 )
         else:
             raise SpreadError(
                 f"uncertain.{key}: names are <group>.<name> with group in {sorted(GROUPS)} "
-                "or effects.<effect>.<parameter>"
+                f"or effects.<effect>.<parameter>{did_you_mean(parts[0], sorted(GROUPS) + ['effects'])}"
             )
         if parts[0] == "limits" and not math.isfinite(tau_max) and isinstance(dist, dict) and (
             {"rel", "rel_std", "factor"} & set(dist) or (dist.get("dist") == "normal" and "mean" not in dist)
@@ -470,6 +497,18 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
         except ValueError:
             pass  # value checks happen per sample; only the structure is checked here
     samples = pos("samples", 1000, integer=True)
+    for j in range(n):  # LuGre needs Fs >= Fc (docs/spec.md section 2)
+        sup = {}
+        for nm in ("Fc", "Fs"):
+            c = next((c for c in columns if c.name == f"friction.{nm}" and c.joint == j), None)
+            v = float(nominal.friction[nm][j])
+            sup[nm] = c.dist.support() if c is not None else (v, v)
+        if sup["Fs"][1] < sup["Fc"][0] or (sup["Fs"][1] == sup["Fc"][0] and sup["Fs"] != sup["Fc"]):
+            where = "" if n == 1 else f"[{j}]"
+            raise SpreadError(
+                f"friction.Fs{where} is always drawn below friction.Fc{where} (Fs up to "
+                f"{sup['Fs'][1]:g}, Fc from {sup['Fc'][0]:g} N m); LuGre needs Fs >= Fc: give "
+                "Fs a range above Fc's")
     return SweepSpec(
         nominal=nominal, columns=columns, trajectory=traj, t_final=t_final, dt=dt,
         substeps=pos("substeps", 10, integer=True), compensation=ctrl.get("compensation", True),

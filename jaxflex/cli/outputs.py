@@ -1,0 +1,98 @@
+"""Output paths of the commands, checked before any computation (issue 16).
+
+Every command calls ``check_file`` / ``check_folder`` on its outputs right after parsing, so a
+mistyped or unwritable ``--out`` fails in a second with a message saying what to do, not after
+minutes of work; and an existing result is never overwritten without ``--force``.
+
+Rules: an output *file*'s folder must exist (a typo in a folder name is not silently created);
+an output *folder* is created at write time with its missing parents, so the nearest existing
+ancestor must be a writable folder; a file is never where a folder is expected, nor the reverse.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+
+class OutputError(ValueError):
+    """An output path that cannot or must not be written; the message says what to do."""
+
+
+FORCE_HELP = "overwrite existing output files (default: refuse to overwrite)"
+
+
+def add_force_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--force`` (overwrite existing outputs) to a command's parser."""
+    parser.add_argument("--force", action="store_true", help=FORCE_HELP)
+
+
+def _writable_folder(folder: Path, flag: str, path: Path) -> None:
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"{flag} {path}: the folder {folder} is not writable; choose a folder "
+                          "you can write to")
+
+
+def check_file(path: str | os.PathLike, *, force: bool, flag: str = "--out") -> Path:
+    """Check that the output file ``path`` can be written now: its folder exists and is
+    writable, it is not a folder, and it does not exist unless ``force``. Returns the path;
+    raises ``OutputError`` naming ``flag`` and what to do."""
+    p = Path(path)
+    if p.is_dir():
+        raise OutputError(f"{flag} {p}: is a folder, but a file is expected here; give a file "
+                          f"path such as {p / 'result'}{p.suffix or '.json'}")
+    parent = p.parent if str(p.parent) else Path(".")
+    for anc in (parent, *parent.parents):
+        if anc.exists() and not anc.is_dir():
+            raise OutputError(f"{flag} {p}: {anc} is a file, not a folder; choose another path")
+    if not parent.is_dir():
+        raise OutputError(f"{flag} {p}: the folder {parent} does not exist; create it first "
+                          f"(mkdir -p {parent}) or choose another path")
+    _writable_folder(parent, flag, p)
+    if p.exists():
+        if not force:
+            raise OutputError(f"{flag} {p}: the file exists; pass --force to overwrite it, or "
+                              "choose another path (nothing was written)")
+        if not os.access(p, os.W_OK):
+            raise OutputError(f"{flag} {p}: the file exists and is not writable")
+    return p
+
+
+def check_folder(path: str | os.PathLike, *, force: bool, flag: str = "--out",
+                 marker: str | None = None, resume: bool = False) -> Path:
+    """Check that the output folder ``path`` can be created or written now: it is not a file,
+    its nearest existing ancestor is a writable folder, and (unless ``force`` or ``resume``)
+    it does not already hold a result, recognised by the file ``marker`` (e.g.
+    ``report.json``). Returns the path; raises ``OutputError`` naming ``flag`` and what to do.
+    Nothing is created here."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise OutputError(f"{flag} {p}: is a file, but a folder is expected here; give a folder "
+                          "path (it is created if missing)")
+    anc = p
+    while not anc.exists():
+        if anc.parent == anc:
+            break
+        anc = anc.parent
+    if anc.exists() and not anc.is_dir():
+        raise OutputError(f"{flag} {p}: {anc} is a file, not a folder; choose another path")
+    _writable_folder(anc, flag, p)
+    if marker is not None and (p / marker).exists() and not (force or resume):
+        raise OutputError(f"{flag} {p}: the folder already holds a result ({marker}); pass "
+                          "--force to overwrite it, or choose another folder (nothing was "
+                          "written)")
+    return p
+
+
+def check_outputs(force: bool, files: tuple[str | os.PathLike | None, ...] | list = (),
+                  folders: tuple[str | os.PathLike | None, ...] | list = (),
+                  marker: str | None = None, flag: str = "--out") -> None:
+    """``check_file`` on each of ``files`` and ``check_folder`` (with ``marker``) on each of
+    ``folders``; ``None`` entries are skipped. One call at the top of a command's ``run``."""
+    for f in files:
+        if f is not None:
+            check_file(f, force=force, flag=flag)
+    for d in folders:
+        if d is not None:
+            check_folder(d, force=force, flag=flag, marker=marker)
