@@ -1,5 +1,5 @@
 """Bad inputs through the public command line (issue 16): parameter files, spread files,
-output paths, controller files and interrupts.
+output paths, controller files, log files and interrupts.
 
 Every case asserts a non-zero exit, a message on stderr that names the problem, no traceback,
 and that an output file written before (a sentinel) is unchanged. Cases run in-process through
@@ -355,3 +355,45 @@ def test_sweep_interrupted_keeps_chunks_and_resumes(tmp_path):
     full = json.loads((out / "summary.json").read_text())
     assert not full["partial"] and full["samples"] == 800 and full["chunks_done"] == 200
     assert not (out / "checkpoint.pkl").exists()
+
+
+# ----- log files (through identify, discover and validate) -------------------------------------
+
+def _write_csv(path: Path, header: str, rows: list[list[float]]) -> Path:
+    path.write_text(header + "\n" + "\n".join(",".join(str(v) for v in r) for r in rows) + "\n")
+    return path
+
+
+LOG_CASES = [
+    # (file maker, names expected in stderr)
+    (lambda p: _write_csv(p / "h.csv", "t,tau,q1,q2", []), ["no data rows"]),
+    (lambda p: _write_csv(p / "c.csv", "time,torque,q1,q2",
+                          [[i * 1e-3, 0.0, 0.0, 0.0] for i in range(50)]),
+     ["missing column", "time", "torque"]),
+    (lambda p: _write_csv(p / "n.csv", "t,tau,q1,q2",
+                          [[i * 1e-3, float("nan") if i == 7 else 0.0, 0.0, 0.0]
+                           for i in range(50)]), ["NaN", "tau"]),
+    (lambda p: _write_csv(p / "u.csv", "t,tau,q1,q2",
+                          [[(i * 1e-3) ** 2, 0.0, 0.0, 0.0] for i in range(50)]),
+     ["uniformly sampled"]),
+    (lambda p: _write_csv(p / "ms.csv", "t,tau,q1,q2",
+                          [[float(i), 0.0, 0.0, 0.0] for i in range(50)]), ["milliseconds", "t:ms"]),
+    (lambda p: _write_csv(p / "d.csv", "t,tau,q1,q1",
+                          [[i * 1e-3, 0.0, 0.0, 0.0] for i in range(50)]), ["duplicate"]),
+    (lambda p: (p / "x.txt").write_text("1,2\n") and p / "x.txt", ["unknown log format"]),
+    (lambda p: p / "missing.csv", ["not found"]),
+]
+
+
+@pytest.mark.parametrize("case", range(len(LOG_CASES)))
+@pytest.mark.parametrize("command", ["identify", "discover"])
+def test_bad_logs_are_refused(capsys, tmp_path, sentinel, case, command):
+    make, names = LOG_CASES[case]
+    log = make(tmp_path)
+    params = tmp_path / "p.json"
+    params.write_text(json.dumps(GOOD))
+    out = sentinel if command == "identify" else tmp_path / "o"
+    argv = [command, str(log), "--params", str(params), "--out", str(out)]
+    if command == "identify":
+        argv.append("--force")  # the sentinel may be replaced only by a finished result
+    _refused(capsys, argv, *names, sentinel=sentinel)
