@@ -28,6 +28,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
@@ -145,6 +146,65 @@ def shooting_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -
     eliminated by a block Thomas (block LU) recursion and theta solved from the k x k Schur
     complement; the system is symmetric positive definite (damped), so no pivoting is needed.
     """
+    blk = shooting_blocks(jac, r)
+    Ntt, Dx = blk["Ntt"], blk["Dx"]
+    S, d = Dx.shape[0], Dx.shape[1]
+    dam_t = _damping(jnp.diag(Ntt), scaling)
+    dam_x = _damping(jnp.diagonal(Dx, axis1=1, axis2=2).reshape(-1), scaling).reshape(S, d)
+    Ntt = Ntt + lam * jnp.diag(dam_t)
+    Dx = Dx + lam * jax.vmap(jnp.diag)(dam_x)
+    return _arrow_solve(Ntt, blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], blk["unravel"],
+                        blk["x_shape"])
+
+
+def _arrow_solve(Ntt, Nxt, Dx, U, gt, gx, unravel, x_shape):
+    """Solve the arrow system [[Ntt, Nxt^T], [Nxt, T]] (dth, dx) = (gt, gx), T block
+    tridiagonal with diagonal blocks Dx and upper blocks U, by block Thomas elimination of the
+    starts and the Schur complement in theta; with ``unravel`` None, return the Schur
+    complement (theta's information with the starts eliminated) instead."""
+    d = Dx.shape[1]
+    k = Ntt.shape[0]
+    dt = Ntt.dtype
+    T = lambda a: jnp.swapaxes(a, -1, -2)
+    B = jnp.concatenate([Nxt, gx[:, :, None]], axis=-1)  # right-hand sides (S, d, k + 1)
+
+    def forward(carry, inp):
+        Dp, Yp, Up = carry
+        Ds, Bs, Us = inp
+        M = T(jnp.linalg.solve(Dp, Up))              # U_{s-1}^T D'_{s-1}^{-1}
+        Dn = Ds - M @ Up
+        Yn = Bs - M @ Yp
+        return (Dn, Yn, Us), (Dn, Yn)
+
+    eye = jnp.eye(d, dtype=dt)
+    init = (eye, jnp.zeros((d, k + 1), dt), jnp.zeros((d, d), dt))
+    _, (Dn, Yn) = jax.lax.scan(forward, init, (Dx, B, U))
+
+    def backward(Xnext, inp):
+        Ds, Ys, Us = inp
+        X = jnp.linalg.solve(Ds, Ys - Us @ Xnext)
+        return X, X
+
+    _, X = jax.lax.scan(backward, jnp.zeros((d, k + 1), dt), (Dn, Yn, U), reverse=True)
+    Xt, Xg = X[..., :k], X[..., k]
+    St = Ntt - jnp.einsum("sdk,sdl->kl", Nxt, Xt)   # Schur complement: theta's information
+    rt = gt - jnp.einsum("sdk,sd->k", Nxt, Xg)
+    if unravel is None:
+        return St
+    c, low = jax.scipy.linalg.cho_factor(St)
+    dth = jax.scipy.linalg.cho_solve((c, low), rt)
+    dx = Xg - jnp.einsum("sdk,k->sd", Xt, dth)
+    return unravel(dth), dx.reshape(x_shape)
+
+
+
+
+def shooting_blocks(jac: Any, r: jax.Array) -> dict[str, Any]:
+    """The blocks of the (undamped) normal equations J^T J, J^T r of a free-start
+    multiple-shooting problem (see ``shooting_newton_step``): ``Ntt`` (k, k), ``Nxt``
+    (S, d, k), ``Dx`` (S, d, d) diagonal and ``U`` (S, d, d) upper blocks of the start-state
+    part, ``gt`` (k,), ``gx`` (S, d), and ``unravel`` / ``x_shape`` to rebuild the unknowns.
+    Costs k + 2 d Jacobian-vector products, linear in the log length."""
     th_struct, x_struct = jac.in_structure()
     S = x_struct.shape[0]
     d = int(np.prod(x_struct.shape[1:]))
@@ -184,37 +244,8 @@ def shooting_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -
     U = T(Ad) @ C                                    # N(x_s, x_{s+1}); zero for the last
     Nxt = T(A) @ G + sh(T(C) @ Gd)                   # (S, d, k)
     gx = jnp.einsum("smd,sm->sd", A, R) + sh(jnp.einsum("sed,se->sd", C, R[:, my:]))
-    dam_t = _damping(jnp.diag(Ntt), scaling)
-    dam_x = _damping(jnp.diagonal(Dx, axis1=1, axis2=2).reshape(-1), scaling).reshape(S, d)
-    Ntt = Ntt + lam * jnp.diag(dam_t)
-    Dx = Dx + lam * jax.vmap(jnp.diag)(dam_x)
-    B = jnp.concatenate([Nxt, gx[:, :, None]], axis=-1)  # right-hand sides (S, d, k + 1)
-
-    def forward(carry, inp):
-        Dp, Yp, Up = carry
-        Ds, Bs, Us = inp
-        M = T(jnp.linalg.solve(Dp, Up))              # U_{s-1}^T D'_{s-1}^{-1}
-        Dn = Ds - M @ Up
-        Yn = Bs - M @ Yp
-        return (Dn, Yn, Us), (Dn, Yn)
-
-    eye = jnp.eye(d, dtype=dt)
-    init = (eye, jnp.zeros((d, k + 1), dt), jnp.zeros((d, d), dt))
-    _, (Dn, Yn) = jax.lax.scan(forward, init, (Dx, B, U))
-
-    def backward(Xnext, inp):
-        Ds, Ys, Us = inp
-        X = jnp.linalg.solve(Ds, Ys - Us @ Xnext)
-        return X, X
-
-    _, X = jax.lax.scan(backward, jnp.zeros((d, k + 1), dt), (Dn, Yn, U), reverse=True)
-    Xt, Xg = X[..., :k], X[..., k]
-    St = Ntt - jnp.einsum("sdk,sdl->kl", Nxt, Xt)
-    rt = gt - jnp.einsum("sdk,sd->k", Nxt, Xg)
-    c, low = jax.scipy.linalg.cho_factor(St)
-    dth = jax.scipy.linalg.cho_solve((c, low), rt)
-    dx = Xg - jnp.einsum("sdk,k->sd", Xt, dth)
-    return unravel(dth), dx.reshape(x_struct.shape)
+    return {"Ntt": Ntt, "Nxt": Nxt, "Dx": Dx, "U": U, "gt": gt, "gx": gx, "unravel": unravel,
+            "x_shape": x_struct.shape}
 
 
 def _split_like(flat: jax.Array, structure: Any) -> list[jax.Array]:
@@ -344,6 +375,21 @@ def residuals(prob: Problem, y: Any) -> jax.Array:
 
 
 @eqx.filter_jit
+def _theta_information(prob: Problem, y: Any):
+    """Residual and the Schur complement of the normal matrix in theta (starts eliminated)."""
+    r, lin = jax.linearize(prob.residuals, y)
+    jac = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: y))
+    blk = shooting_blocks(jac, r)
+    Dx = blk["Dx"]
+    # a start state that no residual sees (e.g. a measured link state) keeps the
+    # elimination defined; it does not change theta's information
+    reg = 1e-12 * jnp.maximum(jnp.max(jnp.abs(Dx)), 1e-300)
+    Dx = Dx + reg * jnp.eye(Dx.shape[-1], dtype=Dx.dtype)
+    St = _arrow_solve(blk["Ntt"], blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], None, None)
+    return r, St
+
+
+@eqx.filter_jit
 def _jacobian(fn: Callable, prob: Any, y: Any):
     flat, unravel = ravel_pytree(y)
     return fn(y, prob), jax.jacfwd(lambda f: fn(unravel(f), prob))(flat)
@@ -367,6 +413,9 @@ def covariance(
     continuity defects), ``n_res`` (output residuals).
     """
     theta = prob.split(y)[0] if hasattr(prob, "split") else y
+    if (fn is problem_residuals and isinstance(prob, Problem) and prob.free_starts
+            and prob.segs.count > 1):
+        return _covariance_shooting(prob, y, theta, inflation, rank_rtol)
     r, Jm = (np.asarray(a) for a in _jacobian(fn, prob, y))
     n_out = int(getattr(prob, "n_out", r.size))
     th_flat, th_unravel = ravel_pytree(theta)
@@ -407,3 +456,51 @@ def covariance(
     return {"stderr": se, "rank": rank, "n_free": p, "singular_values": sv.tolist(),
             "null_names": null_names, "s2": s2, "cov_phys": cov_phys, "rss": rss,
             "defects_ss": float(np.sum(r[n_out:] ** 2)), "n_res": n_out}
+
+
+def _covariance_shooting(prob: Problem, y: Any, theta: Any, inflation: float,
+                         rank_rtol: float) -> dict[str, Any]:
+    """``covariance`` of a free-start multiple-shooting problem in time linear in the log
+    length: theta's covariance is s^2 times the inverse of the Schur complement of the normal
+    matrix (the segment starts eliminated, so their uncertainty is accounted for), the same
+    numbers as the dense route; singular values and rank are those of theta's part after the
+    elimination (the starts are taken as determined)."""
+    r, St = (np.asarray(a) for a in _theta_information(prob, y))
+    n_out = prob.n_out
+    k = St.shape[0]
+    S = prob.segs.count
+    d = int(np.prod(prob.segs.x0.shape[1:]))
+    fitted_theta = prob.space.fitted_flat()
+    fi = np.flatnonzero(fitted_theta)
+    St = St[np.ix_(fi, fi)]
+    p = int(fi.size) + S * d
+    rss = float(np.sum(r[:n_out] ** 2))
+    s2 = rss / max(n_out - p, 1) * inflation
+    scale = np.sqrt(np.maximum(np.diag(St), 0.0))
+    scale = np.where(scale > 0, scale, 1.0)
+    w, V = np.linalg.eigh(St / np.outer(scale, scale))
+    order = np.argsort(w)[::-1]
+    w, V = w[order], V[:, order]
+    sv = np.sqrt(np.maximum(w, 0.0))
+    tol = sv[0] * max(rank_rtol, np.finfo(float).eps * max(r.size, p)) if sv.size else 0.0
+    keep = sv > tol
+    inv = (V[:, keep] / sv[keep] ** 2) @ V[:, keep].T
+    cov_theta = np.zeros((k, k))
+    cov_theta[np.ix_(fi, fi)] = s2 * inv / np.outer(scale, scale)
+    T = prob.space.physical_jacobian(theta)
+    cov_phys = T @ cov_theta @ T.T
+    se_flat = np.sqrt(np.maximum(np.diag(cov_phys), 0.0))
+    se_flat = np.where(fitted_theta, se_flat, np.nan)
+    _, phys_unravel = ravel_pytree(prob.space.physical(theta))
+    se = {name: np.asarray(v) for name, v in phys_unravel(jnp.asarray(se_flat)).items()}
+    null_names: list[str] = []
+    if not keep.all():
+        mark = np.max(np.abs(V[:, ~keep]), axis=1) > 0.2
+        ids = ravel_pytree({nm: np.full(np.shape(theta[nm]), i)
+                            for i, nm in enumerate(prob.space.names)})[0]
+        ids = np.asarray(ids)[fitted_theta]
+        null_names = [prob.space.names[int(i)] for i in np.unique(ids[mark])]
+    return {"stderr": se, "rank": int(keep.sum()) + S * d, "n_free": p,
+            "singular_values": sv.tolist(), "null_names": null_names, "s2": s2,
+            "cov_phys": cov_phys, "rss": rss, "defects_ss": float(np.sum(r[n_out:] ** 2)),
+            "n_res": n_out}

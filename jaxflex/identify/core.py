@@ -369,6 +369,10 @@ def finish(
     rms = float(np.sqrt(np.mean((np.asarray(ys) - np.asarray(prob.segs.y_meas)) ** 2)))
     if not converged and reason:
         msgs.append(f"not converged: {reason}")
+    for a, b in (("Fc", "Fs"), ("Fs", "Fc")):  # an ordered pair is kept or fitted together
+        if a in bad and b in phys and b not in bad:
+            bad.append(b)
+            why[b] = f"kept at its initial value with {a} (Fs >= Fc): {why[a]}"
     fixed = dict(unidentified or {})
     for k, w in fixed.items():
         if k not in bad:
