@@ -41,6 +41,7 @@ from jaxtyping import Array, ArrayLike, Float
 from jaxflex.controller import CascadeGains
 from jaxflex.observer import FrictionObserver
 from jaxflex.plant import FlexibleJointPlant
+from jaxflex.trajectory import Trajectory
 from jaxflex.validation import requires_float64
 
 DEFAULT_EPS: float = 1e-3
@@ -233,5 +234,44 @@ def ultimate_bound(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float =
     d_bar = float(jnp.max(dnorm))
     lam = float(jnp.min(lambda_min_curve(plant, gains, vel, eps)))
     bound = d_bar / lam if lam > 0 else float("inf")
-    return {"D_bar": d_bar, "lambda_min": lam, "rho_bound": bound, "e1_bound": bound,
-            "vmax": float(vmax), "eps": float(eps)}
+    return {"D_bar": d_bar, "D_bar_at": float(vel[int(jnp.argmax(dnorm))]), "lambda_min": lam,
+            "rho_bound": bound, "e1_bound": bound, "vmax": float(vmax), "eps": float(eps)}
+
+
+@requires_float64
+def task_bound(plant: FlexibleJointPlant, gains: CascadeGains, trajectory: Trajectory,
+               t_final: float, *, dt: float = 1e-3, speed_factor: float = 1.2,
+               num: int = DEFAULT_NUM, eps: float = DEFAULT_EPS) -> dict[str, Any]:
+    """The ultimate bound of eq. 32-33 read for a task, in rad.
+
+    The speed range is ``speed_factor`` times the reference's largest speed max |q1d'|
+    [rad/s] over [0, t_final] s (sampled every ``dt`` s): the link moves about as fast as its
+    reference when it tracks. e1 is the first component of rho, so |e1| <= ||rho|| <=
+    D_bar / lambda_min once the ball of eq. 32 is reached (a lower estimate: the ultimate
+    bound proper is the smallest level set of V containing that ball, larger by the square
+    root of V's condition number). The bound is *vacuous* when it is not below the
+    reference's half-range A [rad] (it would allow the link to stand still) or when N2 is
+    not positive definite over the speed range (``e1_bound`` inf). Returns
+    ``ultimate_bound``'s numbers plus ``e1_bound_rad``, ``reference_half_range_rad``,
+    ``bound_over_half_range``, ``task_speed`` [rad/s], ``vacuous`` and ``reason``.
+    """
+    ts = jnp.arange(int(round(t_final / dt)) + 1) * dt
+    r = trajectory.sample(ts, order=1)
+    vmax = float(speed_factor * jnp.max(jnp.abs(r[:, 1])))
+    half = float(jnp.max(0.5 * (jnp.max(r[:, 0], axis=0) - jnp.min(r[:, 0], axis=0))))
+    b = ultimate_bound(plant, gains, max(vmax, 2 * eps), num=num, eps=eps)
+    e1 = b["e1_bound"]
+    ratio = e1 / half if half > 0 else float("inf")
+    if not np.isfinite(e1):
+        reason = (f"N2 is not positive definite over |q1'| <= {vmax:.3g} rad/s "
+                  f"(lambda_min {b['lambda_min']:.3g}): no bound")
+    elif ratio >= 1.0:
+        reason = (f"|e1| <= {e1:.3g} rad is {ratio:.3g} times the reference's half-range "
+                  f"{half:.3g} rad; D_bar = {b['D_bar']:.3g} (its peak at |q1'| = "
+                  f"{b['D_bar_at']:.3g} rad/s, where Psi# ~ 1/eps and the smoothing error of "
+                  f"|v| are largest) over lambda_min(N2) = {b['lambda_min']:.3g}")
+    else:
+        reason = f"|e1| <= {e1:.3g} rad, {ratio:.3g} of the reference's half-range"
+    return {**b, "e1_bound_rad": e1, "reference_half_range_rad": half,
+            "bound_over_half_range": ratio, "task_speed": vmax,
+            "vacuous": bool(not np.isfinite(e1) or ratio >= 1.0), "reason": reason}

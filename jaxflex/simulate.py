@@ -25,7 +25,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from jaxflex.controller import CascadeController
 from jaxflex.sensing import AbstractSensing, Sensing
@@ -38,9 +38,12 @@ _tmap = jax.tree_util.tree_map
 class Metrics(eqx.Module):
     """Running tracking metrics of one closed-loop run (reduced inside the loop).
 
-    All (n,) except ``count`` and ``diverged``: sum of squared link error [rad^2], max |e1|
-    [rad], sum of squared torque [N^2 m^2], samples at the torque limit, sample count, and
-    whether the state became non-finite or exceeded ``blowup`` (1e3 rad or rad/s).
+    All (n,) except ``count``, ``diverged`` and ``diverged_at``: sum of squared link error
+    [rad^2], max |e1| [rad], sum of squared torque [N^2 m^2], samples at the torque limit,
+    sample count; ``diverged``: the run is lost, i.e. the state became non-finite or beyond
+    1e3 rad or rad/s (the state is then held), or the link error left the band
+    |e1| <= LOST_FACTOR (A + LOST_FLOOR) around a reference of half-range A [rad] (see
+    ``lost_band``); ``diverged_at``: the first sample where that happened (-1: never).
     """
 
     sum_e2: Array
@@ -49,6 +52,7 @@ class Metrics(eqx.Module):
     sat_count: Array
     count: Array
     diverged: Array
+    diverged_at: Array
 
     @property
     def rms_error(self) -> Array:
@@ -100,6 +104,21 @@ def _noise(key, shape, std):
     if key is None:
         return jnp.zeros(shape)
     return std * jax.random.normal(key, shape)
+
+
+LOST_FACTOR: float = 2.0
+"""A run is lost when |e1| exceeds LOST_FACTOR times (the reference's half-range + LOST_FLOOR)."""
+LOST_FLOOR: float = 0.01
+"""[rad] added to the reference's half-range so that a reference at rest has a band too."""
+
+
+def lost_band(q1d: Float[Array, "N n"]) -> Float[Array, " n"]:
+    """The link-error band [rad] outside which a run is lost: LOST_FACTOR (A + LOST_FLOOR),
+    A = (max q1d - min q1d) / 2 the reference's half-range [rad] over the run, per joint.
+    An error of twice the motion itself means the loop no longer follows the reference
+    (a tracking loop that works keeps |e1| well below A)."""
+    half = 0.5 * (jnp.max(q1d, axis=0) - jnp.min(q1d, axis=0))
+    return LOST_FACTOR * (half + LOST_FLOOR)
 
 
 def _blown(x: PlantState, bound: float = 1e3) -> Array:
@@ -157,7 +176,9 @@ def simulate_sampled(
         x0.dq1, x0.dq2,
     )
     zero = jnp.zeros(n)
-    m0 = Metrics(zero, zero, zero, zero, jnp.zeros(()), jnp.zeros((), bool))
+    m0 = Metrics(zero, zero, zero, zero, jnp.zeros(()), jnp.zeros((), bool),
+                 -jnp.ones((), jnp.int32))
+    band = lost_band(jax.vmap(controller.trajectory.position)(ts))
 
     def body(carry, inp):
         x, c, m = carry
@@ -173,14 +194,16 @@ def simulate_sampled(
             x_new = plant_step(plant, x, tau, dt, substeps)
         else:
             x_new = plant_step_diffrax(plant, x, tau, dt)
-        bad = _blown(x_new) | m.diverged
-        x_new = _tmap(lambda a, b: jnp.where(bad, a, b), x, x_new)
+        blown = _blown(x_new)
+        x_new = _tmap(lambda a, b: jnp.where(blown, a, b), x, x_new)  # hold the last finite state
         e = x.q1 - controller.trajectory.position(t)
+        bad = blown | jnp.any(jnp.abs(e) > band) | m.diverged
         sat = jnp.abs(out.tau) >= controller.tau_max
         m_new = Metrics(
             sum_e2=m.sum_e2 + e**2, max_e=jnp.maximum(m.max_e, jnp.abs(e)),
             sum_tau2=m.sum_tau2 + tau**2, sat_count=m.sat_count + sat, count=m.count + 1,
             diverged=bad,
+            diverged_at=jnp.where(bad & ~m.diverged, m.count.astype(jnp.int32), m.diverged_at),
         )
         rec = None
         if save:

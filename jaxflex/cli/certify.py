@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from jaxflex.presets import TRAJECTORIES
+
 
 EXAMPLE = "jaxflex certify --params tuned.json --vmax 5 --bound"
 
@@ -27,13 +29,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="eq. 30 tolerance eps [rad/s] (default 1e-3)")
     p.add_argument("--bound", action="store_true",
                    help="also report the ultimate bound of eq. 32-33")
+    p.add_argument("--task", default="sinusoid", choices=TRAJECTORIES,
+                   help="with --bound: the reference task whose speed range and half-range "
+                   "give the bound in rad (default: sinusoid)")
+    p.add_argument("--duration", type=float, default=10.0,
+                   help="with --bound: seconds of the task (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Certify and print; exit 0 when N2 is positive definite over the whole grid, else 1."""
-    from jaxflex.certificate import certify, ultimate_bound
+    from jaxflex.certificate import certify, task_bound, ultimate_bound
+    from jaxflex.presets import trajectory_preset
     from jaxflex.params import load_params
 
     params = load_params(args.params)
@@ -43,6 +51,9 @@ def run(args: argparse.Namespace) -> int:
     if args.bound:
         out["ultimate_bound"] = ultimate_bound(plant, gains, args.vmax, num=args.num,
                                                eps=args.eps)
+        out["task_bound"] = {"task": args.task, **task_bound(
+            plant, gains, trajectory_preset(args.task), args.duration, num=args.num,
+            eps=args.eps)}
     if args.json:
         print(json.dumps(out))
     else:
@@ -53,6 +64,12 @@ def run(args: argparse.Namespace) -> int:
               f"{out['lambda_min'][-1]:.4g} at {args.vmax:g} rad/s, min {out['min_lambda_min']:.4g}")
         if args.bound:
             b = out["ultimate_bound"]
-            print(f"ultimate bound (eq. 32-33): ||rho|| <= D_bar/lambda_min = "
-                  f"{b['D_bar']:.4g}/{b['lambda_min']:.4g} = {b['rho_bound']:.4g}")
+            print(f"ultimate bound (eq. 32-33) over 0..{args.vmax:g} rad/s: ||rho|| <= "
+                  f"D_bar/lambda_min = {b['D_bar']:.4g}/{b['lambda_min']:.4g} = "
+                  f"{b['rho_bound']:.4g} (rho mixes rad, rad/s and eta; its e1 entry in rad)")
+            tb = out["task_bound"]
+            verdict = "VACUOUS" if tb["vacuous"] else "informative"
+            print(f"task {args.task} (|q1'| <= {tb['task_speed']:.3g} rad/s): link error "
+                  f"|e1| <= {tb['e1_bound_rad']:.4g} rad against a reference half-range of "
+                  f"{tb['reference_half_range_rad']:.3g} rad: {verdict}; {tb['reason']}")
     return 0 if res.certified else 1
