@@ -538,6 +538,18 @@ def discover(
     ws = workspace(log, nominal, cands, segment=cfg.segment, train_frac=cfg.train_frac,
                    substeps=cfg.substeps, max_effects=cfg.max_effects)
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2)
+    if not (math.isfinite(current.gap_test) and math.isfinite(current.rss)):
+        raise ValueError(
+            "discover: the nominal model's replay of this log is not finite (held-out gap "
+            f"{current.gap_test}); check the units of the log and of the nominal parameters "
+            f"(sample period {log.dt:g} s, segments of {cfg.segment:g} s)"
+        )
+    if current.gap_test > 1.0:
+        raise ValueError(
+            f"discover: the refitted nominal model replays the held-out segments worse than "
+            f"predicting no motion (held-out gap {current.gap_test:.3g} > 1): it does not "
+            "describe this log; identify it first (jaxflex identify) and pass it with --params"
+        )
     say(f"nominal refit: gap train {current.gap_train:.4f} held-out {current.gap_test:.4f}")
     first_fit = current
     loc = localise(log, current.model.params)
@@ -551,7 +563,7 @@ def discover(
         tau_int = max(effective_count(r[..., c]) for c in range(r.shape[-1]))
         n_eff = current.n_res / tau_int
         series = localise(log, current.model.params).series
-        scores, fits = {}, {}
+        scores, fits, failed = {}, {}, {}
         for name in cands:
             if name in added:
                 continue
@@ -560,7 +572,12 @@ def discover(
             try:
                 f = fit_model(ws, m, max_steps=cfg.max_steps, tau_int=tau_int)
             except (ValueError, FloatingPointError) as e:
+                failed[name] = str(e)
                 say(f"  {name}: fit failed ({e})")
+                continue
+            if not (math.isfinite(f.gap_test) and math.isfinite(f.rss)):
+                failed[name] = f"non-finite held-out gap {f.gap_test} or residual {f.rss}"
+                say(f"  {name}: fit failed ({failed[name]})")
                 continue
             s = score(current, f, n_eff)
             s["significant"] = bool(
@@ -571,15 +588,25 @@ def discover(
             scores[name], fits[name] = s, f
             say(f"  {name:20s} gap {f.gap_test:.4f} gain {s['gain']:+.3f} p {s['p_value']:.2e} "
                 f"dBIC {s['dBIC']:+.1f} {'*' if s['significant'] else ''} ({f.seconds:.1f} s)")
+        if not scores and failed:
+            raise ValueError(f"discover: every candidate fit failed: {failed}")
         winner = select(scores, cfg.parsimony)
         rounds.append({"base_gap_test": current.gap_test, "tau_int": tau_int, "n_eff": n_eff,
-                       "scores": scores, "winner": winner or "none"})
+                       "scores": scores, "failed": failed, "winner": winner or "none"})
         if winner is None:
             break
-        added.append(winner)
         # polish the winner so that the next round's candidates are compared with a converged
-        # base, not with one that merely had fewer iterations
-        current = fit_model(ws, fits[winner].model, max_steps=cfg.max_steps * 2)
+        # base, not with one that merely had fewer iterations; an effect that does not lower
+        # the held-out gap after this refit is dropped
+        polished = fit_model(ws, fits[winner].model, max_steps=cfg.max_steps * 2)
+        if not polished.gap_test < current.gap_test:
+            rounds[-1]["winner"] = "none"
+            rounds[-1]["dropped"] = {winner: f"held-out gap {polished.gap_test:.4g} after the "
+                                             f"refit, not below {current.gap_test:.4g}"}
+            say(f"dropped {winner}: the refit did not lower the held-out gap")
+            break
+        added.append(winner)
+        current = polished
         say(f"added {winner}: held-out gap {current.gap_test:.4f}")
     return DiscoverResult(
         effect=added[0] if added else "none", effects=added, gap_before=first_fit.gap_test,

@@ -89,3 +89,15 @@ def test_accuracy_study_small(tmp_path):
     assert r.returncode == 0, r.stderr
     res = json.loads((tmp_path / "results.json").read_text())
     assert res["summary"]["cases"] == 2
+
+
+def test_a_nominal_model_that_does_not_describe_the_log_is_an_error_not_an_answer():
+    """The paper's link on the KUKA KR300 axis-1 log (4 ms samples, torques of thousands of
+    N m): no refit of the nominal model replays it, so discover refuses instead of naming an
+    effect (it used to answer 'none', or add an effect to a meaningless base)."""
+    from jaxflex.data import load_kuka
+
+    log = load_kuka("A", 1).slice(0, 1500)
+    with pytest.raises(ValueError, match="does not describe this log"):
+        discover(log, config=DiscoverConfig(candidates=("torque_offset",), max_effects=1,
+                                            max_steps=5))
