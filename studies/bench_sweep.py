@@ -1,39 +1,54 @@
 """Benchmark: how fast and how lean is the batched Monte Carlo sweep on this machine?
 
 Question: closed-loop controller steps per second of ``jaxflex.sweep.run_sweep`` for 1e3, 1e4
-and 1e5 samples, its peak memory for each (it must stay flat in the number of samples), and
-the ratio against a baseline loop of ``scipy.integrate.solve_ivp`` over a subset, run in the
-same process. Also a profile of what limits the batched loop (plant substeps, q2d method,
-float32 against float64) and the float32 path's accuracy.
+and 1e5 samples, its peak memory for each (it must stay flat in the number of samples), the
+ratio against baselines run in the same process, the gain from a second CPU core (host
+devices), and a profile of what limits the batched loop (plant substeps, q2d method, float32
+against float64) with the float32 path's accuracy.
 
 Every sweep size runs in a fresh subprocess and reads its own peak resident set size from
 ``resource.getrusage(RUSAGE_SELF).ru_maxrss``. Throughput excludes tracing and XLA
 compilation (a one-chunk warm-up run first; its time is reported as ``first_chunk_s``).
 
-BASELINE (labelled as such, used only here): the same sampled-data loop, one sample at a
-time: the controller is the jitted single-sample ``CascadeController.step`` called every
-1 ms with numpy in/out, and the plant (paper eq. 3-5 with LuGre, one link, re-implemented in
-numpy below) is integrated over each 1 ms zero-order-hold interval by ``solve_ivp`` (RK45,
-rtol 1e-8, atol 1e-10), restarted at every sample.
+BASELINES (labelled as such, used only here; nothing compiled or generated inside a clock):
+
+- ``solve_ivp``: the same sampled-data loop, one sample after another, with the controller
+  exported by ``jaxflex.export`` (numpy/math only, generated once) called every 1 ms and the
+  plant (paper eq. 3-6 with LuGre, one link, numpy) integrated over each 1 ms zero-order-hold
+  interval by ``solve_ivp`` (RK45, rtol 1e-8, atol 1e-10), restarted at every sample;
+- ``numba``: the same samples through ``bench_simulate``'s numba loop (the library's
+  splitting scheme, 10 substeps, the exported controller compiled by numba), one core.
+
+The spread's controller estimates velocities from the angles (``sensing.velocity
+"filtered"``), as the exported controller does, so every path does the same work.
+Devices: the same sweep in subprocesses with 1 and 2 host devices
+(``XLA_FLAGS=--xla_force_host_platform_device_count``), in alternating pairs.
 
     python studies/bench_sweep.py [--small] [--out out/bench_sweep]
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import resource
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchkit  # noqa: E402
+
+BLAS = benchkit.limit_blas_threads(1)
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import resource  # noqa: E402
+import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
 
 SPREAD = {
     "nominal": "paper", "trajectory": "sinusoid",
     "controller": {"compensation": True, "q2d_method": "model", "tau_max": 2.0},
-    "sensing": "ideal", "seed": 0,
+    "sensing": {"velocity": "filtered"}, "seed": 0,
     "uncertain": {"plant.*": {"dist": "uniform", "rel": 0.2},
                   "friction.*": {"dist": "uniform", "rel": 0.2}},
 }
@@ -64,7 +79,8 @@ def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str,
         # (an upper bound; a busy co-tenant slows caches too)
         "steps_per_cpu_s": tm["controller_steps"] / tm["cpu_s"],
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "diverged": res.summary["diverged"],
+        "diverged": res.summary["diverged"], "devices": tm["devices"],
+        "load_avg": list(os.getloadavg()),
         "rms_q50": res.summary["metrics"]["rms_error"]["q50"],
     }
     if keep:
@@ -74,38 +90,64 @@ def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str,
     return out
 
 
-def run_worker(**kw) -> dict:
-    """``worker`` in a fresh Python process (so ru_maxrss is this sweep's own peak)."""
+def run_worker(devices: int = 1, **kw) -> dict:
+    """``worker`` in a fresh Python process (so ru_maxrss is this sweep's own peak) with
+    ``devices`` host devices (the sweep shards each chunk over them)."""
     cmd = [sys.executable, __file__, "--worker", json.dumps(kw)]
-    r = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if r.returncode != 0:
         raise RuntimeError(r.stderr[-3000:])
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
-# ----- baseline: numpy plant + solve_ivp per ZOH interval + jitted JAX controller step ---------
+# ----- baselines (used only here), compiled or generated outside the clock ---------------------
 
 
-def baseline(samples: int, t_final: float) -> dict:
-    """BASELINE loop over ``samples`` samples of the same spread (same parameters, same
-    controller); returns steps/s and each sample's RMS link error [rad]."""
-    import jax
+def _sample_plants(spec, samples: int):
+    """Plant constants P = (I, J, K, Fc, Fs, vs, sigma0, sigma1, sigma2, dt) of the first
+    ``samples`` samples of ``spec`` (one joint) and the sweep's controller (the nominal one:
+    the spread perturbs only the true plant), built before any clock starts."""
     import jax.numpy as jnp
     import numpy as np
-    from scipy.integrate import solve_ivp
 
-    jax.config.update("jax_enable_x64", True)
-    from jaxflex.sweep import build_models, parse_spread, sample_parameters
+    from jaxflex.sweep import build_models, sample_parameters
 
-    spec = parse_spread({**SPREAD, "t_final": t_final})
-    dt, N = spec.dt, round(t_final / spec.dt)
-    rms, t0 = [], time.perf_counter()
+    rows = []
     for i in range(samples):
         theta, _ = sample_parameters(spec, jnp.uint32(i))
         plant, ctrl, _, _ = build_models(spec, theta)
-        I, J, K = (float(plant.links.I[0]), float(plant.J[0]), float(plant.K[0]))
         f = plant.friction
-        Fc, Fs, vs, s0, s1, s2 = (float(getattr(f, k)[0]) for k in ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2"))
+        rows.append([float(plant.links.I[0]), float(plant.J[0]), float(plant.K[0])]
+                    + [float(getattr(f, k)[0]) for k in ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")]
+                    + [spec.dt])
+    return np.array(rows), ctrl
+
+
+def baseline(samples: int, t_final: float) -> dict:
+    """BASELINE: ``samples`` samples of the same spread one after another: the controller
+    exported by ``jaxflex.export`` (numpy/math, generated once, outside the clock) called every
+    1 ms, the plant (eq. 3-6, one link, numpy) integrated over each zero-order-hold interval
+    by ``solve_ivp`` (RK45, rtol 1e-8, atol 1e-10). Returns steps/s and each sample's RMS link
+    error [rad]."""
+    import numpy as np
+    from scipy.integrate import solve_ivp
+
+    from jaxflex.export import generate_source, load_module
+    from jaxflex.sweep import parse_spread
+
+    spec = parse_spread({**SPREAD, "t_final": t_final})
+    Ps, ctrl = _sample_plants(spec, samples)
+    t0 = time.perf_counter()
+    mod = load_module(generate_source(ctrl))
+    t_export = time.perf_counter() - t0
+    dt, N = spec.dt, round(t_final / spec.dt)
+    ref = np.array([mod.Controller().reference(k * dt) for k in range(N)])
+    rms = []
+    t0 = time.perf_counter()
+    for P in Ps:
+        I, J, K, Fc, Fs, vs, s0, s1, s2, _ = P
 
         def rhs(t, x, tau):  # BASELINE re-implementation of eq. 3-6, one link
             q1, v1, q2, v2, z = x
@@ -114,25 +156,57 @@ def baseline(samples: int, t_final: float) -> dict:
             F = s0 * z + s1 * zd + s2 * v1
             return [v1, (K * (q2 - q1) - F) / I, v2, (tau - K * (q2 - q1)) / J, zd]
 
-        step = jax.jit(lambda c, t, q1, q2, dq1, dq2: ctrl.step(c, t, q1, q2, dq1, dq2))
-        q1d0 = float(ctrl.trajectory.position(jnp.asarray(0.0))[0])
-        x = np.array([q1d0, 0.0, q1d0, 0.0, 0.0])
-        c = ctrl.init(0.0, jnp.array([x[0]]), jnp.array([x[2]]), jnp.array([x[1]]), jnp.array([x[3]]))
-        step(c, 0.0, *(jnp.array([v]) for v in (x[0], x[2], x[1], x[3])))  # compile outside the clock
-        if i == 0:
-            t0 = time.perf_counter()
+        c = mod.Controller()
+        x = np.array([ref[0], 0.0, ref[0], 0.0, 0.0])
         se = 0.0
         for k in range(N):
             t = k * dt
-            c, out = step(c, t, *(jnp.array([v]) for v in (x[0], x[2], x[1], x[3])))
-            tau = float(out.tau[0])
-            se += float(out.e1[0]) ** 2
-            sol = solve_ivp(rhs, (t, t + dt), x, args=(tau,), method="RK45", rtol=1e-8, atol=1e-10)
-            x = sol.y[:, -1]
-        rms.append(np.sqrt(se / N))
+            tau = c.step(t, x[0], x[2])
+            se += (x[0] - ref[k]) ** 2
+            x = solve_ivp(rhs, (t, t + dt), x, args=(tau,), method="RK45", rtol=1e-8,
+                          atol=1e-10).y[:, -1]
+        rms.append(float(np.sqrt(se / N)))
     wall = time.perf_counter() - t0
-    return {"samples": samples, "t_final": t_final, "wall_s": wall, "steps_per_s": samples * N / wall,
-            "rms": rms}
+    return {"samples": samples, "t_final": t_final, "wall_s": wall, "export_s": t_export,
+            "steps_per_s": samples * N / wall, "rms": rms}
+
+
+def numba_baseline(samples: int, t_final: float, substeps: int = 10) -> dict | None:
+    """The same samples through the numba loop of ``bench_simulate`` (the library's splitting
+    scheme with ``substeps`` substeps, the exported controller compiled by numba), one after
+    another on one core; compilation on a first run outside the clock. None without numba."""
+    try:
+        import numba
+    except ImportError:
+        return None
+    import numpy as np
+
+    from bench_simulate import _generated_step, _kernels
+    from jaxflex.export import generate_source, load_module
+    from jaxflex.sweep import parse_spread
+
+    spec = parse_spread({**SPREAD, "t_final": t_final})
+    Ps, ctrl = _sample_plants(spec, samples)
+    src = generate_source(ctrl)
+    mod = load_module(src)
+    step, S0 = _generated_step(src, mod)
+    step = numba.njit(step)
+    loop = _kernels("numba")["_k_loop"]
+    dt, N = spec.dt, round(t_final / spec.dt)
+    ref = np.array([mod.Controller().reference(k * dt) for k in range(N)])
+    q1 = np.empty(N)
+    t0 = time.perf_counter()
+    loop(Ps[0], N, substeps, step, mod.Controller()._init(0.0, ref[0], ref[0]), ref[0], ref[0], q1)
+    t_compile = time.perf_counter() - t0
+    rms = []
+    t0 = time.perf_counter()
+    for P in Ps:
+        S0 = mod.Controller()._init(0.0, ref[0], ref[0])
+        loop(P, N, substeps, step, S0, ref[0], ref[0], q1)
+        rms.append(float(np.sqrt(np.mean((q1 - ref) ** 2))))
+    wall = time.perf_counter() - t0
+    return {"samples": samples, "t_final": t_final, "wall_s": wall, "compile_s": t_compile,
+            "steps_per_s": samples * N / wall, "rms": rms, "numba": numba.__version__}
 
 
 def components(n: int, t_final: float, substeps: int = 10) -> dict:
@@ -191,6 +265,8 @@ def main() -> None:
     ap.add_argument("--small", action="store_true", help="tiny sizes (for the slow test)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--skip-profile", action="store_true")
+    ap.add_argument("--skip-devices", action="store_true", help="skip 1 vs 2 host devices")
+    ap.add_argument("--skip-scaling", action="store_true", help="skip the 1e3..1e5 sizes")
     ap.add_argument("--components", action="store_true", help="only the time-split profile")
     ap.add_argument("--profile-only", action="store_true", help="skip scaling and baseline")
     a = ap.parse_args()
@@ -210,9 +286,10 @@ def main() -> None:
     sizes = (64, 256) if a.small else (1_000, 10_000, 100_000)
     chunk = 32 if a.small else 1000
     res: dict = {"horizon_s": H, "chunk": chunk, "cpu_count": os.cpu_count(),
-                 "load_avg_start": os.getloadavg(), "gpu": "none available in this task"}
+                 "load_avg_start": os.getloadavg(), "blas_threads": BLAS,
+                 "gpu": "not measured (no GPU on this machine)"}
 
-    if a.profile_only:
+    if a.profile_only or a.skip_scaling:
         sizes = ()
     res["scaling"] = []
     print(f"[bench] scaling: {sizes} samples, horizon {H} s, chunk {chunk}, float64, 10 substeps")
@@ -231,20 +308,76 @@ def main() -> None:
     from jaxflex.sweep import parse_spread, run_sweep
 
     nb = 2 if a.small else 5
+    nn = 8 if a.small else 100
     if not a.profile_only:
-        print(f"[bench] baseline: solve_ivp loop over {nb} samples (same process) ...")
+        print(f"[bench] baselines: solve_ivp loop over {nb} samples, numba loop over {nn} "
+              f"(same process, load {os.getloadavg()}) ...")
         b = baseline(nb, H)
+        nbb = numba_baseline(nn, H)
         res["baseline"] = dict(b)
-        # the same samples through the batched path, in this process: ratio and agreement
+        res["numba_baseline"] = nbb
+        # the same samples through the batched path, in this process (its own devices: stated)
         spec = parse_spread({**SPREAD, "t_final": H})
-        ours = run_sweep(spec, samples=chunk, chunk_size=chunk, progress=False)  # compile
-        ours = run_sweep(spec, samples=chunk, chunk_size=chunk, progress=False)
-        sps = ours.timing["controller_steps"] / ours.timing["wall_s"]
-        rel = np.abs(np.asarray(ours.samples["rms_error"][:nb]) - np.asarray(b["rms"])) / np.asarray(b["rms"])
-        res["ratio"] = {"batched_steps_per_s": sps, "baseline_steps_per_s": b["steps_per_s"],
-                        "speedup": sps / b["steps_per_s"], "rms_rel_diff_vs_baseline_max": float(rel.max())}
-        print(f"  baseline {b['steps_per_s']:.3g} steps/s, batched {sps:.3g} steps/s in the same process: "
-              f"x{sps / b['steps_per_s']:.0f}; RMS error agrees to {rel.max():.1e} (relative)")
+        run_sweep(spec, samples=chunk, chunk_size=chunk, progress=False)  # compile
+        walls, rms_ours = [], None
+        for _ in range(3):
+            ours = run_sweep(spec, samples=chunk, chunk_size=chunk, progress=False)
+            walls.append(ours.timing["wall_s"])
+            rms_ours = np.asarray(ours.samples["rms_error"])
+        steps = ours.timing["controller_steps"]
+        sps, sps_med = steps / min(walls), steps / statistics.median(walls)
+        rel = np.abs(rms_ours[:nb] - np.asarray(b["rms"])) / np.asarray(b["rms"])
+        ratio = {"batched_steps_per_s_best": sps, "batched_steps_per_s_median": sps_med,
+                 "batched_devices": ours.timing["devices"], "batched_repeats": len(walls),
+                 "solve_ivp_steps_per_s": b["steps_per_s"],
+                 "speedup_vs_solve_ivp": sps / b["steps_per_s"],
+                 "rms_rel_diff_vs_solve_ivp_max": float(rel.max()),
+                 "load_avg": list(os.getloadavg())}
+        line = (f"  batched ({ours.timing['devices']} device(s)) {sps:.3g} steps/s best, "
+                f"{sps_med:.3g} median of {len(walls)}; solve_ivp+numpy controller "
+                f"{b['steps_per_s']:.3g} steps/s (export {b['export_s']:.2f} s apart): "
+                f"x{sps / b['steps_per_s']:.0f}; RMS error agrees to {rel.max():.1e} (relative)")
+        if nbb is not None:
+            reln = np.abs(rms_ours[:nn] - np.asarray(nbb["rms"])) / np.asarray(nbb["rms"])
+            ratio.update(numba_steps_per_s=nbb["steps_per_s"],
+                         speedup_vs_numba=sps / nbb["steps_per_s"],
+                         rms_rel_diff_vs_numba_max=float(reln.max()))
+            line += (f"; numba {nbb['steps_per_s']:.3g} steps/s (compile {nbb['compile_s']:.1f} s "
+                     f"apart): x{sps / nbb['steps_per_s']:.2f}, RMS agrees to {reln.max():.1e}")
+        else:
+            line += "; numba not installed (column skipped)"
+        res["ratio"] = ratio
+        print(line)
+
+    if not a.skip_devices:
+        nd_samples = 128 if a.small else 4000
+        nd_chunk = 64 if a.small else 2000
+        rounds = 1 if a.small else 3
+        print(f"[bench] host devices: {nd_samples} samples, chunk {nd_chunk}, 1 vs 2 devices, "
+              f"{rounds} alternating pair(s)")
+        runs: dict[int, list[dict]] = {1: [], 2: []}
+        for r in range(rounds):
+            for nd in ((1, 2) if r % 2 == 0 else (2, 1)):
+                w = run_worker(devices=nd, samples=nd_samples, t_final=H, chunk=nd_chunk,
+                               substeps=10, method="model", float32=False, keep=True)
+                runs[nd].append(w)
+        r0 = np.asarray(runs[1][0]["_rms"])
+        same = max(float(np.max(np.abs(np.asarray(x["_rms"]) - r0) / r0))
+                   for x in runs[1] + runs[2])
+        for v in runs.values():
+            for w in v:
+                w.pop("_rms")
+        best = {nd: max(w["steps_per_s"] for w in v) for nd, v in runs.items()}
+        med = {nd: statistics.median(w["steps_per_s"] for w in v) for nd, v in runs.items()}
+        res["devices"] = {"runs": {str(k): v for k, v in runs.items()},
+                          "best_steps_per_s": best, "median_steps_per_s": med,
+                          "ratio_2_over_1_best": best[2] / best[1],
+                          "ratio_2_over_1_median": med[2] / med[1],
+                          "rms_max_rel_diff_1_vs_2_devices": same}
+        print(f"  1 device {best[1]:.3g} steps/s best ({med[1]:.3g} median), 2 devices "
+              f"{best[2]:.3g} ({med[2]:.3g}): x{best[2] / best[1]:.2f} best, "
+              f"x{med[2] / med[1]:.2f} median; per-sample RMS max rel. diff {same:.1e}; load "
+              f"{[w['load_avg'][0] for v in runs.values() for w in v]}")
 
     if not a.skip_profile:
         n = 64 if a.small else 1000

@@ -15,21 +15,33 @@ loose-continuity warm start, then the full continuity weight), in the same proce
 take, and to what final cost 0.5 ||r||^2 and parameter errors? Both get the same termination
 tolerances and the same iteration caps per stage.
 
-Reported: wall time of each (JAX both with and without its one-off compilation), final cost,
-iterations and residual evaluations, the relative parameter errors, and the ratios.
+Reported: wall time of each (JAX both with and without its one-off compilation, which is
+timed apart), final cost, iterations and residual evaluations, the relative parameter errors,
+and the ratios. Timing habits (issue 17): BLAS limited to one thread (threadpoolctl when
+installed, else the environment variables, set before numpy is imported; what was in force is
+recorded), the two solvers take turns in paired rounds (``benchkit.paired``), min and median
+of each, and the load average at start and end.
 
 Usage: ``python studies/ident_bench_scipy.py [--out DIR] [--small]``.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import math
-import time
+import sys
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchkit  # noqa: E402
+
+BLAS = benchkit.limit_blas_threads(1)
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -81,15 +93,9 @@ def main(argv=None) -> dict:
         out = fn()
         return time.perf_counter() - t, out
 
+    machine_start = benchkit.machine_state()
     jax_first, _ = timed(run_jax)
-    jax_times = []
-    for _ in range(args.repeat):
-        dt_, (s1, s2) = timed(run_jax)
-        jax_times.append(dt_)
-    jax_warm = min(jax_times)
     cost_of = lambda p, f: 0.5 * float(np.sum(np.asarray(p.residuals(unravel(jax.numpy.asarray(f)))) ** 2))
-    jax_flat = np.asarray(ravel_pytree(s2.y)[0])
-    jax_cost = cost_of(prob, jax_flat)
 
     def scipy_fun(p):
         f = jax.jit(lambda x: p.residuals(unravel(x)))
@@ -104,11 +110,17 @@ def main(argv=None) -> dict:
         ls2 = scipy.optimize.least_squares(f_tight, ls1.x, max_nfev=max_steps, **kw)
         return ls1, ls2
 
-    sp_times = []
-    for _ in range(args.repeat):
-        dt_, (ls1, ls2) = timed(run_scipy)
-        sp_times.append(dt_)
-    sp_wall = min(sp_times)
+    last: dict = {}
+    times = benchkit.paired({"scipy_trf_2point": lambda: last.__setitem__("scipy", run_scipy()),
+                             "jax_optimistix_lm": lambda: last.__setitem__("jax", run_jax())},
+                            args.repeat)
+    machine_end = benchkit.machine_state()
+    s1, s2 = last["jax"]
+    ls1, ls2 = last["scipy"]
+    jax_times, sp_times = times["jax_optimistix_lm"], times["scipy_trf_2point"]
+    jax_warm, sp_wall = min(jax_times), min(sp_times)
+    jax_flat = np.asarray(ravel_pytree(s2.y)[0])
+    jax_cost = cost_of(prob, jax_flat)
     sp_cost = cost_of(prob, ls2.x)
 
     phys = lambda flat: {k: float(v[0]) for k, v in
@@ -120,7 +132,9 @@ def main(argv=None) -> dict:
         "stages": {"warm_continuity_factor": warm_factor, "warm_steps": warm_steps,
                    "max_steps": max_steps},
         "initial_cost": cost_of(prob, np.asarray(flat0)),
-        "repeats": args.repeat, "timing": "best of the repeats (a shared 2-core machine)",
+        "repeats": args.repeat,
+        "timing": "paired rounds (the solvers alternate), min and median (a shared 2-core machine)",
+        "blas_threads": BLAS, "machine_start": machine_start, "machine_end": machine_end,
         "jax": {"wall_s_with_compile": jax_first, "wall_s": jax_warm, "wall_s_all": jax_times,
                 "cost": jax_cost,
                 "steps": [s1.steps, s2.steps],
@@ -134,10 +148,17 @@ def main(argv=None) -> dict:
                   "rel_error": rel(phys(ls2.x))},
     }
     results["speed_ratio_warm"] = sp_wall / jax_warm
+    results["speed_ratio_warm_median"] = statistics.median(sp_times) / statistics.median(jax_times)
+    results["jax_compile_s_estimate"] = jax_first - statistics.median(jax_times)
     results["speed_ratio_with_compile"] = sp_wall / jax_first
     results["cost_ratio_jax_over_scipy"] = jax_cost / sp_cost if sp_cost > 0 else float("nan")
     print(json.dumps(results, indent=2))
-    print(f"scipy/JAX time ratio: {results['speed_ratio_warm']:.1f}x (JAX warm), "
+    benchkit.ratio_table(times, "scipy_trf_2point")
+    print(f"load average start {machine_start['load_avg']}, end {machine_end['load_avg']}; BLAS "
+          f"threads {BLAS['env']['OPENBLAS_NUM_THREADS']} (threadpoolctl {BLAS['threadpoolctl']}, "
+          f"pools {[p.get('num_threads') for p in BLAS.get('pools', [])]})")
+    print(f"scipy/JAX time ratio: {results['speed_ratio_warm']:.1f}x min, "
+          f"{results['speed_ratio_warm_median']:.1f}x median (JAX warm), "
           f"{results['speed_ratio_with_compile']:.1f}x (JAX incl. compile); final cost "
           f"JAX {jax_cost:.6e} vs scipy {sp_cost:.6e} (initial {results['initial_cost']:.3e})")
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")

@@ -11,7 +11,9 @@ per controller sample. Per sample only its parameters and five metrics are kept 
 ``keep_samples``), so peak memory does not grow with the number of samples.
 
 Scale-out: each chunk is laid out over the local devices with a ``NamedSharding`` on a 1-D
-``Mesh`` (axis ``"batch"``); with ``jax.distributed`` initialised, process p runs the chunks
+``Mesh`` (axis ``"batch"``). On a CPU JAX has one device unless told otherwise, so a sweep
+would use one core: ``use_all_cores`` (called by the ``jaxflex`` command before JAX starts)
+exposes every core as a host device; with ``jax.distributed`` initialised, process p runs the chunks
 c = p, p + P, ... on its own devices and the accumulators are combined with
 ``multihost_utils.process_allgather`` at the end (the same code runs on one process).
 """
@@ -22,6 +24,8 @@ import contextlib
 import dataclasses
 import json
 import math
+import os
+import re
 import signal
 import threading
 import time
@@ -42,6 +46,49 @@ from jaxflex.sensing import Sensing
 from jaxflex.simulate import simulate_sampled
 from jaxflex.sweep.spec import SweepSpec
 from jaxflex.sweep.summary import Accumulator, SweepResult, band_bins
+
+
+_HOST_FLAG = "--xla_force_host_platform_device_count"
+
+
+def use_all_cores(n: int | None = None) -> int:
+    """Expose ``n`` CPU cores (default: every core this process may run on) to JAX as ``n``
+    host devices, so that ``run_sweep`` (which shards each chunk over ``jax.local_devices()``)
+    runs on all of them. Call it right after ``import jax``, before any JAX computation:
+
+        import jax
+        from jaxflex.sweep.engine import use_all_cores
+        use_all_cores()
+
+    A device count already chosen (``XLA_FLAGS`` holding ``--xla_force_host_platform_device_
+    count``, or ``jax_num_cpu_devices`` set) is kept. Once JAX's backends have started the
+    count can no longer change; the call then changes nothing. Only the CPU platform is
+    affected (a GPU keeps its own devices). Returns the number of host devices JAX will use
+    (or uses).
+
+    Raises ``ValueError`` if ``n < 1``.
+    """
+    if n is not None and n < 1:
+        raise ValueError(f"use_all_cores: n must be >= 1, got {n}")
+    m = re.search(_HOST_FLAG + r"=(\d+)", os.environ.get("XLA_FLAGS", ""))
+    if m:
+        return int(m.group(1))
+    current = int(jax.config.jax_num_cpu_devices)
+    if current > 0:
+        return current
+    want = n if n is not None else _usable_cores()
+    try:
+        jax.config.update("jax_num_cpu_devices", want)
+    except RuntimeError:  # backends already started: the count is fixed
+        return len(jax.devices("cpu"))
+    return want
+
+
+def _usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def sample_parameters(spec: SweepSpec, index: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -1,0 +1,105 @@
+"""Question: does a second run of a command on the same machine compile again?
+
+The ``jaxflex`` command turns on JAX's persistent compilation cache (``$JAXFLEX_CACHE_DIR``,
+``jaxflex.cli.enable_compilation_cache``; compilations over 0.5 s are kept). This study runs
+one short command three times in fresh processes: with an empty cache folder, again with the
+same folder (the second run of a user), and with ``--no-cache``. In each process a
+``jax.monitoring`` listener sums the seconds spent tracing, lowering and compiling (XLA
+backend) and reading the cache, and counts cache hits; wall time is also recorded. Target
+(issue 17): the second run spends under 2 s compiling.
+
+    python studies/bench_compile_cache.py [--small] [--out out/bench_compile_cache]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+# runs in the child: listeners first, then the command
+_CHILD = r"""
+import atexit, collections, json, sys
+import jax.monitoring as mon
+tot = collections.defaultdict(float)
+cnt = collections.Counter()
+def dur(event, secs, **kw):
+    tot[event] += secs
+    cnt[event] += 1
+def ev(event, **kw):
+    cnt[event] += 1
+mon.register_event_duration_secs_listener(dur)
+mon.register_event_listener(ev)
+atexit.register(lambda: print("COMPILE_STATS " + json.dumps({"seconds": tot, "counts": cnt}),
+                              file=sys.stderr))
+from jaxflex.cli import main
+rc = main(json.loads(sys.argv[1]))
+sys.exit(rc)
+"""
+
+_EVENTS = {
+    "trace_s": "/jax/core/compile/jaxpr_trace_duration",
+    "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
+    "backend_compile_s": "/jax/core/compile/backend_compile_duration",
+    "cache_read_s": "/jax/compilation_cache/cache_retrieval_time_sec",
+}
+
+
+def run_once(argv: list[str], cache: str | None) -> dict:
+    """One command in a fresh process; returns wall time, compile seconds and cache hits."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    if cache is not None:
+        env["JAXFLEX_CACHE_DIR"] = cache
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(argv)], env=env,
+                       capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise RuntimeError(r.stderr[-3000:])
+    line = [x for x in r.stderr.splitlines() if x.startswith("COMPILE_STATS ")][-1]
+    st = json.loads(line[len("COMPILE_STATS "):])
+    out = {k: st["seconds"].get(v, 0.0) for k, v in _EVENTS.items()}
+    out["compile_total_s"] = out["trace_s"] + out["lower_s"] + out["backend_compile_s"]
+    out["compilations"] = st["counts"].get(_EVENTS["backend_compile_s"], 0)
+    out["cache_hits"] = st["counts"].get("/jax/compilation_cache/cache_hits", 0)
+    out["wall_s"] = wall
+    out["load_avg"] = list(os.getloadavg())
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Run the three processes and write results.json; returns the results."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="out/bench_compile_cache")
+    ap.add_argument("--small", action="store_true", help="a 1 s experiment")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    dur = "1" if a.small else "10"
+    cmd = ["reproduce", "--tasks", "sinusoid", "--no-q2d-comparison", "--duration", dur,
+           "--force", "--out", str(out / "reproduce")]
+    with tempfile.TemporaryDirectory() as cache:
+        first = run_once(cmd, cache)
+        second = run_once(cmd, cache)
+    nocache = run_once(["--no-cache"] + cmd, None)
+    res = {"command": "jaxflex " + " ".join(cmd), "cpu_count": os.cpu_count(),
+           "first_empty_cache": first, "second_same_cache": second, "no_cache": nocache,
+           "note": "seconds summed from jax.monitoring events in each process; compilations "
+                   "under 0.5 s are not cached (jax_persistent_cache_min_compile_time_secs)"}
+    for k, r in (("first (empty cache)", first), ("second (same cache)", second),
+                 ("--no-cache", nocache)):
+        print(f"{k:>20}: wall {r['wall_s']:.1f} s, compile {r['compile_total_s']:.2f} s (trace "
+              f"{r['trace_s']:.2f}, lower {r['lower_s']:.2f}, XLA {r['backend_compile_s']:.2f}; "
+              f"{r['compilations']} XLA compilations), cache read {r['cache_read_s']:.2f} s, "
+              f"{r['cache_hits']} hits; load {r['load_avg'][0]:.2f}")
+    (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
+    return res
+
+
+if __name__ == "__main__":
+    main()

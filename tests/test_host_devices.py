@@ -1,0 +1,74 @@
+"""All cores by default (issue 17): ``use_all_cores`` exposes the CPU cores as host devices
+before JAX starts, the ``jaxflex`` command calls it, and a sweep sharded over two host
+devices gives the numbers of a run on one device (separate processes, as a user would run)."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from jaxflex.sweep.engine import use_all_cores
+
+_SCRIPT = textwrap.dedent("""
+    import json, sys
+    import jax
+    from jaxflex.sweep.engine import use_all_cores
+    n = use_all_cores(int(sys.argv[2]))
+    jax.config.update("jax_enable_x64", True)
+    from jaxflex.sweep import parse_spread, run_sweep
+    assert len(jax.local_devices()) == n, (n, jax.local_devices())
+    res = run_sweep(parse_spread(json.loads(sys.argv[1])), chunk_size=6, progress=False)
+    print(json.dumps({"devices": res.timing["devices"], "rms": res.samples["rms_error"].tolist(),
+                      "max": res.samples["max_error"].tolist(),
+                      "band": res.band_q.tolist()}))
+""")
+
+TINY = {"t_final": 0.1, "substeps": 2, "seed": 3, "samples": 6, "band_dt": 0.02,
+        "controller": {"compensation": True, "q2d_method": "model", "tau_max": 2.0},
+        "uncertain": {"plant.I": {"dist": "uniform", "rel": 0.2},
+                      "friction.Fc": {"dist": "uniform", "rel": 0.2}}}
+
+
+def _run(n: int) -> dict:
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    env.pop("XLA_FLAGS", None)
+    r = subprocess.run([sys.executable, "-c", _SCRIPT, json.dumps(TINY), str(n)], env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_two_host_devices_give_the_numbers_of_one():
+    one, two = _run(1), _run(2)
+    assert (one["devices"], two["devices"]) == (1, 2)
+    # separate processes compile separately (the sharded program is partitioned): agreement
+    # to rounding, not bit for bit
+    for k in ("rms", "max"):
+        np.testing.assert_allclose(two[k], one[k], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(two["band"], one["band"], rtol=1e-9, atol=1e-15)
+
+
+def test_use_all_cores_keeps_a_count_set_in_xla_flags(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--foo --xla_force_host_platform_device_count=3")
+    assert use_all_cores() == 3
+    assert use_all_cores(1) == 3
+
+
+def test_use_all_cores_refuses_a_count_below_one():
+    with pytest.raises(ValueError, match="n must be >= 1"):
+        use_all_cores(0)
+
+
+def test_cli_exposes_every_core_before_jax_starts():
+    code = ("import sys, jax; from jaxflex.cli import main; "
+            "rc = main(['--host-devices', '2', 'sweep', 'missing.json']); "
+            "print(len(jax.devices('cpu')), rc)")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    env.pop("XLA_FLAGS", None)
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.stdout.split() == ["2", "2"], r.stdout + r.stderr[-2000:]
