@@ -436,9 +436,21 @@ def covariance(
     inv = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep]
     cov_cols = s2 * inv / np.outer(scale, scale)
     n_fit = int(fitted_theta.sum())
-    cov_theta = np.zeros((k, k))
+    null = Vt[~keep][:, :n_fit].T if rank < p else np.zeros((n_fit, 0))
+    return _covariance_report(prob, theta, cov_cols[:n_fit, :n_fit], null, rank=rank, n_free=p,
+                              singular_values=sv.tolist(), s2=s2, rss=rss,
+                              defects_ss=float(np.sum(r[n_out:] ** 2)), n_res=n_out)
+
+
+def _covariance_report(prob: Any, theta: Any, cov_fit: np.ndarray, null: np.ndarray,
+                       **stats: Any) -> dict[str, Any]:
+    """Map the covariance of the fitted theta entries to physical standard errors and name the
+    parameters with weight in the null directions (columns of ``null``); ``stats`` pass on."""
+    fitted_theta = prob.space.fitted_flat()
+    k = fitted_theta.size
     fi = np.flatnonzero(fitted_theta)
-    cov_theta[np.ix_(fi, fi)] = cov_cols[:n_fit, :n_fit]
+    cov_theta = np.zeros((k, k))
+    cov_theta[np.ix_(fi, fi)] = cov_fit
     T = prob.space.physical_jacobian(theta)
     cov_phys = T @ cov_theta @ T.T
     se_flat = np.sqrt(np.maximum(np.diag(cov_phys), 0.0))
@@ -446,16 +458,13 @@ def covariance(
     _, phys_unravel = ravel_pytree(prob.space.physical(theta))
     se = {name: np.asarray(v) for name, v in phys_unravel(jnp.asarray(se_flat)).items()}
     null_names: list[str] = []
-    if rank < p:
-        null = Vt[~keep][:, :n_fit]
-        mark = np.max(np.abs(null), axis=0) > 0.2
+    if null.shape[1]:
+        mark = np.max(np.abs(null), axis=1) > 0.2
         ids = ravel_pytree({nm: np.full(np.shape(theta[nm]), i)
                             for i, nm in enumerate(prob.space.names)})[0]
         ids = np.asarray(ids)[fitted_theta]
         null_names = [prob.space.names[int(i)] for i in np.unique(ids[mark])]
-    return {"stderr": se, "rank": rank, "n_free": p, "singular_values": sv.tolist(),
-            "null_names": null_names, "s2": s2, "cov_phys": cov_phys, "rss": rss,
-            "defects_ss": float(np.sum(r[n_out:] ** 2)), "n_res": n_out}
+    return {"stderr": se, "null_names": null_names, "cov_phys": cov_phys, **stats}
 
 
 def _covariance_shooting(prob: Problem, y: Any, theta: Any, inflation: float,
@@ -467,7 +476,6 @@ def _covariance_shooting(prob: Problem, y: Any, theta: Any, inflation: float,
     elimination (the starts are taken as determined)."""
     r, St = (np.asarray(a) for a in _theta_information(prob, y))
     n_out = prob.n_out
-    k = St.shape[0]
     S = prob.segs.count
     d = int(np.prod(prob.segs.x0.shape[1:]))
     fitted_theta = prob.space.fitted_flat()
@@ -485,22 +493,7 @@ def _covariance_shooting(prob: Problem, y: Any, theta: Any, inflation: float,
     tol = sv[0] * max(rank_rtol, np.finfo(float).eps * max(r.size, p)) if sv.size else 0.0
     keep = sv > tol
     inv = (V[:, keep] / sv[keep] ** 2) @ V[:, keep].T
-    cov_theta = np.zeros((k, k))
-    cov_theta[np.ix_(fi, fi)] = s2 * inv / np.outer(scale, scale)
-    T = prob.space.physical_jacobian(theta)
-    cov_phys = T @ cov_theta @ T.T
-    se_flat = np.sqrt(np.maximum(np.diag(cov_phys), 0.0))
-    se_flat = np.where(fitted_theta, se_flat, np.nan)
-    _, phys_unravel = ravel_pytree(prob.space.physical(theta))
-    se = {name: np.asarray(v) for name, v in phys_unravel(jnp.asarray(se_flat)).items()}
-    null_names: list[str] = []
-    if not keep.all():
-        mark = np.max(np.abs(V[:, ~keep]), axis=1) > 0.2
-        ids = ravel_pytree({nm: np.full(np.shape(theta[nm]), i)
-                            for i, nm in enumerate(prob.space.names)})[0]
-        ids = np.asarray(ids)[fitted_theta]
-        null_names = [prob.space.names[int(i)] for i in np.unique(ids[mark])]
-    return {"stderr": se, "rank": int(keep.sum()) + S * d, "n_free": p,
-            "singular_values": sv.tolist(), "null_names": null_names, "s2": s2,
-            "cov_phys": cov_phys, "rss": rss, "defects_ss": float(np.sum(r[n_out:] ** 2)),
-            "n_res": n_out}
+    return _covariance_report(prob, theta, s2 * inv / np.outer(scale, scale), V[:, ~keep],
+                              rank=int(keep.sum()) + S * d, n_free=p,
+                              singular_values=sv.tolist(), s2=s2, rss=rss,
+                              defects_ss=float(np.sum(r[n_out:] ** 2)), n_res=n_out)
