@@ -82,9 +82,11 @@ CONTROLLER_KEYS: tuple[str, ...] = (
 _did_you_mean = did_you_mean
 
 
-# top-level keys the tools write besides the sections (kept verbatim on reading)
+# top-level keys the tools write besides the sections (kept verbatim on reading);
+# "loop_controller" declares the loop that ran on a rig for ``jaxflex validate`` (e.g. the EMPS
+# P/P cascade: {"type": "pp_cascade", "kp", "kv", "gtau", "vmax"})
 EXTRA_KEYS: tuple[str, ...] = ("stderr", "identification", "discover", "source", "description",
-                               "comment", "notes", "units", "meta")
+                               "comment", "notes", "units", "meta", "loop_controller")
 SECTIONS: tuple[str, ...] = ("plant", "friction", "gains", "effects", "controller")
 
 

@@ -365,4 +365,4 @@ def test_benchmark_runs_at_small_size(tmp_path):
                        timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     res = json.loads((tmp_path / "results.json").read_text())
-    assert len(res["scaling"]) == 2 and res["ratio"]["speedup"] > 1
+    assert len(res["scaling"]) == 2 and res["ratio"]["speedup_vs_solve_ivp"] > 1
