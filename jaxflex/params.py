@@ -34,7 +34,7 @@ from jaxflex.effects import EFFECTS
 from jaxflex.friction import LUGRE_NAMES, LuGre
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 from jaxflex.sensing import SENSING_FIELDS, Sensing
-from jaxflex.validation import did_you_mean
+from jaxflex.validation import check_keys, did_you_mean
 
 PLANT_NAMES: tuple[str, ...] = ("I", "J", "K")
 
@@ -79,22 +79,12 @@ CONTROLLER_KEYS: tuple[str, ...] = (
 )
 
 
-_did_you_mean = did_you_mean
-
-
 # top-level keys the tools write besides the sections (kept verbatim on reading);
 # "loop_controller" declares the loop that ran on a rig for ``jaxflex validate`` (e.g. the EMPS
 # P/P cascade: {"type": "pp_cascade", "kp", "kv", "gtau", "vmax"})
 EXTRA_KEYS: tuple[str, ...] = ("stderr", "identification", "discover", "source", "description",
                                "comment", "notes", "units", "meta", "loop_controller")
 SECTIONS: tuple[str, ...] = ("plant", "friction", "gains", "effects", "controller")
-
-
-def _check_keys(where: str, d: Mapping[str, Any], known: tuple[str, ...]) -> None:
-    for k in d:
-        if k not in known:
-            raise ParamsError(f"{where}unknown key '{k}'{_did_you_mean(k, known)}; "
-                              f"known: {list(known)}")
 
 
 def _positive_number(where: str, v: Any) -> float:
@@ -130,10 +120,7 @@ class ControllerConfig:
         unknown key with the closest known one)."""
         if not isinstance(d, dict):
             raise ParamsError(f"controller: expected an object, got {type(d).__name__}")
-        for k in d:
-            if k not in CONTROLLER_KEYS:
-                raise ParamsError(f"controller: unknown key '{k}'{_did_you_mean(k, CONTROLLER_KEYS)}"
-                                  f"; known: {list(CONTROLLER_KEYS)}")
+        check_keys(d, CONTROLLER_KEYS, where="controller: ", error=ParamsError)
         out: dict[str, Any] = {}
         if "q2d_method" in d:
             if d["q2d_method"] not in Q2D_METHODS:
@@ -187,9 +174,8 @@ class ControllerConfig:
         """
         flags = flags or {}
         out: dict[str, Any] = {}
+        check_keys(given, CONTROLLER_KEYS, where="controller: ", error=ParamsError)
         for k, v in given.items():
-            if k not in CONTROLLER_KEYS:
-                raise ParamsError(f"controller: unknown key '{k}'{_did_you_mean(k, CONTROLLER_KEYS)}")
             rec = getattr(self, k)
             if v is None:
                 continue
@@ -223,10 +209,7 @@ def _sensing_entry(v: Any) -> str | dict[str, Any]:
     if not isinstance(v, dict):
         raise ParamsError("controller.sensing: expected a sensing preset name or an object of "
                           f"Sensing fields, got {v!r}")
-    for k in v:
-        if k not in SENSING_FIELDS:
-            raise ParamsError(f"controller.sensing: unknown field '{k}'"
-                              f"{_did_you_mean(k, SENSING_FIELDS)}; known: {list(SENSING_FIELDS)}")
+    check_keys(v, SENSING_FIELDS, where="controller.sensing: ", what="field", error=ParamsError)
     try:
         Sensing(**v)
     except (TypeError, ValueError) as e:
@@ -285,7 +268,7 @@ class Params:
                 close = difflib.get_close_matches(k, SECTIONS, n=1, cutoff=0.6)
                 if close or not k.startswith("x_"):
                     raise ParamsError(
-                        f"unknown top-level key '{k}'{_did_you_mean(k, SECTIONS)}; sections: "
+                        f"unknown top-level key '{k}'{did_you_mean(k, SECTIONS)}; sections: "
                         f"{list(SECTIONS)}; other keys written by the tools: {list(EXTRA_KEYS)} "
                         "(prefix your own with 'x_')")
         for sec in ("plant", "friction"):
@@ -293,8 +276,8 @@ class Params:
                 raise ParamsError(f"missing section '{sec}' (docs/spec.md section 7)")
             if not isinstance(d[sec], dict):
                 raise ParamsError(f"section '{sec}' must be an object, got {type(d[sec]).__name__}")
-        _check_keys("plant: ", d["plant"], PLANT_NAMES)
-        _check_keys("friction: ", d["friction"], LUGRE_NAMES)
+        check_keys(d["plant"], PLANT_NAMES, where="plant: ", error=ParamsError)
+        check_keys(d["friction"], LUGRE_NAMES, where="friction: ", error=ParamsError)
         n = None
         plant = {}
         for k in PLANT_NAMES:
@@ -311,7 +294,7 @@ class Params:
         if d.get("gains") is not None:
             if not isinstance(d["gains"], dict):
                 raise ParamsError(f"section 'gains' must be an object, got {type(d['gains']).__name__}")
-            _check_keys("gains: ", d["gains"], GAIN_NAMES)
+            check_keys(d["gains"], GAIN_NAMES, where="gains: ", error=ParamsError)
             gains = {}
             for k in GAIN_NAMES:
                 if k not in d["gains"]:
@@ -320,17 +303,13 @@ class Params:
         effects = d.get("effects") or {}
         if not isinstance(effects, dict):
             raise ParamsError("'effects' must be an object mapping effect names to parameters")
+        check_keys(effects, sorted(EFFECTS), where="effects: ", what="effect", error=ParamsError)
         for name, kw in effects.items():
-            if name not in EFFECTS:
-                raise ParamsError(f"effects: unknown effect '{name}'"
-                                  f"{_did_you_mean(name, tuple(EFFECTS))}; known: {sorted(EFFECTS)}")
             if not isinstance(kw, dict):
                 raise ParamsError(f"effects.{name}: expected an object of parameters, got {kw!r}")
             fields = tuple(f.name for f in dataclasses.fields(EFFECTS[name]))
+            check_keys(kw, fields, where=f"effects.{name}: ", what="parameter", error=ParamsError)
             for k, v in kw.items():
-                if k not in fields:
-                    raise ParamsError(f"effects.{name}: unknown parameter '{k}'"
-                                      f"{_did_you_mean(k, fields)}; known: {list(fields)}")
                 _vector(f"effects.{name}", k, v, None)
         controller = None
         if d.get("controller") is not None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import difflib
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, TypeVar
 
 import jax
@@ -93,6 +93,17 @@ def requires_float64(fn: F) -> F:
 
     wrapper.__requires_float64__ = True  # type: ignore[attr-defined]
     return wrapper  # type: ignore[return-value]
+
+
+def check_keys(keys: Iterable[str], known: Sequence[str], *, where: str = "",
+               what: str = "key", error: type[Exception] = ValueError) -> None:
+    """Raise ``error`` naming the first of ``keys`` that is not in ``known``: ``"{where}unknown
+    {what} 'k' (did you mean 'K'?); known: [...]"``. The one unknown-key check of the parameter
+    and spread files."""
+    known = list(known)
+    for k in keys:
+        if k not in known:
+            raise error(f"{where}unknown {what} '{k}'{did_you_mean(k, known)}; known: {known}")
 
 
 def did_you_mean(key: str, known: Sequence[str]) -> str:

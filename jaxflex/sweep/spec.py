@@ -51,7 +51,7 @@ from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
 from jaxflex.presets import SENSING_PRESETS, TRAJECTORIES, paper_params, sensing_of
 from jaxflex.sensing import SENSING_FIELDS
-from jaxflex.validation import did_you_mean
+from jaxflex.validation import check_keys, did_you_mean
 
 SENSING_NAMES: tuple[str, ...] = ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")
 LIMIT_NAMES: tuple[str, ...] = ("tau_max",)
@@ -376,10 +376,7 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
 
     if not isinstance(d, dict):
         raise SpreadError(f"a spread must be a JSON object, got {type(d).__name__}")
-    for k in d:
-        if k not in _TOP_KEYS:
-            raise SpreadError(f"unknown top-level key '{k}'{did_you_mean(k, sorted(_TOP_KEYS))}; "
-                              f"known: {sorted(_TOP_KEYS)}")
+    check_keys(d, sorted(_TOP_KEYS), what="top-level key", error=SpreadError)
     nominal = _nominal(d.get("nominal"), base)
     n = nominal.n
     traj = d.get("trajectory", "sinusoid")
@@ -390,11 +387,8 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
     ctrl = d.get("controller", {}) or {}
     if not isinstance(ctrl, dict):
         raise SpreadError("controller: expected an object")
-    for k in ctrl:
-        if k not in ("compensation", "q2d_method", "tau_max"):
-            raise SpreadError(f"controller: unknown field '{k}'"
-                              f"{did_you_mean(k, ('compensation', 'q2d_method', 'tau_max'))}; "
-                              "known: ['compensation', 'q2d_method', 'tau_max']")
+    check_keys(ctrl, ("compensation", "q2d_method", "tau_max"), where="controller: ",
+               what="field", error=SpreadError)
     if ctrl.get("q2d_method", "model") not in Q2D_METHODS:
         raise SpreadError(f"controller.q2d_method must be one of {Q2D_METHODS}, got {ctrl['q2d_method']!r}")
     if not isinstance(ctrl.get("compensation", True), bool):
