@@ -553,6 +553,7 @@ def discover(
     say(f"nominal refit: gap train {current.gap_train:.4f} held-out {current.gap_test:.4f}")
     first_fit = current
     loc = localise(log, current.model.params)
+    loc_current = loc  # localisation of the current model (recomputed when an effect is added)
     floor = _gap_floor(log, ws)
     added: list[str] = []
     rounds = []
@@ -562,7 +563,7 @@ def discover(
         r = np.asarray(residuals(train, current.theta)).reshape(S, L, -1)
         tau_int = max(effective_count(r[..., c]) for c in range(r.shape[-1]))
         n_eff = current.n_res / tau_int
-        series = localise(log, current.model.params).series
+        series = loc_current.series
         scores, fits, failed = {}, {}, {}
         for name in cands:
             if name in added:
@@ -607,12 +608,13 @@ def discover(
             break
         added.append(winner)
         current = polished
+        loc_current = localise(log, current.model.params)
         say(f"added {winner}: held-out gap {current.gap_test:.4f}")
     return DiscoverResult(
         effect=added[0] if added else "none", effects=added, gap_before=first_fit.gap_test,
         gap_after=current.gap_test, gap_floor=floor, before=first_fit, after=current,
         rounds=rounds, localisation=loc,
-        localisation_after=localise(log, current.model.params) if added else loc,
+        localisation_after=loc_current,
         config=cfg, candidates=cands,
         log_info={"samples": log.N, "dt": log.dt, "train_samples": int(cfg.train_frac * log.N),
                   "segment_samples": L, "train_segments": S,
