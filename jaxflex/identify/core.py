@@ -96,7 +96,7 @@ class IdentResult:
         "unidentified", with the value kept at its initial guess)."""
         rows = [f"{'param':<24}{'value':>14}{'stderr':>12}{'rel':>12}"]
         for name in self.stderr:
-            vals = _value_of(self.params, name)
+            vals = get_value(self.params, name).tolist()
             for j, v in enumerate(vals):
                 label = name if len(vals) == 1 else f"{name}[{j}]"
                 if name in self.unidentifiable:
@@ -111,10 +111,6 @@ class IdentResult:
         if self.unidentifiable:
             rows.append(f"unidentified (kept at their initial values): {self.unidentifiable}")
         return "\n".join(rows)
-
-
-def _value_of(params: Params, name: str) -> list[float]:
-    return get_value(params, name).tolist()
 
 
 def make_problem(
