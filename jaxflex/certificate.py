@@ -39,6 +39,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jaxflex.controller import CascadeGains
+from jaxflex.friction import smooth_abs_observer
 from jaxflex.observer import FrictionObserver
 from jaxflex.plant import FlexibleJointPlant
 from jaxflex.trajectory import Trajectory
@@ -83,12 +84,19 @@ def n2_matrix(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
     Pure and differentiable in the gains (used as the tuner's constraint).
     """
     fr = _friction(plant)
-    K = plant.K
+    p55 = fr.sigma0 * psi_sharp(plant, gains, v, eps) / gains.Ke
+    return n2_of(plant.K, fr.sigma0 * fr.sigma1, p55, gains)
+
+
+def n2_of(K: Array, s01: Array, p55: Array, gains: CascadeGains) -> Float[Array, "5n 5n"]:
+    """N2 (eq. 29) from the three plant quantities it depends on: the spring K [N m/rad],
+    s01 = sigma0 sigma1 [N m s/rad^2] and p55 = sigma0 Psi#(v) / Ke (its last diagonal
+    entry). N2 is *affine* in (K, s01, p55) at fixed gains, so lambda_min(N2), a minimum of
+    linear functions of them, is concave in them: its minimum over a box of (K, s01, p55) is
+    reached at one of the box's 8 vertices (``box_lambda_min_curve``)."""
     Ke, KD1, KD2, L1, L2 = gains.Ke, gains.KD1, gains.KD2, gains.L1, gains.L2
-    s01 = fr.sigma0 * fr.sigma1
     a = s01 * Ke
     zero = jnp.zeros_like(Ke)
-    p55 = fr.sigma0 * psi_sharp(plant, gains, v, eps) / Ke
     rows = [
         [L1**2 * (KD1 + a), L1 * a, -L1 * K / 2, zero, -L1 * s01 / 2],
         [L1 * a, KD1 + a, -K / 2, zero, -s01 / 2],
@@ -194,8 +202,17 @@ def certify(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAUL
     ``ValueError``.
     """
     _check_range(vmax, num, margin, eps)
+    return _certified_range(
+        lambda vel: _curve_jit(plant, gains, vel, eps),
+        lambda v: _lambda_min_jit(plant, gains, v, eps), vmax, num, margin, eps, refine)
+
+
+def _certified_range(curve, point, vmax: float, num: int, margin: float, eps: float,
+                     refine: int) -> CertificateResult:
+    """``certify``'s grid and bisection for any lambda_min (or lower bound) ``curve(speeds)``
+    and ``point(speed)``."""
     vel = np.linspace(0.0, float(vmax), int(num))
-    lam = np.asarray(_curve_jit(plant, gains, jnp.asarray(vel), eps))
+    lam = np.asarray(curve(jnp.asarray(vel)))
     ok = lam > margin
     if ok.all():
         up_to = float(vmax)
@@ -206,10 +223,119 @@ def certify(plant: FlexibleJointPlant, gains: CascadeGains, vmax: float = DEFAUL
         lo, hi = vel[first_bad - 1], vel[first_bad]
         for _ in range(refine):
             mid = 0.5 * (lo + hi)
-            lam_mid = float(_lambda_min_jit(plant, gains, jnp.asarray(mid), eps))
+            lam_mid = float(point(jnp.asarray(mid)))
             lo, hi = (mid, hi) if lam_mid > margin else (lo, mid)
         up_to = float(lo)
     return CertificateResult(vel, lam, up_to, bool(ok.all()), float(margin), float(eps))
+
+
+N2_PARAMETERS: tuple[str, ...] = ("K", "Fc", "Fs", "vs", "sigma0", "sigma1")
+"""The plant parameters N2 depends on (not I, J, sigma2: eq. 29 does not contain them)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterBox:
+    """A box of plants for the certificate: per name of ``N2_PARAMETERS`` the lowest and
+    highest value per joint, ``lo[name]``, ``hi[name]`` ((n,) arrays, SI units as in the
+    parameter file). Raises ``ValueError`` on an unknown or missing name, lo > hi, or a
+    non-physical bound (K, Fc, Fs, vs, sigma0 must be > 0, sigma1 >= 0)."""
+
+    lo: dict[str, np.ndarray]
+    hi: dict[str, np.ndarray]
+
+    def __post_init__(self) -> None:
+        for side in (self.lo, self.hi):
+            if set(side) != set(N2_PARAMETERS):
+                raise ValueError(f"ParameterBox: needs exactly {list(N2_PARAMETERS)}, got "
+                                 f"{sorted(side)}")
+        for k in N2_PARAMETERS:
+            lo = np.atleast_1d(np.asarray(self.lo[k], float))
+            hi = np.atleast_1d(np.asarray(self.hi[k], float))
+            if lo.shape != hi.shape or not np.all(np.isfinite(lo) & np.isfinite(hi)):
+                raise ValueError(f"ParameterBox: {k} bounds must be finite and of one shape")
+            if np.any(lo > hi):
+                raise ValueError(f"ParameterBox: {k} has lo > hi ({lo} > {hi})")
+            if (np.any(lo < 0) if k == "sigma1" else np.any(lo <= 0)):
+                raise ValueError(f"ParameterBox: {k} must be {'>= 0' if k == 'sigma1' else '> 0'}"
+                                 f" over the whole box, got lo = {lo}")
+            self.lo[k], self.hi[k] = lo, hi
+
+    @classmethod
+    def of_plant(cls, plant: FlexibleJointPlant, rel: float = 0.0) -> ParameterBox:
+        """The box +-``rel`` (a fraction) around ``plant``'s values (0: the plant alone)."""
+        fr = _friction(plant)
+        vals = {"K": plant.K, **{k: getattr(fr, k) for k in N2_PARAMETERS[1:]}}
+        vals = {k: np.broadcast_to(np.asarray(v, float), (plant.n,)) for k, v in vals.items()}
+        return cls({k: v * (1 - rel) for k, v in vals.items()},
+                   {k: v * (1 + rel) for k, v in vals.items()})
+
+    def contains(self, values: dict[str, Any], rtol: float = 1e-12) -> bool:
+        """Whether every named value ((n,) per name of ``N2_PARAMETERS``) lies in the box."""
+        return all(np.all(np.asarray(values[k]) >= self.lo[k] * (1 - rtol))
+                   and np.all(np.asarray(values[k]) <= self.hi[k] * (1 + rtol))
+                   for k in N2_PARAMETERS)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready {name: {"lo": [...], "hi": [...]}}."""
+        return {k: {"lo": self.lo[k].tolist(), "hi": self.hi[k].tolist()} for k in N2_PARAMETERS}
+
+    def arrays(self) -> dict[str, tuple[Array, Array]]:
+        """{name: (lo, hi)} as float64 JAX arrays."""
+        return {k: (jnp.asarray(self.lo[k]), jnp.asarray(self.hi[k])) for k in N2_PARAMETERS}
+
+
+@requires_float64
+def box_lambda_min(box: dict[str, tuple[Array, Array]], gains: CascadeGains, v: ArrayLike,
+                   eps: float = DEFAULT_EPS) -> Float[Array, ""]:
+    """The smallest lambda_min(N2(v)) (eq. 29) over every plant of the box (``ParameterBox
+    .arrays()``) at link speed ``v`` [rad/s] (every joint at that speed).
+
+    Exact in the coordinates N2 is affine in, (K, s01 = sigma0 sigma1, p55 = sigma0 Psi#(v)/Ke):
+    lambda_min is concave there, so its minimum over their box is at one of its 8 vertices.
+    The (K, s01, p55) box is the tightest one holding the image of the parameter box (Psi# =
+    g/m is monotone in Fc, Fs and, for fixed Fc, Fs, in vs, so its range is taken over the 8
+    corners of (Fc, Fs, vs)); the only slack is that sigma0 enters both s01 and p55 and the
+    box treats them as independent. A rigorous lower bound at each speed (between speeds the
+    same grid convention as ``certify``)."""
+    K, Fc, Fs, vs, s0, s1 = (box[k] for k in N2_PARAMETERS)
+    v = jnp.broadcast_to(jnp.asarray(v, jnp.result_type(float)), gains.Ke.shape)
+    small = jnp.abs(v) < eps
+    safe_v = jnp.where(small, eps, v)
+    gs = jnp.stack([fc + (fs - fc) * jnp.exp(-jnp.square(safe_v / w))
+                    for fc in Fc for fs in Fs for w in vs])
+    m = smooth_abs_observer(safe_v, gains.kv)
+    psi = [jnp.where(small, 1.0 / eps, jnp.min(gs, 0) / m),
+           jnp.where(small, 1.0 / eps, jnp.max(gs, 0) / m)]
+    p55 = (s0[0] * psi[0] / gains.Ke, s0[1] * psi[1] / gains.Ke)
+    s01 = (s0[0] * s1[0], s0[1] * s1[1])
+    lams = [jnp.linalg.eigvalsh(n2_of(k, s, p, gains))[0] for k in K for s in s01 for p in p55]
+    return jnp.min(jnp.stack(lams))
+
+
+@requires_float64
+def box_lambda_min_curve(box: dict[str, tuple[Array, Array]], gains: CascadeGains,
+                         velocities: ArrayLike, eps: float = DEFAULT_EPS) -> Float[Array, " N"]:
+    """``box_lambda_min`` at each speed of ``velocities`` [rad/s]."""
+    vs = jnp.asarray(velocities, jnp.result_type(float))
+    return jax.vmap(lambda s: box_lambda_min(box, gains, s, eps))(vs)
+
+
+_box_curve_jit = eqx.filter_jit(box_lambda_min_curve)
+_box_point_jit = eqx.filter_jit(box_lambda_min)
+
+
+@requires_float64
+def certify_box(box: ParameterBox, gains: CascadeGains, vmax: float = DEFAULT_VMAX, *,
+                num: int = DEFAULT_NUM, margin: float = 0.0, eps: float = DEFAULT_EPS,
+                refine: int = 40) -> CertificateResult:
+    """``certify`` for every plant of ``box`` at once: ``lambda_min`` in the result is the
+    lower bound ``box_lambda_min`` over the box, so ``certified_up_to`` [rad/s] holds for each
+    plant in it (eq. 29-31)."""
+    _check_range(vmax, num, margin, eps)
+    arr = box.arrays()
+    return _certified_range(
+        lambda vel: _box_curve_jit(arr, gains, vel, eps),
+        lambda v: _box_point_jit(arr, gains, v, eps), vmax, num, margin, eps, refine)
 
 
 @requires_float64

@@ -261,6 +261,49 @@ def tune(
             f"{v_task:.3g} rad/s (min lambda_min(N2) - margin = {c0:.3g}); start from "
             "certified gains or lower the margin")
 
+    candidates, records, initial_cost, evals = adam_search(
+        theta_init, value_and_grad, feasible, iterations=iterations, starts=starts,
+        learning_rate=learning_rate, spread=spread, lo=lo, hi=hi, seed=seed,
+        progress=progress)
+
+    # best first; the final check certifies up to the fastest speed the loop actually reaches
+    candidates.sort(key=lambda c: c[0])
+    best_cost, best, cert = initial_cost, np.asarray(theta_init), None
+    for cost, theta in candidates:
+        g = _gains_of(jnp.asarray(theta))
+        if margin is None:
+            best_cost, best = cost, theta
+            break
+        v_check = max(v_task, max_link_speed(plant, g, task, model))
+        if not np.isfinite(v_check):
+            continue
+        c = certify(model, g, v_check, margin=margin, eps=eps)
+        if c.certified:
+            best_cost, best, cert = cost, theta, c
+            break
+    return TuneResult(
+        gains=_gains_of(jnp.asarray(best)), cost=float(best_cost), initial_gains=initial,
+        initial_cost=initial_cost, certificate=cert, v_task=v_task, margin=margin,
+        starts=records, wall_time_s=time.perf_counter() - t_start, evaluations=evals,
+    )
+
+
+def adam_search(
+    theta_init: Array, value_and_grad: Callable, feasible: Callable[[Array], tuple[bool, float]],
+    *, iterations: int, starts: int, learning_rate: float, spread: float, lo: Array, hi: Array,
+    seed: int, progress: Callable[[int, int, float], None] | None = None,
+) -> tuple[list[tuple[float, np.ndarray]], list[StartRecord], float, int]:
+    """The multi-start Adam search of ``tune`` and ``jaxflex.robust.tune_robust`` in
+    log-gains theta, with every iterate kept in the certified set.
+
+    ``value_and_grad(theta)`` returns ((log cost, (cost, aux)), gradient) with ``aux``
+    holding "rms_error"; ``feasible(theta)`` returns (certified, constraint value). A step
+    that leaves the certified set is halved back toward the last certified point; a step into
+    a non-finite cost is undone with half the learning rate. The first start is
+    ``theta_init`` (certified), the others log-normal perturbations (``spread``) inside
+    [lo, hi], pulled back toward it if uncertified. Returns (candidates as (cost, theta),
+    per-start records, the cost at ``theta_init``, evaluations)."""
+
     def pull_back(theta_from, cand, max_halvings=30):
         """Largest certified point on the segment from a certified theta_from toward cand."""
         cuts = 0
@@ -319,26 +362,7 @@ def tune(
         rec.theta = np.asarray(theta)
         records.append(rec)
 
-    # best first; the final check certifies up to the fastest speed the loop actually reaches
-    candidates.sort(key=lambda c: c[0])
-    best_cost, best, cert = initial_cost, np.asarray(theta_init), None
-    for cost, theta in candidates:
-        g = _gains_of(jnp.asarray(theta))
-        if margin is None:
-            best_cost, best = cost, theta
-            break
-        v_check = max(v_task, max_link_speed(plant, g, task, model))
-        if not np.isfinite(v_check):
-            continue
-        c = certify(model, g, v_check, margin=margin, eps=eps)
-        if c.certified:
-            best_cost, best, cert = cost, theta, c
-            break
-    return TuneResult(
-        gains=_gains_of(jnp.asarray(best)), cost=float(best_cost), initial_gains=initial,
-        initial_cost=initial_cost, certificate=cert, v_task=v_task, margin=margin,
-        starts=records, wall_time_s=time.perf_counter() - t_start, evaluations=evals,
-    )
+    return candidates, records, initial_cost, evals
 
 
 def _gains_of(theta: Array) -> CascadeGains:

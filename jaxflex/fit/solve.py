@@ -410,7 +410,10 @@ def covariance(
     ``n_free`` (fitted unknowns), ``singular_values`` (column-scaled Jacobian),
     ``null_names`` (parameters with weight in numerically null directions), ``s2``, ``rss``
     (sum of squared output residuals, weighted units), ``defects_ss`` (the same of the
-    continuity defects), ``n_res`` (output residuals).
+    continuity defects), ``n_res`` (output residuals), ``cov_theta`` (the covariance of the
+    unconstrained coordinates theta over the flattened names, zero rows for entries not
+    fitted: where the posterior of ``jaxflex.robust`` draws, so every draw keeps the
+    constraints).
     """
     theta = prob.split(y)[0] if hasattr(prob, "split") else y
     if (fn is problem_residuals and isinstance(prob, Problem) and prob.free_starts
@@ -464,7 +467,8 @@ def _covariance_report(prob: Any, theta: Any, cov_fit: np.ndarray, null: np.ndar
                             for i, nm in enumerate(prob.space.names)})[0]
         ids = np.asarray(ids)[fitted_theta]
         null_names = [prob.space.names[int(i)] for i in np.unique(ids[mark])]
-    return {"stderr": se, "null_names": null_names, "cov_phys": cov_phys, **stats}
+    return {"stderr": se, "null_names": null_names, "cov_phys": cov_phys,
+            "cov_theta": cov_theta, **stats}
 
 
 def _covariance_shooting(prob: Problem, y: Any, theta: Any, inflation: float,

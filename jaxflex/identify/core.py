@@ -386,6 +386,7 @@ def finish(
         "reason": reason or ("cost explained by noise" if converged else "not converged"),
         "unidentifiable": bad, "parameters": marks,
     }
+    out.extra["identification"]["covariance"] = posterior_record(prob, theta, cov, bad)
     for k in fixed:
         se[k] = [math.nan] * len(get_value(init, k))
         rel[k] = [math.inf] * len(get_value(init, k))
@@ -396,6 +397,29 @@ def finish(
         solution=y, reason=out.extra["identification"]["reason"], noise_cost=noise_cost, why=why,
     )
     return res
+
+
+def posterior_record(prob: Problem, theta: dict[str, Any], cov: dict[str, Any],
+                     exclude: Sequence[str] = ()) -> dict[str, Any]:
+    """The identification's Gaussian posterior in the unconstrained coordinates theta
+    (``jaxflex.fit.space``), for the file: ``parameters`` (names in the space's order, those
+    in ``exclude`` left out: their rows are dropped, i.e. marginalised), ``labels`` (one per
+    flattened entry, "name[j]"), ``theta`` (the estimate) and ``matrix`` (its covariance).
+    ``jaxflex.robust.Posterior`` draws from it; every draw maps to physical values that keep
+    the constraints (positivity, Fs >= Fc)."""
+    fitted = prob.space.fitted_flat()
+    # flattened entries in ravel_pytree's order (sorted names, then joints), as fitted_flat
+    entries = [(k, j) for k in sorted(theta) for j in range(np.size(theta[k]))]
+    flat = np.concatenate([np.ravel(np.asarray(theta[k], float)) for k in sorted(theta)])
+    keep = [i for i, (k, _) in enumerate(entries) if fitted[i] and k not in exclude]
+    kept = {entries[i][0] for i in keep}
+    params = [k for k in prob.space.names if k in kept]
+    C = np.asarray(cov["cov_theta"])[np.ix_(keep, keep)]
+    return {
+        "space": "theta", "parameters": params,
+        "labels": [f"{entries[i][0]}[{entries[i][1]}]" for i in keep],
+        "theta": [float(flat[i]) for i in keep], "matrix": C.tolist(),
+    }
 
 
 def simulate_log(

@@ -107,7 +107,10 @@ def sample_parameters(spec: SweepSpec, index: jax.Array) -> tuple[jax.Array, jax
 
     def draw(k):
         keys = jax.random.split(k, len(spec.columns))
-        return jnp.stack([c.dist.sample(kk) for c, kk in zip(spec.columns, keys)])
+        post = None if spec.posterior is None else spec.posterior.sample(
+            jax.random.fold_in(k, _POSTERIOR_STREAM))
+        return jnp.stack([post[int(c.dist.a)] if c.dist.kind == "posterior" else c.dist.sample(kk)
+                          for c, kk in zip(spec.columns, keys)])
 
     theta = draw(k_theta)
     pairs = spec.fs_fc_pairs() if spec.fs_below_fc_possible() else []
@@ -132,6 +135,7 @@ def sample_parameters(spec: SweepSpec, index: jax.Array) -> tuple[jax.Array, jax
     return theta, k_noise
 
 
+_POSTERIOR_STREAM = 2**20  # the identification's posterior draws from its own key stream
 _MAX_REDRAWS = 100  # a spread with P(Fs >= Fc) of 1e-2 leaves 1 sample in e^100 unresolved
 
 
@@ -185,20 +189,32 @@ def build_models(
     return plant, ctrl, sensing, fs_raised
 
 
+def is_noisy(spec: SweepSpec) -> bool:
+    """Whether the sensors of some sample add noise (then each sample's noise key is used)."""
+    return any(c.name in ("sensing.q1_noise", "sensing.q2_noise") for c in spec.columns) or (
+        spec.sensing["q1_noise"] > 0 or spec.sensing["q2_noise"] > 0)
+
+
+def sample_models(spec: SweepSpec, index: jax.Array) -> tuple[
+        jax.Array, FlexibleJointPlant, CascadeController, Sensing, jax.Array, jax.Array]:
+    """Everything sample ``index`` runs with: (theta, true plant, controller, sensing, noise
+    key, fs_raised), from ``sample_parameters`` and ``build_models``; vmap over ``index`` for
+    a batch of plants (``jaxflex.robust`` tunes over one)."""
+    theta, k_noise = sample_parameters(spec, index)
+    plant, ctrl, sensing, fs_raised = build_models(spec, theta)
+    return theta, plant, ctrl, sensing, k_noise, fs_raised
+
+
 def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
     """Closed loop of one sample: parameters, metrics (worst joint) and the band-grid error.
 
     Keys: theta (d,); rms_error, max_error [rad]; tau_rms [N m]; saturation_fraction;
     diverged; fs_raised; e1_band (T, n) [rad] link error every ``band_dt`` s.
     """
-    theta, k_noise = sample_parameters(spec, index)
-    plant, ctrl, sensing, fs_raised = build_models(spec, theta)
-    noisy = any(c.name in ("sensing.q1_noise", "sensing.q2_noise") for c in spec.columns) or (
-        spec.sensing["q1_noise"] > 0 or spec.sensing["q2_noise"] > 0
-    )
+    theta, plant, ctrl, sensing, k_noise, fs_raised = sample_models(spec, index)
     r = simulate_sampled(
         plant, ctrl, spec.t_final, substeps=spec.substeps, sensing=sensing,
-        key=k_noise if noisy else None, save=True,
+        key=k_noise if is_noisy(spec) else None, save=True,
     )
     # only metrics and e1 are used below: jit's dead-code elimination drops the other
     # saved trajectories, so save=True costs one (N, n) array per sample of the chunk.

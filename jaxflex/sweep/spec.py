@@ -14,6 +14,14 @@ A spread file is one JSON document (SI units), for example::
         "limits.tau_max":   {"dist": "normal", "rel_std": 0.05, "low": 1.0},
         "effects.torque_offset.offset": {"dist": "normal", "mean": 0.0, "std": 0.01}}}
 
+``"identified": "ident.json"`` (or ``{"file": "ident.json", "inflate": 2.0}``) draws the
+parameters an identification determined from its own posterior (``jaxflex.fit.posterior``:
+the estimate and covariance in the fit's unconstrained coordinates, so every draw keeps
+positivity and Fs >= Fc), jointly, with the correlations the data leave; ``inflate`` widens
+the standard deviations (model error the residuals do not see). Quantities the log could not
+see go under ``uncertain`` as usual (naming a posterior entry there is refused). Without a
+``nominal`` entry the identified file is the nominal.
+
 ``nominal`` is ``"paper"``, a parameter-file path (docs/spec.md section 7, relative to the spread file)
 or an inline parameter mapping; the controller always uses the nominal model and gains, the
 true plant of each sample is drawn from the spread (robustness, not adaptation).
@@ -47,6 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.controller import Q2D_METHODS
+from jaxflex.fit.posterior import Posterior
 from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
 from jaxflex.presets import SENSING_PRESETS, TRAJECTORIES, paper_params, sensing_of
@@ -84,9 +93,11 @@ class SpreadError(ValueError):
 class Distribution:
     """One scalar distribution, already resolved against its nominal value.
 
-    kind: 'fixed' | 'uniform' | 'normal' | 'lognormal' | 'loguniform'; a, b: its two numbers
-    (value/-, low/high, mean/std, log-median/sigma, log-low/log-high); low, high: truncation of
-    'normal' (+-inf if none).
+    kind: 'fixed' | 'uniform' | 'normal' | 'lognormal' | 'loguniform' | 'posterior'; a, b: its
+    two numbers (value/-, low/high, mean/std, log-median/sigma, log-low/log-high; posterior:
+    the entry's index in ``SweepSpec.posterior.labels``/its estimate); low, high: truncation
+    of 'normal' (+-inf if none), the 1 - 1e-9 confidence box of a 'posterior' entry (drawn
+    jointly with the other entries of the identification's posterior).
     """
 
     kind: str
@@ -105,6 +116,8 @@ class Distribution:
             return self.low, self.high
         if self.kind == "lognormal":
             return 0.0, math.inf  # open at 0
+        if self.kind == "posterior":
+            return self.low, self.high
         return math.exp(self.a), math.exp(self.b)
 
     def center_scale(self) -> tuple[float, float]:
@@ -113,8 +126,9 @@ class Distribution:
             return self.a, 1.0
         if self.kind in ("uniform",):
             return 0.5 * (self.a + self.b), max(0.5 * (self.b - self.a), 1e-300)
-        if self.kind == "normal":
-            return self.a, max(self.b, 1e-300)
+        if self.kind in ("normal", "posterior"):
+            return self.a if self.kind == "normal" else self.b, max(
+                self.b if self.kind == "normal" else 0.5 * (self.high - self.low), 1e-300)
         if self.kind == "lognormal":
             return math.exp(self.a), max(math.exp(self.a) * self.b, 1e-300)
         lo, hi = math.exp(self.a), math.exp(self.b)
@@ -126,6 +140,8 @@ class Distribution:
         The random variate is drawn in float32 and then cast, so that a sample's parameters
         are the same in float64 and float32 runs (24-bit resolution is far below any spread).
         """
+        if self.kind == "posterior":
+            raise ValueError("a posterior column is drawn jointly (Posterior.sample), not alone")
         dt = jnp.result_type(float)
         f32 = jnp.float32
         if self.kind == "fixed":
@@ -247,6 +263,7 @@ class SweepSpec:
     samples: int = 1000
     seed: int = 0
     band_dt: float = 0.01
+    posterior: Posterior | None = None
 
     @property
     def n(self) -> int:
@@ -300,11 +317,12 @@ class SweepSpec:
             "sensing": self.sensing, "effects": self.effects, "samples": self.samples,
             "seed": self.seed, "band_dt": self.band_dt,
             "columns": [dataclasses.asdict(c) for c in self.columns],
+            **({"posterior": self.posterior.to_dict()} if self.posterior is not None else {}),
         }
 
 
 _TOP_KEYS = {
-    "nominal", "trajectory", "t_final", "dt", "substeps", "controller", "sensing", "samples",
+    "nominal", "identified", "trajectory", "t_final", "dt", "substeps", "controller", "sensing", "samples",
     "seed", "uncertain", "band_dt",
 }
 
@@ -323,6 +341,50 @@ def _nominal(d: Any, base: Path | None) -> Params:
     except ParamsError as e:
         raise SpreadError(f"nominal: {e}") from None
     raise SpreadError(f"nominal: expected 'paper', a parameter-file path or an object, got {d!r}")
+
+
+def _identified(d: Any, base: Path | None) -> tuple[Params | None, Posterior | None]:
+    """The ``identified`` entry: a parameter-file path written by ``jaxflex identify``, or
+    {"file": path, "inflate": factor on its standard deviations (default 1)}."""
+    if d is None:
+        return None, None
+    if isinstance(d, str):
+        d = {"file": d}
+    if not isinstance(d, dict) or not isinstance(d.get("file"), str):
+        raise SpreadError("identified: expected a parameter-file path written by 'jaxflex "
+                          f"identify', or {{\"file\": path, \"inflate\": 1.0}}, got {d!r}")
+    check_keys(d, ("file", "inflate"), where="identified: ", what="field", error=SpreadError)
+    inflate = _num("identified", "inflate", d.get("inflate", 1.0))
+    params = _nominal(d["file"], base)
+    try:
+        return params, Posterior.from_params(params, inflate=inflate)
+    except ValueError as e:
+        raise SpreadError(f"identified: {d['file']}: {e}") from None
+
+
+def _posterior_columns(post: Posterior, params: Params, taken: set[tuple[str, int]]) -> list[Column]:
+    """One column per entry of the identification's posterior (drawn jointly); an entry also
+    given under ``uncertain`` is refused (the data already say how uncertain it is)."""
+    lo, hi = post.box(1 - 1e-9)
+    cols = []
+    for i, lab in enumerate(post.labels):
+        name, j = lab[:-1].split("[")
+        j = int(j)
+        if name in PLANT_NAMES:
+            full = f"plant.{name}"
+        elif name in LUGRE_NAMES:
+            full = f"friction.{name}"
+        else:
+            full = "effects." + name
+        if (full, j) in taken:
+            raise SpreadError(
+                f"uncertain: {full} is drawn from the identification's posterior ('identified'); "
+                "remove it from 'uncertain' (or identify without it)")
+        est = float(np.asarray(post.physical(post.mean)[name])[j])
+        cols.append(Column(name=full, joint=j, label=full if params.n == 1 else f"{full}[{j}]",
+                           dist=Distribution("posterior", float(i), est, float(lo[name][j]),
+                                             float(hi[name][j])), nominal=est))
+    return cols
 
 
 def _sensing(d: Any) -> dict[str, Any]:
@@ -377,7 +439,9 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
     if not isinstance(d, dict):
         raise SpreadError(f"a spread must be a JSON object, got {type(d).__name__}")
     check_keys(d, sorted(_TOP_KEYS), what="top-level key", error=SpreadError)
-    nominal = _nominal(d.get("nominal"), base)
+    identified, posterior = _identified(d.get("identified"), base)
+    nominal = identified if "nominal" not in d and identified is not None else _nominal(
+        d.get("nominal"), base)
     n = nominal.n
     traj = d.get("trajectory", "sinusoid")
     if traj not in TRAJECTORIES:
@@ -460,6 +524,8 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
             for j in joints:
                 entries[(nm, j)] = (key, dist)  # later, more specific entries override
     columns: list[Column] = []
+    if posterior is not None:
+        columns = _posterior_columns(posterior, identified, set(entries))
     for (nm, j), (key, dist) in entries.items():
         parts = nm.split(".")
         if parts[0] == "effects":
@@ -507,7 +573,7 @@ def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
         nominal=nominal, columns=columns, trajectory=traj, t_final=t_final, dt=dt,
         substeps=pos("substeps", 10, integer=True), compensation=ctrl.get("compensation", True),
         q2d_method=ctrl.get("q2d_method", "model"), tau_max=float(tau_max), sensing=sensing,
-        effects=effects, samples=samples, seed=seed, band_dt=band_dt,
+        effects=effects, samples=samples, seed=seed, band_dt=band_dt, posterior=posterior,
     )
 
 
