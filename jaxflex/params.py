@@ -83,7 +83,8 @@ CONTROLLER_KEYS: tuple[str, ...] = (
 # "loop_controller" declares the loop that ran on a rig for ``jaxflex validate`` (e.g. the EMPS
 # P/P cascade: {"type": "pp_cascade", "kp", "kv", "gtau", "vmax"})
 EXTRA_KEYS: tuple[str, ...] = ("stderr", "identification", "discover", "source", "description",
-                               "comment", "notes", "units", "meta", "loop_controller")
+                               "comment", "notes", "units", "meta", "loop_controller",
+                               "certificate")
 SECTIONS: tuple[str, ...] = ("plant", "friction", "gains", "effects", "controller")
 
 

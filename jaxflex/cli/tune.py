@@ -26,13 +26,31 @@ def register(sub: argparse._SubParsersAction) -> None:
         "defaults; it is recorded in the 'controller' section of --out, which 'jaxflex export' "
         "and 'jaxflex run-loop' then follow.",
     )
-    p.add_argument("--params", required=True,
-                   help="parameter file (plant, friction; its gains, or the paper's, start the search)")
+    p.add_argument("--params",
+                   help="parameter file (plant, friction; its gains, or the paper's, start the "
+                   "search); with --spread: the initial gains only (default: the spread's)")
+    p.add_argument("--spread",
+                   help="robust tuning: a spread file (jaxflex sweep's format; 'identified' draws "
+                   "from an identification's posterior) whose plants the gains must serve; the "
+                   "trajectory, horizon, sensing, torque limit, q2d method and dt are the "
+                   "spread's; the gains are certified on the spread's whole parameter box")
+    p.add_argument("--risk", default="cvar:0.9",
+                   help="with --spread: risk measure of the per-plant cost: mean, quantile:A or "
+                   "cvar:A (default cvar:0.9)")
+    p.add_argument("--plants", type=int, default=64,
+                   help="with --spread: training plants per step (default 64)")
+    p.add_argument("--resample", action="store_true",
+                   help="with --spread: a fresh batch of plants each step (default: one fixed "
+                   "batch, a deterministic objective)")
+    p.add_argument("--confidence", type=float, default=0.95,
+                   help="with --spread: coverage of the certified box for unbounded "
+                   "distributions and an identification's posterior (default 0.95)")
     p.add_argument("--out", required=True, help="output parameter file with the tuned gains")
     p.add_argument("--report", help="report folder (default: <out stem>_report next to --out)")
     p.add_argument("--trajectory", action="append", choices=TRAJECTORIES,
                    help="task trajectory, repeat for several (default: sinusoid)")
-    p.add_argument("--t-final", type=float, default=2.0, help="seconds per trajectory (default 2)")
+    p.add_argument("--t-final", type=float, default=None,
+                   help="seconds per trajectory (default 2; with --spread: the spread's)")
     p.add_argument("--margin", type=float, default=0.05,
                    help="required lambda_min(N2) over the task speeds (default 0.05)")
     p.add_argument("--velocity-factor", type=float, default=1.5,
@@ -75,6 +93,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--margin must be >= 0, got {args.margin}")
     if args.iterations < 0 or args.starts < 1:
         raise ValueError("--iterations must be >= 0 and --starts >= 1")
+    if args.spread:
+        return run_robust(args, out, report_dir)
+    if not args.params:
+        raise ValueError("jaxflex tune: give --params (nominal tuning) or --spread (robust)")
     params = load_params(args.params)
     plant = params.to_plant()
     initial = params.to_gains() if params.gains is not None else paper_gains()
@@ -90,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = controller_config(dataclasses.replace(params, controller=dataclasses.replace(
         recorded, **{k: v for k, v in options.items() if v is not None})))
     names = (cfg.trajectory,) if isinstance(cfg.trajectory, str) else cfg.trajectory
-    task = TuneTask(trajectories=tuple(trajectory_preset(n) for n in names), t_final=args.t_final,
+    task = TuneTask(trajectories=tuple(trajectory_preset(n) for n in names),
+                    t_final=2.0 if args.t_final is None else args.t_final,
                     sensing=sensing_of(cfg.sensing), tau_max=cfg.tau_max, dt=cfg.dt,
                     q2d_method=cfg.q2d_method, torque_weight=args.torque_weight,
                     velocity_factor=args.velocity_factor)
@@ -120,4 +143,73 @@ def run(args: argparse.Namespace) -> int:
               f"{e['lambda_min_at_task_speed']:>16.4g} {e['certificate']['certified_up_to']:>21.4g}")
     print(f"wrote {out} and {report_dir}/report.json ({res.wall_time_s:.0f} s, "
           f"{res.evaluations} simulations)")
+    return 0
+
+
+def run_robust(args: argparse.Namespace, out: Path, report_dir: Path) -> int:
+    """``--spread``: tune over the spread's plants (``jaxflex.robust.tune_robust``), evaluate
+    initial and tuned gains on held-out plants, write the gains with their controller section
+    and certificate record; refuse (exit 3, nothing written) when no candidate is certified."""
+    import dataclasses
+    import json
+    import math
+
+    from jaxflex.params import ControllerConfig, load_params, save_params
+    from jaxflex.robust import RiskMeasure, RobustTask, evaluate_batch, tune_robust
+    from jaxflex.sweep import load_spread
+
+    ignored = [f"--{k.replace('_', '-')}" for k in ("trajectory", "sensing", "tau_max", "dt", "q2d")
+               if getattr(args, k) is not None]
+    if ignored:
+        raise ValueError(f"jaxflex tune --spread: {ignored} come from the spread file (its "
+                         "'trajectory', 'sensing', 'controller' and 'dt' entries); set them there")
+    spec = load_spread(args.spread)
+    spec = spec.with_(t_final=args.t_final) if args.t_final is not None else spec
+    task = RobustTask(spec, RiskMeasure.parse(args.risk), plants=args.plants,
+                      resample=args.resample, torque_weight=args.torque_weight,
+                      velocity_factor=args.velocity_factor, confidence=args.confidence)
+    initial = load_params(args.params).to_gains() if args.params else None
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=args.starts * (args.iterations + 1), desc="tune (robust)", unit="step")
+
+    def progress(start: int, it: int, cost: float) -> None:
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(start=start, risk=f"{cost:.3e}")
+
+    res = tune_robust(task, initial, margin=args.margin, iterations=args.iterations,
+                      starts=args.starts, learning_rate=args.lr, seed=args.seed,
+                      progress=progress)
+    if bar is not None:
+        bar.close()
+    summary = res.summary()
+    if not res.certified:
+        print(f"refused: no candidate is certified on the spread's box with margin {args.margin} "
+              f"(box bounds: {res.box_how}); nothing written. Narrow the spread or lower the "
+              "margin.")
+        return 3
+    ev = {k: evaluate_batch(task, g, samples=max(200, args.plants))
+          for k, g in (("initial", res.initial_gains), ("tuned", res.gains))}
+    cfg = ControllerConfig(q2d_method=spec.q2d_method, dt=spec.dt,
+                           tau_max=spec.tau_max if math.isfinite(spec.tau_max) else None,
+                           compensation=spec.compensation, sensing=dict(spec.sensing),
+                           trajectory=spec.trajectory)
+    params = dataclasses.replace(spec.nominal, gains=res.gains.to_dict(), controller=cfg)
+    params.extra = {**params.extra, "certificate": {k: v for k, v in summary.items()
+                                                    if k != "starts"}}
+    report_dir.mkdir(parents=True, exist_ok=True)
+    report = {"search": summary,
+              "held_out": {k: {kk: vv for kk, vv in e.items() if kk not in ("rms_error", "lost")}
+                           for k, e in ev.items()}}
+    (report_dir / "report.json").write_text(json.dumps(report, indent=1, default=float))
+    save_params(params, out)
+    print(f"{'':<8} {'RMS q50 (rad)':>14} {'RMS q95 (rad)':>14} {'lost':>6} {'N2>0 at task':>13}")
+    for k, e in ev.items():
+        print(f"{k:<8} {e['rms_q50']:>14.3e} {e['rms_q95']:>14.3e} {e['lost_fraction']:>6.3f} "
+              f"{e['certified_fraction']:>13.3f}")
+    print(f"certified on the box up to {res.certificate.certified_up_to:.4g} rad/s (margin "
+          f"{args.margin}); wrote {out} and {report_dir}/report.json ({res.wall_time_s:.0f} s)")
     return 0
