@@ -160,3 +160,42 @@ def test_spread_box_bounds_and_robust_search_small():
     assert certify_box(box, r.gains, r.v_check, margin=r.margin).certified
     with pytest.raises(ValueError, match="plants"):
         RobustTask(spec, plants=1)
+
+
+def test_cli_tune_spread_writes_certified_gains_that_export_follows(tmp_path, capsys):
+    """``jaxflex tune --spread``: the written file carries the controller configuration of the
+    spread and the box certificate; ``export`` follows it; an impossible margin is refused
+    with nothing written."""
+    import json
+
+    from jaxflex.cli import main
+    from jaxflex.export import load_module
+
+    spread = tmp_path / "spread.json"
+    spread.write_text(json.dumps({
+        "nominal": "paper", "t_final": 0.2, "sensing": "rig",
+        "controller": {"tau_max": 2.0, "q2d_method": "filtered"},
+        "uncertain": {"friction.*": {"dist": "uniform", "rel": 0.3},
+                      "plant.K": {"dist": "uniform", "rel": 0.15}}}))
+    out = tmp_path / "robust.json"
+    rc = main(["tune", "--spread", str(spread), "--out", str(out), "--plants", "4",
+               "--iterations", "1", "--starts", "1", "--quiet"])
+    assert rc == 0
+    tuned = load_params(out)
+    assert tuned.controller.q2d_method == "filtered" and tuned.controller.tau_max == 2.0
+    cert = tuned.extra["certificate"]
+    assert cert["kind"] == "robust" and cert["certified"] and cert["risk"] == "cvar:0.9"
+    assert cert["box"]["K"]["lo"][0] == pytest.approx(6.77 * 0.85)
+    rep = json.loads((tmp_path / "robust_report" / "report.json").read_text())
+    assert set(rep["held_out"]) == {"initial", "tuned"}
+    py = tmp_path / "c.py"
+    assert main(["export", "--params", str(out), "--out", str(py)]) == 0
+    assert load_module(py).Q2D_METHOD == "filtered"
+    capsys.readouterr()
+    bad = tmp_path / "bad.json"
+    assert main(["tune", "--spread", str(spread), "--out", str(bad), "--plants", "4",
+                 "--iterations", "0", "--margin", "1e6", "--quiet"]) == 2
+    assert "no gains found that are certified" in capsys.readouterr().err
+    assert not bad.exists()
+    assert main(["tune", "--spread", str(spread), "--out", str(bad), "--sensing", "ideal"]) == 2
+    assert "come from the spread file" in capsys.readouterr().err
