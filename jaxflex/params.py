@@ -317,6 +317,12 @@ class Params:
             controller = ControllerConfig.from_dict(d["controller"])
         extra = {k: v for k, v in d.items()
                  if k not in ("plant", "friction", "gains", "effects", "controller")}
+        cert = extra.get("certificate")
+        if isinstance(cert, dict) and cert.get("gains") is not None and cert["gains"] != gains:
+            raise ParamsError(
+                "the gains differ from those the 'certificate' entry was issued for (edited "
+                "after 'jaxflex tune --spread'?): tune again, or remove the 'certificate' entry "
+                "to use these gains uncertified")
         p = cls(plant=plant, friction=friction, gains=gains, effects=dict(effects), extra=extra,
                 controller=controller)
         p.validate()

@@ -199,3 +199,19 @@ def test_cli_tune_spread_writes_certified_gains_that_export_follows(tmp_path, ca
     assert not bad.exists()
     assert main(["tune", "--spread", str(spread), "--out", str(bad), "--sensing", "ideal"]) == 2
     assert "come from the spread file" in capsys.readouterr().err
+
+
+def test_a_file_whose_gains_were_edited_after_certification_is_refused(tmp_path):
+    import json
+
+    from jaxflex.params import ParamsError
+
+    d = paper_params().to_dict()
+    d["certificate"] = {"kind": "robust", "gains": dict(d["gains"])}
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(d))
+    assert load_params(path).extra["certificate"]["kind"] == "robust"
+    d["gains"]["KD1"] = [2.0]
+    path.write_text(json.dumps(d))
+    with pytest.raises(ParamsError, match="edited after"):
+        load_params(path)
