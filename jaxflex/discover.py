@@ -26,7 +26,14 @@ Workflow (``discover``), for one joint:
    the F-test p-value is below ``alpha``, its BIC is lower and it lowers the held-out gap by at
    least ``min_gain``. Among significant candidates within ``parsimony`` of the lowest held-out
    gap, the one with the fewest parameters is added (``select``), and the search repeats until
-   nothing is significant (answer ``none`` if that happens at once).
+   nothing is significant; an effect whose polished refit does not lower the held-out gap is
+   dropped. Every round records the Akaike and Schwarz weights of "none" and each candidate.
+6. Gap floor (``gap_floor``): the held-out gap a correct model reaches on this log, by a
+   parametric bootstrap through the workflow's own steps (noise, quantisation, start-state
+   estimate, replay). The answer is the first effect added; else ``none`` when the gap is
+   within ``unexplained_factor`` x the floor (+3 bootstrap sd), ``unexplained`` when it stays
+   above: something is missing that the library does not describe, and the localisation says
+   where to look.
 
 All candidates share one compiled model: the plant holds every candidate effect, wrapped in
 ``jaxflex.effects.Gated`` (gate 0 or 1), and the engine's parameter mask says which are fitted;
@@ -61,6 +68,7 @@ from jaxflex.fit import (
     params_of_plant,
     residuals,
     savgol,
+    Segments,
     simulated_outputs,
 )
 from jaxflex.logs import Log
@@ -410,7 +418,8 @@ def select(scores: dict[str, dict[str, Any]], parsimony: float = 0.1) -> str | N
 class DiscoverConfig:
     """Settings of ``discover``: segment length [s], training fraction, LM steps, substeps per
     sample, significance level, minimal relative held-out gain, max number of effects added,
-    the candidate names (default: all registered effects), and the parsimony margin."""
+    the candidate names (default: all registered effects), the parsimony margin, and the
+    factor over the gap floor above which a remaining gap counts as unexplained."""
 
     segment: float = 0.3
     train_frac: float = 0.7
@@ -421,15 +430,20 @@ class DiscoverConfig:
     max_effects: int = 3
     candidates: Sequence[str] | None = None
     parsimony: float = 0.1
+    unexplained_factor: float = 2.0
 
 
 @dataclasses.dataclass
 class DiscoverResult:
     """Outcome of ``discover``.
 
-    effect: the first effect added, or "none"; effects: all added, in order; gap_before,
-    gap_after, gap_floor: held-out gaps of the refit nominal and the final model, and the gap
-    a perfect model would show; before, after: the two fits; rounds: per round the base gap,
+    effect: the first effect added, "none" (the final gap is at the floor) or "unexplained"
+    (no candidate was added and the gap stays significantly above the floor: something is
+    missing that the library does not describe; the localisation says where to look);
+    effects: all added, in order; gap_before, gap_after, gap_floor: held-out gaps of the refit
+    nominal and the final model, and the gap a correct model reaches on this log
+    (``gap_floor``'s bootstrap; ``floor`` holds its details); unexplained: the final gap is
+    above ``unexplained_factor`` x floor + 3 floor_sd, whether or not effects were added; before, after: the two fits; rounds: per round the base gap,
     the residual autocorrelation time, the effective count, every candidate's score and the
     winner; localisation: of the refit nominal model (and of the final one); config; log_info;
     seconds; workspace: the problems (for replays in plots).
@@ -440,6 +454,8 @@ class DiscoverResult:
     gap_before: float
     gap_after: float
     gap_floor: float
+    floor: dict[str, Any]
+    unexplained: bool
     before: CandidateFit
     after: CandidateFit
     rounds: list[dict[str, Any]]
@@ -475,6 +491,23 @@ class DiscoverResult:
                                       "fixed": True}
         return out
 
+    def evidence(self) -> dict[str, Any]:
+        """How sure the answer is: per round the Akaike weights of "none" and every candidate
+        (``evidence_weights``), and per added effect its fitted magnitude with standard error
+        and the held-out gap after it."""
+        gaps = {r["winner"]: r["scores"][r["winner"]]["gap_test"] for r in self.rounds
+                if r["winner"] in r["scores"]}
+        return {
+            "rounds": [{"winner": r["winner"], "aic_weights": r.get("evidence_aic", {}),
+                        "bic_weights": r.get("evidence_bic", {})} for r in self.rounds],
+            "added": {e: {"params": self.effect_params().get(e, {}), "gap_test": gaps.get(e)}
+                      for e in self.effects},
+            "answer_weight": (self.rounds[0].get("evidence_aic", {}).get(self.effects[0])
+                              if self.effects and self.rounds else
+                              (self.rounds[0].get("evidence_aic", {}).get("none")
+                               if self.rounds else None)),
+        }
+
     def to_json(self) -> dict[str, Any]:
         """The report (report.json) as plain JSON types."""
         nominal = {k: v for k, v in self.before.values.items()}
@@ -484,31 +517,106 @@ class DiscoverResult:
             "gap_metric": "normalised RMS error of simulated q1 and q2 over held-out segments "
                           "(open-loop replay from measured state under logged torque), "
                           "relative to the measured motion within each segment",
-            "gap_floor": self.gap_floor,
+            "gap_floor": self.gap_floor, "floor": self.floor,
+            "unexplained": self.unexplained,
+            "evidence": self.evidence(),
             "nominal_refit": {"values": nominal, "stderr": self.before.stderr},
             "effect_params": self.effect_params(),
             "final_values": self.after.values, "final_stderr": self.after.stderr,
             "converged": self.after.converged,
             "rounds": self.rounds, "candidate_scores": self.candidate_scores,
             "localisation": self.localisation.summary,
+            "localisation_final": self.localisation_after.summary,
             "telling_quantity": TELLING.get(self.effect) if self.effects else None,
             "config": dataclasses.asdict(self.config) | {"candidates": self.candidates},
             "log": self.log_info, "seconds": self.seconds,
         }
 
 
-def _gap_floor(log: Log, ws: Workspace, window: int = 31) -> float:
-    """Gap a perfect model would show: angle noise at every sample plus the start-velocity
-    error (noise through the Savitzky-Golay derivative) integrated over the segment."""
-    n1, n2 = noise_level(log.q1, window), noise_level(log.q2, window)
-    dt = log.dt
+def white_noise_std(q: np.ndarray, orders: Sequence[int] = (2, 3, 4, 5, 6)) -> float:
+    """White measurement noise [rad] of a sampled angle by differencing: the k-th difference
+    of white noise has variance C(2k, k) sigma^2, a smooth motion's is attenuated by
+    (2 sin(w dt / 2))^k; the smallest estimate over ``orders`` bounds sigma from above with
+    the least motion left in it (quantisation included)."""
+    q = np.asarray(q, float).reshape(len(q), -1)[:, 0]
+    est = [math.sqrt(np.var(np.diff(q, k)) / math.comb(2 * k, k)) for k in orders]
+    return float(min(est))
+
+
+def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3, seed: int = 0,
+              window: int = 31, pad: int = 60, warmup: int = 30) -> dict[str, Any]:
+    """The held-out gap a *correct* model reaches on this log (parametric bootstrap).
+
+    The fitted model ``fit`` stands in for the truth. For each held-out segment it is run
+    (4 x the substeps) under the logged torque from ``pad`` + ``window``/2 samples before the
+    segment's start; the synthetic angles get the log's white noise (``white_noise_std``
+    less the quantisation) and are quantised to the log's encoder steps; then the workflow's
+    own steps follow on the synthetic data: start state from the Savitzky-Golay estimate at
+    the segment's start, z at its steady state, open-loop replay with the workflow's
+    substeps, and the gap. So the floor holds what noise, quantisation, the start-state
+    estimate (including its bias on fast modes and the steady-state z) and the replay's
+    integration cost a correct model on this log, and not the model's own errors.
+
+    Returns ``floor`` (mean over ``draws``), ``floor_sd`` (their spread), ``noise_std`` and
+    ``step`` [rad] per output (q1, q2), ``segments`` used."""
+    _, test, _ = ws.for_model(fit.model)
+    th = fit.theta
+    dt, L = log.dt, test.segs.length
+    W = pad + window // 2
+    first = int(round((float(test.segs.t0[0]) - float(log.t[0])) / dt))
+    starts = first + np.arange(test.segs.count) * L
+    starts = starts[(starts - W - warmup >= 0) & (starts + L <= log.N)]
+    if starts.size == 0:
+        return {"floor": math.nan, "floor_sd": math.nan, "segments": 0}
+    chans = [np.asarray(log.q1, float)[:, 0], np.asarray(log.q2, float)[:, 0]]
+    steps = [noise_level(c)["step"] for c in chans]
+    sig = [math.sqrt(max(white_noise_std(c) ** 2 - st**2 / 12.0, 0.0))
+           for c, st in zip(chans, steps)]
+    tau = np.asarray(log.tau, float)
+
+    def segs_at(a, length, x0, y):
+        idx = a[:, None] + np.arange(length)[None, :]
+        pre = a[:, None] + np.arange(-warmup, 0)[None, :]
+        return Segments(tau=jnp.asarray(tau[idx]), y_meas=jnp.asarray(y),
+                        tau_pre=jnp.asarray(tau[pre]), x0=jnp.asarray(x0),
+                        t0=jnp.asarray(log.t[a]))
+
+    # the synthetic truth: the model from the measured state W samples before each start
+    a0 = starts - W
+    v = [savgol(c, dt, 1, window) for c in chans]
+    x_init = np.stack([chans[0][a0], v[0][a0], chans[1][a0], v[1][a0], np.zeros(a0.size)],
+                      axis=1)[..., None]
+    ext = dataclasses.replace(test, segs=segs_at(a0, W + L, x_init, np.zeros((a0.size, W + L, 2))),
+                              substeps=test.substeps * 4)
+    y_true = np.asarray(simulated_outputs(ext, th))  # (S, W + L, 2)
     c1 = scipy.signal.savgol_coeffs(window, 3, deriv=1, delta=dt, use="dot")
-    g1 = float(np.sqrt(np.sum(c1**2)))
-    m = np.asarray(ws.train.segs.y_meas)
-    tt = np.arange(m.shape[1]) * dt
-    err2 = sum(s["total_std"] ** 2 * (2.0 + g1**2 * np.mean(tt**2)) for s in (n1, n2))
-    den = float(np.mean(np.sum((m - m[:, :1]) ** 2, axis=-1)))
-    return float(math.sqrt(err2 / den))
+    h = window // 2
+    rng = np.random.default_rng(seed)
+    gaps = []
+    for _ in range(draws):
+        y = y_true + rng.normal(size=y_true.shape) * np.asarray(sig)
+        for k, st in enumerate(steps):
+            if st > 0:
+                y[..., k] = np.round(y[..., k] / st) * st
+        # the workflow's start: the measured angle, its Savitzky-Golay derivative
+        v0 = np.einsum("w,swk->sk", c1, y[:, W - h:W + h + 1])
+        x0 = np.stack([y[:, W, 0], v0[:, 0], y[:, W, 1], v0[:, 1], np.zeros(starts.size)],
+                      axis=1)[..., None]
+        rep = dataclasses.replace(test, segs=segs_at(starts, L, x0, y[:, W:]))
+        gaps.append(float(gap(rep, th)))
+    return {"floor": float(np.mean(gaps)), "floor_sd": float(np.std(gaps)), "noise_std": sig,
+            "step": steps, "segments": int(starts.size), "draws": draws}
+
+
+def evidence_weights(scores: dict[str, dict[str, Any]], key: str = "dAIC") -> dict[str, float]:
+    """Akaike (``key`` "dAIC") or Schwarz ("dBIC") weights of "none" (the current model,
+    difference 0) and every scored candidate: exp(-d/2) normalised, the probability that each
+    is the best of those considered, in the information criterion's sense."""
+    d = {"none": 0.0, **{k: float(s[key]) for k, s in scores.items()}}
+    lo = min(d.values())
+    w = {k: math.exp(-0.5 * (v - lo)) for k, v in d.items()}
+    tot = sum(w.values())
+    return {k: v / tot for k, v in w.items()}
 
 
 @requires_float64
@@ -554,7 +662,6 @@ def discover(
     first_fit = current
     loc = localise(log, current.model.params)
     loc_current = loc  # localisation of the current model (recomputed when an effect is added)
-    floor = _gap_floor(log, ws)
     added: list[str] = []
     rounds = []
     S, L = ws.train.segs.count, ws.train.segs.length
@@ -593,7 +700,9 @@ def discover(
             raise ValueError(f"discover: every candidate fit failed: {failed}")
         winner = select(scores, cfg.parsimony)
         rounds.append({"base_gap_test": current.gap_test, "tau_int": tau_int, "n_eff": n_eff,
-                       "scores": scores, "failed": failed, "winner": winner or "none"})
+                       "scores": scores, "failed": failed, "winner": winner or "none",
+                       "evidence_aic": evidence_weights(scores, "dAIC"),
+                       "evidence_bic": evidence_weights(scores, "dBIC")})
         if winner is None:
             break
         # polish the winner so that the next round's candidates are compared with a converged
@@ -610,9 +719,16 @@ def discover(
         current = polished
         loc_current = localise(log, current.model.params)
         say(f"added {winner}: held-out gap {current.gap_test:.4f}")
+    fl = gap_floor(log, ws, current)
+    # "unexplained": the final gap stays significantly above what noise, start errors and
+    # integration cost a correct model on this log, and no candidate closed it
+    limit = cfg.unexplained_factor * fl["floor"] + 3.0 * fl["floor_sd"]
+    unexplained = bool(current.gap_test > limit)
+    answer = added[0] if added else ("unexplained" if unexplained else "none")
     return DiscoverResult(
-        effect=added[0] if added else "none", effects=added, gap_before=first_fit.gap_test,
-        gap_after=current.gap_test, gap_floor=floor, before=first_fit, after=current,
+        effect=answer, effects=added, gap_before=first_fit.gap_test,
+        gap_after=current.gap_test, gap_floor=fl["floor"], floor=fl,
+        unexplained=unexplained, before=first_fit, after=current,
         rounds=rounds, localisation=loc,
         localisation_after=loc_current,
         config=cfg, candidates=cands,

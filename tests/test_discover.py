@@ -39,6 +39,22 @@ def test_clean_log_gives_none():
     assert not any(s["significant"] for s in rep["candidate_scores"].values())
 
 
+def test_floor_is_honest_and_an_effect_outside_the_library_is_unexplained():
+    """The gap floor (bootstrap of a correct model through the workflow's steps) sits just
+    below the clean log's final gap; a hidden effect that no candidate describes (joint
+    damping, not among CANDS) leaves the gap far above the floor: answer "unexplained"; the
+    report carries evidence weights that sum to one."""
+    clean = discover(generate_log((), seed=4, t_final=8.0).log, config=CFG).to_json()
+    assert clean["effect"] == "none" and not clean["unexplained"]
+    assert 0.5 * clean["gap_after"] < clean["gap_floor"] <= clean["gap_after"]
+    w = clean["evidence"]["rounds"][0]["aic_weights"]
+    assert set(w) == {"none", *CANDS} and sum(w.values()) == pytest.approx(1.0)
+    g = generate_log(("joint_damping",), seed=8, t_final=8.0)
+    rep = discover(g.log, config=CFG).to_json()
+    assert rep["effect"] == "unexplained" and rep["unexplained"] and rep["effects"] == []
+    assert rep["gap_after"] > 3 * rep["gap_floor"]
+
+
 def test_bad_logs_are_refused(tmp_path):
     p = tmp_path / "bad.csv"
     p.write_text("t,tau,q1\n0,0,0\n0.001,0,0\n")

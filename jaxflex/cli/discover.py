@@ -75,5 +75,12 @@ def run(args: argparse.Namespace) -> int:
     (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
     print(f"effect: {rep['effect']}  effects: {rep['effects']}  gap {rep['gap_before']:.4f} -> "
           f"{rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})  {rep['seconds']:.0f} s")
+    if rep["unexplained"]:
+        where = rep["localisation"].get("side", "?")
+        print(f"unexplained: the held-out gap stays above {cfg.unexplained_factor:g} x the floor "
+              f"and no candidate closes {'the rest of ' if rep['effects'] else ''}it: something "
+              f"the effect library does not describe (residual mostly on the {where} side; see "
+              "report.json 'localisation' for the velocity, position, frequency and time "
+              "signatures)")
     print(f"wrote {out / 'report.json'} and {out / 'params.json'}")
     return 0
