@@ -35,6 +35,7 @@ MODERATE: dict[str, dict[str, tuple[float, float]]] = {
     "asymmetric_friction": {"dF": (0.03, 0.06)},
     "gravity": {"mgl": (0.3, 0.6)},
     "cogging": {"A": (0.03, 0.06)},
+    "motor_cogging": {"A": (0.02, 0.04)},
     "backlash": {"b": (0.004, 0.01)},
     "hardening_spring": {"K3": (300.0, 800.0)},
     "joint_damping": {"D": (0.02, 0.05)},
@@ -76,6 +77,9 @@ def draw_effect(name: str, rng: np.random.Generator, scale: float = 1.0) -> dict
         kw[p] = v
     if name == "cogging":
         kw["N"] = float(rng.choice([20.0, 30.0, 45.0]))
+        kw["phi"] = rng.uniform(-math.pi, math.pi)
+    if name == "motor_cogging":
+        kw["N"] = float(rng.choice([60.0, 90.0, 150.0]))
         kw["phi"] = rng.uniform(-math.pi, math.pi)
     if name == "backlash":
         kw["K"] = None  # filled with the true plant's K by generate_log

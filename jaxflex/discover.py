@@ -83,6 +83,7 @@ NOMINAL_FIT: tuple[str, ...] = ("I", "J", "K", "Fc", "Fs", "sigma2")
 #: The quantity against which each effect's residual signature is most telling.
 TELLING: dict[str, str] = {
     "asymmetric_friction": "link velocity", "gravity": "position", "cogging": "position",
+    "motor_cogging": "rotor position",
     "backlash": "deflection", "hardening_spring": "deflection",
     "joint_damping": "deflection rate", "motor_friction": "rotor velocity",
     "actuator_lag": "frequency", "torque_offset": "time", "time_delay": "frequency",
@@ -337,29 +338,36 @@ def localise(log: Log, params: Params, window: int = 41) -> Localisation:
         "spectrum": {"f": fr.tolist(), "link": P1.tolist(), "rotor": P2.tolist()},
     }
     series = {"t": log.t, "r_link": r_link, "r_rotor": r_rot, "q1": q1, "v1": v1, "d": d,
-              "dd": dd, "v2": v2}
+              "dd": dd, "v2": v2, "q2": q2}
     return Localisation(summary=summary, series=series)
 
 
-def _cogging_start(series: dict[str, np.ndarray]) -> AbstractEffect:
+def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging") -> AbstractEffect:
     """Cogging start: the spatial frequency N [1/rad] and phase that best explain the link
-    residual by linear least squares over a grid (gradient cannot find a frequency)."""
-    q, r = series["q1"], series["r_link"]
-    best = (-1.0, 25.0, 0.0, 0.01)
-    for N in np.arange(5.0, 80.0, 0.5):
-        X = np.column_stack([np.sin(N * q), np.cos(N * q), np.ones_like(q)])
-        c, *_ = np.linalg.lstsq(X, r, rcond=None)
-        expl = float(np.sum((X[:, :2] @ c[:2]) ** 2))
-        if expl > best[0]:
-            # r_link equals the missing link torque A sin(N q + phi)
-            best = (expl, float(N), math.atan2(c[1], c[0]), max(math.hypot(c[0], c[1]), 1e-3))
+    residual against q1 ("cogging") or the rotor residual against q2 ("motor_cogging") by
+    linear least squares over a grid (gradient cannot find a frequency)."""
+    rotor = name == "motor_cogging"
+    q, r = (series["q2"], series["r_rotor"]) if rotor else (series["q1"], series["r_link"])
+    best = (-1.0, 60.0 if rotor else 25.0, 0.0, 0.01)
+    coarse = np.arange(5.0, 400.0 if rotor else 80.0, 0.5)
+    for grid in (coarse, None):  # a coarse grid, then a fine one around its best
+        if grid is None:
+            grid = best[1] + np.arange(-0.5, 0.51, 0.02)
+        for N in grid:
+            X = np.column_stack([np.sin(N * q), np.cos(N * q), np.ones_like(q)])
+            c, *_ = np.linalg.lstsq(X, r, rcond=None)
+            expl = float(np.sum((X[:, :2] @ c[:2]) ** 2))
+            if expl > best[0]:
+                # the residual equals the missing torque A sin(N q + phi)
+                best = (expl, float(N), math.atan2(c[1], c[0]), max(math.hypot(c[0], c[1]), 1e-3))
     _, N, phi, A = best
-    return EFFECTS["cogging"](A=jnp.full(1, A), N=jnp.full(1, N), phi=jnp.full(1, phi))
+    # both residuals equal the missing torque with its own sign (torque_residuals)
+    return EFFECTS[name](A=jnp.full(1, A), N=jnp.full(1, N), phi=jnp.full(1, phi))
 
 
 def _start_effect(name: str, model: Model, series: dict[str, np.ndarray]) -> AbstractEffect:
-    if name == "cogging":
-        return _cogging_start(series)
+    if name in ("cogging", "motor_cogging"):
+        return _cogging_start(series, name)
     e = EFFECTS[name].typical(1)
     if name == "backlash":
         e = EFFECTS[name](b=e.b, K=model.params.plant["K"], w=e.w)

@@ -217,6 +217,35 @@ class Cogging(AbstractEffect):
 
 
 @register_effect
+class MotorCogging(AbstractEffect):
+    """Position-periodic torque ripple on the rotor (the motor's magnets): rotor_torque =
+    A sin(N q2 + phi) [N m], q2 the link-referred rotor angle.
+
+    A [N m] >= 0 amplitude (link-referred); N [1/rad] > 0 spatial frequency in the rotor angle
+    (a motor with p cogging periods per revolution behind a 1:r gear has N = p r; not fitted by
+    gradient, chosen from the rotor-side residual's spectrum against q2); phi [rad] phase.
+    """
+
+    name: ClassVar[str] = "motor_cogging"
+    where: ClassVar[str] = "rotor torque"
+    constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free"}
+    A: Float[Array, " n"] = eqx.field(converter=as_param)
+    N: Float[Array, " n"] = eqx.field(converter=as_param)
+    phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
+
+    def __check_init__(self) -> None:
+        check_nonnegative("motor_cogging", A=self.A)
+        check_positive("motor_cogging", N=self.N)
+
+    @classmethod
+    def typical(cls, n: int) -> MotorCogging:
+        return cls(A=jnp.full(n, 0.01), N=jnp.full(n, 60.0), phi=jnp.zeros(n))
+
+    def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
+        return self.A * jnp.sin(self.N * x.q2 + self.phi)
+
+
+@register_effect
 class Backlash(AbstractEffect):
     """Smooth dead zone of half-width b [rad] in the spring deflection: the elastic torque is
     K dz(d) instead of K d, with dz(d) = softplus(d - b) - softplus(-d - b) (corner width w).

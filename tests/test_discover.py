@@ -117,3 +117,17 @@ def test_a_nominal_model_that_does_not_describe_the_log_is_an_error_not_an_answe
     with pytest.raises(ValueError, match="does not describe this log"):
         discover(log, config=DiscoverConfig(candidates=("torque_offset",), max_effects=1,
                                             max_steps=5))
+
+
+def test_motor_cogging_is_told_from_link_cogging():
+    """Cogging on the rotor (the motor's magnets) is named as such, not as link cogging, with
+    its spatial frequency in the rotor angle within 1% and its amplitude within 15%."""
+    g = generate_log(("motor_cogging",), seed=11, t_final=8.0)
+    cfg = DiscoverConfig(candidates=("cogging", "motor_cogging", "torque_offset"), max_effects=1)
+    rep = discover(g.log, config=cfg).to_json()
+    assert rep["effect"] == "motor_cogging"
+    truth = g.truth["effects"]["motor_cogging"]
+    par = rep["effect_params"]["motor_cogging"]
+    assert par["N"]["value"] == pytest.approx(truth["N"], rel=0.01)
+    assert par["A"]["value"] == pytest.approx(truth["A"], rel=0.15)
+    assert rep["gap_after"] <= 0.5 * rep["gap_before"]
