@@ -628,6 +628,27 @@ def evidence_weights(scores: dict[str, dict[str, Any]], key: str = "dAIC") -> di
 
 
 @requires_float64
+def discover_joints(
+    log: Log, nominal: Params | None = None, config: DiscoverConfig | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[DiscoverResult]:
+    """``discover`` on each joint of an n-joint log, with that joint's parameters (a
+    parameter file describes independent joints, ``Params.joint``): one answer per joint. A
+    coupling between joints that the file does not describe shows up in the joints it
+    couples, as an effect or as ``unexplained``."""
+    nominal = nominal or paper_params()
+    if nominal.n not in (1, log.n):
+        raise ValueError(f"discover: the parameters have {nominal.n} joints, the log {log.n}")
+    say = progress or (lambda s: None)
+    out = []
+    for j in range(log.n):
+        say(f"joint {j}")
+        out.append(discover(log.joint(j), nominal.joint(j if nominal.n > 1 else 0), config,
+                            progress))
+    return out
+
+
+@requires_float64
 def discover(
     log: Log, nominal: Params | None = None, config: DiscoverConfig | None = None,
     progress: Callable[[str], None] | None = None,
@@ -640,7 +661,7 @@ def discover(
     nominal = nominal or paper_params()
     if nominal.n != 1 or log.n != 1:
         raise ValueError(f"discover handles one joint; the parameters have {nominal.n}, the "
-                         f"log {log.n}")
+                         f"log {log.n} (use discover_joints for an n-joint log)")
     if log.q2 is None or log.tau is None:
         raise ValueError("discover: the log needs columns tau, q1 and q2")
     say = progress or (lambda s: None)

@@ -79,6 +79,14 @@ class Log:
         """Names of the columns present."""
         return tuple(c for c in LOG_COLUMNS if getattr(self, c) is not None)
 
+    def joint(self, j: int) -> Log:
+        """The one-joint log of joint ``j`` (0-based): every (N, n) column cut to (N, 1)."""
+        if not 0 <= j < self.n:
+            raise LogError(f"joint {j} out of range for a log of {self.n} joint(s)")
+        kw = {c: (None if getattr(self, c) is None else getattr(self, c)[:, j:j + 1])
+              for c in LOG_COLUMNS[1:]}
+        return dataclasses.replace(self, **kw, source=f"{self.source} joint {j}")
+
     def slice(self, start: int = 0, stop: int | None = None) -> Log:
         """Samples ``start:stop`` as a new log (time kept, not shifted)."""
         kw = {c: (None if getattr(self, c) is None else getattr(self, c)[start:stop])

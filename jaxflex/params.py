@@ -259,6 +259,18 @@ class Params:
         """Number of joints."""
         return len(self.plant["I"])
 
+    def joint(self, j: int) -> Params:
+        """The one-joint parameters of joint ``j`` (0-based; a parameter file describes
+        independent joints, so this is exact); extra keys are dropped."""
+        if not 0 <= j < self.n:
+            raise ParamsError(f"joint {j} out of range for {self.n} joint(s)")
+        pick = lambda sec: {k: [v[j]] for k, v in sec.items()}
+        eff = {name: {k: ([v[j]] if isinstance(v, list) else v) for k, v in kw.items()}
+               for name, kw in self.effects.items()}
+        return Params(plant=pick(self.plant), friction=pick(self.friction),
+                      gains=None if self.gains is None else pick(self.gains), effects=eff,
+                      controller=self.controller)
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Params:
         """Validate a docs/spec.md section 7 mapping; raises ``ParamsError`` naming the problem."""

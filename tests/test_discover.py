@@ -131,3 +131,29 @@ def test_motor_cogging_is_told_from_link_cogging():
     assert par["N"]["value"] == pytest.approx(truth["N"], rel=0.01)
     assert par["A"]["value"] == pytest.approx(truth["A"], rel=0.15)
     assert rep["gap_after"] <= 0.5 * rep["gap_before"]
+
+
+def test_a_two_joint_log_gets_an_answer_per_joint(tmp_path):
+    """n joints: each joint of a two-joint log is examined with its own parameters (CLI end to
+    end: one report per joint and the answers side by side)."""
+    from jaxflex.cli import main
+    from jaxflex.params import Params, save_params
+    from jaxflex.presets import paper_params
+
+    a = generate_log(("backlash",), seed=3, t_final=8.0).log
+    b = generate_log((), seed=4, t_final=8.0).log
+    two = Log.from_arrays(t=a.t, **{c: np.concatenate([getattr(a, c), getattr(b, c)], axis=1)
+                                    for c in ("tau", "q1", "q2")})
+    p = paper_params().to_dict()
+    p = Params.from_dict({sec: {k: v * 2 for k, v in p[sec].items()} for sec in ("plant", "friction")})
+    log_path, par_path = tmp_path / "two.csv", tmp_path / "p.json"
+    save_log(two, log_path)
+    save_params(p, par_path)
+    out = tmp_path / "rep"
+    rc = main(["discover", str(log_path), "--params", str(par_path), "--out", str(out),
+               "--candidates", ",".join(CANDS), "--max-effects", "2", "--no-plots"])
+    assert rc == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["effect"] == ["backlash", "none"]
+    assert [r["joint"] for r in rep["joints"]] == [0, 1]
+    assert (out / "params_joint0.json").exists() and (out / "params_joint1.json").exists()

@@ -62,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if log.n > 1:
+        return _run_joints(args, log, nominal, cfg, out)
     res = discover(log, nominal, cfg, progress=print)
     rep = res.to_json()
     params = res.params
@@ -83,4 +85,37 @@ def run(args: argparse.Namespace) -> int:
               "report.json 'localisation' for the velocity, position, frequency and time "
               "signatures)")
     print(f"wrote {out / 'report.json'} and {out / 'params.json'}")
+    return 0
+
+
+def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
+    """An n-joint log: ``discover_joints``; report.json holds one report per joint (and the
+    answers side by side), params_joint<j>.json each joint's final parameters."""
+    import json
+
+    from jaxflex.discover import discover_joints
+    from jaxflex.params import save_params
+
+    results = discover_joints(log, nominal, cfg, progress=print)
+    reps = []
+    for j, res in enumerate(results):
+        rep = res.to_json()
+        params = res.params
+        params.extra = {"discover": {"effects": rep["effects"], "stderr": rep["final_stderr"],
+                                     "joint": j}}
+        save_params(params, out / f"params_joint{j}.json")
+        if not args.no_plots:
+            from jaxflex.plots.discover import plot_report
+
+            sub = out / f"joint{j}"
+            sub.mkdir(exist_ok=True)
+            rep["figures"] = [f"joint{j}/{f}" for f in plot_report(res, sub)]
+        reps.append({"joint": j, **rep})
+        print(f"joint {j}: effect {rep['effect']}  effects {rep['effects']}  gap "
+              f"{rep['gap_before']:.4f} -> {rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})")
+    summary = {"joints": reps, "effect": [r["effect"] for r in reps],
+               "effects": [r["effects"] for r in reps],
+               "unexplained": [r["unexplained"] for r in reps]}
+    (out / "report.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"wrote {out / 'report.json'} and {len(reps)} params_joint<j>.json")
     return 0
