@@ -175,15 +175,21 @@ class KalmanEstimator(eqx.Module):
         noise; the tuning's floor is added here) and rotor-torque variance ``tau_var``
         [N^2 m^2] (the DAC's rounding; the tuning's torque noise is added here).
 
-        Raises ``ValueError`` when a variance is negative or dt is not positive.
+        Raises ``ValueError`` when a variance is negative, dt is not positive or the model is
+        not in float64 (the encoder variances span 1e-14 to 1e-5 rad^2; the Riccati solution
+        loses its meaning in float32).
         """
         tuning = KalmanTuning() if tuning is None else tuning
         if not dt > 0:
             raise ValueError(f"KalmanEstimator: dt must be > 0 s, got {dt}")
         check_nonnegative("KalmanEstimator", q1_var=q1_var, q2_var=q2_var, tau_var=tau_var)
         n = model.n
-        q1_ref = jnp.zeros(n) if q1_ref is None else jnp.asarray(q1_ref)
+        q1_ref = jnp.zeros(n, model.K.dtype) if q1_ref is None else jnp.asarray(q1_ref)
         I = jnp.diagonal(model.links.mass_matrix(q1_ref))
+        if I.dtype != jnp.float64 or model.K.dtype != jnp.float64:
+            raise ValueError(
+                f"KalmanEstimator: needs a float64 model, got {model.K.dtype}; turn on "
+                "jax.config.update('jax_enable_x64', True) before building the plant")
         full = lambda v: jnp.broadcast_to(jnp.asarray(v, I.dtype), (n,))
         q1_var, q2_var, tau_var = full(q1_var), full(q2_var), full(tau_var)
         rate, tn, floor = (full(tuning.disturbance_rate), full(tuning.torque_noise),
