@@ -54,7 +54,7 @@ NX: int = 5
 DOUBLING_ITERATIONS: int = 60
 """Doubling steps for the Riccati equation; each squares the closed-loop transition, so 60
 steps cover 2^60 samples (far beyond the slowest filter mode)."""
-TUNING_FIELDS: tuple[str, ...] = ("disturbance_rate", "torque_noise", "angle_floor")
+TUNING_FIELDS: tuple[str, ...] = ("disturbance_rate", "torque_noise", "angle_floor", "angles")
 
 
 class KalmanTuning(eqx.Module):
@@ -66,12 +66,15 @@ class KalmanTuning(eqx.Module):
     it faster and lets more encoder noise through); torque_noise [N m]: standard deviation of
     an unmodelled rotor torque held over each sample, added to the DAC's rounding;
     angle_floor [rad]: standard deviation added to both encoders' noise so that exact
-    measurements (no quantiser, no noise) still give a well-posed filter.
+    measurements (no quantiser, no noise) still give a well-posed filter; angles: the
+    controller also gets the filter's angles q1, q2 instead of the encoder readings (False:
+    only the velocities are replaced, as by the other velocity sources).
     """
 
     disturbance_rate: Array = eqx.field(converter=as_param, default=1.0)
     torque_noise: Array = eqx.field(converter=as_param, default=0.01)
     angle_floor: Array = eqx.field(converter=as_param, default=1e-7)
+    angles: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self) -> None:
         check_nonnegative("KalmanTuning", disturbance_rate=self.disturbance_rate,
@@ -157,13 +160,15 @@ class KalmanEstimator(eqx.Module):
 
     A (n, 5, 5) transition over one sample; B (n, 5) held rotor torque column; L (n, 5, 2)
     filter gain (estimate += L (y - C estimate), y = (q1, q2) measured); P (n, 5, 5) the
-    steady prediction covariance (diagnostics). Build with ``build``.
+    steady prediction covariance (diagnostics); angles: whether the controller gets the
+    filter's angles too (``KalmanTuning.angles``). Build with ``build``.
     """
 
     A: Float[Array, "n 5 5"]
     B: Float[Array, "n 5"]
     L: Float[Array, "n 5 2"]
     P: Float[Array, "n 5 5"]
+    angles: bool = eqx.field(static=True, default=False)
 
     @classmethod
     def build(
@@ -208,7 +213,7 @@ class KalmanEstimator(eqx.Module):
             return A, B, L, P
 
         A, B, L, P = jax.vmap(one)(I, model.J, model.K, q1_var, q2_var, tau_var, rate, tn, floor)
-        return cls(A=A, B=B, L=L, P=P)
+        return cls(A=A, B=B, L=L, P=P, angles=tuning.angles)
 
     def init(self, q1: Array, q2: Array, dq1: Array | None = None,
              dq2: Array | None = None) -> EstimatorState:

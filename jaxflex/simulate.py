@@ -141,6 +141,8 @@ def controller_sample(
     Returns the next controller state, the law's output and the applied torque [N m]."""
     if estimator is not None:
         post = estimator.update(c.estimator, q1m, q2m)
+        if estimator.angles:
+            q1m, q2m = post.q1, post.q2
         c_new, out = controller.step(c, t, q1m, q2m, post.dq1, post.dq2)
         tau = sensing.dac(out.tau)
         return dataclasses.replace(c_new, estimator=estimator.predict(post, tau)), out, tau

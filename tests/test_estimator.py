@@ -66,6 +66,10 @@ def test_kalman_beats_dirty_derivative_on_the_paper_encoders():
     assert k2 < 0.3 * f2, (k2, f2)
     # one link count per sample is 12.6 rad/s; the filter is well below the motion's 0.16 rad/s
     assert k1 < 0.1
+    # and its link angle is closer to the truth than the encoder's reading
+    # (``KalmanTuning(angles=True)`` hands it to the controller)
+    a_k, a_enc = _rms(post.q1, r.q1), _rms(q1m, r.q1)
+    assert a_k < 0.7 * a_enc, (a_k, a_enc)
 
 
 def test_kalman_in_the_closed_loop_with_paper_sensing():
