@@ -17,8 +17,9 @@ log(mu) / T).
 
 Quantisers are taken as the identity (their derivative is zero almost everywhere, which
 would cut every feedback path; quantisation acts as exogenous noise, as in
-``jaxflex.sensing.StraightThrough``), so Phi is smooth away from |q1'| = 0; the filters of the sensing path (velocity by filtered
-differentiation) are part of Phi. The participation of state i in mode j is
+``jaxflex.sensing.StraightThrough``), so Phi is smooth away from |q1'| = 0; the filters of
+the sensing path (velocity by filtered differentiation, or the Kalman filter of
+``jaxflex.estimator`` with its estimate in the controller state) are part of Phi. The participation of state i in mode j is
 |w_ij v_ij| / sum_i |w_ij v_ij| with v_j, w_j the right and left eigenvectors (Perez-Arriaga,
 Verghese and Schweppe 1982).
 """
