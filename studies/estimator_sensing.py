@@ -12,7 +12,10 @@ also handing its angles to the controller, ``KalmanTuning(angles=True)``), with 
 compensation. Per run: RMS link tracking error
 [rad], torque RMS [N m], RMS friction-estimate error F_hat - F [N m] (with compensation),
 RMS error of the link velocity the controller used [rad/s], divergence (the loop's lost-run
-flag, ``jaxflex.simulate.Metrics``), fraction of samples at the 2 N m torque limit.
+flag, ``jaxflex.simulate.Metrics``), fraction of samples at the 2 N m torque limit; and the
+spectral radius of the loop linearised at rest (``jaxflex.analyse.analyse_loop``, quantisers
+as the identity, the estimator's state in the loop state; > 1: a growing mode, which the
+quantisation noise then drives into chatter or a limit cycle).
 Compensation "helps" when the run with it is not lost and its RMS error is below the run
 without it; it helps "cleanly" when, in addition, the run with it spends at most
 SATURATION_LIMIT of its samples at the torque limit (more is chatter between the limits,
@@ -64,6 +67,7 @@ def run(t_final: float, progress: Any = print) -> dict[str, Any]:
     """Every run of the grid (module docstring); JSON-ready rows and the per-preset verdict."""
     import numpy as np
 
+    from jaxflex.analyse import analyse_loop
     from jaxflex.experiments import run_closed_loop
     from jaxflex.presets import paper_params, paper_sinusoid
 
@@ -92,6 +96,9 @@ def run(t_final: float, progress: Any = print) -> dict[str, Any]:
                         "velocity_rms_error_rad_s": float(np.sqrt(np.mean(v_err**2))),
                         "saturation_fraction": float(np.asarray(r.metrics.saturation_fraction).max()),
                         "diverged": bool(r.metrics.diverged),
+                        "rest_spectral_radius": analyse_loop(
+                            plant, gains, q2d_method=method, compensation=comp,
+                            sensing=sensing)["rest"]["spectral_radius"],
                         "wall_s": time.perf_counter() - t0,
                     }
                 w, wo = row["with"], row["without"]
@@ -131,7 +138,7 @@ def verdict(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 HEADER = (f"{'sensing':<7} {'q2d':<9} {'velocity':<13} | {'RMS e1 off':>10} {'RMS e1 on':>10} "
           f"{'on/off':>6} | {'tau off':>7} {'tau on':>7} | {'F_hat err':>9} | {'v err on':>8} | "
-          f"{'sat on':>6} | {'lost off/on':>11}")
+          f"{'sat on':>6} | {'rest radius off/on':>17} | {'lost off/on':>11}")
 
 
 def _line(r: dict[str, Any]) -> str:
@@ -140,7 +147,9 @@ def _line(r: dict[str, Any]) -> str:
             f"{wo['rms_error_rad']:10.2e} {w['rms_error_rad']:10.2e} {r['compensation_ratio']:6.2f} | "
             f"{wo['tau_rms_Nm']:7.3f} {w['tau_rms_Nm']:7.3f} | "
             f"{w['friction_estimate_rms_error_Nm']:9.3f} | {w['velocity_rms_error_rad_s']:8.3f} | "
-            f"{w['saturation_fraction']:6.2f} | {str(wo['diverged'])[0]}/{str(w['diverged'])[0]:>9}")
+            f"{w['saturation_fraction']:6.2f} | "
+            f"{wo['rest_spectral_radius']:8.4f}/{w['rest_spectral_radius']:8.4f} | "
+            f"{str(wo['diverged'])[0]}/{str(w['diverged'])[0]:>9}")
 
 
 def figure(rows: list[dict[str, Any]], path: Path) -> None:
