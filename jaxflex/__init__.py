@@ -1,13 +1,14 @@
 """jaxflex: flexible-joint robots with LuGre friction in pure JAX.
 
 Physics (pure functions and ``eqx.Module``s): ``friction`` (LuGre), ``plant``, ``effects``,
-``observer``, ``controller`` (cascade control), ``trajectory``, ``sensing``; ``simulate``
-closes the loop. ``presets`` holds the paper's tables and every named preset.
+``observer``, ``controller`` (cascade control), ``trajectory``, ``sensing``, ``estimator``
+(Kalman velocity estimation for coarse encoders); ``simulate`` closes the loop. ``presets`` holds the paper's tables and every named preset.
 Importing jaxflex changes no global JAX setting: turn on float64 yourself with
 ``jax.config.update("jax_enable_x64", True)`` for identification and certificates.
 """
 
 from jaxflex.controller import CascadeController, CascadeGains
+from jaxflex.estimator import KalmanEstimator, KalmanTuning
 from jaxflex.friction import LuGre
 from jaxflex.params import Params, load_params, save_params
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant, PlanarTwoLink, PlantState
@@ -26,7 +27,7 @@ from jaxflex.simulate import simulate_continuous, simulate_sampled
 from jaxflex.trajectory import Multisine, RestToRest, Sinusoid, Trajectory
 
 __all__ = [
-    "AbstractSensing", "StraightThrough", "sensing_preset", "trajectory_preset",
+    "AbstractSensing", "KalmanEstimator", "KalmanTuning", "StraightThrough", "sensing_preset", "trajectory_preset",
     "CascadeController", "CascadeGains", "DiagonalInertia", "FlexibleJointPlant", "LuGre",
     "Multisine", "Params", "PlanarTwoLink", "PlantState", "RestToRest", "Sensing", "Sinusoid",
     "Trajectory", "load_params", "paper_gains", "paper_lugre", "paper_params", "paper_plant",

@@ -17,8 +17,9 @@ log(mu) / T).
 
 Quantisers are taken as the identity (their derivative is zero almost everywhere, which
 would cut every feedback path; quantisation acts as exogenous noise, as in
-``jaxflex.sensing.StraightThrough``), so Phi is smooth away from |q1'| = 0; the filters of the sensing path (velocity by filtered
-differentiation) are part of Phi. The participation of state i in mode j is
+``jaxflex.sensing.StraightThrough``), so Phi is smooth away from |q1'| = 0; the filters of
+the sensing path (velocity by filtered differentiation, or the Kalman filter of
+``jaxflex.estimator`` with its estimate in the controller state) are part of Phi. The participation of state i in mode j is
 |w_ij v_ij| / sum_i |w_ij v_ij| with v_j, w_j the right and left eigenvectors (Perez-Arriaga,
 Verghese and Schweppe 1982).
 """
@@ -40,14 +41,18 @@ from jaxtyping import Array, Float
 from jaxflex.controller import CascadeController
 from jaxflex.plant import FlexibleJointPlant, PlantState
 from jaxflex.sensing import AbstractSensing, Sensing
+from jaxflex.simulate import controller_sample, init_controller, loop_estimator
 from jaxflex.step import plant_step
 
 
-def state_names(plant: FlexibleJointPlant, controller: CascadeController) -> list[str]:
+def state_names(plant: FlexibleJointPlant, controller: CascadeController,
+                sensing: AbstractSensing | None = None) -> list[str]:
     """Names of the entries of the flat closed-loop state xi, in ``ravel_pytree`` order
-    (plant fields then controller-state fields, each per joint)."""
+    (plant fields then controller-state fields, each per joint; with a Kalman-filter
+    ``sensing`` the filter's estimate as ``ctrl.estimator.*``)."""
     x = plant.init_state(q1=jnp.zeros(plant.n))
-    c = controller.init(0.0, x.q1, x.q2)
+    est = None if sensing is None else loop_estimator(controller, sensing)
+    c = init_controller(controller, est, 0.0, x.q1, x.q2, x.dq1, x.dq2)
     names: list[str] = []
     for prefix, tree in (("plant", x), ("ctrl", c)):
         for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
@@ -60,9 +65,11 @@ def state_names(plant: FlexibleJointPlant, controller: CascadeController) -> lis
 class ClosedLoopMap(eqx.Module):
     """The one-sample map Phi of the sampled-data closed loop (module docstring).
 
-    ``sensing`` decides whether the controller receives exact velocities or differentiates
-    the angles; its quantisers and DAC are left out (the map is their small-signal model). ``substeps`` plant
-    substeps per sample as in ``simulate_sampled``.
+    ``sensing`` decides whether the controller receives exact velocities, differentiates
+    the angles or gets the Kalman filter's estimates (the filter's gain designed for the
+    sensing's quantisers and DAC, its estimate part of xi); its quantisers and DAC are left
+    out (the map is their small-signal model). ``substeps`` plant substeps per sample as in
+    ``simulate_sampled``.
     """
 
     plant: FlexibleJointPlant
@@ -75,7 +82,8 @@ class ClosedLoopMap(eqx.Module):
         controller as ``simulate_sampled`` starts it) and the function unflattening it."""
         if x0 is None:
             x0 = self.plant.init_state(q1=self.controller.trajectory.position(jnp.asarray(0.0)))
-        c0 = self.controller.init(0.0, x0.q1, x0.q2, x0.dq1, x0.dq2)
+        est = loop_estimator(self.controller, self.sensing)
+        c0 = init_controller(self.controller, est, 0.0, x0.q1, x0.q2, x0.dq1, x0.dq2)
         return ravel_pytree((x0, c0))
 
     def step(self, t: Float[Array, ""], xi: Float[Array, " d"], unravel: Callable
@@ -87,11 +95,10 @@ class ClosedLoopMap(eqx.Module):
         zero = jnp.zeros_like(x.q1)
         q1m = s.measure(x.q1, s.q1_resolution, zero)
         q2m = s.measure(x.q2, s.q2_resolution, zero)
-        if s.velocity == "exact":
-            c_new, out = self.controller.step(c, t, q1m, q2m, x.dq1, x.dq2)
-        else:
-            c_new, out = self.controller.step(c, t, q1m, q2m)
-        x_new = plant_step(self.plant, x, s.dac(out.tau), self.controller.dt, self.substeps)
+        # the filter is designed for the real sensing's noise; only its quantisers are dropped
+        est = loop_estimator(self.controller, self.sensing)
+        c_new, _, tau = controller_sample(self.controller, s, est, c, t, q1m, q2m, x.dq1, x.dq2)
+        x_new = plant_step(self.plant, x, tau, self.controller.dt, self.substeps)
         return ravel_pytree((x_new, c_new))[0]
 
 
@@ -184,7 +191,7 @@ def rest_modes(m: ClosedLoopMap, t: float = 0.0, settle: float = 0.0) -> tuple[M
             xi_))
         xi = f(xi)
     A = np.asarray(jacobian_at(m, t, xi, unravel))
-    names = state_names(m.plant, m.controller)
+    names = state_names(m.plant, m.controller, m.sensing)
     return modes(A, dt, names), A
 
 
@@ -199,7 +206,7 @@ def monodromy(m: ClosedLoopMap, period: float, *, settle_periods: int = 3
     N = int(round(period / dt))
     xi, unravel = m.initial()
     jac = _jac_step(m, unravel)
-    names = state_names(m.plant, m.controller)
+    names = state_names(m.plant, m.controller, m.sensing)
     traj = m.controller.trajectory
 
     @jax.jit

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from jaxflex.estimator import EstimatorState
 from jaxflex.validation import as_param, check_nonnegative, check_positive
 from jaxflex.observer import FrictionObserver
 from jaxflex.plant import FlexibleJointPlant
@@ -87,7 +88,10 @@ class ControllerState(eqx.Module):
     """State of the sampled-data controller (all (n,)).
 
     z_hat [rad] observer state; q1_prev, q2_prev [rad] last angles; dq1, dq2 [rad/s] filtered
-    velocity estimates; q2d_prev [rad], dq2d [rad/s], ddq2d [rad/s^2] filtered q2d derivatives.
+    velocity estimates; q2d_prev [rad], dq2d [rad/s], ddq2d [rad/s^2] filtered q2d derivatives;
+    estimator: the Kalman filter's prediction for the next sample where the sensing selects
+    it (``jaxflex.estimator``; set by the sampled-data loop, passed through by ``step``),
+    None otherwise (no leaves, so the state of the other velocity sources is unchanged).
     """
 
     z_hat: Array
@@ -98,6 +102,7 @@ class ControllerState(eqx.Module):
     q2d_prev: Array
     dq2d: Array
     ddq2d: Array
+    estimator: EstimatorState | None = None
 
 
 class LawOutput(eqx.Module):
@@ -302,7 +307,7 @@ class CascadeController(eqx.Module):
             z_hat = state.z_hat
         new = ControllerState(
             z_hat=z_hat, q1_prev=q1, q2_prev=q2, dq1=dq1, dq2=dq2, q2d_prev=q2d, dq2d=dq2d_f,
-            ddq2d=ddq2d_f,
+            ddq2d=ddq2d_f, estimator=state.estimator,
         )
         return new, LawOutput(tau=tau, z_hat_dot=z_hat_dot, F_hat=F_hat, q2d=q2d, s1=s1, e1=e1)
 

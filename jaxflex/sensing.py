@@ -1,9 +1,10 @@
 """Measurement and actuation of the sampled-data loop: encoders, velocity source, DAC.
 
 ``AbstractSensing`` declares what the closed loop (``jaxflex.simulate.simulate_sampled``)
-uses: the encoder resolutions and noise levels [rad], whether the controller gets exact
-velocities or differentiates the sensed angles, the DAC's resolution and range, and the two
-maps ``measure`` (true angle -> sensed angle) and ``dac`` (commanded -> applied torque).
+uses: the encoder resolutions and noise levels [rad], where the controller's velocities come
+from (exact, filtered differentiation of the sensed angles, or the model-based Kalman filter
+of ``jaxflex.estimator`` with its ``kalman`` tuning), the DAC's resolution and range, and the
+two maps ``measure`` (true angle -> sensed angle) and ``dac`` (commanded -> applied torque).
 ``Sensing`` is the concrete, final model of a rig. Variants wrap a sensing instead of
 overriding its methods (as diffrax's ``HalfSolver`` wraps a solver): ``StraightThrough``
 keeps the wrapped sensing's values and gives its quantisers a straight-through gradient.
@@ -20,11 +21,14 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from jaxflex.estimator import KalmanTuning, tuning_of
 from jaxflex.validation import as_param, check_nonnegative
 
-VELOCITY_SOURCES: tuple[str, ...] = ("exact", "filtered")
+VELOCITY_SOURCES: tuple[str, ...] = ("exact", "filtered", "kalman")
+VelocitySource = Literal["exact", "filtered", "kalman"]
 SENSING_FIELDS: tuple[str, ...] = (
     "q1_resolution", "q2_resolution", "q1_noise", "q2_noise", "velocity", "dac_bits", "dac_range",
+    "kalman",
 )
 
 
@@ -34,16 +38,20 @@ class AbstractSensing(eqx.Module):
     q1_resolution, q2_resolution [rad]: encoder quantisation steps (0: none);
     q1_noise, q2_noise [rad]: standard deviation of white angle noise (0: none);
     velocity: "exact" passes true velocities to the controller, "filtered" lets it
-    differentiate the sensed angles; dac_bits: DAC resolution (0: none) over +-dac_range [N m].
+    differentiate the sensed angles, "kalman" gives it the estimates of the steady-state
+    Kalman filter on its own model (``jaxflex.estimator``), driven by the applied torque and
+    both encoders; dac_bits: DAC resolution (0: none) over +-dac_range [N m]; kalman: the
+    filter's tuning (``KalmanTuning``; None: its defaults), used only with "kalman".
     """
 
     q1_resolution: AbstractVar[Array]
     q2_resolution: AbstractVar[Array]
     q1_noise: AbstractVar[Array]
     q2_noise: AbstractVar[Array]
-    velocity: AbstractVar[Literal["exact", "filtered"]]
+    velocity: AbstractVar[VelocitySource]
     dac_bits: AbstractVar[int]
     dac_range: AbstractVar[Array]
+    kalman: AbstractVar[KalmanTuning | None]
 
     @abc.abstractmethod
     def measure(self, q: Array, resolution: Array, noise: Array) -> Array:
@@ -62,14 +70,21 @@ class Sensing(AbstractSensing):
     q2_resolution: Array = eqx.field(converter=as_param, default=0.0)
     q1_noise: Array = eqx.field(converter=as_param, default=0.0)
     q2_noise: Array = eqx.field(converter=as_param, default=0.0)
-    velocity: Literal["exact", "filtered"] = eqx.field(static=True, default="exact")
+    velocity: VelocitySource = eqx.field(static=True, default="exact")
     dac_bits: int = eqx.field(static=True, default=0)
     dac_range: Array = eqx.field(converter=as_param, default=2.0)
+    # None (no leaves) unless given, so that the pytree of an "exact"/"filtered" sensing is
+    # what it was before the Kalman filter existed (sweeps vmap over its leaves)
+    kalman: KalmanTuning | None = eqx.field(converter=tuning_of, default=None)
 
     def __check_init__(self) -> None:
         if self.velocity not in VELOCITY_SOURCES:
             raise ValueError(
                 f"Sensing: velocity must be one of {VELOCITY_SOURCES}, got {self.velocity!r}")
+        if self.kalman is not None and self.velocity != "kalman":
+            raise ValueError(
+                f"Sensing: kalman tuning given but velocity is {self.velocity!r}; set "
+                "velocity='kalman' to use the Kalman filter, or leave kalman out")
         check_nonnegative(
             "Sensing", q1_resolution=self.q1_resolution, q2_resolution=self.q2_resolution,
             q1_noise=self.q1_noise, q2_noise=self.q2_noise, dac_range=self.dac_range,
@@ -119,8 +134,12 @@ class StraightThrough(AbstractSensing):
         return self.inner.q2_noise
 
     @property
-    def velocity(self) -> Literal["exact", "filtered"]:
+    def velocity(self) -> VelocitySource:
         return self.inner.velocity
+
+    @property
+    def kalman(self) -> KalmanTuning | None:
+        return self.inner.kalman
 
     @property
     def dac_bits(self) -> int:

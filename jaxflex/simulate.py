@@ -18,6 +18,7 @@ Everything is a pure function of the plant and controller modules, so ``jit``, `
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import diffrax
@@ -27,7 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from jaxflex.controller import CascadeController
+from jaxflex.controller import CascadeController, ControllerState, LawOutput
+from jaxflex.estimator import KalmanEstimator, kalman_for
 from jaxflex.sensing import AbstractSensing, Sensing
 from jaxflex.plant import FlexibleJointPlant, PlantState
 from jaxflex.step import plant_step, plant_step_diffrax
@@ -80,7 +82,9 @@ class SimResult(eqx.Module):
 
     t [s]; q1, q2 [rad]; dq1, dq2 [rad/s]; z, z_hat [rad]; tau [N m] applied over the sample;
     F [N m] true friction; F_hat [N m] estimated; q1d [rad] reference; e1 [rad] = q1 - q1d;
-    q1_meas, q2_meas [rad] sensed angles. ``metrics`` is always present.
+    q1_meas, q2_meas [rad] sensed angles; dq1_hat, dq2_hat [rad/s] the velocities the
+    controller used (exact, filtered or Kalman, per ``Sensing.velocity``). ``metrics`` is
+    always present.
     """
 
     metrics: Metrics
@@ -98,6 +102,55 @@ class SimResult(eqx.Module):
     e1: Array | None = None
     q1_meas: Array | None = None
     q2_meas: Array | None = None
+    dq1_hat: Array | None = None
+    dq2_hat: Array | None = None
+
+
+def loop_estimator(controller: CascadeController, sensing: AbstractSensing
+                   ) -> KalmanEstimator | None:
+    """The Kalman filter the sampled-data loop runs for ``sensing`` (velocity "kalman"), built
+    from the controller's nominal model and period with the encoder and DAC noise of the
+    sensing (``jaxflex.estimator.kalman_for``), the arm's inertia taken at the reference's
+    start pose; None for the other velocity sources."""
+    if sensing.velocity != "kalman":
+        return None
+    q1_ref = controller.trajectory.position(jnp.asarray(0.0, jnp.result_type(float)))
+    return kalman_for(sensing, controller.model, controller.dt, q1_ref=q1_ref)
+
+
+def init_controller(
+    controller: CascadeController, estimator: KalmanEstimator | None, t0: ArrayLike,
+    q1: Array, q2: Array, dq1: Array, dq2: Array,
+) -> ControllerState:
+    """``controller.init`` at sensed angles q1, q2 [rad] and velocities dq1, dq2 [rad/s], with
+    the estimator (if any) started there too (its state in ``ControllerState.estimator``)."""
+    c0 = controller.init(t0, q1, q2, dq1, dq2)
+    if estimator is None:
+        return c0
+    return dataclasses.replace(c0, estimator=estimator.init(c0.q1_prev, c0.q2_prev, dq1, dq2))
+
+
+def controller_sample(
+    controller: CascadeController, sensing: AbstractSensing, estimator: KalmanEstimator | None,
+    c: ControllerState, t: Array, q1m: Array, q2m: Array, dq1: Array, dq2: Array,
+) -> tuple[ControllerState, LawOutput, Array]:
+    """One controller sample of the loop at time t [s] from the sensed angles q1m, q2m [rad]:
+    the velocities per ``sensing.velocity`` ("exact": the true dq1, dq2 [rad/s] given here;
+    "filtered": the controller's dirty derivative; "kalman": ``estimator``'s measurement
+    update, then its prediction with the applied torque), the law (eq. 9-22) and the DAC.
+    Returns the next controller state, the law's output and the applied torque [N m]."""
+    if estimator is not None:
+        post = estimator.update(c.estimator, q1m, q2m)
+        if estimator.angles:
+            q1m, q2m = post.q1, post.q2
+        c_new, out = controller.step(c, t, q1m, q2m, post.dq1, post.dq2)
+        tau = sensing.dac(out.tau)
+        return dataclasses.replace(c_new, estimator=estimator.predict(post, tau)), out, tau
+    if sensing.velocity == "exact":
+        c_new, out = controller.step(c, t, q1m, q2m, dq1, dq2)
+    else:
+        c_new, out = controller.step(c, t, q1m, q2m)
+    return c_new, out, sensing.dac(out.tau)
 
 
 def _noise(key, shape, std):
@@ -142,7 +195,8 @@ def simulate_sampled(
 
     ``plant`` is the true plant, ``controller`` carries its own nominal model. ``x0`` defaults
     to rest at q1d(0). ``substeps`` plant steps per sample. ``sensing`` adds encoder
-    quantisation, noise (with ``key``), filtered velocities and DAC quantisation. A run that
+    quantisation, noise (with ``key``), filtered or Kalman-estimated velocities (the filter's
+    state rides in the controller state) and DAC quantisation. A run that
     blows up is flagged in ``metrics.diverged`` and its state frozen, never an exception.
     Pure and jit/vmap/grad friendly; wrap in ``eqx.filter_jit`` at the call site.
     """
@@ -169,9 +223,9 @@ def simulate_sampled(
         n2 = _noise(k2, (N, n), sensing.q2_noise)
     else:
         n1 = n2 = jnp.zeros((N, n))
-    exact = sensing.velocity == "exact"
-    c0 = controller.init(
-        0.0, sensing.measure(x0.q1, sensing.q1_resolution, n1[0]),
+    estimator = loop_estimator(controller, sensing)
+    c0 = init_controller(
+        controller, estimator, 0.0, sensing.measure(x0.q1, sensing.q1_resolution, n1[0]),
         sensing.measure(x0.q2, sensing.q2_resolution, n2[0]),
         x0.dq1, x0.dq2,
     )
@@ -185,11 +239,8 @@ def simulate_sampled(
         t, e1n, e2n = inp
         q1m = sensing.measure(x.q1, sensing.q1_resolution, e1n)
         q2m = sensing.measure(x.q2, sensing.q2_resolution, e2n)
-        if exact:
-            c_new, out = controller.step(c, t, q1m, q2m, x.dq1, x.dq2)
-        else:
-            c_new, out = controller.step(c, t, q1m, q2m)
-        tau = sensing.dac(out.tau)
+        c_new, out, tau = controller_sample(controller, sensing, estimator, c, t, q1m, q2m,
+                                            x.dq1, x.dq2)
         if integrator == "split":
             x_new = plant_step(plant, x, tau, dt, substeps)
         else:
@@ -208,16 +259,17 @@ def simulate_sampled(
         rec = None
         if save:
             F = plant.friction_torque(x)
-            rec = (x, c.z_hat, tau, F, out.F_hat, e, q1m, q2m)
+            rec = (x, c.z_hat, tau, F, out.F_hat, e, q1m, q2m, c_new.dq1, c_new.dq2)
         return (x_new, c_new, m_new), rec
 
     (_, _, m), rec = jax.lax.scan(body, (x0, c0, m0), (ts, n1, n2))
     if not save:
         return SimResult(metrics=m)
-    xs, zh, tau, F, F_hat, e, q1m, q2m = rec
+    xs, zh, tau, F, F_hat, e, q1m, q2m, v1, v2 = rec
     return SimResult(
         metrics=m, t=ts, q1=xs.q1, dq1=xs.dq1, q2=xs.q2, dq2=xs.dq2, z=xs.z, z_hat=zh,
         tau=tau, F=F, F_hat=F_hat, q1d=xs.q1 - e, e1=e, q1_meas=q1m, q2_meas=q2m,
+        dq1_hat=v1, dq2_hat=v2,
     )
 
 

@@ -251,7 +251,9 @@ def _generate(controller: CascadeController, description: str) -> str:
 def _state_fields(state: Any) -> list[Any]:
     import dataclasses
 
-    return list(dataclasses.fields(state))
+    # fields that hold None (e.g. ControllerState.estimator without the Kalman filter) have
+    # no leaves and no place in the exported state
+    return [f for f in dataclasses.fields(state) if getattr(state, f.name) is not None]
 
 
 _HEADER = '''"""{description} -- standalone export.
