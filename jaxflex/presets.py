@@ -128,6 +128,24 @@ def sensing_preset(name: str) -> Sensing:
     return _SENSING[name][0]()
 
 
+VELOCITY_ESTIMATORS: tuple[str, ...] = ("filtered", "kalman")
+
+
+def with_estimator(sensing: Sensing, estimator: str | None) -> Sensing:
+    """``sensing`` with its velocity source replaced by ``estimator`` ("filtered": the dirty
+    derivative; "kalman": the steady-state Kalman filter of ``jaxflex.estimator``, default
+    tuning; None: unchanged). A sensing with exact velocities is returned as it is."""
+    if estimator is None or sensing.velocity == "exact":
+        return sensing
+    if estimator not in VELOCITY_ESTIMATORS:
+        raise ValueError(f"unknown velocity estimator {estimator!r}; choices: "
+                         f"{list(VELOCITY_ESTIMATORS)}")
+    return Sensing(q1_resolution=sensing.q1_resolution, q2_resolution=sensing.q2_resolution,
+                   q1_noise=sensing.q1_noise, q2_noise=sensing.q2_noise, velocity=estimator,
+                   dac_bits=sensing.dac_bits, dac_range=sensing.dac_range,
+                   kalman=sensing.kalman if estimator == "kalman" else None)
+
+
 def sensing_of(entry: str | Mapping[str, Any]) -> Sensing:
     """A sensing from a preset name or a mapping of ``Sensing`` fields (SI units), as a
     spread file or a parameter file's ``controller.sensing`` gives it."""

@@ -19,13 +19,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default="out/reproduce_paper")
     ap.add_argument("--small", action="store_true", help="2 s runs (smoke test)")
-    ap.add_argument("--sensing", default="rig", choices=SENSING_PRESETS)
+    ap.add_argument("--sensing", default="paper", choices=SENSING_PRESETS)
+    ap.add_argument("--estimator", default="kalman", choices=("filtered", "kalman"))
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     from jaxflex.experiments import run_paper_experiments
     from jaxflex.reports import write_paper_experiments
 
-    results = run_paper_experiments(sensing=args.sensing, t_final=2.0 if args.small else 10.0)
+    results = run_paper_experiments(sensing=args.sensing, estimator=args.estimator,
+                                    t_final=2.0 if args.small else 10.0)
     write_paper_experiments(results, args.out)
 
 

@@ -14,6 +14,8 @@ def test_reproduce_cli_writes_results(tmp_path):
                  "--tasks", "sinusoid"]) == 0
     res = json.loads((out / "results.json").read_text())
     assert set(res["experiments"]) == {"sinusoid"}
+    # the paper's own sensing, with the estimator the estimator study selects
+    assert (res["config"]["sensing"], res["config"]["estimator"]) == ("paper", "kalman")
     for e in res["experiments"].values():
         for metric in ("rms_error", "max_error"):
             for key in ("with_compensation", "without_compensation"):

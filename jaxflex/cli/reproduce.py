@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from jaxflex.presets import SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES
+from jaxflex.presets import SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES, VELOCITY_ESTIMATORS
 
 
 EXAMPLE = "jaxflex reproduce --out out/paper --duration 10"
@@ -19,9 +19,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--params", help="parameter file (docs/spec.md section 7); default: the paper's")
-    p.add_argument("--sensing", default="rig", choices=SENSING_PRESETS,
-                   help="measurement realism (default: rig); " + "; ".join(
+    p.add_argument("--sensing", default="paper", choices=SENSING_PRESETS,
+                   help="measurement realism (default: paper); " + "; ".join(
                        f"{k}: {v}" for k, v in SENSING_DESCRIPTIONS.items()))
+    p.add_argument("--estimator", default="kalman", choices=VELOCITY_ESTIMATORS,
+                   help="where the controller's velocities come from (default: kalman, the "
+                   "model-based Kalman filter; filtered: the dirty derivative); ignored with "
+                   "--sensing ideal (exact velocities)")
     p.add_argument("--q2d", default="model", choices=["model", "filtered", "reference"],
                    help="how the controller gets q2d' and q2d'' (default: model)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds per run (default 10)")
@@ -42,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
     check_outputs(args.force, folders=[args.out], marker="results.json")
     params = load_params(args.params) if args.params else None
     results = run_paper_experiments(
-        params=params, sensing=args.sensing, q2d_method=args.q2d, t_final=args.duration,
+        params=params, sensing=args.sensing, estimator=args.estimator, q2d_method=args.q2d,
+        t_final=args.duration,
         compare_q2d=not args.no_q2d_comparison, tasks=args.tasks,
     )
     res = write_paper_experiments(results, args.out)
