@@ -234,6 +234,28 @@ def monodromy(m: ClosedLoopMap, period: float, *, settle_periods: int = 3
     return modes(P, period, names), P, {"t": t, "e1": np.asarray(e)}
 
 
+def rest_jacobian(m: ClosedLoopMap) -> Float[Array, "d d"]:
+    """dPhi/dxi of ``m`` at its initial state and t = 0 (a reference at rest), traceable in
+    ``m``'s arrays (gains, plant), so one compilation serves every gain set (wrap in
+    ``eqx.filter_jit``)."""
+    xi, unravel = m.initial()
+    return jax.jacfwd(lambda v: m.step(jnp.asarray(0.0, v.dtype), v, unravel))(xi)
+
+
+def rest_damping(m: ClosedLoopMap) -> Float[Array, ""]:
+    """The smallest damping ratio of the loop's modes at rest, -Re s / |s| with s = log(mu)/dt
+    over the multipliers mu of ``rest_jacobian`` (multipliers at exactly 1 of conserved
+    quantities and those below 1e-9, states a sample overwrites, left out; a growing mode
+    gives a negative value). Differentiable almost everywhere (jax's eigenvalue derivative),
+    so gains can be pushed toward damped modes by gradient."""
+    mu = jnp.linalg.eigvals(rest_jacobian(m))
+    live = (jnp.abs(mu - 1.0) > 1e-9) & (jnp.abs(mu) > 1e-9)
+    safe = jnp.where(live, mu, 0.5 + 0.0j)
+    s = jnp.log(safe) / m.controller.dt
+    zeta = -s.real / jnp.abs(s)
+    return jnp.min(jnp.where(live, zeta, 1.0))
+
+
 def default_map(plant: FlexibleJointPlant, controller: CascadeController,
                 sensing: AbstractSensing | None = None, substeps: int = 10) -> ClosedLoopMap:
     """A ``ClosedLoopMap`` with ideal sensing unless ``sensing`` is given."""

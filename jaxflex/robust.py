@@ -69,7 +69,7 @@ from jaxflex.sweep.engine import is_noisy, run_sweep, sample_models
 from jaxflex.sweep.spec import SweepSpec
 from jaxflex.trajectory import Trajectory
 from jaxflex.presets import trajectory_preset
-from jaxflex.tune import StartRecord, adam_search
+from jaxflex.tune import StartRecord, adam_search, ascend_feasibility
 from jaxflex.validation import requires_float64
 
 RISKS: tuple[str, ...] = ("mean", "quantile", "cvar")
@@ -388,8 +388,15 @@ def tune_robust(
 
     theta_init = jnp.log(initial.to_vector())
     lo, hi = theta_init - math.log(box), theta_init + math.log(box)
-    theta_start, phase = _restore_feasibility(theta_init, box_arr, vgrid, eps, margin, lo, hi,
-                                              feasibility_iterations, feasible)
+    theta_start, phase = ascend_feasibility(
+        theta_init, lambda th: _box_min_and_grad(th, box_arr, vgrid, eps), feasible, lo, hi,
+        feasibility_iterations)
+    ok, c = feasible(theta_start)
+    if not ok:
+        raise ValueError(
+            f"tune_robust: no gains found that are certified on the box with margin {margin} "
+            f"(after {phase} ascent steps the lower bound is {c + margin:.3g}); narrow "
+            "the spread, lower the margin or the certified speed range")
     candidates, records, initial_risk, evals = adam_search(
         theta_start, value_and_grad, feasible, iterations=iterations, starts=starts,
         learning_rate=learning_rate, spread=spread, lo=lo, hi=hi, seed=seed, progress=progress)
@@ -421,33 +428,6 @@ def tune_robust(
 @eqx.filter_jit
 def _box_min_and_grad(theta, box, vgrid, eps):
     return jax.value_and_grad(lambda th: _box_min(_gains_of(th), box, vgrid, eps))(theta)
-
-
-def _restore_feasibility(theta, box_arr, vgrid, eps, margin, lo, hi, iterations, feasible):
-    """First phase: Adam ascent of the box's lambda_min lower bound from ``theta`` until the
-    gains are certified (box and training plants); returns (theta, steps taken)."""
-    if feasible(theta)[0]:
-        return theta, 0
-    m = jnp.zeros_like(theta)
-    v = jnp.zeros_like(theta)
-    b1, b2, lr = 0.9, 0.999, 0.05
-    for it in range(iterations):
-        _, g = _box_min_and_grad(theta, box_arr, vgrid, eps)
-        m = b1 * m + (1 - b1) * g
-        v = b2 * v + (1 - b2) * g**2
-        mh, vh = m / (1 - b1 ** (it + 1)), v / (1 - b2 ** (it + 1))
-        theta = jnp.clip(theta + lr * mh / (jnp.sqrt(vh) + 1e-8), lo, hi)
-        # a little beyond the margin, so that the search has room to move
-        ok, c = feasible(theta)
-        if ok and c >= 0.5 * margin:
-            return theta, it + 1
-    ok, c = feasible(theta)
-    if not ok:
-        raise ValueError(
-            f"tune_robust: no gains found that are certified on the box with margin {margin} "
-            f"(after {iterations} ascent steps the lower bound is {c + margin:.3g}); narrow "
-            "the spread, lower the margin or the certified speed range")
-    return theta, iterations
 
 
 @requires_float64

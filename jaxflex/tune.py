@@ -62,7 +62,10 @@ class TuneTask:
     [rad^2/(N m)^2] weight of the mean squared torque in the cost (default 1e-6 prices 1 N m
     RMS like 1 mrad RMS error; with 0 the search drifts to gains that chatter at the torque
     limit); velocity_factor: the
-    certificate must hold up to velocity_factor x the fastest reference speed.
+    certificate must hold up to velocity_factor x the fastest reference speed;
+    min_rest_damping: if set, every mode of the closed loop linearised at rest (plant,
+    observer, controller, velocity estimator: ``jaxflex.analyse.rest_damping``) must have at
+    least this damping ratio, so that no oscillation persists at rest (None: not required).
     """
 
     trajectories: tuple[Trajectory, ...]
@@ -75,6 +78,7 @@ class TuneTask:
     seed: int = 0
     torque_weight: float = 1e-6
     velocity_factor: float = 1.5
+    min_rest_damping: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.trajectories, Trajectory):
@@ -93,6 +97,9 @@ class TuneTask:
         if not self.velocity_factor >= 1:
             raise ValueError(
                 f"TuneTask: velocity_factor must be >= 1, got {self.velocity_factor}")
+        if self.min_rest_damping is not None and not -1 < self.min_rest_damping < 1:
+            raise ValueError("TuneTask: min_rest_damping must be in (-1, 1) (a damping ratio), "
+                             f"got {self.min_rest_damping}")
 
     def settings(self) -> tuple:
         """The static (hashable) settings of the cost, for caching compiled functions."""
@@ -250,22 +257,50 @@ def tune(
         return _log_cost_and_grad(theta, plant, model, task.trajectories, st_sensing,
                                   task.settings())
 
-    def feasible(theta) -> tuple[bool, float]:
+    zeta = task.min_rest_damping
+    rest = _rest_map(plant, model, initial, task) if zeta is not None else None
+
+    def constraint(theta) -> float:
         c = float(_constraint(theta, model, vgrid, jnp.asarray(0.0 if margin is None else margin), eps))
-        return (margin is None or c >= 0.0), c
+        if margin is None:
+            c = math.inf
+        if zeta is not None:
+            c = min(c, float(_damping_value(theta, rest)) - zeta)
+        return c
+
+    def feasible(theta) -> tuple[bool, float]:
+        c = constraint(theta)
+        return c >= 0.0, (c if math.isfinite(c) else 0.0)
 
     ok0, c0 = feasible(theta_init)
+    if not ok0 and zeta is not None:
+        # a first phase pushes the gains into the certified set by gradient ascent of the
+        # constraint (N2's lambda_min and the rest modes' damping are both differentiable)
+        m_arr = jnp.asarray(0.0 if margin is None else margin)
+
+        def c_and_grad(th):
+            return _constraint_and_grad(th, model, vgrid, m_arr, eps, rest, zeta,
+                                        margin is not None)
+
+        theta_init, phase = ascend_feasibility(theta_init, c_and_grad, feasible, lo, hi)
+        ok0, c0 = feasible(theta_init)
     if not ok0:
         raise ValueError(
             f"tune: the initial gains are not certified with margin {margin} up to "
-            f"{v_task:.3g} rad/s (min lambda_min(N2) - margin = {c0:.3g}); start from "
-            "certified gains or lower the margin")
+            f"{v_task:.3g} rad/s" + (f" with rest damping >= {zeta}" if zeta is not None else "")
+            + f" (constraint value {c0:.3g}); start from certified gains or lower the margin")
 
     candidates, records, initial_cost, evals = adam_search(
         theta_init, value_and_grad, feasible, iterations=iterations, starts=starts,
         learning_rate=learning_rate, spread=spread, lo=lo, hi=hi, seed=seed,
         progress=progress)
 
+    if not candidates:
+        raise ValueError(
+            "tune: every simulated candidate diverged (the start"
+            + (" found by ascending the rest damping" if zeta is not None else "")
+            + " loses the link on the task, e.g. at the torque limit); nothing to certify. "
+            "Start from gains that track, or relax the constraints")
     # best first; the final check certifies up to the fastest speed the loop actually reaches
     candidates.sort(key=lambda c: c[0])
     best_cost, best, cert = initial_cost, np.asarray(theta_init), None
@@ -278,6 +313,8 @@ def tune(
         if not np.isfinite(v_check):
             continue
         c = certify(model, g, v_check, margin=margin, eps=eps)
+        if zeta is not None and float(_damping_value(jnp.asarray(theta), rest)) < zeta:
+            continue
         if c.certified:
             best_cost, best, cert = cost, theta, c
             break
@@ -367,6 +404,71 @@ def adam_search(
 
 def _gains_of(theta: Array) -> CascadeGains:
     return CascadeGains.from_vector(jnp.exp(theta))
+
+
+def ascend_feasibility(theta: Array, value_and_grad: Callable, feasible: Callable,
+                       lo: Array, hi: Array, iterations: int = 300, lr: float = 0.05,
+                       ) -> tuple[Array, int]:
+    """First phase of a certified search: Adam ascent of a differentiable constraint
+    ``value_and_grad(theta) -> (c, dc/dtheta)`` from ``theta`` inside [lo, hi] until
+    ``feasible(theta)`` holds with a little room; returns (theta, steps). Used by ``tune``
+    (N2 and rest damping) and ``jaxflex.robust.tune_robust`` (N2 over a box)."""
+    if feasible(theta)[0]:
+        return theta, 0
+    m = jnp.zeros_like(theta)
+    v = jnp.zeros_like(theta)
+    b1, b2 = 0.9, 0.999
+    it = 0
+    for it in range(iterations):
+        _, g = value_and_grad(theta)
+        g = jnp.where(jnp.isfinite(g), g, 0.0)
+        m = b1 * m + (1 - b1) * g
+        v = b2 * v + (1 - b2) * g**2
+        mh, vh = m / (1 - b1 ** (it + 1)), v / (1 - b2 ** (it + 1))
+        theta = jnp.clip(theta + lr * mh / (jnp.sqrt(vh) + 1e-8), lo, hi)
+        ok, c = feasible(theta)
+        if ok and float(value_and_grad(theta)[0]) >= 0.0:
+            # a few more steps leave room for the search
+            for _ in range(5):
+                _, g = value_and_grad(theta)
+                step = jnp.clip(theta + lr * jnp.sign(jnp.where(jnp.isfinite(g), g, 0.0)), lo, hi)
+                if not feasible(step)[0]:
+                    break
+                theta = step
+            return theta, it + 1
+    return theta, it + 1
+
+
+def _rest_map(plant, model, gains, task):
+    """The one-sample closed-loop map at rest of ``task``'s configuration (``jaxflex.analyse``)."""
+    from jaxflex.analyse import ClosedLoopMap
+    from jaxflex.trajectory import Sinusoid
+
+    zero = jnp.zeros(plant.n)
+    ctrl = CascadeController(model=model, gains=gains,
+                             trajectory=Sinusoid(amplitude=zero, frequency=zero + 1.0),
+                             q2d_method=task.q2d_method, dt=task.dt, tau_max=task.tau_max)
+    return ClosedLoopMap(plant, ctrl, task.sensing, task.substeps)
+
+
+@eqx.filter_jit
+def _damping_value(theta, rest):
+    from jaxflex.analyse import rest_damping
+
+    return rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, _gains_of(theta)))
+
+
+@eqx.filter_jit
+def _constraint_and_grad(theta, model, vgrid, margin, eps, rest, zeta, use_n2):
+    from jaxflex.analyse import rest_damping
+
+    def c(th):
+        d = rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, _gains_of(th))) - zeta
+        if not use_n2:
+            return d
+        return jnp.minimum(jnp.min(lambda_min_curve(model, _gains_of(th), vgrid, eps)) - margin, d)
+
+    return jax.value_and_grad(c)(theta)
 
 
 @eqx.filter_jit

@@ -68,6 +68,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--torque-weight", type=float, default=1e-6,
                    help="weight of mean squared torque in the cost [rad^2/(N m)^2] (default "
                    "1e-6: 1 N m RMS costs like 1 mrad RMS error)")
+    p.add_argument("--min-rest-damping", type=float, default=None,
+                   help="require every mode of the loop linearised at rest to have at least "
+                   "this damping ratio (no persistent oscillation at rest; the paper's gains "
+                   "have a growing rest mode); default: not required")
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts (default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -116,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
                     t_final=2.0 if args.t_final is None else args.t_final,
                     sensing=sensing_of(cfg.sensing), tau_max=cfg.tau_max, dt=cfg.dt,
                     q2d_method=cfg.q2d_method, torque_weight=args.torque_weight,
-                    velocity_factor=args.velocity_factor)
+                    velocity_factor=args.velocity_factor, min_rest_damping=args.min_rest_damping)
     total = args.starts * (args.iterations + 1)
     bar = None
     if not args.quiet:
