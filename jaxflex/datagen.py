@@ -15,20 +15,24 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
-from jaxflex.controller import CascadeController, CascadeGains
-from jaxflex.effects import EFFECTS
+from jaxflex.controller import CascadeController, CascadeGains, ControllerState, LawOutput
+from jaxflex.effects import EFFECTS, AbstractEffect
+from jaxflex.identify.experiments import synthetic_log
 from jaxflex.logs import Log
 from jaxflex.presets import paper_params
 from jaxflex.sensing import Sensing
 from jaxflex.simulate import simulate_sampled
-from jaxflex.trajectory import Multisine
+from jaxflex.plant import FlexibleJointPlant, PlantState
+from jaxflex.trajectory import Multisine, Trajectory
+from jaxflex.validation import as_param
 
 #: Moderate magnitude ranges per effect (uniform draws; a sign is drawn for signed ones).
 MODERATE: dict[str, dict[str, tuple[float, float]]] = {
@@ -51,6 +55,70 @@ IDENT_GAINS = CascadeGains(Ke=0.001, KD1=0.5, KD2=0.5, kv=2.0, L1=15.0, L2=6.0)
 _simulate = eqx.filter_jit(simulate_sampled)
 
 _SIGNED = {("asymmetric_friction", "dF"), ("torque_offset", "offset")}
+
+
+LOOPS: tuple[str, ...] = ("cascade", "pd_rotor", "open_loop")
+"""Experiment loops of ``generate_log``: the paper's cascade (its nominal model, compensation
+on), a PD on the rotor angle (no model, no compensation, a different set of signatures), or
+open-loop torque (no feedback at all)."""
+EXCITATIONS: tuple[str, ...] = ("multisine", "multisine_ramp")
+"""References (or, open loop, torques): a Schroeder multisine, or the same plus a slow large
+swing (a 0.03 Hz tone: slow ramps through the friction regimes)."""
+DISTURBANCES: tuple[str, ...] = ("friction_bump",)
+"""Disturbances outside the effect library (the discrepancy workflow should answer
+"unexplained"): a friction patch localised in position."""
+
+
+class FrictionBump(AbstractEffect):
+    """A friction patch at one place of the link's travel (a dent, a dirty spot on a bearing
+    race): link_torque = -B exp(-((q1 - qb) / w)^2) tanh(q1' / 0.01) [N m]. Not in the library
+    (not registered): a disturbance the workflow should call unexplained."""
+
+    name: ClassVar[str] = "friction_bump"
+    where: ClassVar[str] = "link torque"
+    candidate: ClassVar[bool] = False
+    B: Float[Array, " n"] = eqx.field(converter=as_param)
+    qb: Float[Array, " n"] = eqx.field(converter=as_param)
+    w: Float[Array, " n"] = eqx.field(converter=as_param)
+
+    @classmethod
+    def typical(cls, n: int) -> FrictionBump:
+        return cls(B=jnp.full(n, 0.08), qb=jnp.zeros(n), w=jnp.full(n, 0.02))
+
+    def link_torque(self, x: PlantState) -> Float[Array, " n"]:
+        return -self.B * jnp.exp(-jnp.square((x.q1 - self.qb) / self.w)) * jnp.tanh(x.dq1 / 0.01)
+
+
+class RotorPD(eqx.Module):
+    """A PD loop on the rotor angle toward the link reference (sampled, dirty-derivative
+    velocity): tau = kp (q1d - q2) - kd q2' [N m], saturated at tau_max. Duck-types the
+    controller interface of ``jaxflex.simulate.simulate_sampled`` (``init``, ``step``)."""
+
+    model: FlexibleJointPlant
+    trajectory: Trajectory
+    kp: Array = eqx.field(converter=as_param, default=8.0)
+    kd: Array = eqx.field(converter=as_param, default=0.4)
+    dt: float = eqx.field(static=True, default=1e-3)
+    tau_max: Array = eqx.field(converter=as_param, default=2.0)
+    velocity_tc: float = eqx.field(static=True, default=0.005)
+
+    def init(self, t0, q1, q2, dq1=None, dq2=None) -> ControllerState:
+        zero = jnp.zeros_like(jnp.asarray(q1, float))
+        dq2 = zero if dq2 is None else jnp.asarray(dq2, float)
+        return ControllerState(z_hat=zero, q1_prev=jnp.asarray(q1, float),
+                               q2_prev=jnp.asarray(q2, float), dq1=zero, dq2=dq2,
+                               q2d_prev=zero, dq2d=zero, ddq2d=zero)
+
+    def step(self, state: ControllerState, t, q1, q2, dq1=None, dq2=None):
+        h = self.dt
+        if dq2 is None:
+            dq2 = (self.velocity_tc * state.dq2 + q2 - state.q2_prev) / (self.velocity_tc + h)
+        ref = self.trajectory.position(jnp.asarray(t, q1.dtype))
+        tau = jnp.clip(self.kp * (ref - q2) - self.kd * dq2, -self.tau_max, self.tau_max)
+        new = dataclasses.replace(state, q1_prev=q1, q2_prev=q2, dq2=dq2)
+        zero = jnp.zeros_like(q1)
+        return new, LawOutput(tau=tau, z_hat_dot=zero, F_hat=zero, q2d=ref, s1=zero,
+                              e1=q1 - ref)
 
 
 @dataclasses.dataclass
@@ -100,14 +168,27 @@ def generate_log(
     scale: float = 1.0,
     rms: float = 0.15,
     substeps: int = 10,
+    loop: str = "cascade",
+    excitation: str = "multisine",
+    disturbance: str | None = None,
 ) -> GeneratedLog:
     """Simulate one identification experiment with ``effects`` hidden in the true plant.
 
     seed: PRNG seed for magnitudes, mismatch, excitation and noise; bits: encoder counts per
     revolution = 2^bits on the link (rotor 50x finer); noise_counts: white angle noise std in
     encoder steps; mismatch: relative std of the true-vs-nominal parameter mismatch; scale:
-    multiplies the effect magnitudes; rms [rad]: excitation RMS.
+    multiplies the effect magnitudes; rms [rad]: excitation RMS; loop (``LOOPS``),
+    excitation (``EXCITATIONS``) and disturbance (``DISTURBANCES`` or None): the experiment
+    beyond the workflow's own assumptions (open loop: a torque multisine of RMS 0.15 N m
+    about the breakaway level instead of a reference; the log's q1d is then zero).
     """
+    if loop not in LOOPS:
+        raise ValueError(f"generate_log: loop must be one of {LOOPS}, got {loop!r}")
+    if excitation not in EXCITATIONS:
+        raise ValueError(f"generate_log: excitation must be one of {EXCITATIONS}, got {excitation!r}")
+    if disturbance is not None and disturbance not in DISTURBANCES:
+        raise ValueError(f"generate_log: disturbance must be one of {DISTURBANCES} or None, "
+                         f"got {disturbance!r}")
     for name in effects:
         if name not in EFFECTS:
             raise ValueError(f"generate_log: unknown effect {name!r}; known: {sorted(EFFECTS)}")
@@ -126,36 +207,69 @@ def generate_log(
         if name == "backlash":
             kw["K"] = true.plant["K"][0]
         effect_kw[name] = kw
+    extra = []
+    if disturbance == "friction_bump":
+        dist_kw = {"B": float(rng.uniform(0.06, 0.12)), "qb": float(rng.uniform(-0.05, 0.05)),
+                   "w": float(rng.uniform(0.01, 0.03))}
+        extra.append(FrictionBump(**dist_kw))
     plant = true.to_plant(with_effects=False).with_effects(
-        *(EFFECTS[k](**kw) for k, kw in effect_kw.items())
+        *(EFFECTS[k](**kw) for k, kw in effect_kw.items()), *extra
     )
     count = 6  # fixed so that every case shares one compiled simulation
     f_max = rng.uniform(1.0, 2.0)
     base = Multisine.schroeder(rms=rms * rng.uniform(0.8, 1.2), f_min=0.1, f_max=f_max, count=count)
-    traj = Multisine(
-        amplitudes=base.amplitudes, frequencies=base.frequencies,
-        phases=base.phases + rng.uniform(-0.5, 0.5, count),
-    )
+    amps, freqs, phases = base.amplitudes, base.frequencies, base.phases + rng.uniform(-0.5, 0.5, count)
+    if excitation == "multisine_ramp":  # a slow large swing through the friction regimes
+        amps = jnp.concatenate([amps, jnp.asarray([2.0 * rms])])
+        freqs = jnp.concatenate([freqs, jnp.asarray([0.03])])
+        phases = jnp.concatenate([phases, jnp.asarray([rng.uniform(-math.pi, math.pi)])])
+    traj = Multisine(amplitudes=amps, frequencies=freqs, phases=phases)
     res = 2 * math.pi / 2**bits
     sensing = Sensing(
         q1_resolution=res, q2_resolution=res / 50.0, q1_noise=noise_counts * res,
         q2_noise=noise_counts * res / 50.0, velocity="filtered", dac_bits=12, dac_range=2.0,
     )
-    controller = CascadeController(
-        model=nominal.to_plant(), gains=IDENT_GAINS, trajectory=traj, compensation=True,
-        q2d_method="model", dt=dt, tau_max=2.0,
-    )
+    if loop == "open_loop":
+        # torque about the breakaway level: the same multisine shape, scaled to N m
+        ts = jnp.arange(int(round(t_final / dt))) * dt
+        shape = jax.vmap(traj.position)(ts)
+        tau_ol = np.asarray(shape / rms * 1.6 * float(true.friction["Fs"][0]))
+        log, xs = synthetic_log(plant, tau_ol, dt=dt, substeps=substeps, sensing=sensing,
+                                key=jax.random.PRNGKey(seed))
+        if not np.all(np.isfinite(log.q1)) or float(np.max(np.abs(log.q1))) > 50.0:
+            raise RuntimeError(f"generate_log: open-loop run ran away (effects={effects}, seed={seed})")
+        log = Log.from_arrays(t=log.t, tau=log.tau, q1=log.q1, q2=log.q2,
+                              source=f"generate_log(effects={list(effects)}, seed={seed}, open_loop)")
+        truth = _truth(effect_kw, true, seed, bits, noise_counts, mismatch, scale, 0.0, loop,
+                       excitation, disturbance, extra)
+        return GeneratedLog(log=log, effects=list(effects), truth=truth)
+    if loop == "pd_rotor":
+        controller = RotorPD(model=nominal.to_plant(), trajectory=traj, dt=dt)
+    else:
+        controller = CascadeController(
+            model=nominal.to_plant(), gains=IDENT_GAINS, trajectory=traj, compensation=True,
+            q2d_method="model", dt=dt, tau_max=2.0,
+        )
     r = _simulate(plant, controller, t_final, sensing=sensing, key=jax.random.PRNGKey(seed),
                   substeps=substeps)
     if bool(r.metrics.diverged):
         raise RuntimeError(f"generate_log: closed loop diverged (effects={effects}, seed={seed})")
-    truth = {
-        "effects": {k: {p: float(np.ravel(v)[0]) for p, v in kw.items()} for k, kw in effect_kw.items()},
-        "plant": true.to_dict(),
-        "seed": seed, "bits": bits, "noise_counts": noise_counts, "mismatch": mismatch,
-        "scale": scale, "saturation_fraction": float(jnp.ravel(r.metrics.saturation_fraction)[0]),
-    }
+    truth = _truth(effect_kw, true, seed, bits, noise_counts, mismatch, scale,
+                   float(jnp.ravel(r.metrics.saturation_fraction)[0]), loop, excitation,
+                   disturbance, extra)
     log = Log.from_arrays(t=np.asarray(r.t), tau=np.asarray(r.tau), q1=np.asarray(r.q1_meas),
                           q2=np.asarray(r.q2_meas), q1d=np.asarray(r.q1d),
                           source=f"generate_log(effects={list(effects)}, seed={seed})")
     return GeneratedLog(log=log, effects=list(effects), truth=truth)
+
+
+def _truth(effect_kw, true, seed, bits, noise_counts, mismatch, scale, saturation, loop,
+           excitation, disturbance, extra) -> dict[str, Any]:
+    return {
+        "effects": {k: {p: float(np.ravel(v)[0]) for p, v in kw.items()} for k, kw in effect_kw.items()},
+        "plant": true.to_dict(), "seed": seed, "bits": bits, "noise_counts": noise_counts,
+        "mismatch": mismatch, "scale": scale, "saturation_fraction": saturation, "loop": loop,
+        "excitation": excitation, "disturbance": disturbance,
+        "disturbance_params": {k: float(np.ravel(v)[0]) for e in extra
+                               for k, v in e.params().items()} if extra else {},
+    }
