@@ -157,3 +157,20 @@ def test_a_two_joint_log_gets_an_answer_per_joint(tmp_path):
     assert rep["effect"] == ["backlash", "none"]
     assert [r["joint"] for r in rep["joints"]] == [0, 1]
     assert (out / "params_joint0.json").exists() and (out / "params_joint1.json").exists()
+
+
+def test_generator_goes_beyond_the_workflows_assumptions():
+    """Other loops, a slow swing in the excitation and an out-of-library disturbance give
+    finite, moving logs; bad settings are named."""
+    from jaxflex.datagen import generate_log as gen
+
+    for kw in ({"loop": "pd_rotor"}, {"loop": "open_loop", "excitation": "multisine_ramp"},
+               {"disturbance": "friction_bump"}):
+        g = gen((), seed=5, t_final=2.0, **kw)
+        assert np.all(np.isfinite(g.log.q1)) and np.ptp(g.log.q1) > 0.05, kw
+        assert g.truth["loop"] == kw.get("loop", "cascade")
+    assert gen((), seed=5, t_final=2.0, disturbance="friction_bump").truth["disturbance_params"]["B"] > 0
+    with pytest.raises(ValueError, match="loop"):
+        gen((), loop="pid")
+    with pytest.raises(ValueError, match="disturbance"):
+        gen((), disturbance="wind")
