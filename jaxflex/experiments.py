@@ -98,6 +98,7 @@ class PaperExperiments:
     experiments: dict[str, PaperExperiment]
     q2d_comparison: dict[str, Any] | None
     wall_time_s: float
+    rest: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready results (``results.json`` without the figure names)."""
@@ -107,6 +108,8 @@ class PaperExperiments:
         }
         if self.q2d_comparison is not None:
             out["q2d_comparison"] = self.q2d_comparison
+        if self.rest is not None:
+            out["rest"] = self.rest
         out["wall_time_s"] = self.wall_time_s
         return out
 
@@ -151,12 +154,50 @@ def run_paper_experiments(
         experiments[name] = PaperExperiment(
             name=name, title=TRAJECTORY_DESCRIPTIONS[name], runs=runs,
             summaries={k: _summary(r) for k, r in runs.items()})
+    say("[reproduce] the loop at rest ...")
+    rest = rest_oscillation(plant, gains, sensing=sens, q2d_method=q2d_method)
     q2d = None
     if compare_q2d:
         say("[reproduce] q2d-derivative options ...")
         q2d = compare_q2d_methods(plant, gains, t_final=t_final)
     return PaperExperiments(config=config, experiments=experiments, q2d_comparison=q2d,
-                            wall_time_s=time.perf_counter() - t_start)
+                            wall_time_s=time.perf_counter() - t_start, rest=rest)
+
+
+def rest_oscillation(
+    plant: FlexibleJointPlant, gains: CascadeGains, *, sensing: AbstractSensing,
+    q2d_method: str = "model", t_final: float = 6.0, tail: float = 3.0, hold: float = 0.003,
+) -> dict[str, Any]:
+    """Does the loop oscillate at rest, and why? Per compensation setting: the link error of
+    the loop held at a reference of ``hold`` rad for ``t_final`` s (by default between two
+    counts of the paper's link encoder, so that its quantisation excites the loop), its RMS over the last ``tail`` s [rad] and the frequency [Hz]
+    and amplitude [rad] of its spectral peak there; and the modes of the loop linearised at
+    rest (``jaxflex.analyse.analyse_loop``: spectral radius, the slowest modes with frequency,
+    damping and the states taking part), which say whether an oscillation is a growing mode
+    of the design (radius > 1) or forced by quantisation."""
+    from jaxflex.analyse import analyse_loop
+    from jaxflex.trajectory import Multisine
+
+    rest_ref = Multisine(amplitudes=np.zeros((1, plant.n)), frequencies=np.ones((1, plant.n)),
+                         phases=np.zeros((1, plant.n)), offset=np.full(plant.n, hold))
+    out: dict[str, Any] = {"t_final": t_final, "tail": tail, "hold": hold}
+    for key in COMPENSATION_KEYS:
+        comp = key == "with_compensation"
+        r = run_closed_loop(plant, gains, rest_ref, compensation=comp, q2d_method=q2d_method,
+                            sensing=sensing, t_final=t_final)
+        e = np.asarray(r.e1)[:, 0]
+        dt = float(np.asarray(r.t)[1] - np.asarray(r.t)[0])
+        last = e[-int(round(tail / dt)):]
+        spec = np.abs(np.fft.rfft(last - last.mean())) * 2 / len(last)
+        f = np.fft.rfftfreq(len(last), dt)
+        k = int(np.argmax(spec[1:]) + 1)
+        modes = analyse_loop(plant, gains, q2d_method=q2d_method, compensation=comp,
+                             sensing=sensing, n_modes=3)["rest"]
+        out[key] = {"rms_error_tail": float(np.sqrt(np.mean(last**2))),
+                    "peak_hz": float(f[k]), "peak_amplitude": float(spec[k]),
+                    "spectral_radius": modes["spectral_radius"], "stable": modes["stable"],
+                    "modes": modes["modes"]}
+    return out
 
 
 def compare_q2d_methods(

@@ -16,6 +16,12 @@ def test_reproduce_cli_writes_results(tmp_path):
     assert set(res["experiments"]) == {"sinusoid"}
     # the paper's own sensing, with the estimator the estimator study selects
     assert (res["config"]["sensing"], res["config"]["estimator"]) == ("paper", "kalman")
+    # the loop at rest: the paper's gains with compensation have a growing rest mode and
+    # oscillate (a property of the design, explained by the linearised loop)
+    rest = res["rest"]
+    assert rest["with_compensation"]["spectral_radius"] > 1.0
+    assert rest["without_compensation"]["spectral_radius"] < 1.0
+    assert rest["with_compensation"]["peak_amplitude"] > rest["without_compensation"]["peak_amplitude"]
     for e in res["experiments"].values():
         for metric in ("rms_error", "max_error"):
             for key in ("with_compensation", "without_compensation"):

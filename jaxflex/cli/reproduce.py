@@ -56,5 +56,13 @@ def run(args: argparse.Namespace) -> int:
         for key in ("without_compensation", "with_compensation"):
             print(f"{name:<12} {key.split('_')[0]:<13} {e['rms_error'][key]:>14.3e} "
                   f"{e['max_error'][key]:>14.3e} {e['tau_rms'][key]:>17.3f}")
+    rest = res.get("rest")
+    if rest:
+        for key in ("without_compensation", "with_compensation"):
+            r = rest[key]
+            print(f"at rest {key.split('_')[0]:<8} RMS error {r['rms_error_tail']:.2e} rad, "
+                  f"spectral peak {r['peak_amplitude']:.2e} rad at {r['peak_hz']:.2f} Hz; "
+                  f"linearised loop: spectral radius {r['spectral_radius']:.4f} "
+                  f"({'stable' if r['stable'] else 'a growing mode'})")
     print(f"\nwrote {args.out}/results.json and figures ({res['wall_time_s']:.0f} s)")
     return 0
