@@ -234,6 +234,23 @@ def monodromy(m: ClosedLoopMap, period: float, *, settle_periods: int = 3
     return modes(P, period, names), P, {"t": t, "e1": np.asarray(e)}
 
 
+def rest_map(plant: FlexibleJointPlant, gains: Any, *, model: FlexibleJointPlant | None = None,
+             sensing: AbstractSensing | None = None, q2d_method: str = "model",
+             compensation: bool = True, dt: float = 1e-3, tau_max: float = 2.0,
+             substeps: int = 10) -> ClosedLoopMap:
+    """The one-sample map of the cascade loop around ``plant`` held at rest (a reference of
+    0 rad): the controller on ``model`` (default the plant) with ``gains``, ``sensing``
+    (default ideal), q2d method, compensation, period ``dt`` [s], torque limit [N m]."""
+    from jaxflex.trajectory import Sinusoid
+
+    zero = jnp.zeros(plant.n)
+    ctrl = CascadeController(model=plant if model is None else model, gains=gains,
+                             trajectory=Sinusoid(amplitude=zero, frequency=zero + 1.0),
+                             compensation=compensation, q2d_method=q2d_method, dt=dt,
+                             tau_max=tau_max)
+    return ClosedLoopMap(plant, ctrl, Sensing() if sensing is None else sensing, substeps)
+
+
 def rest_jacobian(m: ClosedLoopMap) -> Float[Array, "d d"]:
     """dPhi/dxi of ``m`` at its initial state and t = 0 (a reference at rest), traceable in
     ``m``'s arrays (gains, plant), so one compilation serves every gain set (wrap in
@@ -287,9 +304,8 @@ def analyse_loop(plant: FlexibleJointPlant, gains: Any, *, q2d_method: str = "mo
                                  compensation=compensation, q2d_method=q2d_method, dt=dt,
                                  tau_max=tau_max)
 
-    zero = jnp.zeros(plant.n)
-    rest = ClosedLoopMap(plant, ctrl(Sinusoid(amplitude=zero, frequency=zero + 1.0)),
-                         Sensing() if sensing is None else sensing)
+    rest = rest_map(plant, gains, sensing=sensing, q2d_method=q2d_method,
+                    compensation=compensation, dt=dt, tau_max=tau_max)
     M, A = rest_modes(rest)
     r = _neutral(A)
     out: dict[str, Any] = {
@@ -299,6 +315,7 @@ def analyse_loop(plant: FlexibleJointPlant, gains: Any, *, q2d_method: str = "mo
     if floquet:
         traj = period_reference
         if traj is None:
+            zero = jnp.zeros(plant.n)
             traj = Sinusoid(amplitude=zero + 0.05, frequency=zero + 0.5)
         period = float(1.0 / np.max(np.asarray(traj.frequency)))
         MF, P, tr = monodromy(ClosedLoopMap(plant, ctrl(traj), rest.sensing), period)

@@ -234,12 +234,13 @@ def generate_log(
         ts = jnp.arange(int(round(t_final / dt))) * dt
         shape = jax.vmap(traj.position)(ts)
         tau_ol = np.asarray(shape / rms * 1.6 * float(true.friction["Fs"][0]))
-        log, xs = synthetic_log(plant, tau_ol, dt=dt, substeps=substeps, sensing=sensing,
-                                key=jax.random.PRNGKey(seed))
+        log, _ = synthetic_log(plant, tau_ol, dt=dt, substeps=substeps, sensing=sensing,
+                               key=jax.random.PRNGKey(seed))
         if not np.all(np.isfinite(log.q1)) or float(np.max(np.abs(log.q1))) > 50.0:
             raise RuntimeError(f"generate_log: open-loop run ran away (effects={effects}, seed={seed})")
-        log = Log.from_arrays(t=log.t, tau=log.tau, q1=log.q1, q2=log.q2,
-                              source=f"generate_log(effects={list(effects)}, seed={seed}, open_loop)")
+        # the columns a rig logs (no exact velocity)
+        log = dataclasses.replace(
+            log, v=None, source=f"generate_log(effects={list(effects)}, seed={seed}, open_loop)")
         truth = _truth(effect_kw, true, seed, bits, noise_counts, mismatch, scale, 0.0, loop,
                        excitation, disturbance, extra)
         return GeneratedLog(log=log, effects=list(effects), truth=truth)

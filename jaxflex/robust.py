@@ -41,7 +41,6 @@ gains satisfy the paper's condition. Units as in ``jaxflex.tune``.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from typing import Any, Callable
@@ -69,7 +68,8 @@ from jaxflex.sweep.engine import is_noisy, run_sweep, sample_models
 from jaxflex.sweep.spec import SweepSpec
 from jaxflex.trajectory import Trajectory
 from jaxflex.presets import trajectory_preset
-from jaxflex.tune import StartRecord, adam_search, ascend_feasibility
+from jaxflex.tune import (StartRecord, _gains_of, adam_search, ascend_feasibility,
+                          certify_speed, reference_speed)
 from jaxflex.validation import requires_float64
 
 RISKS: tuple[str, ...] = ("mean", "quantile", "cvar")
@@ -163,12 +163,12 @@ class RobustTask:
 
     def reference_speed(self) -> float:
         """Fastest reference link speed max |q1d'| [rad/s] over the horizon."""
-        ts = jnp.linspace(0.0, self.spec.t_final, int(self.spec.t_final / self.spec.dt) + 1)
-        return float(jnp.max(jnp.abs(self.trajectory.sample(ts, order=1)[:, 1])))
+        return reference_speed((self.trajectory,), self.spec.t_final, self.spec.dt)
 
     def certify_speed(self) -> float:
         """Speed [rad/s] up to which the gains must be certified."""
-        return self.velocity_factor * max(self.reference_speed(), 1e-3)
+        return certify_speed((self.trajectory,), self.spec.t_final, self.spec.dt,
+                             self.velocity_factor)
 
     def lost_cost(self) -> float:
         """Cost [rad^2] of a lost run: the mean squared lost band of the reference."""
@@ -217,9 +217,7 @@ def spread_box(spec: SweepSpec, confidence: float = 0.95) -> tuple[ParameterBox,
 def sample_batch(spec: SweepSpec, indices: Array) -> tuple[Any, ...]:
     """Stacked (theta, plant, controller, sensing, noise key, fs_raised) of the samples
     ``indices`` of ``spec`` (``jaxflex.sweep.engine.sample_models``, vmapped)."""
-    d = spec.to_dict()
-    d.pop("samples")  # the only field sampling does not depend on
-    key = json.dumps(d, sort_keys=True, default=str)
+    key = spec.cache_key()
     if key not in _BATCH_FNS:
         _BATCH_FNS[key] = jax.jit(jax.vmap(lambda i: sample_models(spec, i)))
     return _BATCH_FNS[key](jnp.asarray(indices))
@@ -230,10 +228,6 @@ _BATCH_FNS: dict[str, Callable] = {}
 
 def _with_gains(ctrl, gains):
     return eqx.tree_at(lambda c: c.gains, ctrl, gains)
-
-
-def _gains_of(theta: Array) -> CascadeGains:
-    return CascadeGains.from_vector(jnp.exp(theta))
 
 
 @eqx.filter_jit
@@ -248,7 +242,7 @@ def _risk_and_grad(theta, batch, settings):
                              save=False).metrics
         cost = jnp.mean(m.rms_error**2) + tw * jnp.mean(m.tau_rms**2)
         bad = m.diverged | ~jnp.isfinite(cost)
-        return jnp.where(bad, lost, jnp.where(bad, 0.0, cost)), bad, jnp.max(m.rms_error)
+        return jnp.where(bad, lost, cost), bad, jnp.max(m.rms_error)
 
     def objective(th):
         costs, bad, rms = jax.vmap(per_plant, in_axes=(None, 0, 0, 0, 0))(
@@ -404,8 +398,8 @@ def tune_robust(
         (val, (r0, _)), _ = _risk_and_grad(theta_init, batch0, settings)
         initial_risk = float(r0)
     candidates.sort(key=lambda c: c[0])
-    best, cert, v_check, certified, lam_s = candidates[0][1], None, v_task, False, -math.inf
-    for _cost, theta in candidates:
+    (risk_best, best), cert, v_check, certified, lam_s = candidates[0], None, v_task, False, -math.inf
+    for cost, theta in candidates:
         g = _gains_of(jnp.asarray(theta))
         speeds = np.asarray(_max_speed(g, batch0, spec.t_final, spec.substeps, noisy))
         v = max(v_task, float(np.max(speeds)))
@@ -414,9 +408,8 @@ def tune_robust(
         c = certify_box(pbox, g, v, margin=margin, eps=eps)
         lam = float(jnp.min(_sample_lambda_min(g, plants0, jnp.linspace(0.0, v, grid), eps)))
         if c.certified and lam >= margin:
-            best, cert, v_check, certified, lam_s = theta, c, v, True, lam
+            risk_best, best, cert, v_check, certified, lam_s = cost, theta, c, v, True, lam
             break
-    risk_best = next(c for c, t in candidates if t is best) if candidates else math.nan
     return RobustResult(
         gains=_gains_of(jnp.asarray(best)), certified=certified, risk=float(risk_best),
         initial_gains=initial, initial_risk=float(initial_risk), task=task, box=pbox,
@@ -446,7 +439,7 @@ def evaluate_batch(task: RobustTask, gains: CascadeGains, *, samples: int = 1000
     smp = res.samples
     rms = np.asarray(smp["rms_error"], float)
     lost = np.asarray(smp["diverged"], bool)
-    idx = np.asarray(smp["index"]) if "index" in smp else np.arange(samples)
+    idx = np.asarray(smp["index"])
     v_task = task.certify_speed()
     vgrid = np.linspace(0.0, 5 * v_task, grid)
     lam = []

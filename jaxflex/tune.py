@@ -51,6 +51,20 @@ from jaxflex.trajectory import Trajectory
 from jaxflex.validation import requires_float64
 
 
+def reference_speed(trajectories: Sequence[Trajectory], t_final: float, dt: float) -> float:
+    """Fastest reference link speed max |q1d'| [rad/s] of ``trajectories`` over [0, t_final] s,
+    sampled every ``dt`` s."""
+    ts = jnp.linspace(0.0, t_final, int(t_final / dt) + 1)
+    return max(float(jnp.max(jnp.abs(tr.sample(ts, order=1)[:, 1]))) for tr in trajectories)
+
+
+def certify_speed(trajectories: Sequence[Trajectory], t_final: float, dt: float,
+                  velocity_factor: float) -> float:
+    """Speed [rad/s] up to which gains for these references must be certified:
+    ``velocity_factor`` x the fastest reference speed (at least 1e-3 rad/s)."""
+    return velocity_factor * max(reference_speed(trajectories, t_final, dt), 1e-3)
+
+
 @dataclasses.dataclass(frozen=True)
 class TuneTask:
     """What the gains are tuned for.
@@ -114,12 +128,11 @@ class TuneTask:
 
     def reference_speed(self) -> float:
         """Fastest reference link speed max |q1d'| [rad/s] over the task's trajectories."""
-        ts = jnp.linspace(0.0, self.t_final, int(self.t_final / self.dt) + 1)
-        return max(float(jnp.max(jnp.abs(tr.sample(ts, order=1)[:, 1]))) for tr in self.trajectories)
+        return reference_speed(self.trajectories, self.t_final, self.dt)
 
     def certify_speed(self) -> float:
         """Speed [rad/s] up to which tuned gains must be certified."""
-        return self.velocity_factor * max(self.reference_speed(), 1e-3)
+        return certify_speed(self.trajectories, self.t_final, self.dt, self.velocity_factor)
 
     def controller(self, model: FlexibleJointPlant, gains: CascadeGains,
                    trajectory: Trajectory) -> CascadeController:
@@ -309,12 +322,12 @@ def tune(
         if margin is None:
             best_cost, best = cost, theta
             break
+        if zeta is not None and float(_damping_value(jnp.asarray(theta), rest)) < zeta:
+            continue
         v_check = max(v_task, max_link_speed(plant, g, task, model))
         if not np.isfinite(v_check):
             continue
         c = certify(model, g, v_check, margin=margin, eps=eps)
-        if zeta is not None and float(_damping_value(jnp.asarray(theta), rest)) < zeta:
-            continue
         if c.certified:
             best_cost, best, cert = cost, theta, c
             break
@@ -426,8 +439,7 @@ def ascend_feasibility(theta: Array, value_and_grad: Callable, feasible: Callabl
         v = b2 * v + (1 - b2) * g**2
         mh, vh = m / (1 - b1 ** (it + 1)), v / (1 - b2 ** (it + 1))
         theta = jnp.clip(theta + lr * mh / (jnp.sqrt(vh) + 1e-8), lo, hi)
-        ok, c = feasible(theta)
-        if ok and float(value_and_grad(theta)[0]) >= 0.0:
+        if feasible(theta)[0]:
             # a few more steps leave room for the search
             for _ in range(5):
                 _, g = value_and_grad(theta)
@@ -441,29 +453,26 @@ def ascend_feasibility(theta: Array, value_and_grad: Callable, feasible: Callabl
 
 def _rest_map(plant, model, gains, task):
     """The one-sample closed-loop map at rest of ``task``'s configuration (``jaxflex.analyse``)."""
-    from jaxflex.analyse import ClosedLoopMap
-    from jaxflex.trajectory import Sinusoid
+    from jaxflex.analyse import rest_map
 
-    zero = jnp.zeros(plant.n)
-    ctrl = CascadeController(model=model, gains=gains,
-                             trajectory=Sinusoid(amplitude=zero, frequency=zero + 1.0),
-                             q2d_method=task.q2d_method, dt=task.dt, tau_max=task.tau_max)
-    return ClosedLoopMap(plant, ctrl, task.sensing, task.substeps)
+    return rest_map(plant, gains, model=model, sensing=task.sensing, q2d_method=task.q2d_method,
+                    dt=task.dt, tau_max=task.tau_max, substeps=task.substeps)
 
 
-@eqx.filter_jit
-def _damping_value(theta, rest):
+def _rest_damping(theta, rest):
+    """Smallest damping ratio of the rest modes of ``rest`` with the gains exp(theta)."""
     from jaxflex.analyse import rest_damping
 
     return rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, _gains_of(theta)))
 
 
+_damping_value = eqx.filter_jit(_rest_damping)
+
+
 @eqx.filter_jit
 def _constraint_and_grad(theta, model, vgrid, margin, eps, rest, zeta, use_n2):
-    from jaxflex.analyse import rest_damping
-
     def c(th):
-        d = rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, _gains_of(th))) - zeta
+        d = _rest_damping(th, rest) - zeta
         if not use_n2:
             return d
         return jnp.minimum(jnp.min(lambda_min_curve(model, _gains_of(th), vgrid, eps)) - margin, d)

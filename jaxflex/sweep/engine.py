@@ -235,9 +235,7 @@ def make_chunk_fn(spec: SweepSpec, float32: bool = False) -> Callable[[jax.Array
 
     Cached per spec content (and x64 mode), so repeated sweeps of one spread compile once.
     """
-    d = spec.to_dict()
-    d.pop("samples")  # the only field the traced function does not depend on
-    key = json.dumps(d, sort_keys=True, default=str) + str(float32)
+    key = spec.cache_key() + str(float32)
     if key not in _CHUNK_FNS:
         _CHUNK_FNS[key] = _make_chunk_fn(spec)
     return _CHUNK_FNS[key]

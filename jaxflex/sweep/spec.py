@@ -45,6 +45,7 @@ physical constraint (e.g. a normal inertia that can go negative).
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 from pathlib import Path
@@ -126,9 +127,10 @@ class Distribution:
             return self.a, 1.0
         if self.kind in ("uniform",):
             return 0.5 * (self.a + self.b), max(0.5 * (self.b - self.a), 1e-300)
-        if self.kind in ("normal", "posterior"):
-            return self.a if self.kind == "normal" else self.b, max(
-                self.b if self.kind == "normal" else 0.5 * (self.high - self.low), 1e-300)
+        if self.kind == "normal":
+            return self.a, max(self.b, 1e-300)
+        if self.kind == "posterior":
+            return self.b, max(0.5 * (self.high - self.low), 1e-300)
         if self.kind == "lognormal":
             return math.exp(self.a), max(math.exp(self.a) * self.b, 1e-300)
         lo, hi = math.exp(self.a), math.exp(self.b)
@@ -307,6 +309,13 @@ class SweepSpec:
         """A copy with some fields replaced (e.g. ``compensation=False``)."""
         return dataclasses.replace(self, **changes)
 
+    def cache_key(self) -> str:
+        """The spec's content without the sample count (the only field a compiled per-sample
+        function does not depend on), as a string: the key of compiled-function caches."""
+        d = self.to_dict()
+        d.pop("samples")
+        return json.dumps(d, sort_keys=True, default=str)
+
     def to_dict(self) -> dict[str, Any]:
         """A JSON-able description (for result files)."""
         return {
@@ -366,6 +375,7 @@ def _posterior_columns(post: Posterior, params: Params, taken: set[tuple[str, in
     """One column per entry of the identification's posterior (drawn jointly); an entry also
     given under ``uncertain`` is refused (the data already say how uncertain it is)."""
     lo, hi = post.box(1 - 1e-9)
+    estimate = {k: np.asarray(v) for k, v in post.physical(post.mean).items()}
     cols = []
     for i, lab in enumerate(post.labels):
         name, j = lab[:-1].split("[")
@@ -380,7 +390,7 @@ def _posterior_columns(post: Posterior, params: Params, taken: set[tuple[str, in
             raise SpreadError(
                 f"uncertain: {full} is drawn from the identification's posterior ('identified'); "
                 "remove it from 'uncertain' (or identify without it)")
-        est = float(np.asarray(post.physical(post.mean)[name])[j])
+        est = float(estimate[name][j])
         cols.append(Column(name=full, joint=j, label=full if params.n == 1 else f"{full}[{j}]",
                            dist=Distribution("posterior", float(i), est, float(lo[name][j]),
                                              float(hi[name][j])), nominal=est))
