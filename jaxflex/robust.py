@@ -68,7 +68,7 @@ from jaxflex.sweep.engine import is_noisy, run_sweep, sample_models
 from jaxflex.sweep.spec import SweepSpec
 from jaxflex.trajectory import Trajectory
 from jaxflex.presets import trajectory_preset
-from jaxflex.tune import (StartRecord, _gains_of, adam_search, ascend_feasibility,
+from jaxflex.tune import (StartRecord, adam_search, ascend_feasibility, gains_of,
                           certify_speed, reference_speed)
 from jaxflex.validation import requires_float64
 
@@ -246,7 +246,7 @@ def _risk_and_grad(theta, batch, settings):
 
     def objective(th):
         costs, bad, rms = jax.vmap(per_plant, in_axes=(None, 0, 0, 0, 0))(
-            _gains_of(th), plant, ctrl, sensing, keys)
+            gains_of(th), plant, ctrl, sensing, keys)
         r = risk(costs)
         return jnp.log(r), (r, {"rms_error": rms, "costs": costs, "lost": bad})
 
@@ -372,7 +372,7 @@ def tune_robust(
         return _risk_and_grad(theta, batch, settings)
 
     def constraint(theta) -> float:
-        g = _gains_of(jnp.asarray(theta))
+        g = gains_of(jnp.asarray(theta))
         return min(float(_box_min(g, box_arr, vgrid, eps)),
                    float(jnp.min(_sample_lambda_min(g, plants0, vgrid, eps)))) - margin
 
@@ -400,7 +400,7 @@ def tune_robust(
     candidates.sort(key=lambda c: c[0])
     (risk_best, best), cert, v_check, certified, lam_s = candidates[0], None, v_task, False, -math.inf
     for cost, theta in candidates:
-        g = _gains_of(jnp.asarray(theta))
+        g = gains_of(jnp.asarray(theta))
         speeds = np.asarray(_max_speed(g, batch0, spec.t_final, spec.substeps, noisy))
         v = max(v_task, float(np.max(speeds)))
         if not math.isfinite(v):
@@ -411,7 +411,7 @@ def tune_robust(
             risk_best, best, cert, v_check, certified, lam_s = cost, theta, c, v, True, lam
             break
     return RobustResult(
-        gains=_gains_of(jnp.asarray(best)), certified=certified, risk=float(risk_best),
+        gains=gains_of(jnp.asarray(best)), certified=certified, risk=float(risk_best),
         initial_gains=initial, initial_risk=float(initial_risk), task=task, box=pbox,
         box_how=how, certificate=cert, v_check=v_check, margin=margin,
         sample_lambda_min=lam_s, starts=records, wall_time_s=time.perf_counter() - t0,
@@ -420,7 +420,7 @@ def tune_robust(
 
 @eqx.filter_jit
 def _box_min_and_grad(theta, box, vgrid, eps):
-    return jax.value_and_grad(lambda th: _box_min(_gains_of(th), box, vgrid, eps))(theta)
+    return jax.value_and_grad(lambda th: _box_min(gains_of(th), box, vgrid, eps))(theta)
 
 
 @requires_float64

@@ -318,7 +318,7 @@ def tune(
     candidates.sort(key=lambda c: c[0])
     best_cost, best, cert = initial_cost, np.asarray(theta_init), None
     for cost, theta in candidates:
-        g = _gains_of(jnp.asarray(theta))
+        g = gains_of(jnp.asarray(theta))
         if margin is None:
             best_cost, best = cost, theta
             break
@@ -332,7 +332,7 @@ def tune(
             best_cost, best, cert = cost, theta, c
             break
     return TuneResult(
-        gains=_gains_of(jnp.asarray(best)), cost=float(best_cost), initial_gains=initial,
+        gains=gains_of(jnp.asarray(best)), cost=float(best_cost), initial_gains=initial,
         initial_cost=initial_cost, certificate=cert, v_task=v_task, margin=margin,
         starts=records, wall_time_s=time.perf_counter() - t_start, evaluations=evals,
     )
@@ -415,7 +415,8 @@ def adam_search(
     return candidates, records, initial_cost, evals
 
 
-def _gains_of(theta: Array) -> CascadeGains:
+def gains_of(theta: Array) -> CascadeGains:
+    """The gains of the search coordinates theta = log(gains) (6n,)."""
     return CascadeGains.from_vector(jnp.exp(theta))
 
 
@@ -463,7 +464,7 @@ def _rest_damping(theta, rest):
     """Smallest damping ratio of the rest modes of ``rest`` with the gains exp(theta)."""
     from jaxflex.analyse import rest_damping
 
-    return rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, _gains_of(theta)))
+    return rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, gains_of(theta)))
 
 
 _damping_value = eqx.filter_jit(_rest_damping)
@@ -475,7 +476,7 @@ def _constraint_and_grad(theta, model, vgrid, margin, eps, rest, zeta, use_n2):
         d = _rest_damping(th, rest) - zeta
         if not use_n2:
             return d
-        return jnp.minimum(jnp.min(lambda_min_curve(model, _gains_of(th), vgrid, eps)) - margin, d)
+        return jnp.minimum(jnp.min(lambda_min_curve(model, gains_of(th), vgrid, eps)) - margin, d)
 
     return jax.value_and_grad(c)(theta)
 
@@ -487,7 +488,7 @@ def _log_cost_and_grad(theta, plant, model, trajectories, sensing, settings):
     task = TuneTask.from_settings(trajectories, sensing, settings)
 
     def objective(th):
-        cost, aux = tracking_cost(plant, _gains_of(th), task, model, sensing)
+        cost, aux = tracking_cost(plant, gains_of(th), task, model, sensing)
         safe = jnp.where(jnp.isfinite(cost), cost, 1.0)
         return jnp.where(jnp.isfinite(cost), jnp.log(safe), jnp.inf), (cost, aux)
 
@@ -497,7 +498,7 @@ def _log_cost_and_grad(theta, plant, model, trajectories, sensing, settings):
 @eqx.filter_jit
 def _constraint(theta, model, vgrid, margin, eps):
     """min over the speed grid of lambda_min(N2) minus the margin (>= 0: certified)."""
-    return jnp.min(lambda_min_curve(model, _gains_of(theta), vgrid, eps)) - margin
+    return jnp.min(lambda_min_curve(model, gains_of(theta), vgrid, eps)) - margin
 
 
 def simulate_task(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask,
