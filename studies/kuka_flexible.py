@@ -105,7 +105,8 @@ def deflection_fit_residuals(theta: dict, data: TorqueFit) -> jax.Array:
 
 
 def fit(params: Any, log: Any, free: tuple[str, ...], *, deflection: bool = False,
-        max_steps: int = MAX_STEPS, scaling: str = "identity") -> tuple[Any, dict[str, float], Any, dict[str, float]]:
+        max_steps: int = MAX_STEPS, scaling: str = "identity",
+        ) -> tuple[Any, dict[str, float], Any, dict[str, Any]]:
     """Equation-error fit of ``free`` on ``log`` (torque or deflection domain) with the engine.
 
     ``scaling``: the engine's damping ("identity": with Marquardt's scaling the restart from
@@ -136,7 +137,8 @@ def fit(params: Any, log: Any, free: tuple[str, ...], *, deflection: bool = Fals
     phys = {k: (np.clip(v, np.finfo(float).tiny, np.finfo(float).max)
                 if constraint_of(k) == "positive" else v) for k, v in phys.items()}
     se = {k: float(np.asarray(v)[0]) for k, v in cov["stderr"].items()}
-    extra = {"tau_int": float(tau_int), "at_bound": at_bound, "rank": int(cov["rank"]), "n_free": int(cov["n_free"]),
+    extra = {"tau_int": float(tau_int), "at_bound": at_bound, "rank": int(cov["rank"]),
+             "n_free": int(cov["n_free"]),
              "K_stderr_white": float(np.asarray(cov_w["stderr"]["K"])[0]) if "K" in free
              else float("nan")}
     return set_values(params, phys), se, sol, extra
@@ -357,7 +359,8 @@ def main(argv: list[str] | None = None) -> dict:
         results[f"axis{ax}"] = row
         print(f"axis {ax}: K {K:.4g} +- {K_se:.3g} (white {ex['K_stderr_white']:.3g}; nominal "
               f"{K0:.4g}), converged {row['converged']}, identifiable {identifiable}; restarts "
-              + ", ".join(f"{r['start_factor']}x: {r['K']:.4g} ({'conv' if r['converged'] else 'NOT conv'})"
+              + ", ".join(f"{r['start_factor']}x: {r['K']:.4g} "
+                          f"({'conv' if r['converged'] else 'NOT conv'})"
                           for r in restarts)
               + "; K by trajectory (torque / deflection domain) "
               + ", ".join(f"{k} {v['K_torque']:.3g} / {v['K_deflection']:.3g}"
