@@ -30,6 +30,7 @@ same certificate holds for the n-link arm.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -63,16 +64,26 @@ def _friction(plant: FlexibleJointPlant):
 @requires_float64
 def psi_sharp(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
               eps: float = DEFAULT_EPS) -> Float[Array, " n"]:
-    """Psi#(v) of eq. 30 [N m s/rad]: the inverse of the observer's Psi_hat(v) = m(v)/g(v)
-    (eq. 19, 21) for |v| >= eps, and 1/eps for |v| < eps. ``v`` [rad/s], shape (n,) or scalar.
+    """Psi#(v) of eq. 30 [N m s/rad]: the inverse of the observer's Psi_hat(v) = (m(v) +
+    leak)/g(v) (eq. 19, 21) for |v| >= eps, and 1/eps for |v| < eps where the observer has no
+    leakage (Psi_hat(0) = 0, the paper's case); with leak > 0 Psi_hat never vanishes and
+    Psi# = 1/Psi_hat everywhere. ``v`` [rad/s], shape (n,) or scalar.
 
     Double ``where`` keeps gradients finite at v = 0.
     """
-    obs = FrictionObserver(_friction(plant), gains.Ke, gains.kv)
+    fr = _friction(plant)
     v = jnp.broadcast_to(jnp.asarray(v, jnp.result_type(float)), gains.Ke.shape)
-    small = jnp.abs(v) < eps
-    safe_v = jnp.where(small, eps, v)
-    return jnp.where(small, 1.0 / eps, 1.0 / obs.psi_hat(safe_v))
+    return sharp_of(lambda s: fr.g(s), v, gains, eps)
+
+
+def sharp_of(g: Callable[[Array], Array], v: Array, gains: CascadeGains, eps: float) -> Array:
+    """Psi#(v) = g(v) / (m(v) + leak) with the eq. 30 cut-off 1/eps at |v| < eps where the
+    gains' observer has no leakage; ``g`` maps speeds [rad/s] to g(v) [N m] (of any leading
+    shape: ``box_lambda_min`` passes the corners of a box)."""
+    leak = jnp.broadcast_to(gains.leak, gains.Ke.shape)
+    cut = (jnp.abs(v) < eps) & (leak == 0)
+    safe_v = jnp.where(cut, eps, v)
+    return jnp.where(cut, 1.0 / eps, g(safe_v) / (smooth_abs_observer(safe_v, gains.kv) + leak))
 
 
 @requires_float64
@@ -113,7 +124,7 @@ def d_vector(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike, z: Ar
     """The perturbation D of eq. 29 at link velocity ``v`` [rad/s] and bristle state ``z``
     [rad]: what the smoothing m(v) of |v| (eq. 21) leaves over, through dPsi = Psi - Psi_hat."""
     fr = _friction(plant)
-    obs = FrictionObserver(fr, gains.Ke, gains.kv)
+    obs = FrictionObserver(fr, gains.Ke, gains.kv, gains.leak)
     v = jnp.broadcast_to(jnp.asarray(v, jnp.result_type(float)), gains.Ke.shape)
     d_psi = fr.z_rate(v) / fr.sigma0 - obs.psi_hat(v)
     w = d_psi * jnp.asarray(z)
@@ -299,13 +310,13 @@ def box_lambda_min(box: dict[str, tuple[Array, Array]], gains: CascadeGains, v: 
     same grid convention as ``certify``)."""
     K, Fc, Fs, vs, s0, s1 = (box[k] for k in N2_PARAMETERS)
     v = jnp.broadcast_to(jnp.asarray(v, jnp.result_type(float)), gains.Ke.shape)
-    small = jnp.abs(v) < eps
-    safe_v = jnp.where(small, eps, v)
-    gs = jnp.stack([fc + (fs - fc) * jnp.exp(-jnp.square(safe_v / w))
-                    for fc in Fc for fs in Fs for w in vs])
-    m = smooth_abs_observer(safe_v, gains.kv)
-    psi = [jnp.where(small, 1.0 / eps, jnp.min(gs, 0) / m),
-           jnp.where(small, 1.0 / eps, jnp.max(gs, 0) / m)]
+
+    def corners(s):
+        return jnp.stack([fc + (fs - fc) * jnp.exp(-jnp.square(s / w))
+                          for fc in Fc for fs in Fs for w in vs])
+
+    psi = [sharp_of(lambda s: jnp.min(corners(s), 0), v, gains, eps),
+           sharp_of(lambda s: jnp.max(corners(s), 0), v, gains, eps)]
     p55 = (s0[0] * psi[0] / gains.Ke, s0[1] * psi[1] / gains.Ke)
     s01 = (s0[0] * s1[0], s0[1] * s1[1])
     lams = [jnp.linalg.eigvalsh(n2_of(k, s, p, gains))[0] for k in K for s in s01 for p in p55]

@@ -44,6 +44,10 @@ class CascadeGains(eqx.Module):
 
     Ke [rad/(N m)] observer gain; KD1 [N m s/rad] link damping; KD2 [N m s/rad] rotor damping;
     kv [s/rad] smoothing of |v| in the observer; L1, L2 [1/s] sliding-surface slopes.
+
+    leak [rad/s] (>= 0, default 0 = the paper's observer): the observer's leakage, a floor
+    under its smooth |v| (``jaxflex.observer``). Not one of the six tuned gains
+    (``GAIN_NAMES``, ``to_vector``): a search keeps it fixed at its start value.
     """
 
     Ke: Float[Array, " n"] = eqx.field(converter=as_param)
@@ -52,12 +56,17 @@ class CascadeGains(eqx.Module):
     kv: Float[Array, " n"] = eqx.field(converter=as_param)
     L1: Float[Array, " n"] = eqx.field(converter=as_param)
     L2: Float[Array, " n"] = eqx.field(converter=as_param)
+    leak: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
     def __check_init__(self) -> None:
         shapes = {k: getattr(self, k).shape for k in GAIN_NAMES}
         if len(set(shapes.values())) > 1 or len(self.Ke.shape) != 1:
             raise ValueError(f"CascadeGains: every gain must have the same shape (n,), got {shapes}")
+        if self.leak.shape not in ((1,), self.Ke.shape):
+            raise ValueError(f"CascadeGains: leak must be one value or one per joint "
+                             f"{self.Ke.shape}, got shape {self.leak.shape}")
         check_positive("CascadeGains", **{k: getattr(self, k) for k in GAIN_NAMES})
+        check_nonnegative("CascadeGains", leak=self.leak)
 
     @property
     def n(self) -> int:
@@ -65,22 +74,28 @@ class CascadeGains(eqx.Module):
         return int(self.Ke.shape[0])
 
     def to_dict(self) -> dict[str, list[float]]:
-        """Gains as plain lists (docs/spec.md section 7 'gains' entry)."""
-        return {k: [float(v) for v in getattr(self, k)] for k in GAIN_NAMES}
+        """Gains as plain lists (docs/spec.md section 7 'gains' entry); ``leak`` only where it
+        is not 0 (the paper's observer)."""
+        out = {k: [float(v) for v in getattr(self, k)] for k in GAIN_NAMES}
+        leak = jnp.broadcast_to(self.leak, self.Ke.shape)
+        if bool(jnp.any(leak != 0)):
+            out["leak"] = [float(v) for v in leak]
+        return out
 
     @classmethod
-    def from_vector(cls, theta: Float[Array, " 6n"]) -> CascadeGains:
-        """Gains from a flat vector ordered (Ke, KD1, KD2, kv, L1, L2), each block (n,)."""
+    def from_vector(cls, theta: Float[Array, " 6n"], leak: ArrayLike = 0.0) -> CascadeGains:
+        """Gains from a flat vector ordered (Ke, KD1, KD2, kv, L1, L2), each block (n,), with
+        the observer leakage ``leak`` [rad/s]."""
         theta = jnp.asarray(theta)
         if theta.ndim != 1 or theta.shape[0] % 6:
             raise ValueError(
                 f"CascadeGains.from_vector: need a flat vector of 6n gains ordered "
                 f"{GAIN_NAMES}, got shape {theta.shape}"
             )
-        return cls(*jnp.split(theta, 6))
+        return cls(*jnp.split(theta, 6), leak=leak)
 
     def to_vector(self) -> Float[Array, " 6n"]:
-        """Flat vector ordered (Ke, KD1, KD2, kv, L1, L2)."""
+        """Flat vector ordered (Ke, KD1, KD2, kv, L1, L2) (``leak`` is not in it)."""
         return jnp.concatenate([getattr(self, k) for k in GAIN_NAMES])
 
 
@@ -159,8 +174,9 @@ class CascadeController(eqx.Module):
 
     @property
     def observer(self) -> FrictionObserver:
-        """The friction observer built from the model's LuGre parameters and Ke, kv."""
-        return FrictionObserver(self.model.friction, self.gains.Ke, self.gains.kv)
+        """The friction observer built from the model's LuGre parameters and Ke, kv, leak."""
+        return FrictionObserver(self.model.friction, self.gains.Ke, self.gains.kv,
+                                self.gains.leak)
 
     # ----- the law (eq. 9-16) -----------------------------------------------------------------
 

@@ -14,6 +14,13 @@ selects: with the dirty derivative of the paper's text, the 0.72 deg steps make 
 *worse* (the loop chatters at the torque limit), with the Kalman filter compensation lowers
 the RMS error in every experiment. ``sensing="rig"`` (16-bit encoders) and ``"ideal"``
 (exact) remain options; ``estimator="filtered"`` gives the dirty derivative.
+
+Observer: by default the paper's gains with an observer leakage of
+``jaxflex.presets.REPRODUCE_LEAK`` rad/s (``CascadeGains.leak``, ``studies/observer_leak.py``).
+The paper's observer (leak 0) has no leakage at rest and, with the pre-sliding spring of the
+friction, a growing ~3-4 Hz mode that saturates into a limit cycle; with the leakage the loop
+at rest is stable. The compensated runs of the paper's own observer are re-run beside the
+default ones (``paper_observer`` in the results) so both are shown.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from jaxflex.presets import (
     SENSING_PRESETS,
     TRAJECTORIES,
     TRAJECTORY_DESCRIPTIONS,
+    REPRODUCE_LEAK,
     paper_params,
     paper_sinusoid,
     sensing_preset,
@@ -45,7 +53,8 @@ from jaxflex.simulate import SimResult, simulate_sampled, tracking_summary
 from jaxflex.trajectory import Trajectory
 
 COMPENSATION_KEYS: tuple[str, ...] = ("without_compensation", "with_compensation")
-METRICS: tuple[str, ...] = ("rms_error", "max_error", "tau_rms", "diverged", "saturation_fraction")
+METRICS: tuple[str, ...] = ("rms_error", "max_error", "tau_rms", "diverged", "saturation_fraction",
+                            "friction_error_rms")
 
 
 def run_closed_loop(
@@ -67,6 +76,8 @@ def _summary(r: SimResult) -> dict[str, Any]:
     s = tracking_summary(r.e1, r.tau)
     s["diverged"] = bool(r.metrics.diverged)
     s["saturation_fraction"] = float(np.asarray(r.metrics.saturation_fraction).max())
+    # RMS of F_hat - F [N m] (without compensation F_hat = 0: the friction's own RMS)
+    s["friction_error_rms"] = float(np.sqrt(np.mean((np.asarray(r.F_hat) - np.asarray(r.F)) ** 2)))
     return s
 
 
@@ -92,13 +103,16 @@ class PaperExperiment:
 @dataclasses.dataclass
 class PaperExperiments:
     """Result of ``run_paper_experiments``: the configuration, the experiments by trajectory
-    name, the q2d-option comparison (None if not run) and the wall time [s]."""
+    name, the q2d-option comparison (None if not run), the wall time [s], the loop at rest
+    (``rest_oscillation``) and, when the observer has leakage, the paper's own observer
+    (leak 0) re-run with compensation: its summaries per experiment and its loop at rest."""
 
     config: dict[str, Any]
     experiments: dict[str, PaperExperiment]
     q2d_comparison: dict[str, Any] | None
     wall_time_s: float
     rest: dict[str, Any] | None = None
+    paper_observer: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready results (``results.json`` without the figure names)."""
@@ -110,13 +124,15 @@ class PaperExperiments:
             out["q2d_comparison"] = self.q2d_comparison
         if self.rest is not None:
             out["rest"] = self.rest
+        if self.paper_observer is not None:
+            out["paper_observer"] = self.paper_observer
         out["wall_time_s"] = self.wall_time_s
         return out
 
 
 def run_paper_experiments(
     *, params: Params | None = None, sensing: str = "paper", estimator: str | None = "kalman",
-    q2d_method: str = "model",
+    q2d_method: str = "model", leak: float | None = None,
     t_final: float = 10.0, compare_q2d: bool = True, tasks: list[str] | None = None,
     progress: Callable[[str], None] | None = print,
 ) -> PaperExperiments:
@@ -124,16 +140,29 @@ def run_paper_experiments(
     ``jaxflex.presets.TRAJECTORIES``) with and without compensation under the sensing preset
     ``sensing`` with its velocities from ``estimator`` ("kalman", "filtered", or None for the
     preset's own; ignored where the preset has exact velocities), ``t_final`` [s] per run; with ``compare_q2d`` also compare the three
-    q2d-derivative options (docs/spec.md section 3). Writes nothing (see
+    q2d-derivative options (docs/spec.md section 3). ``leak`` [rad/s]: the observer leakage
+    (``CascadeGains.leak``); None takes the parameter file's, or ``REPRODUCE_LEAK`` for the
+    paper's parameters (whose file records none); 0 is the paper's observer. With leak > 0 the
+    compensated runs and the loop at rest are repeated with the paper's observer
+    (``PaperExperiments.paper_observer``). Writes nothing (see
     ``jaxflex.reports.write_paper_experiments``).
     """
+    if leak is not None and not (np.isfinite(leak) and leak >= 0):
+        raise ValueError(f"leak must be a finite number >= 0 rad/s, got {leak}")
+    own = params is None
     params = paper_params() if params is None else params
     plant, gains = params.to_plant(), params.to_gains()
+    if leak is None and own:
+        leak = REPRODUCE_LEAK
+    if leak is not None:
+        gains = eqx.tree_at(lambda g: g.leak, gains,
+                            jax.numpy.full(gains.n, float(leak), gains.Ke.dtype))
+    leak_used = [float(x) for x in np.broadcast_to(np.asarray(gains.leak), (gains.n,))]
     sens = with_estimator(sensing_preset(sensing), estimator)
     say = progress or (lambda s: None)
     config = {
         "params": params.to_dict(), "sensing": sensing, "estimator": sens.velocity,
-        "q2d_method": q2d_method,
+        "q2d_method": q2d_method, "observer_leak": leak_used,
         "dt": 1e-3, "t_final": t_final, "tau_max": 2.0,
     }
     t_start = time.perf_counter()
@@ -156,17 +185,30 @@ def run_paper_experiments(
             summaries={k: _summary(r) for k, r in runs.items()})
     say("[reproduce] the loop at rest ...")
     rest = rest_oscillation(plant, gains, sensing=sens, q2d_method=q2d_method)
+    paper_obs = None
+    if any(x > 0 for x in leak_used):
+        say("[reproduce] the paper's observer (no leakage), with compensation ...")
+        paper_gains = eqx.tree_at(lambda g: g.leak, gains, jax.numpy.zeros_like(gains.Ke))
+        paper_obs = {"observer_leak": [0.0] * gains.n, "experiments": {}}
+        for name in experiments:
+            r = run_closed_loop(plant, paper_gains, trajectory_preset(name), compensation=True,
+                                q2d_method=q2d_method, sensing=sens, t_final=t_final)
+            paper_obs["experiments"][name] = {"with_compensation": _summary(r)}
+        paper_obs["rest"] = rest_oscillation(plant, paper_gains, sensing=sens,
+                                             q2d_method=q2d_method, keys=("with_compensation",))
     q2d = None
     if compare_q2d:
         say("[reproduce] q2d-derivative options ...")
         q2d = compare_q2d_methods(plant, gains, t_final=t_final)
     return PaperExperiments(config=config, experiments=experiments, q2d_comparison=q2d,
-                            wall_time_s=time.perf_counter() - t_start, rest=rest)
+                            wall_time_s=time.perf_counter() - t_start, rest=rest,
+                            paper_observer=paper_obs)
 
 
 def rest_oscillation(
     plant: FlexibleJointPlant, gains: CascadeGains, *, sensing: AbstractSensing,
     q2d_method: str = "model", t_final: float = 6.0, tail: float = 3.0, hold: float = 0.003,
+    keys: tuple[str, ...] = COMPENSATION_KEYS,
 ) -> dict[str, Any]:
     """Does the loop oscillate at rest, and why? Per compensation setting: the link error of
     the loop held at a reference of ``hold`` rad for ``t_final`` s (by default between two
@@ -174,14 +216,15 @@ def rest_oscillation(
     and amplitude [rad] of its spectral peak there; and the modes of the loop linearised at
     rest (``jaxflex.analyse.analyse_loop``: spectral radius, the slowest modes with frequency,
     damping and the states taking part), which say whether an oscillation is a growing mode
-    of the design (radius > 1) or forced by quantisation."""
+    of the design (radius > 1) or forced by quantisation. ``keys``: the compensation settings
+    to run (``COMPENSATION_KEYS`` or a subset)."""
     from jaxflex.analyse import analyse_loop
     from jaxflex.trajectory import Multisine
 
     rest_ref = Multisine(amplitudes=np.zeros((1, plant.n)), frequencies=np.ones((1, plant.n)),
                          phases=np.zeros((1, plant.n)), offset=np.full(plant.n, hold))
     out: dict[str, Any] = {"t_final": t_final, "tail": tail, "hold": hold}
-    for key in COMPENSATION_KEYS:
+    for key in keys:
         comp = key == "with_compensation"
         r = run_closed_loop(plant, gains, rest_ref, compensation=comp, q2d_method=q2d_method,
                             sensing=sensing, t_final=t_final)

@@ -307,12 +307,16 @@ class Params:
         if d.get("gains") is not None:
             if not isinstance(d["gains"], dict):
                 raise ParamsError(f"section 'gains' must be an object, got {type(d['gains']).__name__}")
-            check_keys(d["gains"], GAIN_NAMES, where="gains: ", error=ParamsError)
+            check_keys(d["gains"], GAIN_NAMES + ("leak",), where="gains: ", error=ParamsError)
             gains = {}
             for k in GAIN_NAMES:
                 if k not in d["gains"]:
                     raise ParamsError(f"gains.{k} is missing")
                 gains[k] = _vector("gains", k, d["gains"][k], n)
+            if "leak" in d["gains"]:  # optional: the observer's leakage (0: the paper's)
+                gains["leak"] = _vector("gains", "leak", d["gains"]["leak"], n)
+                if any(x < 0 for x in gains["leak"]):
+                    raise ParamsError(f"gains.leak: must be >= 0 rad/s, got {gains['leak']}")
         effects = d.get("effects") or {}
         if not isinstance(effects, dict):
             raise ParamsError("'effects' must be an object mapping effect names to parameters")

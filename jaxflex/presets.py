@@ -130,6 +130,12 @@ def sensing_preset(name: str) -> Sensing:
 
 VELOCITY_ESTIMATORS: tuple[str, ...] = ("filtered", "kalman")
 
+REPRODUCE_LEAK: float = 0.2
+"""The observer leakage [rad/s] ``jaxflex reproduce`` adds to the paper's gains by default
+(``CascadeGains.leak``; 0 is the paper's observer): the smallest value of the grid of
+``studies/observer_leak.py`` at which every mode of the loop linearised at rest has a damping
+ratio of at least 0.05 under the ideal, rig and paper sensings (with the Kalman filter)."""
+
 
 def with_estimator(sensing: Sensing, estimator: str | None) -> Sensing:
     """``sensing`` with its velocity source replaced by ``estimator`` ("filtered": the dirty

@@ -231,7 +231,7 @@ def _with_gains(ctrl, gains):
 
 
 @eqx.filter_jit
-def _risk_and_grad(theta, batch, settings):
+def _risk_and_grad(theta, leak, batch, settings):
     """(log risk, (risk, aux)) and its gradient in theta = log(gains) over the batch."""
     t_final, substeps, noisy, tw, risk, lost = settings
     _, plant, ctrl, sensing, keys, _ = batch
@@ -246,7 +246,7 @@ def _risk_and_grad(theta, batch, settings):
 
     def objective(th):
         costs, bad, rms = jax.vmap(per_plant, in_axes=(None, 0, 0, 0, 0))(
-            gains_of(th), plant, ctrl, sensing, keys)
+            gains_of(th, leak), plant, ctrl, sensing, keys)
         r = risk(costs)
         return jnp.log(r), (r, {"rms_error": rms, "costs": costs, "lost": bad})
 
@@ -361,6 +361,7 @@ def tune_robust(
     settings = (spec.t_final, spec.substeps, noisy, task.torque_weight, task.risk,
                 task.lost_cost())
     batch0 = sample_batch(spec, jnp.arange(task.plants))
+    leak = initial.leak
     plants0 = batch0[1]
     calls = [0]
 
@@ -369,10 +370,10 @@ def tune_robust(
         if task.resample and calls[0] > 0:
             batch = sample_batch(spec, jnp.arange(task.plants) + calls[0] * task.plants)
         calls[0] += 1
-        return _risk_and_grad(theta, batch, settings)
+        return _risk_and_grad(theta, leak, batch, settings)
 
     def constraint(theta) -> float:
-        g = gains_of(jnp.asarray(theta))
+        g = gains_of(jnp.asarray(theta), leak)
         return min(float(_box_min(g, box_arr, vgrid, eps)),
                    float(jnp.min(_sample_lambda_min(g, plants0, vgrid, eps)))) - margin
 
@@ -383,7 +384,7 @@ def tune_robust(
     theta_init = jnp.log(initial.to_vector())
     lo, hi = theta_init - math.log(box), theta_init + math.log(box)
     theta_start, phase = ascend_feasibility(
-        theta_init, lambda th: _box_min_and_grad(th, box_arr, vgrid, eps), feasible, lo, hi,
+        theta_init, lambda th: _box_min_and_grad(th, leak, box_arr, vgrid, eps), feasible, lo, hi,
         feasibility_iterations)
     ok, c = feasible(theta_start)
     if not ok:
@@ -395,12 +396,12 @@ def tune_robust(
         theta_start, value_and_grad, feasible, iterations=iterations, starts=starts,
         learning_rate=learning_rate, spread=spread, lo=lo, hi=hi, seed=seed, progress=progress)
     if phase:
-        (val, (r0, _)), _ = _risk_and_grad(theta_init, batch0, settings)
+        (val, (r0, _)), _ = _risk_and_grad(theta_init, leak, batch0, settings)
         initial_risk = float(r0)
     candidates.sort(key=lambda c: c[0])
     (risk_best, best), cert, v_check, certified, lam_s = candidates[0], None, v_task, False, -math.inf
     for cost, theta in candidates:
-        g = gains_of(jnp.asarray(theta))
+        g = gains_of(jnp.asarray(theta), leak)
         speeds = np.asarray(_max_speed(g, batch0, spec.t_final, spec.substeps, noisy))
         v = max(v_task, float(np.max(speeds)))
         if not math.isfinite(v):
@@ -411,7 +412,7 @@ def tune_robust(
             risk_best, best, cert, v_check, certified, lam_s = cost, theta, c, v, True, lam
             break
     return RobustResult(
-        gains=gains_of(jnp.asarray(best)), certified=certified, risk=float(risk_best),
+        gains=gains_of(jnp.asarray(best), leak), certified=certified, risk=float(risk_best),
         initial_gains=initial, initial_risk=float(initial_risk), task=task, box=pbox,
         box_how=how, certificate=cert, v_check=v_check, margin=margin,
         sample_lambda_min=lam_s, starts=records, wall_time_s=time.perf_counter() - t0,
@@ -419,8 +420,8 @@ def tune_robust(
 
 
 @eqx.filter_jit
-def _box_min_and_grad(theta, box, vgrid, eps):
-    return jax.value_and_grad(lambda th: _box_min(gains_of(th), box, vgrid, eps))(theta)
+def _box_min_and_grad(theta, leak, box, vgrid, eps):
+    return jax.value_and_grad(lambda th: _box_min(gains_of(th, leak), box, vgrid, eps))(theta)
 
 
 @requires_float64

@@ -39,7 +39,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from jaxflex.certificate import DEFAULT_EPS, certify, lambda_min_curve, ultimate_bound
 from jaxflex.controller import CascadeController, CascadeGains
@@ -263,18 +263,19 @@ def tune(
     vgrid = jnp.linspace(0.0, v_task, grid)
     st_sensing = StraightThrough(task.sensing)
     theta_init = jnp.log(initial.to_vector())
+    leak = initial.leak
     _check_gains_vector(np.asarray(theta_init))
     lo, hi = theta_init - math.log(box), theta_init + math.log(box)
 
     def value_and_grad(theta):
-        return _log_cost_and_grad(theta, plant, model, task.trajectories, st_sensing,
+        return _log_cost_and_grad(theta, leak, plant, model, task.trajectories, st_sensing,
                                   task.settings())
 
     zeta = task.min_rest_damping
     rest = _rest_map(plant, model, initial, task) if zeta is not None else None
 
     def constraint(theta) -> float:
-        c = float(_constraint(theta, model, vgrid, jnp.asarray(0.0 if margin is None else margin), eps))
+        c = float(_constraint(theta, leak, model, vgrid, jnp.asarray(0.0 if margin is None else margin), eps))
         if margin is None:
             c = math.inf
         if zeta is not None:
@@ -292,7 +293,7 @@ def tune(
         m_arr = jnp.asarray(0.0 if margin is None else margin)
 
         def c_and_grad(th):
-            return _constraint_and_grad(th, model, vgrid, m_arr, eps, rest, zeta,
+            return _constraint_and_grad(th, leak, model, vgrid, m_arr, eps, rest, zeta,
                                         margin is not None)
 
         theta_init, phase = ascend_feasibility(theta_init, c_and_grad, feasible, lo, hi)
@@ -318,7 +319,7 @@ def tune(
     candidates.sort(key=lambda c: c[0])
     best_cost, best, cert = initial_cost, np.asarray(theta_init), None
     for cost, theta in candidates:
-        g = gains_of(jnp.asarray(theta))
+        g = gains_of(jnp.asarray(theta), leak)
         if margin is None:
             best_cost, best = cost, theta
             break
@@ -332,7 +333,7 @@ def tune(
             best_cost, best, cert = cost, theta, c
             break
     return TuneResult(
-        gains=gains_of(jnp.asarray(best)), cost=float(best_cost), initial_gains=initial,
+        gains=gains_of(jnp.asarray(best), leak), cost=float(best_cost), initial_gains=initial,
         initial_cost=initial_cost, certificate=cert, v_task=v_task, margin=margin,
         starts=records, wall_time_s=time.perf_counter() - t_start, evaluations=evals,
     )
@@ -415,9 +416,10 @@ def adam_search(
     return candidates, records, initial_cost, evals
 
 
-def gains_of(theta: Array) -> CascadeGains:
-    """The gains of the search coordinates theta = log(gains) (6n,)."""
-    return CascadeGains.from_vector(jnp.exp(theta))
+def gains_of(theta: Array, leak: ArrayLike = 0.0) -> CascadeGains:
+    """The gains of the search coordinates theta = log(gains) (6n,), with the observer
+    leakage ``leak`` [rad/s] (not searched: kept at the start gains' value)."""
+    return CascadeGains.from_vector(jnp.exp(theta), leak)
 
 
 def ascend_feasibility(theta: Array, value_and_grad: Callable, feasible: Callable,
@@ -464,31 +466,33 @@ def _rest_damping(theta, rest):
     """Smallest damping ratio of the rest modes of ``rest`` with the gains exp(theta)."""
     from jaxflex.analyse import rest_damping
 
-    return rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, gains_of(theta)))
+    g = gains_of(theta, rest.controller.gains.leak)
+    return rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, g))
 
 
 _damping_value = eqx.filter_jit(_rest_damping)
 
 
 @eqx.filter_jit
-def _constraint_and_grad(theta, model, vgrid, margin, eps, rest, zeta, use_n2):
+def _constraint_and_grad(theta, leak, model, vgrid, margin, eps, rest, zeta, use_n2):
     def c(th):
         d = _rest_damping(th, rest) - zeta
         if not use_n2:
             return d
-        return jnp.minimum(jnp.min(lambda_min_curve(model, gains_of(th), vgrid, eps)) - margin, d)
+        return jnp.minimum(
+            jnp.min(lambda_min_curve(model, gains_of(th, leak), vgrid, eps)) - margin, d)
 
     return jax.value_and_grad(c)(theta)
 
 
 @eqx.filter_jit
-def _log_cost_and_grad(theta, plant, model, trajectories, sensing, settings):
+def _log_cost_and_grad(theta, leak, plant, model, trajectories, sensing, settings):
     """(log cost, (cost, aux)) and its gradient in theta = log(gains); module-level so that
     repeated ``tune`` calls on same-shaped tasks reuse the compiled function."""
     task = TuneTask.from_settings(trajectories, sensing, settings)
 
     def objective(th):
-        cost, aux = tracking_cost(plant, gains_of(th), task, model, sensing)
+        cost, aux = tracking_cost(plant, gains_of(th, leak), task, model, sensing)
         safe = jnp.where(jnp.isfinite(cost), cost, 1.0)
         return jnp.where(jnp.isfinite(cost), jnp.log(safe), jnp.inf), (cost, aux)
 
@@ -496,9 +500,9 @@ def _log_cost_and_grad(theta, plant, model, trajectories, sensing, settings):
 
 
 @eqx.filter_jit
-def _constraint(theta, model, vgrid, margin, eps):
+def _constraint(theta, leak, model, vgrid, margin, eps):
     """min over the speed grid of lambda_min(N2) minus the margin (>= 0: certified)."""
-    return jnp.min(lambda_min_curve(model, gains_of(theta), vgrid, eps)) - margin
+    return jnp.min(lambda_min_curve(model, gains_of(theta, leak), vgrid, eps)) - margin
 
 
 def simulate_task(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask,

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from jaxflex.presets import SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES, VELOCITY_ESTIMATORS
+from jaxflex.presets import (REPRODUCE_LEAK, SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES,
+                             VELOCITY_ESTIMATORS)
 
 
 EXAMPLE = "jaxflex reproduce --out out/paper --duration 10"
@@ -28,6 +29,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "--sensing ideal (exact velocities)")
     p.add_argument("--q2d", default="model", choices=["model", "filtered", "reference"],
                    help="how the controller gets q2d' and q2d'' (default: model)")
+    p.add_argument("--leak", type=float, default=None,
+                   help="observer leakage [rad/s] (CascadeGains.leak; 0: the paper's observer, "
+                   "which oscillates at rest); default: the parameter file's, or "
+                   f"{REPRODUCE_LEAK} for the paper's parameters (studies/observer_leak.py)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds per run (default 10)")
     p.add_argument("--tasks", nargs="+", default=None, choices=TRAJECTORIES,
                    help="run only these experiments (default: all)")
@@ -43,11 +48,13 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.cli.outputs import check_outputs
     from jaxflex.reports import write_paper_experiments
 
+    if args.leak is not None and not args.leak >= 0:
+        raise SystemExit(f"jaxflex reproduce: --leak must be >= 0 rad/s, got {args.leak}")
     check_outputs(args.force, folders=[args.out], marker="results.json")
     params = load_params(args.params) if args.params else None
     results = run_paper_experiments(
         params=params, sensing=args.sensing, estimator=args.estimator, q2d_method=args.q2d,
-        t_final=args.duration,
+        t_final=args.duration, leak=args.leak,
         compare_q2d=not args.no_q2d_comparison, tasks=args.tasks,
     )
     res = write_paper_experiments(results, args.out)
@@ -56,13 +63,28 @@ def run(args: argparse.Namespace) -> int:
         for key in ("without_compensation", "with_compensation"):
             print(f"{name:<12} {key.split('_')[0]:<13} {e['rms_error'][key]:>14.3e} "
                   f"{e['max_error'][key]:>14.3e} {e['tau_rms'][key]:>17.3f}")
-    rest = res.get("rest")
-    if rest:
+    leak = res["config"]["observer_leak"]
+    print(f"observer leakage {leak} rad/s" + (" (the paper's observer)" if not any(leak) else ""))
+
+    def rest_lines(rest, label):
         for key in ("without_compensation", "with_compensation"):
+            if key not in rest:
+                continue
             r = rest[key]
-            print(f"at rest {key.split('_')[0]:<8} RMS error {r['rms_error_tail']:.2e} rad, "
+            print(f"at rest {key.split('_')[0]:<8}{label} RMS error {r['rms_error_tail']:.2e} rad, "
                   f"spectral peak {r['peak_amplitude']:.2e} rad at {r['peak_hz']:.2f} Hz; "
                   f"linearised loop: spectral radius {r['spectral_radius']:.4f} "
                   f"({'stable' if r['stable'] else 'a growing mode'})")
+
+    if res.get("rest"):
+        rest_lines(res["rest"], "")
+    po = res.get("paper_observer")
+    if po:
+        print("the paper's observer (leak 0), with compensation:")
+        for name, e in po["experiments"].items():
+            w = e["with_compensation"]
+            print(f"  {name:<12} RMS err {w['rms_error']:.3e} rad, max {w['max_error']:.3e} rad, "
+                  f"{100 * w['saturation_fraction']:.0f}% of samples at the torque limit")
+        rest_lines(po["rest"], " (paper's observer)")
     print(f"\nwrote {args.out}/results.json and figures ({res['wall_time_s']:.0f} s)")
     return 0
