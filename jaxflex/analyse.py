@@ -174,8 +174,18 @@ def _jac_step(m: ClosedLoopMap, unravel: Callable):
 
 def jacobian_at(m: ClosedLoopMap, t: float, xi: Float[Array, " d"], unravel: Callable
                 ) -> Float[Array, "d d"]:
-    """dPhi/dxi at time ``t`` [s] and state ``xi`` (forward-mode autodiff)."""
-    return jax.jit(_jac_step(m, unravel))(xi, jnp.asarray(t, xi.dtype))
+    """dPhi/dxi at time ``t`` [s] and state ``xi`` (forward-mode autodiff). ``unravel`` is
+    ``m.initial()``'s (the layout of xi); the compiled Jacobian is cached per map structure,
+    so repeated calls (other gains, plants, times or states of the same shapes) do not
+    recompile."""
+    del unravel  # rebuilt inside the compiled function from m, which fixes the same layout
+    return _jacobian_compiled(m, jnp.asarray(t, xi.dtype), xi)
+
+
+@eqx.filter_jit
+def _jacobian_compiled(m: ClosedLoopMap, t: Array, xi: Array) -> Array:
+    _, unravel = m.initial()
+    return _jac_step(m, unravel)(xi, t)
 
 
 def rest_modes(m: ClosedLoopMap, t: float = 0.0, settle: float = 0.0) -> tuple[Modes, np.ndarray]:

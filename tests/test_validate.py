@@ -59,3 +59,40 @@ def test_loop_controller_section_is_checked():
         PPCascade.from_dict({"type": "pp_cascade", "kpp": 1.0, "kv": 2.0, "gtau": 3.0})
     with pytest.raises(ParamsError, match="gtau is missing"):
         PPCascade.from_dict({"type": "pp_cascade", "kp": 1.0, "kv": 2.0})
+
+
+def _pp_params(M=95.0, Fv=200.0, Fc=20.0, offset=3.0):
+    return Params.from_dict({
+        "plant": {"I": M - 1e-3, "J": 1e-3, "K": 1e6},
+        "friction": {"Fc": Fc, "Fs": 26.0, "vs": 0.01, "sigma0": 1e6, "sigma1": 0.0, "sigma2": Fv},
+        "effects": {"torque_offset": {"offset": [offset]}},
+        "loop_controller": {"type": "pp_cascade", "kp": 160.18, "kv": 243.44, "gtau": 35.15}})
+
+
+def test_closed_loop_fit_recovers_a_known_rigid_axis_and_refuses_what_it_cannot_run():
+    """Closed-loop output error through the P/P cascade (the EMPS benchmark's loop): a log
+    simulated by the same loop from known parameters is fitted back from 15-20% off."""
+    from jaxflex.validate import closed_loop_fit, simulate_pp_cascade
+
+    truth = _pp_params()
+    from jaxflex.data import load_emps
+
+    dt, N = 1e-3, 4000
+    t = np.arange(N) * dt
+    ref = load_emps("DATA_EMPS").q1d[:N, 0]  # the benchmark's rest-to-rest reference [m]
+    q, tau = simulate_pp_cascade(truth, PPCascade.from_dict(truth.extra["loop_controller"]),
+                                 ref, dt)
+    log = Log.from_arrays(t=t, tau=tau, q1=q, q2=q, q1d=ref)
+    start = _pp_params(M=80.0, Fv=240.0, Fc=16.0, offset=2.4)
+    res = closed_loop_fit(start, log, ["I", "sigma2", "Fc", "torque_offset.offset"],
+                          max_steps=40)
+    p = res["params"]
+    assert res["converged"] and res["cost"] < 1e-6 * res["cost_start"]
+    assert p.plant["I"][0] == pytest.approx(truth.plant["I"][0], rel=1e-3)
+    assert p.friction["sigma2"][0] == pytest.approx(200.0, rel=1e-3)
+    assert p.friction["Fc"][0] == pytest.approx(20.0, rel=1e-3)
+    with pytest.raises(ValueError, match="declare no controller"):
+        closed_loop_fit(Params.from_dict({k: v for k, v in start.to_dict().items()
+                                          if k != "loop_controller"}), log, ["I"])
+    with pytest.raises(ValueError, match="no reference"):
+        closed_loop_fit(start, Log.from_arrays(t=t, tau=tau, q1=q, q2=q), ["I"])
