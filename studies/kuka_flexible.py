@@ -365,7 +365,7 @@ def main(argv: list[str] | None = None) -> dict:
               + "; K by trajectory (torque / deflection domain) "
               + ", ".join(f"{k} {v['K_torque']:.3g} / {v['K_deflection']:.3g}"
                           for k, v in by_traj.items())
-              + f"; pcorr " + ", ".join(f"{k} {v:.2f}" for k, v in pcorr.items())
+              + "; pcorr " + ", ".join(f"{k} {v:.2f}" for k, v in pcorr.items())
               + f"; skew {1e3 * row['skew_s']:.3f} +- {1e3 * row['skew_stderr']:.3f} ms; "
               "torque % " + ", ".join(
                   f"{k} {row[k]['torque_pct']:.2f} (rigid {row['rigid_baseline'][k]:.2f})"
