@@ -213,7 +213,7 @@ def closed_loop_residuals(theta: dict, data: ClosedLoopFit) -> jax.Array:
 def closed_loop_fit(
     params: Params, log: Log, free: list[str], *, kind: str = "rigid",
     disturbance: np.ndarray | None = None, substeps: int = 2, drop: int = 49,
-    max_steps: int = 30,
+    max_steps: int = 100, rtol: float = 1e-8, atol: float = 1e-8,
 ) -> dict[str, Any]:
     """Output-error identification *in closed loop*: the parameters ``free`` (names of
     ``jaxflex.fit.ParamSpace``) that minimise the benchmark metric's position and torque
@@ -226,7 +226,8 @@ def closed_loop_fit(
     that both enter equally however different their scales (a position error of 1e-5 of the
     stroke and a torque error of 5% are both "1" at the start). Start from an identified
     model (an equation-error or multiple-shooting fit): the closed loop's error surface is
-    smooth near a good model but not far from it.
+    smooth near a good model but not far from it. ``max_steps``, ``rtol``, ``atol``: the
+    engine's step cap and termination tolerances (``jaxflex.fit.least_squares``).
 
     Returns a dict: ``params`` (the refined ``Params``), ``stderr`` (name -> physical
     standard error, from the engine's covariance; the residuals are autocorrelated, so read
@@ -263,7 +264,7 @@ def closed_loop_fit(
                          "from parameters whose closed loop runs (finite, non-zero errors)")
     data = eqx.tree_at(lambda x: x.w, data, jnp.asarray([1.0 / norms[0], 1.0 / norms[1]]))
     sol = least_squares(data, space.theta0(), fn=closed_loop_residuals, max_steps=max_steps,
-                        scaling="marquardt")
+                        rtol=rtol, atol=atol, scaling="marquardt")
     cov = covariance(data, sol.y, fn=closed_loop_residuals)
     phys = {k: np.asarray(v) for k, v in space.physical(sol.y).items()}
     return {"params": set_values(params, phys),

@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> dict:
     p_ms = res.params
     t1 = time.perf_counter()
     refine = closed_loop_fit(p_ms, log, free, kind="rigid",  # DATA_EMPS has no pulses
-                             max_steps=10 if args.small else 40)
+                             max_steps=10 if args.small else 150)
     wall_refine = time.perf_counter() - t1
     p = refine["params"]
     pub = PUBLISHED["params"]
