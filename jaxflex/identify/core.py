@@ -215,7 +215,7 @@ def identify(
         schedules = [None]
     good = accept_cost * prob.n_out / 2
     t0 = time.perf_counter()
-    best = None
+    best, best_factor = None, None
     attempts = []
     for origin, y_start in starts:
         for factor in schedules:
@@ -238,7 +238,7 @@ def identify(
                 print(f"  [identify] start {origin}, warm_start={factor}: cost {sol.cost:.6e}"
                       f" (noise explains <= {good:.3e}); {sol.reason}")
             if best is None or sol.cost < best.cost:
-                best = sol
+                best, best_factor = sol, factor
             if _settled(sol, good):
                 break
         if _settled(best, good):
@@ -249,24 +249,54 @@ def identify(
     res.attempts = attempts
     if start:
         attempts.insert(0, {"static_start": start})
-    bad = [k for k in res.unidentifiable if k in prob.space.names]
-    keep = [k for k in prob.space.names if k not in bad]
-    if bad and keep and res.converged:
-        # Fix what the data cannot determine at its initial value and refit the rest, so that
-        # the identified values do not absorb a meaningless direction.
+    # Fix what the data cannot determine at its initial value and refit the rest, so that the
+    # identified values neither absorb a meaningless direction nor are reported beside a
+    # parameter reset after the fit (converged or not: a reset value and the values fitted
+    # with the discarded one do not belong together). One parameter at a time, the least
+    # determined first (a null direction, else the largest relative standard error; never
+    # one marked only because its Fs/Fc partner is), until the rest are all determined.
+    first, fixed_why, cur, y_cur, total = res, {}, prob, best.y, best.steps
+    for _ in range(len(prob.space.names)):
+        own = [k for k in res.unidentifiable if k in cur.space.names
+               and not res.why.get(k, "").startswith("kept at its initial value with")]
+        if not own:
+            break
+        worst = max(own, key=lambda k: (k != "Fs" or len(own) == 1,  # fixing Fs caps Fc
+                                        k in res.why and "null direction" in res.why[k],
+                                        max(res.rel_stderr.get(k, [0.0]))))
+        keep = [k for k in cur.space.names if k != worst]
+        if not keep:
+            break
+        fixed_why[worst] = res.why[worst]
         sub, _ = make_problem(log, init, keep, model=model, segment_length=segment_length,
                               substeps=substeps, outputs=outputs, output_scale=output_scale,
                               continuity_weight=continuity_weight)
-        theta = {k: best.y[0][k] for k in keep}
-        sol = least_squares(sub, (theta, best.y[1]), rtol=rtol, atol=atol,
-                            max_steps=max_steps, progress=say)
-        attempts.append({"refit_without": bad, "cost": sol.cost, "steps": sol.steps,
-                         "reason": sol.reason})
-        first = res
-        res = finish(sub, init, sol.y, steps=best.steps + sol.steps,
-                     converged=_settled(sol, good), wall_s=time.perf_counter() - t0,
-                     rel_stderr_limit=rel_stderr_limit, reason=_reason(sol, good),
-                     noise_cost=good, log=log, unidentified=first.why)
+        # from the values fitted so far and from the user's start (those fitted together with
+        # the parameter now fixed may sit far from where the better-posed problem goes)
+        sol = None
+        for label, start_y in (("fitted", ({k: y_cur[0][k] for k in keep}, y_cur[1])),
+                               ("user", y0)):
+            if label == "user":
+                start_y = ({k: start_y[0][k] for k in keep}, start_y[1])
+                if best_factor is not None and sub.segs.count > 1:  # the winning schedule
+                    loose = eqx.tree_at(lambda q: q.w_def, sub, sub.w_def * best_factor)
+                    start_y = least_squares(loose, start_y, rtol=rtol, atol=atol,
+                                            max_steps=warm_steps, progress=say).y
+            s_ = least_squares(sub, start_y, rtol=rtol, atol=atol, max_steps=max_steps,
+                               progress=say)
+            total += s_.steps
+            attempts.append({"refit_without": list(fixed_why), "start": label,
+                             "cost": s_.cost, "steps": s_.steps, "reason": s_.reason})
+            if sol is None or s_.cost < sol.cost:
+                sol = s_
+            if _settled(sol, good):
+                break
+        res = finish(sub, init, sol.y, steps=total, converged=_settled(sol, good),
+                     wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
+                     reason=_reason(sol, good), noise_cost=good, log=log,
+                     unidentified=dict(fixed_why))
+        cur, y_cur = sub, sol.y
+    if res is not first:
         res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
         res.warnings = first.warnings + res.warnings
         res.attempts = attempts
