@@ -211,3 +211,22 @@ def test_rest_damping_constraint_is_enforced_and_reached_from_an_undamped_start(
     assert np.isfinite(damped.cost)
     with pytest.raises(ValueError, match="min_rest_damping"):
         dataclasses.replace(task, min_rest_damping=2.0)
+
+
+def test_tune_keeps_the_observer_leak_and_its_damped_rest():
+    """The observer leakage is not searched: a tune from leaky gains returns the same leak,
+    and with it the paper's gains already meet a rest-damping constraint they fail without
+    (docs/spec.md section 3, 'Leakage')."""
+    import dataclasses
+
+    from jaxflex.tune import _damping_value, _rest_map
+
+    plant = paper_plant()
+    leaky = eqx.tree_at(lambda g: g.leak, paper_gains(), jnp.full(1, 0.2))
+    task = dataclasses.replace(_task(), sensing=Sensing(), min_rest_damping=0.05)
+    rest = _rest_map(plant, plant, leaky, task)
+    assert float(_damping_value(jnp.log(leaky.to_vector()), rest)) >= 0.05
+    res = tune(plant, leaky, task, margin=0.05, iterations=1, starts=1)
+    assert res.gains.to_dict()["leak"] == [0.2]
+    assert res.certificate is not None and res.certificate.certified
+    assert float(_damping_value(jnp.log(res.gains.to_vector()), rest)) >= 0.05
