@@ -4,7 +4,9 @@ Question: identified on DATA_EMPS (rigid prismatic axis: mass, Coulomb + Stribec
 friction, force offset; multiple shooting through the simulator, ``jaxflex.identify``, then
 refined by closed-loop output error, ``jaxflex.validate.closed_loop_fit``: the declared P/P
 cascade simulated on the log's reference, position and force errors each weighted by the
-inverse of their start value, gradients through the whole loop, the same engine), what
+inverse of their start value, gradients through the whole loop, the same engine; from the
+multiple-shooting result, the study's initial guess and the former with a Stribeck hump, the
+lowest error on DATA_EMPS kept), what
 are the benchmark's closed-loop errors ``100 ||y - y_sim|| / ||y||`` (position, velocity,
 force) on DATA_EMPS and DATA_EMPS_PULSES, next to the published IDIM-LS parameters run
 through the *same* harness (``jaxflex.validate``: the P/P cascade with the 0.5/0.5 FIR
@@ -28,6 +30,8 @@ import json
 import time
 import warnings
 from pathlib import Path
+
+import numpy as np
 
 PUBLISHED = {
     "params": {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648},
@@ -81,9 +85,30 @@ def main(argv: list[str] | None = None) -> dict:
                        substeps=2, max_steps=30 if args.small else 100, rtol=1e-8, atol=1e-8)
     wall = time.perf_counter() - t0
     p_ms = res.params
+    # the closed loop's error surface has several minima: refine from the multiple-shooting
+    # result, from the study's own initial guess and from the multiple-shooting result with a
+    # Stribeck hump (Fs = 1.5 Fc, vs = 0.1 m/s), and keep the one with the lowest error on
+    # DATA_EMPS (the identification set; DATA_EMPS_PULSES is never looked at), both outputs
+    # weighted alike by the multiple-shooting result's errors
+    from jaxflex.validate import closed_loop_errors
+
     t1 = time.perf_counter()
-    refine = closed_loop_fit(p_ms, log, free, kind="rigid",  # DATA_EMPS has no pulses
+    ref_err = closed_loop_errors(p_ms, log)
+    refines = {}
+    from jaxflex.fit import set_values
+
+    fc = p_ms.friction["Fc"][0]
+    hump = set_values(p_ms, {"Fs": np.array([1.5 * fc]), "vs": np.array([0.1])})
+    for start_name, start in (("multiple_shooting", p_ms), ("initial_guess", init),
+                              ("stribeck_hump", hump)):
+        rf = closed_loop_fit(start, log, free, kind="rigid",  # DATA_EMPS has no pulses
                              max_steps=10 if args.small else 150)
+        e = closed_loop_errors(rf["params"], log)
+        rf["common_cost"] = 0.5 * ((e["position_pct"] / ref_err["position_pct"]) ** 2
+                                   + (e["torque_pct"] / ref_err["torque_pct"]) ** 2)
+        refines[start_name] = rf
+    chosen = min(refines, key=lambda k: refines[k]["common_cost"])
+    refine = refines[chosen]
     wall_refine = time.perf_counter() - t1
     p = refine["params"]
     pub = PUBLISHED["params"]
@@ -109,8 +134,10 @@ def main(argv: list[str] | None = None) -> dict:
     details = {"identified": ident, "stderr_multiple_shooting": res.stderr,
                "stderr_closed_loop": refine["stderr"], "published": PUBLISHED,
                "identify_wall_s": wall, "steps": res.steps, "converged": res.converged,
-               "closed_loop_refinement": {k: refine[k] for k in (
-                   "converged", "steps", "cost_start", "cost", "reason")},
+               "closed_loop_refinement": {"chosen_start": chosen, **{
+                   name: {k: rf[k] for k in ("converged", "steps", "cost_start", "cost",
+                                             "reason", "common_cost")}
+                   for name, rf in refines.items()}},
                "closed_loop_wall_s": wall_refine,
                "samples_identified": log.N, "results": results}
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
@@ -123,8 +150,9 @@ def main(argv: list[str] | None = None) -> dict:
               f"force {PUBLISHED[name]['force_pct']}%")
     print("identified:", {k: round(v, 4) for k, v in ident.items()},
           f"(multiple shooting {wall:.0f} s, converged {res.converged}; closed-loop refinement "
-          f"{wall_refine:.0f} s, {refine['steps']} steps, converged {refine['converged']}, "
-          f"cost {refine['cost_start']:.3f} -> {refine['cost']:.3f})")
+          f"{wall_refine:.0f} s; from " + "; ".join(
+              f"{k}: {rf['steps']} steps, converged {rf['converged']}, weighted error "
+              f"{rf['common_cost']:.3f}" for k, rf in refines.items()) + f"; kept {chosen})")
     return results
 
 

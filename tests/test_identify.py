@@ -210,7 +210,7 @@ def test_two_step_procedure():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["ident_two_step", "ident_bench_scipy", "ident_emps"])
+@pytest.mark.parametrize("name", ["ident_two_step", "ident_bench_scipy"])
 def test_studies_run_small(tmp_path, name):
     import importlib.util
     from pathlib import Path
@@ -232,9 +232,6 @@ def test_studies_run_small(tmp_path, name):
         assert res["jax"]["cost"] < 1e-2 * res["initial_cost"]
         assert res["scipy"]["cost"] < 1e-2 * res["initial_cost"]
         assert math.isfinite(res["cost_ratio_jax_over_scipy"])
-    else:  # EMPS: the identified rigid model replays the benchmark's closed loop closely
-        for row in res["validation"].values():
-            assert row["ours"]["position"] < 1.0, row
 
 
 def _closed_loop_log(t_final, seed=7):
