@@ -209,3 +209,25 @@ def test_structured_covariance_equals_dense_covariance():
         # the Schur route squares the conditioning the dense SVD sees: agree to 1e-4
         np.testing.assert_allclose(fast["stderr"][k], dense["stderr"][k], rtol=1e-4)
     np.testing.assert_allclose(fast["rss"], dense["rss"], rtol=1e-12)
+
+
+def test_zero_residual_optimum_is_reported_converged():
+    """A noise-free log replayed by its own model: the optimum has a residual at rounding
+    level, where every trial step is rejected (the cost cannot fall) and optimistix's test,
+    which needs an accepted step, never fires. The trust region then shrinks below the
+    tolerance on the unknowns, which ends the run as converged (MINPACK's xtol test), at the
+    true values, instead of running to max_steps."""
+    from jax.flatten_util import ravel_pytree
+
+    from jaxflex.identify import make_problem, perturb
+
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.6), substeps=1)
+    init = perturb(p, ("Fc", "sigma2"), (1.05, 0.95))
+    prob, y0 = make_problem(log, init, ("Fc", "sigma2"), segment_length=200, substeps=1)
+    sol = least_squares(prob, y0, max_steps=200)
+    assert sol.converged and sol.steps < 200, (sol.reason, sol.steps, sol.cost)
+    phys = prob.space.physical(sol.y[0])
+    assert abs(float(phys["Fc"][0]) / 0.11 - 1) < 1e-6
+    assert abs(float(phys["sigma2"][0]) / 0.2 - 1) < 1e-6
+    assert np.all(np.isfinite(ravel_pytree(sol.y)[0]))
