@@ -288,7 +288,15 @@ def _step(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: An
     y, state, _ = solver.step(fn, y, args, {}, state, frozenset())
     done, result = solver.terminate(fn, y, args, {}, state, frozenset())
     cost = 0.5 * jnp.sum(state.f_info.residual ** 2)
-    return y, state, done, result == optx.RESULTS.successful, cost
+    # MINPACK's xtol test: the last trial was rejected and the trust region has shrunk until
+    # the next trial step is within the tolerance on the unknowns (Cauchy's y-part). No step
+    # larger than the tolerance lowers the cost: the point is stationary to that tolerance
+    # (at a zero-residual optimum the cost is at rounding level and every trial is rejected,
+    # so optimistix's test, which needs an accepted step, would never fire).
+    y_scale = jax.tree_util.tree_map(lambda a: solver.atol + solver.rtol * jnp.abs(a), y)
+    trial = jax.tree_util.tree_map(lambda a, b, c: jnp.abs(a - b) / c, state.y_eval, y, y_scale)
+    stalled = (state.num_steps_since_acceptance > 0) & (solver.norm(trial) < 1)
+    return y, state, done, result == optx.RESULTS.successful, cost, stalled
 
 
 @eqx.filter_jit
@@ -318,7 +326,9 @@ def least_squares(
     the damping matrix of ``ScaledDampedNewtonDescent`` ("identity" or "marquardt");
     ``structure``: "dense", "shooting" (free-start multiple shooting, linear in the log
     length) or "auto" (shooting for a ``Problem`` with free starts and several segments);
-    ``progress(step, cost)`` is called after every step. Raises ``ValueError`` for
+    ``progress(step, cost)`` is called after every step. Besides optimistix's test, the run
+    ends converged when a rejected trial leaves the trust region below the tolerance on the
+    unknowns (MINPACK's xtol test; see ``_step``). Raises ``ValueError`` for
     ``max_steps < 1``.
     """
     if max_steps < 1:
@@ -334,11 +344,15 @@ def least_squares(
     steps, done, ok, reason = 0, False, True, ""
     try:
         while steps < max_steps:
-            y, state, done_a, ok_a, c = _step(solver, wrapped, y, state, prob)
+            y, state, done_a, ok_a, c, stalled_a = _step(solver, wrapped, y, state, prob)
             steps += 1
-            done, ok = bool(done_a), bool(ok_a)
+            done, ok, stalled = bool(done_a), bool(ok_a), bool(stalled_a)
             if progress is not None:
                 progress(steps, float(c))
+            if ok and stalled and not done:
+                done = True
+                reason = ("tolerance met (the trust region shrank below the tolerance on the "
+                          "unknowns without a step that lowers the cost)")
             if done or not ok:
                 break
     except KeyboardInterrupt:

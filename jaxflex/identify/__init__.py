@@ -10,7 +10,8 @@ Public API (a workflow on the fitting engine ``jaxflex.fit``):
 - ``simulate_log``: replay a log's torque through a parameter set;
 - ``two_step``, ``static_map_experiment``, ``fit_static_map``: the paper's procedure;
 - ``static_map_from_log``: friction against velocity from a log by inverse dynamics (the
-  start ``identify`` takes for Fc, Fs, vs, sigma2);
+  start ``identify`` takes for Fc, Fs, vs, sigma2, joint by joint:
+  ``start_from_static_map``);
 - ``synthetic_log``, ``excitation_torque``: simulated identification experiments;
 - ``ParamSpace``, ``get_value``, ``set_values``, ``Problem``, ``covariance``: from the
   fitting engine ``jaxflex.fit``, re-exported for convenience.
@@ -34,7 +35,13 @@ from jaxflex.identify.experiments import (
     synthetic_log,
     two_step,
 )
-from jaxflex.identify.static import STATIC_NAMES, StaticMap, fit_static_map, static_map_from_log
+from jaxflex.identify.static import (
+    STATIC_NAMES,
+    StaticMap,
+    fit_static_map,
+    start_from_static_map,
+    static_map_from_log,
+)
 from jaxflex.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
 
 __all__ = [
@@ -42,6 +49,6 @@ __all__ = [
     "ParamSpace", "Problem", "StaticMap", "TwoStepResult", "covariance", "excitation_torque",
     "finish", "fit_static_map", "get_value", "identify", "make_problem", "perturb", "replay",
     "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",
-    "static_map_from_log",
+    "start_from_static_map", "static_map_from_log",
     "synthetic_log", "two_step",
 ]

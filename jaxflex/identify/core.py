@@ -37,6 +37,7 @@ from jaxflex.fit import (
     set_values,
     simulated_outputs,
 )
+from jaxflex.identify.static import start_from_static_map
 from jaxflex.logs import Log
 from jaxflex.params import Params
 from jaxflex.state import PlantState
@@ -189,13 +190,15 @@ def identify(
     All stages share one compilation (the engine's solver loops on the host).
     ``static_start``: for the flexible model on a log with both encoders, a first start takes
     the free static parameters (Fc, Fs, vs, sigma2) from a fit of eq. 35 to the friction the
-    log shows by inverse dynamics (``static_map_from_log``), where that fit determines them;
-    the user's ``init`` is the second start, tried when the first does not reach the noise
+    log shows by inverse dynamics (``start_from_static_map``), where that fit determines them,
+    joint by joint (each joint's map from its own inverse dynamics; a joint whose map fixes
+    nothing keeps its values in ``init``); the user's ``init`` is the second start, tried when the first does not reach the noise
     level (a portfolio of starts x schedules, stopping at the first success).
     Parameters the data cannot determine keep their initial values and are marked (see
     ``finish``); a converged fit is then repeated without them.
     """
-    start = _static_start(log, init, free) if (static_start and model == "flexible") else None
+    start = (start_from_static_map(log, init, free)
+             if (static_start and model == "flexible") else None)
     prob, y0 = make_problem(
         log, init, free, model=model, segment_length=segment_length, substeps=substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
@@ -248,7 +251,7 @@ def identify(
                  reason=_reason(best, good), noise_cost=good, log=log)
     res.attempts = attempts
     if start:
-        attempts.insert(0, {"static_start": start})
+        attempts.insert(0, {"static_start": {k: [float(x) for x in v] for k, v in start.items()}})
     # Fix what the data cannot determine at its initial value and refit the rest, so that the
     # identified values neither absorb a meaningless direction nor are reported beside a
     # parameter reset after the fit (converged or not: a reset value and the values fitted
@@ -302,33 +305,6 @@ def identify(
         res.attempts = attempts
     res.params.extra["identification"]["attempts"] = attempts
     return res
-
-
-def _static_start(log: Log, init: Params, free: Sequence[str]) -> dict[str, float] | None:
-    """Start values of the free static friction parameters from the log's own static map,
-    or None when the log cannot give one (no q2, too little motion, a failed or non-physical
-    fit)."""
-    from jaxflex.identify.static import STATIC_NAMES, fit_static_map, static_map_from_log
-
-    names = [k for k in STATIC_NAMES if k in free]
-    if not names or log.q2 is None or log.n != 1:
-        return None
-    try:
-        data = static_map_from_log(log, init.to_plant())
-        fit = fit_static_map(data, {k: float(init.friction[k][0]) for k in STATIC_NAMES})
-    except (ValueError, FloatingPointError):
-        return None
-    top = float(np.max(np.abs(data.F)))
-    # keep a value only where the map determines it (relative standard error below 30%; a
-    # Stribeck peak below the slowest velocity seen is an extrapolation)
-    vals = {k: v for k, (v, se) in fit.items()
-            if math.isfinite(v) and v > 0 and se < 0.3 * v and not (k == "Fs" and v > top)}
-    if "Fc" not in vals or "sigma2" not in vals:  # the map does not even fix the Coulomb level
-        return None
-    out = {k: vals[k] for k in names if k in vals}
-    if "Fs" in names and "Fs" not in out and float(init.friction["Fs"][0]) < vals["Fc"]:
-        out["Fs"] = 1.05 * vals["Fc"]
-    return out
 
 
 def _settled(sol: Any, good: float) -> bool:

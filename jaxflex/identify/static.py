@@ -1,20 +1,24 @@
 """The static friction map (eq. 35) as a fit of the engine, and its data: from constant-velocity
 runs (``experiments.static_map_experiment``) or from any log with both encoders, by inverse
 dynamics (``static_map_from_log``), which gives identification a start for Fc, Fs, vs, sigma2
-that does not depend on the user's guess."""
+that does not depend on the user's guess (``start_from_static_map``, each joint from its own
+inverse dynamics)."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.fit import ParamSpace, covariance, least_squares, savgol
+from jaxflex.fit import ParamSpace, covariance, get_value, least_squares, savgol
 from jaxflex.friction import LuGre
 from jaxflex.logs import Log
+from jaxflex.params import Params
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 
 STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")
@@ -125,3 +129,55 @@ def static_map_from_log(
                 vs_out.append(sign * float(np.median(sign * v[sel][m])))
                 F_out.append(float(np.median(F[sel][m])))
     return StaticMap(v=np.asarray(vs_out), F=np.asarray(F_out))
+
+
+def start_from_static_map(
+    log: Log, init: Params, free: Sequence[str] = STATIC_NAMES,
+) -> dict[str, np.ndarray] | None:
+    """Start values of the static friction parameters among ``free`` (Fc, Fs [N m], vs
+    [rad/s], sigma2 [N m s/rad]) from the log's own static map (eq. 35), joint by joint:
+    name -> (n,) values, each joint's from the friction its own inverse dynamics shows
+    (``static_map_from_log(..., joint=j)``, fitted by ``fit_static_map``) where that joint's
+    map determines them (relative standard error below 30%), else the joint's value in
+    ``init``. None when no joint's map gives one (no q2, too
+    little motion, a failed or non-physical fit)."""
+    names = [k for k in STATIC_NAMES if k in free]
+    if not names or log.q2 is None:
+        return None
+    plant = init.to_plant()
+    out = {k: np.array(get_value(init, k), float) for k in names}
+    found = False
+    for j in range(log.n):
+        vals = _start_of_joint(log, init, plant, names, j)
+        if vals is None:
+            continue
+        found = True
+        for k, v in vals.items():
+            out[k][j] = v
+    if not found:
+        return None
+    if "Fs" in out and "Fc" not in out:  # keep Fs >= Fc against the user's Fc
+        out["Fs"] = np.maximum(out["Fs"], 1.001 * np.asarray(get_value(init, "Fc"), float))
+    return out
+
+
+def _start_of_joint(log: Log, init: Params, plant: FlexibleJointPlant, names: Sequence[str],
+                    j: int) -> dict[str, float] | None:
+    """``start_from_static_map`` of joint ``j``: name -> value, or None where its map fixes
+    nothing."""
+    try:
+        data = static_map_from_log(log, plant, joint=j)
+        fit = fit_static_map(data, {k: float(init.friction[k][j]) for k in STATIC_NAMES})
+    except (ValueError, FloatingPointError):
+        return None
+    top = float(np.max(np.abs(data.F)))
+    # keep a value only where the map determines it (relative standard error below 30%; a
+    # Stribeck peak below the slowest velocity seen is an extrapolation)
+    vals = {k: v for k, (v, se) in fit.items()
+            if math.isfinite(v) and v > 0 and se < 0.3 * v and not (k == "Fs" and v > top)}
+    if "Fc" not in vals or "sigma2" not in vals:  # the map does not even fix the Coulomb level
+        return None
+    out = {k: vals[k] for k in names if k in vals}
+    if "Fs" in names and "Fs" not in out and float(init.friction["Fs"][j]) < vals["Fc"]:
+        out["Fs"] = 1.05 * vals["Fc"]
+    return out
