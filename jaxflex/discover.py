@@ -30,7 +30,10 @@ Workflow (``discover``), for one joint:
    dropped. Every round records the Akaike and Schwarz weights of "none" and each candidate.
 6. Gap floor (``gap_floor``): the held-out gap a correct model reaches on this log, by a
    parametric bootstrap through the workflow's own steps (noise, quantisation, start-state
-   estimate, replay). The answer is the first effect added; else ``none`` when the gap is
+   estimate, replay). The answer is the first effect added, or ``indistinguishable`` when
+   candidates of its size explain the log as well within its noise (``tied``: not told apart
+   by both the Akaike difference and a paired held-out test per segment; all are reported in
+   the evidence, none is guessed); else ``none`` when the gap is
    within ``unexplained_factor`` x the floor (+3 bootstrap sd), ``unexplained`` when it stays
    above: something is missing that the library does not describe, and the localisation says
    where to look.
@@ -509,10 +512,12 @@ class DiscoverResult:
     tied: the first round's candidates that the data cannot tell apart (``tied``; one name,
     the effect, when the answer is decided; empty when none was added);
     effects: all added, in order (in a tie the model carries the tied candidate with the
-    lowest held-out gap, one representative, so that later rounds have a base); gap_before, gap_after, gap_floor: held-out gaps of the refit
-    nominal and the final model, and the gap a correct model reaches on this log
-    (``gap_floor``'s bootstrap; ``floor`` holds its details); unexplained: the final gap is
-    above ``unexplained_factor`` x floor + 3 floor_sd, whether or not effects were added; before, after: the two fits; rounds: per round the base gap,
+    lowest held-out gap, one representative, so that later rounds have a base); gap_before,
+    gap_after, gap_floor: held-out gaps of the refit nominal and the final model, and the gap
+    a correct model reaches on this log (``gap_floor``'s bootstrap; ``floor`` holds its
+    details); unexplained: the final gap is above ``unexplained_factor`` x floor + 3
+    floor_sd, whether or not effects were added; before, after: the two fits; rounds: per
+    round the base gap,
     the residual autocorrelation time, the effective count, every candidate's score and the
     winner; localisation: of the refit nominal model (and of the final one); config; log_info;
     seconds; workspace: the problems (for replays in plots).
