@@ -30,7 +30,10 @@ Workflow (``discover``), for one joint:
    dropped. Every round records the Akaike and Schwarz weights of "none" and each candidate.
 6. Gap floor (``gap_floor``): the held-out gap a correct model reaches on this log, by a
    parametric bootstrap through the workflow's own steps (noise, quantisation, start-state
-   estimate, replay). The answer is the first effect added; else ``none`` when the gap is
+   estimate, replay). The answer is the first effect added, or ``indistinguishable`` when
+   candidates of its size explain the log as well within its noise (``tied``: not told apart
+   by both the Akaike difference and a paired held-out test per segment; all are reported in
+   the evidence, none is guessed); else ``none`` when the gap is
    within ``unexplained_factor`` x the floor (+3 bootstrap sd), ``unexplained`` when it stays
    above: something is missing that the library does not describe, and the localisation says
    where to look.
@@ -242,6 +245,32 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15,
     )
 
 
+def segment_errors(ws: Workspace, fit: CandidateFit) -> np.ndarray:
+    """RMS error [rad] of a fitted model's replay per held-out segment (S,), q1 and q2
+    together: the held-out evidence, segment by segment, for comparing two models on the
+    same segments (``paired_p_value``)."""
+    _, test, _ = ws.for_model(fit.model)
+    y = np.asarray(simulated_outputs(test, fit.theta))
+    return np.sqrt(np.mean((y - np.asarray(test.segs.y_meas)) ** 2, axis=(1, 2)))
+
+
+def paired_p_value(worse: Sequence[float], better: Sequence[float]) -> float:
+    """One-sided paired t-test [-] that model ``better`` replays the same held-out segments
+    better than ``worse``, on the log ratio of their per-segment RMS errors
+    (``segment_errors``): small when the advantage holds segment after segment, near 0.5 or
+    above when it comes from a few segments (a start state that one model happens to
+    forgive) or is absent."""
+    d = np.log(np.maximum(np.asarray(worse, float), 1e-300)) - np.log(
+        np.maximum(np.asarray(better, float), 1e-300))
+    if d.size < 2:
+        return 1.0
+    sd = float(np.std(d, ddof=1))
+    if sd == 0.0:
+        return 0.0 if float(np.mean(d)) > 0 else 1.0
+    t = float(np.mean(d)) / (sd / math.sqrt(d.size))
+    return float(scipy.stats.t.sf(t, d.size - 1))
+
+
 def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     """Simulated outputs (S, L, 2) = (q1, q2) [rad] of a fitted model on the held-out
     segments (for plots)."""
@@ -422,12 +451,40 @@ def select(scores: dict[str, dict[str, Any]], parsimony: float = 0.1) -> str | N
     return min(near, key=lambda k: (fitted_count(k), scores[k]["gap_test"]))
 
 
+def tied(scores: dict[str, dict[str, Any]], winner: str | None, decisive: float = 10.0,
+         tie_alpha: float = 0.05) -> list[str]:
+    """The candidates the data cannot tell apart from ``winner`` (winner included, sorted):
+    significant ones with as many fitted parameters that are not told apart. A rival is told
+    apart only when both kinds of evidence are decisive: the training evidence (its Akaike
+    difference to the winner at least ``decisive``; Burnham and Anderson: a rival more than
+    10 above has essentially no support) and the held-out evidence segment by segment
+    (``paired_p_value`` of the scores' ``segment_errors`` at most ``tie_alpha``; the Akaike
+    count treats the samples as independent, the segments' start-state errors are not, and a
+    held-out gap can come from a few segments whose start one model happens to forgive).
+    Rivals that are not told apart explain the log equally well within its noise: naming one
+    of them would be a guess. Empty when there is no winner."""
+    if winner is None:
+        return []
+    w = scores[winner]
+
+    def told_apart(k: str) -> bool:
+        e_k, e_w = scores[k].get("segment_errors"), w.get("segment_errors")
+        held_out = e_k is not None and e_w is not None and paired_p_value(e_k, e_w) <= tie_alpha
+        return held_out and scores[k]["dAIC"] - w["dAIC"] >= decisive
+
+    return sorted(k for k, s in scores.items() if s["significant"]
+                  and fitted_count(k) == fitted_count(winner)
+                  and (k == winner or not told_apart(k)))
+
+
 @dataclasses.dataclass
 class DiscoverConfig:
     """Settings of ``discover``: segment length [s], training fraction, LM steps, substeps per
     sample, significance level, minimal relative held-out gain, max number of effects added,
-    the candidate names (default: all registered effects), the parsimony margin, and the
-    factor over the gap floor above which a remaining gap counts as unexplained."""
+    the candidate names (default: all registered effects), the parsimony margin, the
+    factor over the gap floor above which a remaining gap counts as unexplained, and the
+    Akaike difference below which, and the held-out paired test's p-value above which, two
+    equally sized candidates are not told apart (``tied``)."""
 
     segment: float = 0.3
     train_frac: float = 0.7
@@ -439,19 +496,28 @@ class DiscoverConfig:
     candidates: Sequence[str] | None = None
     parsimony: float = 0.1
     unexplained_factor: float = 2.0
+    decisive: float = 10.0
+    tie_alpha: float = 0.05
 
 
 @dataclasses.dataclass
 class DiscoverResult:
     """Outcome of ``discover``.
 
-    effect: the first effect added, "none" (the final gap is at the floor) or "unexplained"
+    effect: the first effect added, "indistinguishable" (an effect is missing, but the first
+    round's best candidates explain the log equally well within its noise, ``tied``, so
+    naming one would be a guess), "none" (the final gap is at the floor) or "unexplained"
     (no candidate was added and the gap stays significantly above the floor: something is
     missing that the library does not describe; the localisation says where to look);
-    effects: all added, in order; gap_before, gap_after, gap_floor: held-out gaps of the refit
-    nominal and the final model, and the gap a correct model reaches on this log
-    (``gap_floor``'s bootstrap; ``floor`` holds its details); unexplained: the final gap is
-    above ``unexplained_factor`` x floor + 3 floor_sd, whether or not effects were added; before, after: the two fits; rounds: per round the base gap,
+    tied: the first round's candidates that the data cannot tell apart (``tied``; one name,
+    the effect, when the answer is decided; empty when none was added);
+    effects: all added, in order (in a tie the model carries the tied candidate with the
+    lowest held-out gap, one representative, so that later rounds have a base); gap_before,
+    gap_after, gap_floor: held-out gaps of the refit nominal and the final model, and the gap
+    a correct model reaches on this log (``gap_floor``'s bootstrap; ``floor`` holds its
+    details); unexplained: the final gap is above ``unexplained_factor`` x floor + 3
+    floor_sd, whether or not effects were added; before, after: the two fits; rounds: per
+    round the base gap,
     the residual autocorrelation time, the effective count, every candidate's score and the
     winner; localisation: of the refit nominal model (and of the final one); config; log_info;
     seconds; workspace: the problems (for replays in plots).
@@ -474,6 +540,7 @@ class DiscoverResult:
     log_info: dict[str, Any]
     seconds: float
     workspace: Workspace
+    tied: list[str] = dataclasses.field(default_factory=list)
 
     @property
     def params(self) -> Params:
@@ -506,8 +573,14 @@ class DiscoverResult:
         gaps = {r["winner"]: r["scores"][r["winner"]]["gap_test"] for r in self.rounds
                 if r["winner"] in r["scores"]}
         return {
-            "rounds": [{"winner": r["winner"], "aic_weights": r.get("evidence_aic", {}),
+            "rounds": [{"winner": r["winner"], "tied": r.get("tied", []),
+                        "aic_weights": r.get("evidence_aic", {}),
                         "bic_weights": r.get("evidence_bic", {})} for r in self.rounds],
+            "tied": {k: {"aic_weight": self.rounds[0].get("evidence_aic", {}).get(k),
+                         "gap_test": self.rounds[0]["scores"][k]["gap_test"],
+                         "params": {p: v for p, v in self.rounds[0].get("fitted", {})
+                                    .get(k, {}).items()}}
+                     for k in self.tied} if self.rounds else {},
             "added": {e: {"params": self.effect_params().get(e, {}), "gap_test": gaps.get(e)}
                       for e in self.effects},
             "answer_weight": (self.rounds[0].get("evidence_aic", {}).get(self.effects[0])
@@ -520,7 +593,7 @@ class DiscoverResult:
         """The report (report.json) as plain JSON types."""
         nominal = {k: v for k, v in self.before.values.items()}
         return {
-            "effect": self.effect, "effects": list(self.effects),
+            "effect": self.effect, "effects": list(self.effects), "tied": list(self.tied),
             "gap_before": self.gap_before, "gap_after": self.gap_after,
             "gap_metric": "normalised RMS error of simulated q1 and q2 over held-out segments "
                           "(open-loop replay from measured state under logged torque), "
@@ -722,6 +795,8 @@ def discover(
             )
             s["seconds"] = f.seconds
             s["steps"] = f.steps
+            s["converged"] = bool(f.converged)
+            s["segment_errors"] = segment_errors(ws, f).tolist()
             scores[name], fits[name] = s, f
             say(f"  {name:20s} gap {f.gap_test:.4f} gain {s['gain']:+.3f} p {s['p_value']:.2e} "
                 f"dBIC {s['dBIC']:+.1f} {'*' if s['significant'] else ''} ({f.seconds:.1f} s)")
@@ -730,6 +805,10 @@ def discover(
         winner = select(scores, cfg.parsimony)
         rounds.append({"base_gap_test": current.gap_test, "tau_int": tau_int, "n_eff": n_eff,
                        "scores": scores, "failed": failed, "winner": winner or "none",
+                       "tied": tied(scores, winner, cfg.decisive, cfg.tie_alpha),
+                       "fitted": {k: {p.split(".", 1)[1]: {"value": f.values[p],
+                                                           "stderr": f.stderr[p]}
+                                      for p in fitted_names(k)} for k, f in fits.items()},
                        "evidence_aic": evidence_weights(scores, "dAIC"),
                        "evidence_bic": evidence_weights(scores, "dBIC")})
         if winner is None:
@@ -737,7 +816,9 @@ def discover(
         # polish the winner so that the next round's candidates are compared with a converged
         # base, not with one that merely had fewer iterations; an effect that does not lower
         # the held-out gap after this refit is dropped
-        polished = fit_model(ws, fits[winner].model, max_steps=cfg.max_steps * 2)
+        # (standard errors inflated by the same residual autocorrelation time as the round's)
+        polished = fit_model(ws, fits[winner].model, max_steps=cfg.max_steps * 2,
+                             tau_int=tau_int)
         if not polished.gap_test < current.gap_test:
             rounds[-1]["winner"] = "none"
             rounds[-1]["dropped"] = {winner: f"held-out gap {polished.gap_test:.4g} after the "
@@ -753,7 +834,11 @@ def discover(
     # integration cost a correct model on this log, and no candidate closed it
     limit = cfg.unexplained_factor * fl["floor"] + 3.0 * fl["floor_sd"]
     unexplained = bool(current.gap_test > limit)
-    answer = added[0] if added else ("unexplained" if unexplained else "none")
+    first_tied = rounds[0]["tied"] if added else []
+    if added:
+        answer = "indistinguishable" if len(first_tied) > 1 else added[0]
+    else:
+        answer = "unexplained" if unexplained else "none"
     return DiscoverResult(
         effect=answer, effects=added, gap_before=first_fit.gap_test,
         gap_after=current.gap_test, gap_floor=fl["floor"], floor=fl,
@@ -764,5 +849,5 @@ def discover(
         log_info={"samples": log.N, "dt": log.dt, "train_samples": int(cfg.train_frac * log.N),
                   "segment_samples": L, "train_segments": S,
                   "test_segments": ws.test.segs.count},
-        seconds=time.perf_counter() - t_start, workspace=ws,
+        seconds=time.perf_counter() - t_start, workspace=ws, tied=list(first_tied),
     )

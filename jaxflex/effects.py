@@ -360,7 +360,8 @@ class ActuatorLag(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> ActuatorLag:
-        return cls(T=jnp.full(n, 1e-3))
+        # above the constraint's 1.5 ms bound (a start on the bound has a dead coordinate)
+        return cls(T=jnp.full(n, 3e-3))
 
     def aux_init(self, n: int) -> Array:
         return jnp.zeros(n)
@@ -398,7 +399,8 @@ class TimeDelay(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> TimeDelay:
-        return cls(T=jnp.full(n, 1e-3))
+        # above the constraint's 1.5 ms bound (a start on the bound has a dead coordinate)
+        return cls(T=jnp.full(n, 3e-3))
 
     def aux_init(self, n: int) -> Array:
         return jnp.zeros((2, n))

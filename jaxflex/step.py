@@ -189,19 +189,34 @@ def plant_step_diffrax(
     return _tmap(lambda a: a[-1], sol.ys)
 
 
+#: RK4 substeps per sample of ``warm_effects``: an input-path state with a time constant of
+#: a sample or two (a Pade delay of 2 ms has poles at 1.7 / ms) needs them; one step per
+#: sample left the delay's state wrong at every segment start (a torque transient that the
+#: replay integrates into a drift).
+WARM_SUBSTEPS: int = 16
+
+
 def warm_effects(
     plant: FlexibleJointPlant, x0: PlantState, tau_pre: Float[Array, "W n"], dt: float,
+    substeps: int = WARM_SUBSTEPS,
 ) -> PlantState:
     """``x0`` with the effects' internal states (actuator lag, delay, ...) brought into line
     with a torque history: they start in equilibrium with ``tau_pre[0]`` [N m]
-    (``aux_steady``) and follow the held torque over the W samples of ``tau_pre`` (one RK4
-    step per sample of period ``dt`` [s], the mechanical state frozen). Exact for input-path
-    effects; a plant without effects is returned unchanged."""
+    (``aux_steady``) and follow the held torque over the W samples of ``tau_pre`` (``substeps``
+    RK4 steps per sample of period ``dt`` [s], the mechanical state frozen). Exact for
+    input-path effects up to the RK4 error; a plant without effects is returned unchanged."""
     if not plant.effects:
         return x0
     aux = tuple(e.aux_steady(tau_pre[0]) for e in plant.effects)
     rhs = lambda a, u: tuple(e.aux_rhs(ai, u, x0) for e, ai in zip(plant.effects, a))
-    aux, _ = jax.lax.scan(lambda a, u: (rk4(lambda s: rhs(s, u), a, dt), None), aux, tau_pre)
+    h = dt / substeps
+
+    def sample(a, u):
+        a, _ = jax.lax.scan(lambda b, _: (rk4(lambda s: rhs(s, u), b, h), None), a, None,
+                            length=substeps)
+        return a, None
+
+    aux, _ = jax.lax.scan(sample, aux, tau_pre)
     return eqx.tree_at(lambda s: s.aux, x0, aux, is_leaf=lambda v: v is None)
 
 

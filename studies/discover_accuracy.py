@@ -117,7 +117,8 @@ def main(argv: list[str] | None = None) -> None:
         if len(eff) > 1:
             found = "+".join(sorted(rep["effects"][:2])) if rep["effects"] else rep["effect"]
         row = {
-            "true": true, "found": found, "effects": rep["effects"], **kw,
+            "true": true, "found": found, "effects": rep["effects"], "tied": rep.get("tied", []),
+            **kw,
             "unexplained": rep["unexplained"],
             "gap_before": rep["gap_before"], "gap_after": rep["gap_after"],
             "gap_floor": rep["gap_floor"], "truth": g.truth["effects"],
