@@ -32,6 +32,7 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.controller import CascadeController, CascadeGains
@@ -156,7 +157,7 @@ def run_paper_experiments(
         leak = REPRODUCE_LEAK
     if leak is not None:
         gains = eqx.tree_at(lambda g: g.leak, gains,
-                            jax.numpy.full(gains.n, float(leak), gains.Ke.dtype))
+                            jnp.full(gains.n, float(leak), gains.Ke.dtype))
     leak_used = [float(x) for x in np.broadcast_to(np.asarray(gains.leak), (gains.n,))]
     sens = with_estimator(sensing_preset(sensing), estimator)
     say = progress or (lambda s: None)
@@ -188,7 +189,7 @@ def run_paper_experiments(
     paper_obs = None
     if any(x > 0 for x in leak_used):
         say("[reproduce] the paper's observer (no leakage), with compensation ...")
-        paper_gains = eqx.tree_at(lambda g: g.leak, gains, jax.numpy.zeros_like(gains.Ke))
+        paper_gains = eqx.tree_at(lambda g: g.leak, gains, jnp.zeros_like(gains.Ke))
         paper_obs = {"observer_leak": [0.0] * gains.n, "experiments": {}}
         for name in experiments:
             r = run_closed_loop(plant, paper_gains, trajectory_preset(name), compensation=True,
