@@ -289,9 +289,10 @@ def default_map(plant: FlexibleJointPlant, controller: CascadeController,
     return ClosedLoopMap(plant, controller, Sensing() if sensing is None else sensing, substeps)
 
 
-def _neutral(A: np.ndarray) -> float:
-    """Spectral radius without the multipliers at exactly 1 of conserved quantities (the
-    observer state when compensation is off, the pre-sliding z - q1 at rest)."""
+def spectral_radius(A: np.ndarray) -> float:
+    """Spectral radius of a one-sample (or monodromy) map's Jacobian ``A`` without the
+    multipliers at exactly 1 of conserved quantities (the observer state when compensation is
+    off, the pre-sliding z - q1 at rest): > 1 means a growing mode."""
     mu = np.linalg.eigvals(A)
     live = np.abs(mu - 1.0) > 1e-9
     return float(np.max(np.abs(mu[live]))) if live.any() else 0.0
@@ -317,7 +318,7 @@ def analyse_loop(plant: FlexibleJointPlant, gains: Any, *, q2d_method: str = "mo
     rest = rest_map(plant, gains, sensing=sensing, q2d_method=q2d_method,
                     compensation=compensation, dt=dt, tau_max=tau_max)
     M, A = rest_modes(rest)
-    r = _neutral(A)
+    r = spectral_radius(A)
     out: dict[str, Any] = {
         "q2d_method": q2d_method, "compensation": compensation,
         "rest": {"spectral_radius": r, "stable": bool(r < 1.0), "modes": M.dominant(n_modes)},
@@ -329,7 +330,7 @@ def analyse_loop(plant: FlexibleJointPlant, gains: Any, *, q2d_method: str = "mo
             traj = Sinusoid(amplitude=zero + 0.05, frequency=zero + 0.5)
         period = float(1.0 / np.max(np.asarray(traj.frequency)))
         MF, P, tr = monodromy(ClosedLoopMap(plant, ctrl(traj), rest.sensing), period)
-        rf = _neutral(P)
+        rf = spectral_radius(P)
         out["floquet"] = {"period_s": period, "spectral_radius": rf, "stable": bool(rf < 1.0),
                           "modes": MF.dominant(n_modes),
                           "rms_error_last_period": float(np.sqrt(np.mean(tr["e1"] ** 2)))}

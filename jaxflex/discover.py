@@ -249,9 +249,8 @@ def segment_errors(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     """RMS error [rad] of a fitted model's replay per held-out segment (S,), q1 and q2
     together: the held-out evidence, segment by segment, for comparing two models on the
     same segments (``paired_p_value``)."""
-    _, test, _ = ws.for_model(fit.model)
-    y = np.asarray(simulated_outputs(test, fit.theta))
-    return np.sqrt(np.mean((y - np.asarray(test.segs.y_meas)) ** 2, axis=(1, 2)))
+    y_meas = np.asarray(ws.test.segs.y_meas)  # the held-out measurements, any model
+    return np.sqrt(np.mean((held_out_traces(ws, fit) - y_meas) ** 2, axis=(1, 2)))
 
 
 def paired_p_value(worse: Sequence[float], better: Sequence[float]) -> float:

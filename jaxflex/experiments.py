@@ -73,7 +73,9 @@ def run_closed_loop(
     return sim(plant, c, sensing, jax.random.PRNGKey(seed))
 
 
-def _summary(r: SimResult) -> dict[str, Any]:
+def run_summary(r: SimResult) -> dict[str, Any]:
+    """``METRICS`` of a saved run: RMS and max link error [rad], torque RMS [N m], whether it
+    was lost, the fraction of samples at the torque limit and the RMS of F_hat - F [N m]."""
     s = tracking_summary(r.e1, r.tau)
     s["diverged"] = bool(r.metrics.diverged)
     s["saturation_fraction"] = float(np.asarray(r.metrics.saturation_fraction).max())
@@ -183,7 +185,7 @@ def run_paper_experiments(
                                         q2d_method=q2d_method, sensing=sens, t_final=t_final)
         experiments[name] = PaperExperiment(
             name=name, title=TRAJECTORY_DESCRIPTIONS[name], runs=runs,
-            summaries={k: _summary(r) for k, r in runs.items()})
+            summaries={k: run_summary(r) for k, r in runs.items()})
     say("[reproduce] the loop at rest ...")
     rest = rest_oscillation(plant, gains, sensing=sens, q2d_method=q2d_method)
     paper_obs = None
@@ -194,7 +196,7 @@ def run_paper_experiments(
         for name in experiments:
             r = run_closed_loop(plant, paper_gains, trajectory_preset(name), compensation=True,
                                 q2d_method=q2d_method, sensing=sens, t_final=t_final)
-            paper_obs["experiments"][name] = {"with_compensation": _summary(r)}
+            paper_obs["experiments"][name] = {"with_compensation": run_summary(r)}
         paper_obs["rest"] = rest_oscillation(plant, paper_gains, sensing=sens,
                                              q2d_method=q2d_method, keys=("with_compensation",))
     q2d = None
@@ -265,5 +267,5 @@ def compare_q2d_methods(
                 r = run_closed_loop(plant, gains, traj, compensation=comp, q2d_method=method,
                                     sensing=sens, t_final=t_final, **kw)
                 key = "with_compensation" if comp else "without_compensation"
-                table.setdefault(sname, {}).setdefault(label, {})[key] = _summary(r)
+                table.setdefault(sname, {}).setdefault(label, {})[key] = run_summary(r)
     return table

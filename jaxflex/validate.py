@@ -84,6 +84,10 @@ class PPCascade:
         """The ``loop_controller`` section."""
         return {"type": "pp_cascade", **dataclasses.asdict(self)}
 
+    def constants(self) -> jax.Array:
+        """[kp, kv, gtau, vmax] as the simulated loop takes them."""
+        return jnp.asarray([self.kp, self.kv, self.gtau, self.vmax], float)
+
 
 def loop_controller(params: Params) -> PPCascade | None:
     """The controller a parameter file declares for its logs (None if none)."""
@@ -125,19 +129,28 @@ def simulate_pp_cascade(
     is advanced by ``jaxflex.step.model_step``. Returns (position (N,), torque (N,) [N m or
     N]) at the sample instants (position before each step)."""
     _need_x64("simulate_pp_cascade")
-    if kind not in ("rigid", "flexible"):
-        raise ValueError(f"closed loop: model must be 'rigid' or 'flexible', got {kind!r}")
+    _check_loop_kind(kind)
     plant = params.to_plant()
     if plant.n != 1:
         raise ValueError(f"closed loop: the P/P cascade drives one joint, parameters have {plant.n}")
     r = jnp.asarray(q_ref, float).reshape(-1)
     d = jnp.zeros_like(r) if disturbance is None else jnp.asarray(disturbance, float).reshape(-1)
-    x0 = plant.init_state(q1=r[0])
+    q, tau = _pp_loop(plant, kind, ctrl.constants(), r, d, _loop_start(plant, r[0]), float(dt),
+                      int(substeps))
+    return np.asarray(q), np.asarray(tau)
+
+
+def _check_loop_kind(kind: str) -> None:
+    if kind not in ("rigid", "flexible"):
+        raise ValueError(f"closed loop: model must be 'rigid' or 'flexible', got {kind!r}")
+
+
+def _loop_start(plant: FlexibleJointPlant, q0: jax.Array) -> PlantState:
+    """The plant at rest at ``q0`` [rad or m] with the bristles in their steady state."""
+    x0 = plant.init_state(q1=q0)
     if plant.friction is not None:
         x0 = eqx.tree_at(lambda s: s.z, x0, plant.friction.z_steady(x0.dq1))
-    c = jnp.asarray([ctrl.kp, ctrl.kv, ctrl.gtau, ctrl.vmax], float)
-    q, tau = _pp_loop(plant, kind, c, r, d, x0, float(dt), int(substeps))
-    return np.asarray(q), np.asarray(tau)
+    return x0
 
 
 def benchmark_derivative(q: np.ndarray, dt: float) -> np.ndarray:
@@ -179,8 +192,7 @@ def closed_loop_errors(
 class ClosedLoopFit(eqx.Module):
     """Data of a closed-loop output-error fit (``closed_loop_fit``): the parameter space, the
     declared P/P cascade's constants, the reference and disturbance, the measured position
-    and torque, the start state's position, the weights of the two outputs and the
-    simulation settings."""
+    and torque, the weights of the two outputs and the simulation settings."""
 
     space: ParamSpace
     ctrl: jax.Array
@@ -200,11 +212,8 @@ def closed_loop_residuals(theta: dict, data: ClosedLoopFit) -> jax.Array:
     [(q - q_sim) w_q, (tau - tau_sim) w_tau] after the first ``drop`` samples (the benchmark
     metric's two outputs, each weighted by ``w``)."""
     plant = data.space.plant(theta)
-    x0 = plant.init_state(q1=data.r[0])
-    if plant.friction is not None:
-        x0 = eqx.tree_at(lambda s: s.z, x0, plant.friction.z_steady(x0.dq1))
-    q_sim, tau_sim = _pp_loop(plant, data.kind, data.ctrl, data.r, data.d, x0, data.dt,
-                              data.substeps)
+    q_sim, tau_sim = _pp_loop(plant, data.kind, data.ctrl, data.r, data.d,
+                              _loop_start(plant, data.r[0]), data.dt, data.substeps)
     k = data.drop
     return jnp.concatenate([(data.q[k:] - q_sim[k:]) * data.w[0],
                             (data.tau[k:] - tau_sim[k:]) * data.w[1]])
@@ -244,8 +253,7 @@ def closed_loop_fit(
                          "('loop_controller' section)")
     if log.q1d is None:
         raise ValueError("closed_loop_fit: the log has no reference q1d")
-    if kind not in ("rigid", "flexible"):
-        raise ValueError(f"closed_loop_fit: model must be 'rigid' or 'flexible', got {kind!r}")
+    _check_loop_kind(kind)
     if not free:
         raise ValueError("closed_loop_fit: no parameter to fit")
     plant = params.to_plant()
@@ -253,8 +261,7 @@ def closed_loop_fit(
     r = jnp.asarray(log.q1d[:, 0], float)
     d = jnp.zeros_like(r) if disturbance is None else jnp.asarray(disturbance, float).reshape(-1)
     q, tau = jnp.asarray(log.q1[:, 0], float), jnp.asarray(log.tau[:, 0], float)
-    c = jnp.asarray([ctrl.kp, ctrl.kv, ctrl.gtau, ctrl.vmax], float)
-    data = ClosedLoopFit(space=space, ctrl=c, r=r, d=d, q=q, tau=tau, w=jnp.ones(2),
+    data = ClosedLoopFit(space=space, ctrl=ctrl.constants(), r=r, d=d, q=q, tau=tau, w=jnp.ones(2),
                          kind=kind, dt=float(log.dt), substeps=int(substeps), drop=int(drop))
     r0 = np.asarray(closed_loop_residuals(space.theta0(), data))
     m = len(r0) // 2

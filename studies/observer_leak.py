@@ -55,9 +55,10 @@ def main(argv: list[str] | None = None) -> dict:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from jaxflex.analyse import rest_damping, rest_jacobian, rest_map
+    from jaxflex.analyse import rest_damping, rest_jacobian, rest_map, spectral_radius
     from jaxflex.certificate import certify
-    from jaxflex.experiments import rest_oscillation, run_closed_loop
+    from jaxflex.experiments import rest_oscillation, run_closed_loop, run_summary
+    from jaxflex.tune import reference_speed
     from jaxflex.presets import (REPRODUCE_LEAK, TRAJECTORIES, paper_params, sensing_preset,
                                  trajectory_preset, with_estimator)
 
@@ -77,16 +78,12 @@ def main(argv: list[str] | None = None) -> dict:
         return eqx.tree_at(lambda g: g.leak, gains0, jnp.full(gains0.n, leak))
 
     def summary(r):
-        e = np.asarray(r.e1)[:, 0]
-        return {"rms_error": float(np.sqrt(np.mean(e**2))),
-                "saturation_fraction": float(np.asarray(r.metrics.saturation_fraction).max()),
-                "friction_error_rms": float(np.sqrt(np.mean(
-                    (np.asarray(r.F_hat) - np.asarray(r.F)) ** 2))),
-                "diverged": bool(r.metrics.diverged)}
+        s = run_summary(r)
+        return {k: s[k] for k in ("rms_error", "saturation_fraction", "friction_error_rms",
+                                  "diverged")}
 
-    speed = max(float(np.max(np.abs(np.asarray(jax.vmap(
-        lambda t: trajectory_preset(name).derivatives(t, order=1)[1])(
-            jnp.linspace(0.0, t_final, 2001)))))) for name in tasks)
+    speed = reference_speed([trajectory_preset(name) for name in tasks], t_final,
+                            t_final / 2000)
     results: dict = {"config": {"leaks": list(leaks), "sensings": list(SENSINGS),
                                 "experiments": list(tasks), "t_final": t_final,
                                 "min_damping": MIN_DAMPING, "q2d_method": "model",
@@ -105,9 +102,7 @@ def main(argv: list[str] | None = None) -> dict:
                      "certified_up_to": float(cert.certified_up_to), "sensing": {}}
         for s, sens in sensings.items():
             m = rest_map(plant, g, sensing=sens)
-            mu = np.linalg.eigvals(np.asarray(jac(m)))
-            live = np.abs(mu - 1.0) > 1e-9
-            cell: dict = {"rest_spectral_radius": float(np.max(np.abs(mu[live]))),
+            cell: dict = {"rest_spectral_radius": spectral_radius(np.asarray(jac(m))),
                           "rest_damping": float(damp(m)), "experiments": {}}
             for name in tasks:
                 r = run_closed_loop(plant, g, trajectory_preset(name), compensation=True,

@@ -220,13 +220,19 @@ def identify(
     t0 = time.perf_counter()
     best, best_factor = None, None
     attempts = []
+
+    def warmed(problem: Problem, y: Any, factor: float | None) -> Any:
+        """``y`` after the first phase of the schedule ``factor``: at most ``warm_steps``
+        steps with the continuity weight times ``factor`` (None, or one segment: ``y``)."""
+        if factor is None or problem.segs.count == 1:
+            return y
+        loose = eqx.tree_at(lambda q: q.w_def, problem, problem.w_def * factor)
+        return least_squares(loose, y, rtol=rtol, atol=atol, max_steps=warm_steps,
+                             progress=say).y
+
     for origin, y_start in starts:
         for factor in schedules:
-            y = y_start
-            if factor is not None:
-                loose = eqx.tree_at(lambda q: q.w_def, prob, prob.w_def * factor)
-                y = least_squares(loose, y, rtol=rtol, atol=atol, max_steps=warm_steps,
-                                  progress=say).y
+            y = warmed(prob, y_start, factor)
             sol = least_squares(prob, y, rtol=rtol, atol=atol, max_steps=max_steps,
                                 progress=say)
             if sol.cost <= good and not sol.converged:
@@ -274,18 +280,14 @@ def identify(
         sub, _ = make_problem(log, init, keep, model=model, segment_length=segment_length,
                               substeps=substeps, outputs=outputs, output_scale=output_scale,
                               continuity_weight=continuity_weight)
-        # from the values fitted so far and from the user's start (those fitted together with
-        # the parameter now fixed may sit far from where the better-posed problem goes)
+        # from the values fitted so far and from the user's start with the winning schedule
+        # (those fitted together with the parameter now fixed may sit far from where the
+        # better-posed problem goes); the second start is only prepared if it is tried
+        kept = lambda y: ({k: y[0][k] for k in keep}, y[1])  # noqa: E731
         sol = None
-        for label, start_y in (("fitted", ({k: y_cur[0][k] for k in keep}, y_cur[1])),
-                               ("user", y0)):
-            if label == "user":
-                start_y = ({k: start_y[0][k] for k in keep}, start_y[1])
-                if best_factor is not None and sub.segs.count > 1:  # the winning schedule
-                    loose = eqx.tree_at(lambda q: q.w_def, sub, sub.w_def * best_factor)
-                    start_y = least_squares(loose, start_y, rtol=rtol, atol=atol,
-                                            max_steps=warm_steps, progress=say).y
-            s_ = least_squares(sub, start_y, rtol=rtol, atol=atol, max_steps=max_steps,
+        for label, start_of in (("fitted", lambda: kept(y_cur)),
+                                ("user", lambda: warmed(sub, kept(y0), best_factor))):
+            s_ = least_squares(sub, start_of(), rtol=rtol, atol=atol, max_steps=max_steps,
                                progress=say)
             total += s_.steps
             attempts.append({"refit_without": list(fixed_why), "start": label,
