@@ -37,6 +37,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
@@ -153,8 +154,12 @@ def model_step(
         xx = eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, 0.5 * hs))
         return xx, None
 
-    x, _ = jax.lax.scan(sub, x, None, length=substeps)
-    return x
+    # the substep loop carries the state as one flat array: a pytree of (n,)-arrays as the
+    # carry costs a copy per leaf and a kernel per field each substep on a CPU (issue 17)
+    flat, unravel = ravel_pytree(x)
+    flat, _ = jax.lax.scan(lambda s, _: (ravel_pytree(sub(unravel(s), None)[0])[0], None),
+                           flat, None, length=substeps)
+    return unravel(flat)
 
 
 def plant_step(
