@@ -26,7 +26,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from jaxflex.controller import CascadeController, ControllerState, LawOutput
@@ -235,18 +234,8 @@ def simulate_sampled(
                  -jnp.ones((), jnp.int32))
     band = lost_band(jax.vmap(controller.trajectory.position)(ts))
 
-    # the loop carries the plant and controller states as one flat array and saves one flat
-    # record per sample: on a CPU a pytree of (n,)-arrays costs a copy per leaf per sample
-    xc0, unravel = ravel_pytree((x0, c0))
-    record_layout: dict = {}
-
-    def record(x, c, c_new, out, tau, e, q1m, q2m):
-        return (x, c.z_hat, tau, plant.friction_torque(x), out.F_hat, e, q1m, q2m, c_new.dq1,
-                c_new.dq2)
-
     def body(carry, inp):
-        xc, m = carry
-        x, c = unravel(xc)
+        x, c, m = carry
         t, e1n, e2n = inp
         q1m = sensing.measure(x.q1, sensing.q1_resolution, e1n)
         q2m = sensing.measure(x.q2, sensing.q2_resolution, e2n)
@@ -268,14 +257,15 @@ def simulate_sampled(
             diverged_at=jnp.where(bad & ~m.diverged, m.count.astype(jnp.int32), m.diverged_at),
         )
         rec = None
-        if save:  # the layout (shapes only) is kept from the trace to split the records
-            rec, record_layout["unravel"] = ravel_pytree(record(x, c, c_new, out, tau, e, q1m, q2m))
-        return (ravel_pytree((x_new, c_new))[0], m_new), rec
+        if save:
+            F = plant.friction_torque(x)
+            rec = (x, c.z_hat, tau, F, out.F_hat, e, q1m, q2m, c_new.dq1, c_new.dq2)
+        return (x_new, c_new, m_new), rec
 
-    (_, m), rec = jax.lax.scan(body, (xc0, m0), (ts, n1, n2))
+    (_, _, m), rec = jax.lax.scan(body, (x0, c0, m0), (ts, n1, n2))
     if not save:
         return SimResult(metrics=m)
-    xs, zh, tau, F, F_hat, e, q1m, q2m, v1, v2 = jax.vmap(record_layout["unravel"])(rec)
+    xs, zh, tau, F, F_hat, e, q1m, q2m, v1, v2 = rec
     return SimResult(
         metrics=m, t=ts, q1=xs.q1, dq1=xs.dq1, q2=xs.q2, dq2=xs.dq2, z=xs.z, z_hat=zh,
         tau=tau, F=F, F_hat=F_hat, q1d=xs.q1 - e, e1=e, q1_meas=q1m, q2_meas=q2m,

@@ -5,11 +5,11 @@ the replay of identification and discovery (``jaxflex.fit``), the simulated rig
 (``jaxflex.hardware``) and the data generators all call ``plant_step`` / ``replay``.
 
 Plant integrator: Strang splitting per substep h, z-half-step / mechanics RK4 step /
-z-half-step. The LuGre bristle state z is advanced exactly with the link velocity frozen
-(eq. 5 is linear in z at fixed v, ``LuGre.step_z``), so the stiff rate sigma0 |v| / g(v) never
-limits the step (docs/spec.md section 9); the mechanical part has no such stiffness. The
-scheme is second order in h; ``tests/test_simulate.py`` shows convergence to the diffrax
-reference ``plant_step_diffrax``.
+z-half-step (the half-steps that meet between substeps taken as one step). The LuGre bristle
+state z is advanced exactly with the link velocity frozen (eq. 5 is linear in z at fixed v,
+``LuGre.step_z``), so the stiff rate sigma0 |v| / g(v) never limits the step (docs/spec.md
+section 9); the mechanical part has no such stiffness. The scheme is second order in h;
+``tests/test_simulate.py`` shows convergence to the diffrax reference ``plant_step_diffrax``.
 
 Two model structures share that step (``ModelKind``):
 
@@ -129,7 +129,8 @@ def model_step(
     """Advance the chosen model structure by ``h`` [s] under constant torque ``tau`` [N m].
 
     Strang splitting per substep: exact z half-step (velocity frozen), RK4 on the rest with z
-    frozen, exact z half-step. Without friction this is plain RK4.
+    frozen, exact z half-step; the half-steps that meet between substeps are taken as one
+    step. Without friction this is plain RK4.
     """
     f = _vector_field(kind, plant)
     hs = h / substeps
@@ -146,20 +147,29 @@ def model_step(
         d = f(xx, tau)
         return eqx.tree_at(lambda s: s.z, d, jnp.zeros_like(d.z))
 
-    def sub(xx, _):
-        if fr is None:
-            return rk4(lambda s: f(s, tau), xx, hs), None
-        xx = eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, 0.5 * hs))
-        xx = rk4(mech, xx, hs)
-        xx = eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, 0.5 * hs))
-        return xx, None
+    def z_step(xx, hz):
+        return eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, hz))
 
-    # the substep loop carries the state as one flat array: a pytree of (n,)-arrays as the
-    # carry costs a copy per leaf and a kernel per field each substep on a CPU (issue 17)
+    # the loop carries the state as one flat array: a pytree of (n,)-arrays as the carry costs
+    # a copy per leaf and a kernel per field each substep on a CPU (issue 17)
     flat, unravel = ravel_pytree(x)
-    flat, _ = jax.lax.scan(lambda s, _: (ravel_pytree(sub(unravel(s), None)[0])[0], None),
-                           flat, None, length=substeps)
-    return unravel(flat)
+    if fr is None:
+        def sub(s, _):
+            return ravel_pytree(rk4(lambda xx: f(xx, tau), unravel(s), hs))[0], None
+
+        flat, _ = jax.lax.scan(sub, flat, None, length=substeps)
+        return unravel(flat)
+
+    # Strang splitting with the half-steps of neighbouring substeps merged: z is advanced with
+    # the velocity frozen, so the closing half-step of one substep and the opening half-step of
+    # the next (same velocity, nothing in between) are one exact step of hs. The z steps are
+    # hs/2, hs, ..., hs before each RK4 step and hs/2 after the last.
+    def sub(s, hz):
+        return ravel_pytree(rk4(mech, z_step(unravel(s), hz), hs))[0], None
+
+    hz = jnp.full((substeps,), hs).at[0].multiply(0.5)
+    flat, _ = jax.lax.scan(sub, flat, hz)
+    return z_step(unravel(flat), 0.5 * hs)
 
 
 def plant_step(

@@ -24,6 +24,11 @@ The spread's controller estimates velocities from the angles (``sensing.velocity
 Devices: the same sweep in subprocesses with 1 and 2 host devices
 (``XLA_FLAGS=--xla_force_host_platform_device_count``), in alternating pairs.
 
+Target (``--target``; issue 17): 1000 samples x 10 s, float64, at a stated accuracy: the
+fewest plant substeps whose per-sample RMS-error metric is within 1e-5 (relative) of a fine
+reference (the first 100 samples at 100 substeps), then controller steps/s with 1 and 2 host
+devices in alternating pairs (min and median).
+
     python studies/bench_sweep.py [--small] [--out out/bench_sweep]
 """
 
@@ -259,6 +264,58 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
             "controller_only_steps_per_s": timed(ctrl_only, plant, ctrl)}
 
 
+def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
+    """The issue-17 throughput target: ``samples`` x ``T`` s of the spread in float64 with the
+    fewest plant substeps (of 1, 2, 3, 5, 10) whose per-sample RMS link error is within
+    ``tol`` (relative) of the same samples at 100 substeps (checked on the first
+    ``n_ref`` samples), timed with 1 and 2 host devices in alternating pairs, each run in a
+    fresh process, compilation (the first chunk) apart. Writes ``out/target.json``."""
+    import numpy as np
+
+    samples, T, n_ref, rounds = (64, 0.5, 16, 1) if small else (1000, 10.0, 100, 2)
+    out.mkdir(parents=True, exist_ok=True)
+    res: dict = {"samples": samples, "t_final": T, "reference": {"samples": n_ref, "substeps": 100},
+                 "tolerance_rel": tol, "cpu_count": os.cpu_count(),
+                 "load_avg_start": os.getloadavg(), "blas_threads": BLAS}
+    kw = dict(t_final=T, method="model", float32=False, keep=True)
+    ref = np.asarray(run_worker(samples=n_ref, chunk=n_ref, substeps=100, **kw)["_rms"])
+    res["accuracy"] = {}
+    chosen = None
+    for sub in (1, 2, 3, 5, 10):
+        rms = np.asarray(run_worker(samples=n_ref, chunk=n_ref, substeps=sub, **kw)["_rms"])
+        err = float(np.max(np.abs(rms - ref) / ref))
+        res["accuracy"][str(sub)] = err
+        print(f"  substeps {sub:>2}: RMS metric within {err:.1e} (relative) of 100 substeps")
+        if err <= tol:
+            chosen = sub
+            break
+    if chosen is None:
+        raise RuntimeError(f"bench_sweep --target: no substep count reaches {tol:g}")
+    res["substeps"] = chosen
+    runs: dict[int, list[dict]] = {1: [], 2: []}
+    for r in range(rounds):
+        for nd in ((1, 2) if r % 2 == 0 else (2, 1)):
+            w = run_worker(devices=nd, samples=samples, chunk=samples, substeps=chosen, **kw)
+            runs[nd].append(w)
+    r0 = np.asarray(runs[1][0]["_rms"])
+    res["rms_max_rel_diff_1_vs_2_devices"] = max(
+        float(np.max(np.abs(np.asarray(w["_rms"]) - r0) / r0)) for v in runs.values() for w in v)
+    for v in runs.values():
+        for w in v:
+            w.pop("_rms")
+    best = {nd: max(w["steps_per_s"] for w in v) for nd, v in runs.items()}
+    med = {nd: statistics.median(w["steps_per_s"] for w in v) for nd, v in runs.items()}
+    res.update(runs={str(k): v for k, v in runs.items()}, best_steps_per_s=best,
+               median_steps_per_s=med, ratio_2_over_1_best=best[2] / best[1],
+               ratio_2_over_1_median=med[2] / med[1], load_avg_end=os.getloadavg())
+    print(f"  {samples} x {T} s, float64, {chosen} substeps: 1 device {best[1]:.3g} steps/s best "
+          f"({med[1]:.3g} median), 2 devices {best[2]:.3g} ({med[2]:.3g}): x{best[2] / best[1]:.2f} "
+          f"best; 1 vs 2 devices agree to {res['rms_max_rel_diff_1_vs_2_devices']:.1e}; load "
+          f"{[w['load_avg'][0] for v in runs.values() for w in v]}")
+    (out / "target.json").write_text(json.dumps(res, indent=2) + "\n")
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/bench_sweep")
@@ -269,9 +326,14 @@ def main() -> None:
     ap.add_argument("--skip-scaling", action="store_true", help="skip the 1e3..1e5 sizes")
     ap.add_argument("--components", action="store_true", help="only the time-split profile")
     ap.add_argument("--profile-only", action="store_true", help="skip scaling and baseline")
+    ap.add_argument("--target", action="store_true",
+                    help="only the issue-17 target: 1000 x 10 s at a stated accuracy, 1 vs 2 devices")
     a = ap.parse_args()
     if a.worker:
         print(json.dumps(worker(**json.loads(a.worker))))
+        return
+    if a.target:
+        target(Path(a.out), small=a.small)
         return
     if a.components:
         Path(a.out).mkdir(parents=True, exist_ok=True)
