@@ -335,13 +335,18 @@ def _single(out: dict, t_final: float, repeats: int, slow_repeats: int) -> None:
         "jaxflex_save": lambda: jax.block_until_ready(sim_save(plant, ctrl, sensing)),
         "jaxflex_readme_exact_velocities": lambda: jax.block_until_ready(sim_readme(plant_r, ctrl_r)),
     }
+    cpu: dict[str, list[float]] = {}
     times = benchkit.paired(fns, repeats, only_first={"scipy_solve_ivp+numpy_ctrl": slow_repeats,
-                                                      "python_floats+numpy_ctrl": slow_repeats})
+                                                      "python_floats+numpy_ctrl": slow_repeats},
+                            cpu=cpu)
     print(f"single {t_final:g} s closed loop at 1 kHz, {N} samples, 10 plant substeps "
           f"(scipy: RK45 rtol 1e-8 per sample); compile/first call apart: "
           + ", ".join(f"{k} {v:.2f} s" for k, v in times_compile.items()))
     table = benchkit.ratio_table(times, "scipy_solve_ivp+numpy_ctrl",
                                  extra_baselines=("numba", "hand_jax_lean", "hand_jax_save"))
+    print("  the same runs in CPU time of this process [s] (what a run costs on a shared machine):")
+    table_cpu = benchkit.ratio_table(cpu, "scipy_solve_ivp+numpy_ctrl",
+                                     extra_baselines=("numba", "hand_jax_lean", "hand_jax_save"))
     lib = np.asarray(r_lib.q1[:, 0])
     acc = {"jaxflex_save": lib, "hand_jax_save": np.asarray(q1_hand), "python_floats": q1_py,
            "scipy_solve_ivp": q1_sp}
@@ -361,6 +366,7 @@ def _single(out: dict, t_final: float, repeats: int, slow_repeats: int) -> None:
         "baseline": "scipy_solve_ivp+numpy_ctrl (solve_ivp RK45 rtol 1e-8 atol 1e-11 per "
                     "sample, controller exported by jaxflex.export, numpy/math only)",
         "compile_or_first_call_s": times_compile, "times_s": times, "table": table,
+        "cpu_times_s": cpu, "table_cpu": table_cpu,
         "max_abs_q1_error_vs_200_substeps_rad": err, "max_abs_q1_diff_vs_jaxflex_rad": same,
         "rms_error_hand_jax_rad": float(rms_hand),
         "rms_error_jaxflex_rad": float(r_lib.metrics.rms_error[0]),

@@ -26,8 +26,9 @@ Devices: the same sweep in subprocesses with 1 and 2 host devices
 
 Target (``--target``; issue 17): 1000 samples x 10 s, float64, at a stated accuracy: the
 fewest plant substeps whose per-sample RMS-error metric is within 1e-5 (relative) of a fine
-reference (the first 100 samples at 100 substeps), then controller steps/s with 1 and 2 host
-devices in alternating pairs (min and median).
+reference (the first 100 samples at 100 substeps), then controller steps/s on one core (one
+host device pinned to one core), one device (free to use every core) and two host devices, in
+alternating rounds (best and median).
 
     python studies/bench_sweep.py [--small] [--out out/bench_sweep]
 """
@@ -95,13 +96,18 @@ def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str,
     return out
 
 
-def run_worker(devices: int = 1, **kw) -> dict:
+def run_worker(devices: int = 1, cores: int | None = None, **kw) -> dict:
     """``worker`` in a fresh Python process (so ru_maxrss is this sweep's own peak) with
-    ``devices`` host devices (the sweep shards each chunk over them)."""
+    ``devices`` host devices (the sweep shards each chunk over them), pinned to the first
+    ``cores`` CPU cores if given (XLA's own threads included)."""
     cmd = [sys.executable, __file__, "--worker", json.dumps(kw)]
     env = {**os.environ, "JAX_PLATFORMS": "cpu",
            "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}
-    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    pin = None
+    if cores is not None:
+        allowed = sorted(os.sched_getaffinity(0))[:cores]
+        pin = lambda: os.sched_setaffinity(0, allowed)  # noqa: E731
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, preexec_fn=pin)
     if r.returncode != 0:
         raise RuntimeError(r.stderr[-3000:])
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -268,8 +274,9 @@ def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
     """The issue-17 throughput target: ``samples`` x ``T`` s of the spread in float64 with the
     fewest plant substeps (of 1, 2, 3, 5, 10) whose per-sample RMS link error is within
     ``tol`` (relative) of the same samples at 100 substeps (checked on the first
-    ``n_ref`` samples), timed with 1 and 2 host devices in alternating pairs, each run in a
-    fresh process, compilation (the first chunk) apart. Writes ``out/target.json``."""
+    ``n_ref`` samples), timed on one core, one device and two devices in alternating rounds,
+    each run in a fresh process, compilation (the first chunk) apart. Writes
+    ``out/target.json``."""
     import numpy as np
 
     samples, T, n_ref, rounds = (64, 0.5, 16, 1) if small else (1000, 10.0, 100, 2)
@@ -292,25 +299,33 @@ def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
     if chosen is None:
         raise RuntimeError(f"bench_sweep --target: no substep count reaches {tol:g}")
     res["substeps"] = chosen
-    runs: dict[int, list[dict]] = {1: [], 2: []}
+    # "one core": one host device pinned to one core (XLA's intra-op threads included);
+    # "one device": one host device free to use every core; "two devices": one per core
+    setups = {"one_core": dict(devices=1, cores=1), "one_device": dict(devices=1),
+              "two_devices": dict(devices=2)}
+    runs: dict[str, list[dict]] = {k: [] for k in setups}
     for r in range(rounds):
-        for nd in ((1, 2) if r % 2 == 0 else (2, 1)):
-            w = run_worker(devices=nd, samples=samples, chunk=samples, substeps=chosen, **kw)
-            runs[nd].append(w)
-    r0 = np.asarray(runs[1][0]["_rms"])
-    res["rms_max_rel_diff_1_vs_2_devices"] = max(
+        for name in (list(setups) if r % 2 == 0 else list(setups)[::-1]):
+            w = run_worker(samples=samples, chunk=samples, substeps=chosen, **setups[name], **kw)
+            runs[name].append(w)
+    r0 = np.asarray(runs["one_core"][0]["_rms"])
+    res["rms_max_rel_diff_between_setups"] = max(
         float(np.max(np.abs(np.asarray(w["_rms"]) - r0) / r0)) for v in runs.values() for w in v)
     for v in runs.values():
         for w in v:
             w.pop("_rms")
-    best = {nd: max(w["steps_per_s"] for w in v) for nd, v in runs.items()}
-    med = {nd: statistics.median(w["steps_per_s"] for w in v) for nd, v in runs.items()}
-    res.update(runs={str(k): v for k, v in runs.items()}, best_steps_per_s=best,
-               median_steps_per_s=med, ratio_2_over_1_best=best[2] / best[1],
-               ratio_2_over_1_median=med[2] / med[1], load_avg_end=os.getloadavg())
-    print(f"  {samples} x {T} s, float64, {chosen} substeps: 1 device {best[1]:.3g} steps/s best "
-          f"({med[1]:.3g} median), 2 devices {best[2]:.3g} ({med[2]:.3g}): x{best[2] / best[1]:.2f} "
-          f"best; 1 vs 2 devices agree to {res['rms_max_rel_diff_1_vs_2_devices']:.1e}; load "
+    best = {k: max(w["steps_per_s"] for w in v) for k, v in runs.items()}
+    med = {k: statistics.median(w["steps_per_s"] for w in v) for k, v in runs.items()}
+    res.update(runs=runs, best_steps_per_s=best, median_steps_per_s=med,
+               ratio_two_devices_over_one_core_best=best["two_devices"] / best["one_core"],
+               ratio_two_devices_over_one_core_median=med["two_devices"] / med["one_core"],
+               ratio_two_devices_over_one_device_best=best["two_devices"] / best["one_device"],
+               load_avg_end=os.getloadavg())
+    print(f"  {samples} x {T} s, float64, {chosen} substeps, steps/s best (median): "
+          + ", ".join(f"{k} {best[k]:.3g} ({med[k]:.3g})" for k in setups)
+          + f"; two devices / one core x{res['ratio_two_devices_over_one_core_best']:.2f} best, "
+          f"x{res['ratio_two_devices_over_one_core_median']:.2f} median; setups agree to "
+          f"{res['rms_max_rel_diff_between_setups']:.1e}; load "
           f"{[w['load_avg'][0] for v in runs.values() for w in v]}")
     (out / "target.json").write_text(json.dumps(res, indent=2) + "\n")
     return res
@@ -327,7 +342,7 @@ def main() -> None:
     ap.add_argument("--components", action="store_true", help="only the time-split profile")
     ap.add_argument("--profile-only", action="store_true", help="skip scaling and baseline")
     ap.add_argument("--target", action="store_true",
-                    help="only the issue-17 target: 1000 x 10 s at a stated accuracy, 1 vs 2 devices")
+                    help="only the issue-17 target: 1000 x 10 s at a stated accuracy, one core vs two devices")
     a = ap.parse_args()
     if a.worker:
         print(json.dumps(worker(**json.loads(a.worker))))

@@ -63,22 +63,29 @@ def machine_state() -> dict[str, Any]:
 
 
 def paired(fns: dict[str, Callable[[], Any]], repeats: int,
-           only_first: dict[str, int] | None = None) -> dict[str, list[float]]:
+           only_first: dict[str, int] | None = None,
+           cpu: dict[str, list[float]] | None = None) -> dict[str, list[float]]:
     """Wall times [s] of each zero-argument function over ``repeats`` rounds; in every round
     each function runs once, in an order rotated from round to round. ``only_first`` caps the
     rounds of slow functions (name -> rounds). Each function must block until its result is
-    ready (``jax.block_until_ready``)."""
+    ready (``jax.block_until_ready``). ``cpu``, if given, receives the CPU time [s] of this
+    process over the same runs (every thread; on a shared machine it says what a run costs
+    while its wall time also counts the time other processes held the cores)."""
     names = list(fns)
     times: dict[str, list[float]] = {k: [] for k in names}
+    if cpu is not None:
+        cpu.update({k: [] for k in names})
     caps = only_first or {}
     for r in range(repeats):
         order = names[r % len(names):] + names[: r % len(names)]
         for k in order:
             if r >= caps.get(k, repeats):
                 continue
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             fns[k]()
             times[k].append(time.perf_counter() - t0)
+            if cpu is not None:
+                cpu[k].append(time.process_time() - c0)
     return times
 
 
