@@ -24,8 +24,15 @@ Two model structures share that step (``ModelKind``):
   q1 follows the measured velocity and acceleration. Friction on the motor side is the
   ``motor_friction`` effect (the plant's LuGre acts on the link and is not used); a link
   encoder's time skew and offset are the ``encoder_skew`` effect (``link_reading``).
+- ``"link"``: the link subsystem alone, ``M q1'' + C q1' + G + F(q1', z) - link effects =
+  K (q2 - q1)`` (the link line of eq. 3 with eq. 4-6), driven by the *measured* rotor motion
+  through the spring: no model of the motor, its friction or its torque constant is needed.
+  Its input per sample is an array (3, n): q2 [rad], q2' [rad/s], q2'' [rad/s^2] measured
+  (``LINK_INPUTS``); within a sample q2 follows the measured velocity and acceleration. The
+  plant's LuGre acts here, as in the paper. Input-path effects (lag, delay) have no torque to
+  act on and are not used.
 
-Both are ``lax.scan`` loops, so forward-mode Jacobians work (docs/spec.md section 9).
+All are ``lax.scan`` loops, so forward-mode Jacobians work (docs/spec.md section 9).
 """
 
 from __future__ import annotations
@@ -43,10 +50,12 @@ from jaxtyping import Array, Float
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 from jaxflex.state import PlantState
 
-ModelKind = Literal["flexible", "rigid", "rotor"]
-MODEL_KINDS: tuple[str, ...] = ("flexible", "rigid", "rotor")
+ModelKind = Literal["flexible", "rigid", "rotor", "link"]
+MODEL_KINDS: tuple[str, ...] = ("flexible", "rigid", "rotor", "link")
 #: Rows of the per-sample input of the "rotor" kind: tau, measured q1, q1', q1''.
 ROTOR_INPUTS: tuple[str, ...] = ("tau", "q1", "dq1", "ddq1")
+#: Rows of the per-sample input of the "link" kind: measured q2, q2', q2''.
+LINK_INPUTS: tuple[str, ...] = ("q2", "dq2", "ddq2")
 
 _tmap = jax.tree_util.tree_map
 
@@ -112,6 +121,17 @@ def rotor_vector_field(plant: FlexibleJointPlant, x: PlantState, u: Array) -> Pl
     return PlantState(q1=x.dq1, dq1=u[3], q2=x.dq2, dq2=ddq2, z=jnp.zeros_like(x.z), aux=daux)
 
 
+def link_vector_field(plant: FlexibleJointPlant, x: PlantState, u: Array) -> PlantState:
+    """Time derivative of the link subsystem (module docstring) under the input ``u`` (3, n)
+    (``LINK_INPUTS``): q1'' [rad/s^2] from the link line of eq. 3
+    (``FlexibleJointPlant.accelerations``) with the rotor state ``x.q2``, ``x.dq2`` taken from
+    the measurement; the rotor moves with the measured acceleration; z follows eq. 5."""
+    ddq1, _ = plant.accelerations(x, jnp.zeros_like(x.q1))
+    dz = jnp.zeros_like(x.z) if plant.friction is None else plant.friction.z_dot(x.dq1, x.z)
+    daux = None if x.aux is None else tuple(jnp.zeros_like(a) for a in x.aux)
+    return PlantState(q1=x.dq1, dq1=ddq1, q2=x.dq2, dq2=u[2], z=dz, aux=daux)
+
+
 def _vector_field(kind: ModelKind, plant: FlexibleJointPlant) -> Callable:
     if kind == "flexible":
         return plant.vector_field
@@ -119,6 +139,8 @@ def _vector_field(kind: ModelKind, plant: FlexibleJointPlant) -> Callable:
         return lambda x, tau: rigid_vector_field(plant, x, tau)
     if kind == "rotor":
         return lambda x, u: rotor_vector_field(plant, x, u)
+    if kind == "link":
+        return lambda x, u: link_vector_field(plant, x, u)
     raise ValueError(f"model must be one of {MODEL_KINDS}, got {kind!r}")
 
 
@@ -142,6 +164,11 @@ def model_step(
         q1, dq1 = link_reading(plant, tau[1], tau[2], tau[3])
         x = eqx.tree_at(lambda s: (s.q1, s.dq1), x, (q1, dq1))
         fr = None  # the plant's LuGre acts on the link, which is not modelled here
+    if kind == "link":  # the measured rotor motion sets the rotor state at each sample
+        if tau.ndim != 2 or tau.shape[0] != len(LINK_INPUTS):
+            raise ValueError(f"link model: input per sample must be {LINK_INPUTS} stacked "
+                             f"as (3, n), got shape {tau.shape}")
+        x = eqx.tree_at(lambda s: (s.q2, s.dq2), x, (tau[0], tau[1]))
 
     def mech(xx):
         d = f(xx, tau)
@@ -240,7 +267,8 @@ def replay(
     dt: float, substeps: int,
 ) -> tuple[PlantState, PlantState]:
     """Replay a torque sequence [N m] (held over each sample of ``dt`` s) from ``x0``
-    (for the "rotor" kind, ``tau`` is the (L, 4, n) input of the module docstring).
+    (for the "rotor" and "link" kinds, ``tau`` is the (L, 4, n) or (L, 3, n) input of the
+    module docstring).
 
     Returns (states at the L sample instants, before each step; state after the last step).
     """

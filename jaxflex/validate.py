@@ -352,7 +352,8 @@ def validate(
         "gap": segment_gap(params, log, kind=kind, length=segment, substeps=substeps),
         "torque_pct": rel_error_pct(log.tau, tau_hat),
     }
-    cl = closed_loop_errors(params, log, kind=kind if kind != "rotor" else "rigid",
+    loop_kind = {"rotor": "rigid", "link": "flexible"}.get(kind, kind)
+    cl = closed_loop_errors(params, log, kind=loop_kind,
                             disturbance=disturbance, substeps=max(2, substeps // 2))
     out["closed_loop"] = None if cl is None else {k: v for k, v in cl.items() if k != "series"}
     out["series"] = {"t": log.t, "tau": log.tau, "tau_hat": tau_hat, "q": log.q1,

@@ -30,10 +30,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", dest="mapping", default=None,
                    help="column mapping for .mat/.npz/.csv variables, e.g. "
                    "'t=t,tau=gtau*vir,q1=qm,q2=qm'")
-    p.add_argument("--model", choices=("flexible", "rigid", "rotor"), default="flexible",
+    p.add_argument("--model", choices=("flexible", "rigid", "rotor", "link"), default="flexible",
                    help="flexible joint (eq. 3), rigid Jx x'' = u - F (eq. 37), or rotor: the "
                         "rotor subsystem J q2'' + K (q2 - q1) + motor effects = tau driven by "
-                        "the measured link motion (subsystem identification, no link model)")
+                        "the measured link motion (subsystem identification, no link model), "
+                        "or link: the link subsystem M q1'' + F = K (q2 - q1) driven by the "
+                        "measured rotor motion (no motor model: friction on the link side)")
     p.add_argument("--segment", type=int, default=500,
                    help="samples per multiple-shooting segment (default 500; 0: whole log)")
     p.add_argument("--substeps", type=int, default=4, help="integrator substeps per sample")

@@ -29,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--against", default=None, help="reference parameter file (JSON)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--map", default=None, help="column mapping or @FILE (docs/spec.md 6.4)")
-    p.add_argument("--model", choices=("flexible", "rigid", "rotor"), default="flexible",
+    p.add_argument("--model", choices=("flexible", "rigid", "rotor", "link"), default="flexible",
                    help="model structure (default flexible)")
     p.add_argument("--disturbance", default=None,
                    help="expression on the log file's variables added to the controller output "

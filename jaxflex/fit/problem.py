@@ -83,6 +83,8 @@ def output_columns(log: Log, kind: ModelKind, outputs: Sequence[str] | None) -> 
     the log has q2, else ("q1",); raises ``ValueError`` for a channel the log lacks."""
     if outputs is None and kind == "rotor":  # the rotor subsystem predicts the motor angle
         outputs = ("q2",)
+    if outputs is None and kind == "link":  # the link subsystem predicts the link angle
+        outputs = ("q1",)
     if outputs is None:
         outputs = ("q1", "q2") if (kind == "flexible" and log.q2 is not None) else ("q1",)
     outputs = tuple(outputs)
@@ -100,7 +102,8 @@ def make_segments(
     """Non-overlapping segments of ``length`` samples within samples [start, stop) of a log
     (a tail shorter than one segment is dropped; ``length`` None: one segment). For the
     "rotor" kind ``tau`` holds (S, L, 4, n): the torque and the measured link angle, velocity
-    and acceleration (``jaxflex.step.ROTOR_INPUTS``).
+    and acceleration (``jaxflex.step.ROTOR_INPUTS``); for the "link" kind (S, L, 3, n): the
+    measured rotor angle, velocity and acceleration (``jaxflex.step.LINK_INPUTS``).
 
     Start states: angles from the log, velocities by Savitzky-Golay differentiation over
     ``window`` samples, z from ``z_of_velocity`` (e.g. ``LuGre.z_steady``; zeros if None).
@@ -131,6 +134,10 @@ def make_segments(
         if log.q2 is None:
             raise ValueError("fit: the rotor model needs the motor angle q2 in the log")
         u = np.stack([log.tau, q1, v1, savgol(q1, dt, 2, window)], axis=1)
+    if kind == "link":  # input (N, 3, n): the measured rotor motion
+        if log.q2 is None:
+            raise ValueError("fit: the link model needs the motor angle q2 in the log")
+        u = np.stack([q2, v2, savgol(q2, dt, 2, window)], axis=1)
     return Segments(
         tau=jnp.asarray(u[idx]), y_meas=jnp.asarray(y[idx]),
         tau_pre=jnp.asarray(log.tau[pre]), x0=jnp.asarray(x0), t0=jnp.asarray(log.t[starts]),

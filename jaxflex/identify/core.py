@@ -152,6 +152,8 @@ def make_problem(
         w_def = np.array([1.0, L * dt / 2, 1.0])
     elif model == "rotor":  # the link motion is measured, not simulated: only q2, q2' join
         w_def = np.array([0.0, 0.0, 1.0, L * dt / 2, 0.0])
+    elif model == "link":  # the rotor motion is measured, not simulated: q1, q1', z join
+        w_def = np.array([1.0, L * dt / 2, 0.0, 0.0, 1.0])
     else:
         w_def = np.array([1.0, L * dt / 2, 1.0, L * dt / 2, 1.0])
     w_def = w_def * continuity_weight * math.sqrt(L) / output_scale
@@ -188,7 +190,7 @@ def identify(
     until one ends with a cost the noise explains (0.5 ||r||^2 <= ``accept_cost`` x n_out / 2,
     the residuals being scaled by the estimated noise level); otherwise the lowest cost wins.
     All stages share one compilation (the engine's solver loops on the host).
-    ``static_start``: for the flexible model on a log with both encoders, a first start takes
+    ``static_start``: for the flexible and link models (both encoders), a first start takes
     the free static parameters (Fc, Fs, vs, sigma2) from a fit of eq. 35 to the friction the
     log shows by inverse dynamics (``start_from_static_map``), where that fit determines them,
     joint by joint (each joint's map from its own inverse dynamics; a joint whose map fixes
@@ -198,7 +200,7 @@ def identify(
     ``finish``); a converged fit is then repeated without them.
     """
     start = (start_from_static_map(log, init, free)
-             if (static_start and model == "flexible") else None)
+             if (static_start and model in ("flexible", "link")) else None)
     prob, y0 = make_problem(
         log, init, free, model=model, segment_length=segment_length, substeps=substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
