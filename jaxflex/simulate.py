@@ -190,6 +190,7 @@ def simulate_sampled(
     key: PRNGKeyArray | None = None,
     save: bool = True,
     integrator: Literal["split", "diffrax"] = "split",
+    unroll_substeps: bool = False,
 ) -> SimResult:
     """Sampled-data closed loop for ``t_final`` seconds at the controller period ``dt``.
 
@@ -198,6 +199,8 @@ def simulate_sampled(
     quantisation, noise (with ``key``), filtered or Kalman-estimated velocities (the filter's
     state rides in the controller state) and DAC quantisation. A run that
     blows up is flagged in ``metrics.diverged`` and its state frozen, never an exception.
+    ``unroll_substeps``: unroll the plant's substep loop (``jaxflex.step.model_step``): faster
+    under ``vmap`` on a CPU (the sweep engine sets it), slower for a single run; same numbers.
     Pure and jit/vmap/grad friendly; wrap in ``eqx.filter_jit`` at the call site.
     """
     if substeps < 1:
@@ -242,7 +245,7 @@ def simulate_sampled(
         c_new, out, tau = controller_sample(controller, sensing, estimator, c, t, q1m, q2m,
                                             x.dq1, x.dq2)
         if integrator == "split":
-            x_new = plant_step(plant, x, tau, dt, substeps)
+            x_new = plant_step(plant, x, tau, dt, substeps, unroll_substeps)
         else:
             x_new = plant_step_diffrax(plant, x, tau, dt)
         blown = _blown(x_new)

@@ -247,7 +247,8 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
 
     @eqx.filter_vmap
     def full(p, c, s):
-        return simulate_sampled(p, c, t_final, substeps=substeps, sensing=s, save=False).metrics.sum_e2
+        return simulate_sampled(p, c, t_final, substeps=substeps, sensing=s, save=False,
+                                unroll_substeps=True).metrics.sum_e2
 
     @eqx.filter_vmap
     def plant_only(p, c):

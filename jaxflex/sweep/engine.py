@@ -214,7 +214,7 @@ def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
     theta, plant, ctrl, sensing, k_noise, fs_raised = sample_models(spec, index)
     r = simulate_sampled(
         plant, ctrl, spec.t_final, substeps=spec.substeps, sensing=sensing,
-        key=k_noise if is_noisy(spec) else None, save=True,
+        key=k_noise if is_noisy(spec) else None, save=True, unroll_substeps=True,
     )
     # only metrics and e1 are used below: jit's dead-code elimination drops the other
     # saved trajectories, so save=True costs one (N, n) array per sample of the chunk.
