@@ -267,17 +267,20 @@ def warm_effects(
 
 def replay(
     kind: ModelKind, plant: FlexibleJointPlant, x0: PlantState, tau: Float[Array, "L n"],
-    dt: float, substeps: int,
+    dt: float, substeps: int, unroll: bool = False,
 ) -> tuple[PlantState, PlantState]:
     """Replay a torque sequence [N m] (held over each sample of ``dt`` s) from ``x0``
     (for the "rotor" and "link" kinds, ``tau`` is the (L, 4, n) or (L, 3, n) input of the
     module docstring).
 
+    ``unroll``: unroll each sample's substep loop (``model_step``; faster where the replay runs
+    batched, e.g. segments and Jacobian columns of the fitting engine).
+
     Returns (states at the L sample instants, before each step; state after the last step).
     """
 
     def body(x, u):
-        return model_step(kind, plant, x, u, dt, substeps), x
+        return model_step(kind, plant, x, u, dt, substeps, unroll), x
 
     x_end, xs = jax.lax.scan(body, x0, tau)
     return xs, x_end

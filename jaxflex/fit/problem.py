@@ -208,7 +208,8 @@ class Problem(eqx.Module):
         if not self.free_starts and plant.friction is not None:
             x0 = eqx.tree_at(lambda s: s.z, x0, plant.friction.z_steady(x0.dq1))
         x0 = warm_effects(plant, x0, tau_pre, self.dt)
-        xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps)
+        # segments and Jacobian columns run batched: unrolled substeps are faster there
+        xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps, unroll=True)
         ys = jnp.concatenate([getattr(xs, o) for o in self.outputs], axis=-1)
         return ys, pack_state(self.kind, x_end)
 
