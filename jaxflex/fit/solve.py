@@ -11,6 +11,11 @@ per problem *shape* and the iteration runs on the host, so
 - progress can be printed and an interrupt (Ctrl-C) ends the loop between steps, returning the
   last accepted point marked unconverged.
 
+A trial the trust region rejects costs one simulation (``LevenbergMarquardt.step`` judges it on
+its residual and linearises only at accepted points), and the normal equations are formed once
+per accepted point; the final residual and normal equations come back in the ``Solution``, so
+the final cost and the covariance need no further compilation of the residual.
+
 Covariance: Cov = s^2 (J^T J)^+ from the Jacobian at the optimum over the fitted unknowns
 (nuisance start states included, so their uncertainty is accounted for), s^2 the residual
 variance per output sample times an ``inflation`` for correlated residuals, mapped to physical
@@ -40,7 +45,9 @@ from jaxflex.fit.problem import Problem
 class Solution:
     """Outcome of ``least_squares``: unknowns ``y``, accepted ``steps`` taken, whether the
     solver's tolerance was met (``converged``), the final ``cost`` 0.5 ||r||^2 (weighted
-    units), ``reason`` in words, ``seconds`` of wall time."""
+    units), ``reason`` in words, ``seconds`` of wall time; ``residual`` r at ``y`` and
+    ``normal``, the undamped normal equations there (the blocks of ``shooting_blocks`` or
+    ``dense_normal_equations``), which ``covariance`` reuses instead of linearising again."""
 
     y: Any
     steps: int
@@ -48,6 +55,8 @@ class Solution:
     cost: float
     reason: str
     seconds: float
+    residual: Any = None
+    normal: dict[str, Any] | None = None
 
 
 class _WithAux(eqx.Module):
@@ -437,7 +446,7 @@ def least_squares(
     wrapped = _WithAux(fn)
     y = y0
     state = _init(solver, wrapped, y, prob)
-    steps, done, ok, reason = 0, False, True, ""
+    steps, done, ok, reason, c = 0, False, True, "", None
     try:
         while steps < max_steps:
             y, state, done_a, ok_a, c, stalled_a = _step(solver, wrapped, y, state, prob)
@@ -454,7 +463,10 @@ def least_squares(
     except KeyboardInterrupt:
         reason = f"interrupted after {steps} steps"
     y = jax.block_until_ready(y)
-    final = cost(prob, y, fn)
+    # the state's residual is the one at y (that of the last accepted point): no second
+    # compilation of the residual for the final cost
+    final = cost(prob, y, fn) if c is None else float(c)
+    final = final if math.isfinite(final) else math.inf
     if not reason:
         if done and ok:
             reason = "tolerance met"
@@ -463,7 +475,9 @@ def least_squares(
         else:
             reason = f"stopped at max_steps = {max_steps} without meeting the tolerance"
     return Solution(y=y, steps=steps, converged=bool(done and ok and not reason.startswith("int")),
-                    cost=final, reason=reason, seconds=time.perf_counter() - t0)
+                    cost=final, reason=reason, seconds=time.perf_counter() - t0,
+                    residual=None if c is None else state.f_info.residual,
+                    normal=None if c is None else state.descent_state.normal)
 
 
 @eqx.filter_jit
@@ -490,13 +504,18 @@ def _theta_information(prob: Problem, y: Any):
     r, lin = jax.linearize(prob.residuals, y)
     jac = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: y))
     blk = shooting_blocks(jac, r)
+    return r, _schur_in_theta({k: blk[k] for k in ("Ntt", "Nxt", "Dx", "U", "gt", "gx")})
+
+
+@eqx.filter_jit
+def _schur_in_theta(blk: dict[str, jax.Array]) -> jax.Array:
+    """The Schur complement in theta of the shooting normal blocks (starts eliminated)."""
     Dx = blk["Dx"]
     # a start state that no residual sees (e.g. a measured link state) keeps the
     # elimination defined; it does not change theta's information
     reg = 1e-12 * jnp.maximum(jnp.max(jnp.abs(Dx)), 1e-300)
     Dx = Dx + reg * jnp.eye(Dx.shape[-1], dtype=Dx.dtype)
-    St = _arrow_solve(blk["Ntt"], blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], None, None)
-    return r, St
+    return _arrow_solve(blk["Ntt"], blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], None, None)
 
 
 @eqx.filter_jit
@@ -507,7 +526,7 @@ def _jacobian(fn: Callable, prob: Any, y: Any):
 
 def covariance(
     prob: Any, y: Any, *, fn: Callable = problem_residuals, inflation: float = 1.0,
-    rank_rtol: float = 1e-9,
+    rank_rtol: float = 1e-9, solution: Solution | None = None,
 ) -> dict[str, Any]:
     """Covariance and standard errors of the physical parameters at ``y`` (module docstring).
 
@@ -523,12 +542,18 @@ def covariance(
     continuity defects), ``n_res`` (output residuals), ``cov_theta`` (the covariance of the
     unconstrained coordinates theta over the flattened names, zero rows for entries not
     fitted: where the posterior of ``jaxflex.robust`` draws, so every draw keeps the
-    constraints).
+    constraints). ``solution``: the ``least_squares`` result of ``prob`` that ended at ``y``
+    (same object); a multiple-shooting problem then reuses its normal equations (the same
+    numbers, no second linearisation and compilation).
     """
     theta = prob.split(y)[0] if hasattr(prob, "split") else y
     if (fn is problem_residuals and isinstance(prob, Problem) and prob.free_starts
             and prob.segs.count > 1):
-        return _covariance_shooting(prob, y, theta, inflation, rank_rtol)
+        reuse = (solution is not None and solution.y is y and solution.normal is not None
+                 and "Ntt" in solution.normal)
+        info = ((solution.residual, _schur_in_theta(solution.normal)) if reuse
+                else _theta_information(prob, y))
+        return _covariance_shooting(prob, info, theta, inflation, rank_rtol)
     r, Jm = (np.asarray(a) for a in _jacobian(fn, prob, y))
     n_out = int(getattr(prob, "n_out", r.size))
     th_flat, th_unravel = ravel_pytree(theta)
@@ -581,14 +606,14 @@ def _covariance_report(prob: Any, theta: Any, cov_fit: np.ndarray, null: np.ndar
             "cov_theta": cov_theta, **stats}
 
 
-def _covariance_shooting(prob: Problem, y: Any, theta: Any, inflation: float,
+def _covariance_shooting(prob: Problem, info: tuple[Any, Any], theta: Any, inflation: float,
                          rank_rtol: float) -> dict[str, Any]:
     """``covariance`` of a free-start multiple-shooting problem in time linear in the log
     length: theta's covariance is s^2 times the inverse of the Schur complement of the normal
     matrix (the segment starts eliminated, so their uncertainty is accounted for), the same
     numbers as the dense route; singular values and rank are those of theta's part after the
     elimination (the starts are taken as determined)."""
-    r, St = (np.asarray(a) for a in _theta_information(prob, y))
+    r, St = (np.asarray(a) for a in info)
     n_out = prob.n_out
     S = prob.segs.count
     d = int(np.prod(prob.segs.x0.shape[1:]))

@@ -28,6 +28,7 @@ import numpy as np
 from jaxflex.fit import (
     ParamSpace,
     Problem,
+    Solution,
     covariance,
     get_value,
     least_squares,
@@ -266,7 +267,7 @@ def identify(
             break
     res = finish(prob, init, best.y, steps=best.steps, converged=_settled(best, good),
                  wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
-                 reason=_reason(best, good), noise_cost=good, log=log)
+                 reason=_reason(best, good), noise_cost=good, log=log, solution=best)
     res.attempts = attempts
     if start:
         attempts.insert(0, {"static_start": {k: [float(x) for x in v] for k, v in start.items()}})
@@ -311,7 +312,7 @@ def identify(
         res = finish(sub, init, sol.y, steps=total, converged=_settled(sol, good),
                      wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                      reason=_reason(sol, good), noise_cost=good, log=log,
-                     unidentified=dict(fixed_why))
+                     unidentified=dict(fixed_why), solution=sol)
         cur, y_cur = sub, sol.y
     if res is not first:
         res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
@@ -339,6 +340,7 @@ def finish(
     prob: Problem, init: Params, y: Any, *, steps: int, converged: bool, wall_s: float,
     rel_stderr_limit: float = 0.5, reason: str = "", noise_cost: float = math.nan,
     log: Log | None = None, unidentified: dict[str, str] | None = None,
+    solution: Solution | None = None,
 ) -> IdentResult:
     """Build an ``IdentResult`` from a solution ``y`` of ``prob`` (also used by the scipy
     benchmark so that both solvers are judged alike).
@@ -346,10 +348,11 @@ def finish(
     A free parameter is unidentifiable when it lies in a numerically null direction of the
     Jacobian, its relative standard error exceeds ``rel_stderr_limit``, or (Fs, Fc) it exceeds
     the largest torque in ``log``; ``unidentified`` names parameters already fixed at their
-    initial values, with the reason."""
+    initial values, with the reason. ``solution``: the ``jaxflex.fit.Solution`` that ended at
+    ``y``, whose normal equations the covariance then reuses."""
     theta, _ = prob.split(y)
     phys = {k: np.asarray(v) for k, v in prob.space.physical(theta).items()}
-    cov = covariance(prob, y)
+    cov = covariance(prob, y, solution=solution)
     se = {k: cov["stderr"][k].tolist() for k in phys}
     rel = {k: (np.asarray(se[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist() for k in phys}
     msgs, bad = [], list(cov["null_names"])
