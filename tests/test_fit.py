@@ -211,6 +211,28 @@ def test_structured_covariance_equals_dense_covariance():
     np.testing.assert_allclose(fast["rss"], dense["rss"], rtol=1e-12)
 
 
+def test_covariance_from_the_solvers_normal_equations_equals_a_fresh_one():
+    """``covariance(..., solution=sol)`` reuses the solver's normal equations at its final
+    point (no second linearisation): the same standard errors, rank, rss and final cost as
+    linearising again at that point."""
+    from jaxflex.fit import cost
+    from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
+
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.5), substeps=1)
+    init = perturb(p, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
+    prob, y0 = make_problem(log, init, DEFAULT_FREE, segment_length=100, substeps=1)
+    sol = least_squares(prob, y0, max_steps=4)
+    assert sol.normal is not None and "Ntt" in sol.normal
+    reused = covariance(prob, sol.y, solution=sol)
+    fresh = covariance(prob, sol.y)
+    assert reused["rank"] == fresh["rank"] and reused["n_free"] == fresh["n_free"]
+    for k in prob.space.names:
+        np.testing.assert_allclose(reused["stderr"][k], fresh["stderr"][k], rtol=1e-8)
+    np.testing.assert_allclose(reused["rss"], fresh["rss"], rtol=1e-10)
+    np.testing.assert_allclose(sol.cost, cost(prob, sol.y), rtol=1e-10)
+
+
 def test_zero_residual_optimum_is_reported_converged():
     """A noise-free log replayed by its own model: the optimum has a residual at rounding
     level, where every trial step is rejected (the cost cannot fall) and optimistix's test,

@@ -399,3 +399,34 @@ def test_link_subsystem_is_identified_without_a_motor_model():
     assert r.converged, r.reason
     err = _rel_err(r.params, p)
     assert max(err.values()) < 1e-3, err
+
+
+def test_each_joint_is_weighted_by_its_own_noise():
+    """A joint that moves 10x less than the other (the same dynamics scaled: angles, Fc, Fs,
+    vs and torque / 10, noise / 10) is determined relative to its own noise: in the joint
+    problem its parameters' relative standard errors equal those of the same joint fitted
+    alone and those of its 10x larger twin (with one residual scale taken from joint 0, its
+    residuals would weigh 100x less and its relative errors come out about 10x larger)."""
+    from jaxflex.identify import covariance
+    from jaxflex.params import Params
+
+    c = 0.1
+    p = Params.from_dict({
+        "plant": {"I": [0.07, 0.07], "J": [0.005, 0.005], "K": [6.77, 6.77]},
+        "friction": {"Fc": [0.11, 0.11 * c], "Fs": [0.15, 0.15 * c], "vs": [0.05, 0.05 * c],
+                     "sigma0": [100.0, 100.0], "sigma1": [0.1, 0.1], "sigma2": [0.2, 0.2]}})
+    tau = excitation_torque(t_final=2.0, periods=(1.5, 0.7))
+    sens = Sensing(q1_noise=np.array([2e-5, 2e-5 * c]), q2_noise=np.array([1e-6, 1e-6 * c]))
+    log, _ = synthetic_log(p.to_plant(), np.concatenate([tau, c * tau], axis=1), substeps=2,
+                           sensing=sens, key=jax.random.PRNGKey(0))
+
+    def rel_stderr(lg, params):
+        prob, y0 = make_problem(lg, params, DEFAULT_FREE, segment_length=250, substeps=2)
+        se = covariance(prob, y0)["stderr"]
+        return {k: np.asarray(se[k]) / np.asarray(params.friction[k]) for k in DEFAULT_FREE}
+
+    both = rel_stderr(log, p)
+    alone = rel_stderr(log.joint(1), p.joint(1))
+    for k in DEFAULT_FREE:
+        np.testing.assert_allclose(both[k][1], alone[k][0], rtol=0.1, err_msg=k)
+        np.testing.assert_allclose(both[k][1], both[k][0], rtol=0.2, err_msg=k)

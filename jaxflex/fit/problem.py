@@ -164,8 +164,9 @@ class Problem(eqx.Module):
     """One least-squares problem: parameter space, data segments, model structure, weights.
 
     Unknowns ``y``: ``(theta, x0s)`` with free starts, else ``theta`` (dict name -> (n,)).
-    ``w_y`` scales output residuals (1 / noise level for identification, 1 / motion for
-    discovery); ``w_def`` (n_state,) scales continuity defects. ``jac_columns``: with a
+    ``w_y`` scales output residuals, one value or one per output column (channel-major:
+    ``outputs`` in order, n joints each; 1 / noise level for identification, 1 / motion for
+    discovery); ``w_def`` (n_state,) or per joint (n_state, n) scales continuity defects. ``jac_columns``: with a
     parameter mask, the most fitted theta entries any mask will have; the structured Jacobian
     then takes only that many tangents (the fitted directions) instead of all of theta.
     """
@@ -242,7 +243,8 @@ class Problem(eqx.Module):
             r = prob.w_y * (out[:, :n_y].reshape(prob.segs.y_meas.shape) - y_ref)
             parts = [r.reshape(-1)]
             if free:
-                parts.append(((out[:-1, n_y:] - nxt[1:]) * jnp.repeat(prob.w_def, n)).reshape(-1))
+                w_def = jnp.broadcast_to(prob.w_def.reshape(n_state, -1), (n_state, n)).reshape(-1)
+                parts.append(((out[:-1, n_y:] - nxt[1:]) * w_def).reshape(-1))
             return jnp.concatenate(parts)
 
         def guard(r):

@@ -11,6 +11,11 @@ per problem *shape* and the iteration runs on the host, so
 - progress can be printed and an interrupt (Ctrl-C) ends the loop between steps, returning the
   last accepted point marked unconverged.
 
+A trial the trust region rejects costs one simulation (``LevenbergMarquardt.step`` judges it on
+its residual and linearises only at accepted points), and the normal equations are formed once
+per accepted point; the final residual and normal equations come back in the ``Solution``, so
+the final cost and the covariance need no further compilation of the residual.
+
 Covariance: Cov = s^2 (J^T J)^+ from the Jacobian at the optimum over the fitted unknowns
 (nuisance start states included, so their uncertainty is accounted for), s^2 the residual
 variance per output sample times an ``inflation`` for correlated residuals, mapped to physical
@@ -40,7 +45,9 @@ from jaxflex.fit.problem import Problem
 class Solution:
     """Outcome of ``least_squares``: unknowns ``y``, accepted ``steps`` taken, whether the
     solver's tolerance was met (``converged``), the final ``cost`` 0.5 ||r||^2 (weighted
-    units), ``reason`` in words, ``seconds`` of wall time."""
+    units), ``reason`` in words, ``seconds`` of wall time; ``residual`` r at ``y`` and
+    ``normal``, the undamped normal equations there (the blocks of ``shooting_blocks`` or
+    ``dense_normal_equations``), which ``covariance`` reuses instead of linearising again."""
 
     y: Any
     steps: int
@@ -48,6 +55,8 @@ class Solution:
     cost: float
     reason: str
     seconds: float
+    residual: Any = None
+    normal: dict[str, Any] | None = None
 
 
 class _WithAux(eqx.Module):
@@ -65,7 +74,10 @@ def problem_residuals(y: Any, prob: Problem) -> jax.Array:
 
 
 class _ScaledDescentState(eqx.Module):
-    f_info: optx.FunctionInfo.ResidualJac
+    # the undamped normal equations at the last accepted point (formed once per Jacobian;
+    # every damping the trust region tries reuses them) and a zero template of the unknowns
+    normal: dict[str, jax.Array]
+    template: Any
 
 
 class ScaledDampedNewtonDescent(optx.AbstractDescent):
@@ -84,7 +96,9 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
     damped normal equations are solved by Cholesky: the Jacobian is tall (thousands of
     residuals, tens of unknowns) and float64 leaves ample room for squaring its condition
     number. ``structure`` "shooting" solves the same equations of a multiple-shooting problem
-    with free starts in time linear in the log length (``shooting_newton_step``)."""
+    with free starts in time linear in the log length (``shooting_newton_step``). The normal
+    equations J^T J, J^T r are formed once per accepted point (``query``); a rejected trial
+    only re-solves them with a larger damping (``step``)."""
 
     scaling: str = eqx.field(static=True, default="identity")
     structure: str = eqx.field(static=True, default="dense")
@@ -96,16 +110,32 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
             raise ValueError(f"fit: structure must be 'dense' or 'shooting', got {self.structure!r}")
 
     def init(self, y: Any, f_info_struct: Any) -> _ScaledDescentState:
-        zeros = lambda a: jnp.zeros(a.shape, a.dtype) if isinstance(a, jax.ShapeDtypeStruct) else a
-        return _ScaledDescentState(jax.tree_util.tree_map(zeros, f_info_struct))
+        template = jax.tree_util.tree_map(jnp.zeros_like, y)
+        dt = jax.tree_util.tree_leaves(template)[0].dtype
+        if self.structure == "shooting":
+            theta, x0s = template
+            k = ravel_pytree(theta)[0].shape[0]
+            S = x0s.shape[0]
+            d = int(np.prod(x0s.shape[1:]))
+            shapes = {"Ntt": (k, k), "Nxt": (S, d, k), "Dx": (S, d, d), "U": (S, d, d),
+                      "gt": (k,), "gx": (S, d)}
+        else:
+            p = ravel_pytree(template)[0].shape[0]
+            shapes = {"A": (p, p), "g": (p,)}
+        return _ScaledDescentState({k: jnp.zeros(v, dt) for k, v in shapes.items()}, template)
 
     def query(self, y: Any, f_info: Any, state: _ScaledDescentState) -> _ScaledDescentState:
-        return _ScaledDescentState(f_info)
+        if self.structure == "shooting":
+            blk = shooting_blocks(f_info.jac, f_info.residual)
+            normal = {k: blk[k] for k in state.normal}
+        else:
+            normal = dense_normal_equations(f_info.jac, f_info.residual)
+        return _ScaledDescentState(normal, state.template)
 
     def step(self, step_size: jax.Array, state: _ScaledDescentState) -> tuple[Any, optx.RESULTS]:
         lam = 1.0 / jnp.maximum(step_size, 1e-30)
-        solve = shooting_newton_step if self.structure == "shooting" else dense_newton_step
-        dy = solve(state.f_info.jac, state.f_info.residual, lam, self.scaling)
+        solve = shooting_damped_solve if self.structure == "shooting" else dense_damped_solve
+        dy = solve(state.normal, lam, self.scaling, state.template)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree_util.tree_leaves(dy)]))
         y_diff = jax.tree_util.tree_map(lambda a: -jnp.where(finite, a, 0.0), dy)
         return y_diff, optx.RESULTS.where(finite, optx.RESULTS.successful,
@@ -118,17 +148,46 @@ def _damping(diag: jax.Array, scaling: str) -> jax.Array:
     return jnp.ones_like(diag)
 
 
-def dense_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -> Any:
-    """The damped Gauss-Newton step dy solving (J^T J + lam D) dy = J^T r with the Jacobian
-    materialised (an m x p matrix; every column is one Jacobian-vector product). Returns dy
-    in the structure of the unknowns."""
+def dense_normal_equations(jac: Any, r: jax.Array) -> dict[str, jax.Array]:
+    """The normal equations of the Jacobian ``jac`` (a lineax operator) and residual ``r``:
+    ``A`` = J^T J (p, p) and ``g`` = J^T r (p,), the Jacobian materialised (an m x p matrix;
+    every column is one Jacobian-vector product)."""
     J = jac.as_matrix()
-    A = J.T @ J
+    return {"A": J.T @ J, "g": J.T @ r}
+
+
+def dense_damped_solve(normal: dict[str, jax.Array], lam: jax.Array, scaling: str,
+                       template: Any) -> Any:
+    """dy solving (A + lam D) dy = g (``dense_normal_equations``) by Cholesky, in the
+    structure of ``template`` (the unknowns)."""
+    A = normal["A"]
     d = _damping(jnp.diag(A), scaling)
     c, low = jax.scipy.linalg.cho_factor(A + lam * jnp.diag(d))
-    dy = jax.scipy.linalg.cho_solve((c, low), J.T @ r)
-    return jax.tree_util.tree_unflatten(
-        jax.tree_util.tree_structure(jac.in_structure()), _split_like(dy, jac.in_structure()))
+    dy = jax.scipy.linalg.cho_solve((c, low), normal["g"])
+    return ravel_pytree(template)[1](dy)
+
+
+def dense_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -> Any:
+    """The damped Gauss-Newton step dy solving (J^T J + lam D) dy = J^T r with the Jacobian
+    materialised (``dense_normal_equations``, ``dense_damped_solve``). Returns dy in the
+    structure of the unknowns."""
+    template = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jac.in_structure())
+    return dense_damped_solve(dense_normal_equations(jac, r), lam, scaling, template)
+
+
+def shooting_damped_solve(normal: dict[str, jax.Array], lam: jax.Array, scaling: str,
+                          template: Any) -> Any:
+    """``shooting_newton_step`` from the blocks of ``shooting_blocks`` (``normal``) and a
+    template (theta, x0s) of the unknowns."""
+    Ntt, Dx = normal["Ntt"], normal["Dx"]
+    S, d = Dx.shape[0], Dx.shape[1]
+    dam_t = _damping(jnp.diag(Ntt), scaling)
+    dam_x = _damping(jnp.diagonal(Dx, axis1=1, axis2=2).reshape(-1), scaling).reshape(S, d)
+    Ntt = Ntt + lam * jnp.diag(dam_t)
+    Dx = Dx + lam * jax.vmap(jnp.diag)(dam_x)
+    theta, x0s = template
+    return _arrow_solve(Ntt, normal["Nxt"], Dx, normal["U"], normal["gt"], normal["gx"],
+                        ravel_pytree(theta)[1], x0s.shape)
 
 
 def shooting_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -> Any:
@@ -146,15 +205,8 @@ def shooting_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -
     eliminated by a block Thomas (block LU) recursion and theta solved from the k x k Schur
     complement; the system is symmetric positive definite (damped), so no pivoting is needed.
     """
-    blk = shooting_blocks(jac, r)
-    Ntt, Dx = blk["Ntt"], blk["Dx"]
-    S, d = Dx.shape[0], Dx.shape[1]
-    dam_t = _damping(jnp.diag(Ntt), scaling)
-    dam_x = _damping(jnp.diagonal(Dx, axis1=1, axis2=2).reshape(-1), scaling).reshape(S, d)
-    Ntt = Ntt + lam * jnp.diag(dam_t)
-    Dx = Dx + lam * jax.vmap(jnp.diag)(dam_x)
-    return _arrow_solve(Ntt, blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], blk["unravel"],
-                        blk["x_shape"])
+    template = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jac.in_structure())
+    return shooting_damped_solve(shooting_blocks(jac, r), lam, scaling, template)
 
 
 def _arrow_solve(Ntt, Nxt, Dx, U, gt, gx, unravel, x_shape):
@@ -248,17 +300,6 @@ def shooting_blocks(jac: Any, r: jax.Array) -> dict[str, Any]:
             "x_shape": x_struct.shape}
 
 
-def _split_like(flat: jax.Array, structure: Any) -> list[jax.Array]:
-    """Cut a flat vector into the leaves of a pytree of ``jax.ShapeDtypeStruct``s."""
-    leaves = jax.tree_util.tree_leaves(structure)
-    out, i = [], 0
-    for leaf in leaves:
-        size = int(np.prod(leaf.shape))
-        out.append(flat[i:i + size].reshape(leaf.shape).astype(leaf.dtype))
-        i += size
-    return out
-
-
 class LevenbergMarquardt(optx.AbstractGaussNewton):
     """optimistix's Gauss-Newton machinery (trust region, termination) with the scaled
     damped-Newton descent above: the one least-squares solver of jaxflex."""
@@ -269,6 +310,70 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
     descent: ScaledDampedNewtonDescent = ScaledDampedNewtonDescent()
     search: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion()
     verbose: Callable = eqx.field(static=True, default=lambda **kw: None)
+
+    def step(self, fn: Callable, y: Any, args: Any, options: dict[str, Any], state: Any,
+             tags: frozenset) -> tuple[Any, Any, Any]:
+        """optimistix's Gauss-Newton step (``optx.AbstractGaussNewton.step``: trust-region
+        acceptance, Cauchy termination on an accepted step, then the descent), except that
+        the trial point is first judged on its residual alone and the Jacobian is taken only
+        when the trial is accepted: a rejected trial costs one simulation instead of one with
+        all the Jacobian's tangents (``Problem.residuals``' JVP), and the normal equations are
+        formed once per accepted point (``ScaledDampedNewtonDescent.query``)."""
+        f_eval, aux_eval = fn(state.y_eval, args)
+        # the trust region reads only the trial's residual (``as_min``): the Jacobian slot
+        # holds the last accepted one, unused
+        trial = optx.FunctionInfo.ResidualJac(f_eval, state.f_info.jac)
+        step_size, accept, search_result, search_state = self.search.step(
+            state.first_step, y, state.y_eval, state.f_info, trial, state.search_state)
+        jac_dyn, jac_static = eqx.partition(state.f_info.jac, eqx.is_array)
+        desc_dyn, desc_static = eqx.partition(state.descent_state, eqx.is_array)
+
+        def accepted(_):
+            f_new, lin, aux_new = jax.linearize(lambda u: fn(u, args), state.y_eval,
+                                                has_aux=True)
+            jac = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: state.y_eval), tags)
+            # the same static part (jaxpr) as the state's operator, as optimistix does
+            jac = eqx.combine(eqx.filter(jac, eqx.is_array), jac_static)
+            info = optx.FunctionInfo.ResidualJac(f_new, jac)
+            desc = self.descent.query(state.y_eval, info, state.descent_state)
+            y_diff = jax.tree_util.tree_map(lambda a, b: a - b, state.y_eval, y)
+            terminate = cauchy_termination(self.rtol, self.atol, self.norm, state.y_eval, y_diff,
+                                           f_new, f_new - state.f_info.residual)
+            return (state.y_eval, f_new, eqx.filter(jac, eqx.is_array), aux_new,
+                    eqx.filter(desc, eqx.is_array), terminate)
+
+        def rejected(_):
+            return (y, state.f_info.residual, jac_dyn, state.aux, desc_dyn, jnp.array(False))
+
+        y_new, f_res, jac_dyn, aux, desc_dyn, terminate = jax.lax.cond(
+            accept, accepted, rejected, None)
+        f_info = optx.FunctionInfo.ResidualJac(f_res, eqx.combine(jac_dyn, jac_static))
+        descent_state = eqx.combine(desc_dyn, desc_static)
+        y_descent, descent_result = self.descent.step(step_size, descent_state)
+        y_eval = jax.tree_util.tree_map(lambda a, b: a + b, y_new, y_descent)
+        result = optx.RESULTS.where(search_result == optx.RESULTS.successful, descent_result,
+                                    search_result)
+        prev_aux = jax.tree_util.tree_map(lambda a, b: jnp.where(state.first_step, a, b), aux,
+                                          state.aux)
+        del aux_eval
+        state = dataclasses.replace(
+            state, first_step=jnp.array(False), y_eval=y_eval, search_state=search_state,
+            f_info=f_info, aux=aux, descent_state=descent_state, terminate=terminate,
+            result=result, num_steps=state.num_steps + 1,
+            num_accepted_steps=state.num_accepted_steps + jnp.where(accept, 1, 0),
+            num_steps_since_acceptance=jnp.where(accept, 0,
+                                                 state.num_steps_since_acceptance + 1))
+        return y_new, state, prev_aux
+
+
+def cauchy_termination(rtol: float, atol: float, norm: Callable, y: Any, y_diff: Any,
+                       f: jax.Array, f_diff: jax.Array) -> jax.Array:
+    """optimistix's Cauchy test: |y_diff| < atol + rtol |y| and |f_diff| < atol + rtol |f|
+    in ``norm`` (both), i.e. neither the unknowns nor the residuals moved on this step."""
+    y_conv = norm(jax.tree_util.tree_map(lambda d, a: jnp.abs(d) / (atol + rtol * jnp.abs(a)),
+                                         y_diff, y)) < 1
+    f_conv = norm(jnp.abs(f_diff) / (atol + rtol * jnp.abs(f))) < 1
+    return y_conv & f_conv
 
 
 def _solver(rtol: float, atol: float, scaling: str, structure: str) -> LevenbergMarquardt:
@@ -341,7 +446,7 @@ def least_squares(
     wrapped = _WithAux(fn)
     y = y0
     state = _init(solver, wrapped, y, prob)
-    steps, done, ok, reason = 0, False, True, ""
+    steps, done, ok, reason, c = 0, False, True, "", None
     try:
         while steps < max_steps:
             y, state, done_a, ok_a, c, stalled_a = _step(solver, wrapped, y, state, prob)
@@ -358,7 +463,10 @@ def least_squares(
     except KeyboardInterrupt:
         reason = f"interrupted after {steps} steps"
     y = jax.block_until_ready(y)
-    final = cost(prob, y, fn)
+    # the state's residual is the one at y (that of the last accepted point): no second
+    # compilation of the residual for the final cost
+    final = cost(prob, y, fn) if c is None else float(c)
+    final = final if math.isfinite(final) else math.inf
     if not reason:
         if done and ok:
             reason = "tolerance met"
@@ -367,7 +475,9 @@ def least_squares(
         else:
             reason = f"stopped at max_steps = {max_steps} without meeting the tolerance"
     return Solution(y=y, steps=steps, converged=bool(done and ok and not reason.startswith("int")),
-                    cost=final, reason=reason, seconds=time.perf_counter() - t0)
+                    cost=final, reason=reason, seconds=time.perf_counter() - t0,
+                    residual=None if c is None else state.f_info.residual,
+                    normal=None if c is None else state.descent_state.normal)
 
 
 @eqx.filter_jit
@@ -394,13 +504,18 @@ def _theta_information(prob: Problem, y: Any):
     r, lin = jax.linearize(prob.residuals, y)
     jac = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: y))
     blk = shooting_blocks(jac, r)
+    return r, _schur_in_theta({k: blk[k] for k in ("Ntt", "Nxt", "Dx", "U", "gt", "gx")})
+
+
+@eqx.filter_jit
+def _schur_in_theta(blk: dict[str, jax.Array]) -> jax.Array:
+    """The Schur complement in theta of the shooting normal blocks (starts eliminated)."""
     Dx = blk["Dx"]
     # a start state that no residual sees (e.g. a measured link state) keeps the
     # elimination defined; it does not change theta's information
     reg = 1e-12 * jnp.maximum(jnp.max(jnp.abs(Dx)), 1e-300)
     Dx = Dx + reg * jnp.eye(Dx.shape[-1], dtype=Dx.dtype)
-    St = _arrow_solve(blk["Ntt"], blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], None, None)
-    return r, St
+    return _arrow_solve(blk["Ntt"], blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], None, None)
 
 
 @eqx.filter_jit
@@ -411,7 +526,7 @@ def _jacobian(fn: Callable, prob: Any, y: Any):
 
 def covariance(
     prob: Any, y: Any, *, fn: Callable = problem_residuals, inflation: float = 1.0,
-    rank_rtol: float = 1e-9,
+    rank_rtol: float = 1e-9, solution: Solution | None = None,
 ) -> dict[str, Any]:
     """Covariance and standard errors of the physical parameters at ``y`` (module docstring).
 
@@ -427,12 +542,18 @@ def covariance(
     continuity defects), ``n_res`` (output residuals), ``cov_theta`` (the covariance of the
     unconstrained coordinates theta over the flattened names, zero rows for entries not
     fitted: where the posterior of ``jaxflex.robust`` draws, so every draw keeps the
-    constraints).
+    constraints). ``solution``: the ``least_squares`` result of ``prob`` that ended at ``y``
+    (same object); a multiple-shooting problem then reuses its normal equations (the same
+    numbers, no second linearisation and compilation).
     """
     theta = prob.split(y)[0] if hasattr(prob, "split") else y
     if (fn is problem_residuals and isinstance(prob, Problem) and prob.free_starts
             and prob.segs.count > 1):
-        return _covariance_shooting(prob, y, theta, inflation, rank_rtol)
+        reuse = (solution is not None and solution.y is y and solution.normal is not None
+                 and "Ntt" in solution.normal)
+        info = ((solution.residual, _schur_in_theta(solution.normal)) if reuse
+                else _theta_information(prob, y))
+        return _covariance_shooting(prob, info, theta, inflation, rank_rtol)
     r, Jm = (np.asarray(a) for a in _jacobian(fn, prob, y))
     n_out = int(getattr(prob, "n_out", r.size))
     th_flat, th_unravel = ravel_pytree(theta)
@@ -485,14 +606,14 @@ def _covariance_report(prob: Any, theta: Any, cov_fit: np.ndarray, null: np.ndar
             "cov_theta": cov_theta, **stats}
 
 
-def _covariance_shooting(prob: Problem, y: Any, theta: Any, inflation: float,
+def _covariance_shooting(prob: Problem, info: tuple[Any, Any], theta: Any, inflation: float,
                          rank_rtol: float) -> dict[str, Any]:
     """``covariance`` of a free-start multiple-shooting problem in time linear in the log
     length: theta's covariance is s^2 times the inverse of the Schur complement of the normal
     matrix (the segment starts eliminated, so their uncertainty is accounted for), the same
     numbers as the dense route; singular values and rank are those of theta's part after the
     elimination (the starts are taken as determined)."""
-    r, St = (np.asarray(a) for a in _theta_information(prob, y))
+    r, St = (np.asarray(a) for a in info)
     n_out = prob.n_out
     S = prob.segs.count
     d = int(np.prod(prob.segs.x0.shape[1:]))

@@ -28,6 +28,7 @@ import numpy as np
 from jaxflex.fit import (
     ParamSpace,
     Problem,
+    Solution,
     covariance,
     get_value,
     least_squares,
@@ -117,15 +118,18 @@ class IdentResult:
 def make_problem(
     log: Log, init: Params, free: Sequence[str] = DEFAULT_FREE, *, model: ModelKind = "flexible",
     segment_length: int | None = None, substeps: int = 4, outputs: Sequence[str] | None = None,
-    output_scale: float | None = None, continuity_weight: float = 10.0,
+    output_scale: float | Sequence[float] | None = None, continuity_weight: float = 10.0,
 ) -> tuple[Problem, tuple[dict[str, Any], Any]]:
     """The identification problem of a log and its starting point (module docstring).
 
     ``segment_length`` samples per shooting segment (default: the whole log, single
     shooting); a tail shorter than one segment is dropped. ``outputs``: measured channels
     fitted, default ("q1", "q2") for the flexible model when the log has q2, else ("q1",).
-    ``output_scale`` [rad]: residuals are divided by it (default: the encoder-noise level
-    estimated from the log, at least 1e-6 rad). ``continuity_weight`` scales the defects.
+    ``output_scale`` [rad]: one value or one per joint; joint j's residuals (its outputs and
+    its continuity defects) are divided by its value (default: each joint's encoder-noise level
+    estimated from its own first output channel, at least 1e-6 rad, so that a joint that moves
+    little weighs as much as one that moves a lot and a cost of about n_out / 2 is what noise
+    explains on every joint). ``continuity_weight`` scales the defects.
     Raises ``ValueError`` naming a bad model, column, parameter or segment length.
     """
     if model not in MODEL_KINDS:
@@ -143,8 +147,14 @@ def make_problem(
     plant = init.to_plant()
     space = ParamSpace.build(plant, free)
     outputs = output_columns(log, model, outputs)
-    if output_scale is None:
-        output_scale = max(noise_level(getattr(log, outputs[0]))["total_std"], 1e-6)
+    n = log.n
+    if output_scale is None:  # each joint's own noise level: joints may move very differently
+        meas = np.asarray(getattr(log, outputs[0]), float).reshape(N, n)
+        output_scale = [noise_level(meas[:, j])["total_std"] for j in range(n)]
+    scale = np.broadcast_to(np.asarray(output_scale, float), (n,))
+    if not np.all(np.isfinite(scale) & (scale > 0)):
+        raise ValueError(f"identify: output_scale must be positive, got {output_scale}")
+    scale = np.maximum(scale, 1e-6)
     segs = make_segments(log, kind=model, outputs=outputs, length=L,
                          z_of_velocity=plant.friction.z_steady if plant.friction else None)
     dt = log.dt
@@ -156,8 +166,11 @@ def make_problem(
         w_def = np.array([1.0, L * dt / 2, 0.0, 0.0, 1.0])
     else:
         w_def = np.array([1.0, L * dt / 2, 1.0, L * dt / 2, 1.0])
-    w_def = w_def * continuity_weight * math.sqrt(L) / output_scale
-    prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0 / output_scale),
+    # defects of joint j in units of joint j's noise, as its outputs: (n_state, n)
+    w_def = w_def[:, None] * continuity_weight * math.sqrt(L) / scale[None, :]
+    # output columns are (channel, joint): ``outputs`` in order, each with n joints
+    w_y = np.tile(1.0 / scale, len(outputs))
+    prob = Problem(space=space, segs=segs, w_y=jnp.asarray(w_y),
                    w_def=jnp.asarray(w_def), dt=dt, kind=model, substeps=substeps,
                    outputs=outputs, free_starts=True)
     return prob, prob.y0()
@@ -167,7 +180,7 @@ def make_problem(
 def identify(
     log: Log, init: Params, free: Sequence[str] = DEFAULT_FREE, *,
     model: ModelKind = "flexible", segment_length: int | None = None, substeps: int = 4,
-    outputs: Sequence[str] | None = None, output_scale: float | None = None,
+    outputs: Sequence[str] | None = None, output_scale: float | Sequence[float] | None = None,
     continuity_weight: float = 10.0,
     warm_start: float | None | Sequence[float | None] = (1e-3, None, 1e-2),
     warm_steps: int = 40, accept_cost: float = 4.0,
@@ -256,7 +269,7 @@ def identify(
             break
     res = finish(prob, init, best.y, steps=best.steps, converged=_settled(best, good),
                  wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
-                 reason=_reason(best, good), noise_cost=good, log=log)
+                 reason=_reason(best, good), noise_cost=good, log=log, solution=best)
     res.attempts = attempts
     if start:
         attempts.insert(0, {"static_start": {k: [float(x) for x in v] for k, v in start.items()}})
@@ -301,7 +314,7 @@ def identify(
         res = finish(sub, init, sol.y, steps=total, converged=_settled(sol, good),
                      wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                      reason=_reason(sol, good), noise_cost=good, log=log,
-                     unidentified=dict(fixed_why))
+                     unidentified=dict(fixed_why), solution=sol)
         cur, y_cur = sub, sol.y
     if res is not first:
         res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
@@ -329,6 +342,7 @@ def finish(
     prob: Problem, init: Params, y: Any, *, steps: int, converged: bool, wall_s: float,
     rel_stderr_limit: float = 0.5, reason: str = "", noise_cost: float = math.nan,
     log: Log | None = None, unidentified: dict[str, str] | None = None,
+    solution: Solution | None = None,
 ) -> IdentResult:
     """Build an ``IdentResult`` from a solution ``y`` of ``prob`` (also used by the scipy
     benchmark so that both solvers are judged alike).
@@ -336,10 +350,11 @@ def finish(
     A free parameter is unidentifiable when it lies in a numerically null direction of the
     Jacobian, its relative standard error exceeds ``rel_stderr_limit``, or (Fs, Fc) it exceeds
     the largest torque in ``log``; ``unidentified`` names parameters already fixed at their
-    initial values, with the reason."""
+    initial values, with the reason. ``solution``: the ``jaxflex.fit.Solution`` that ended at
+    ``y``, whose normal equations the covariance then reuses."""
     theta, _ = prob.split(y)
     phys = {k: np.asarray(v) for k, v in prob.space.physical(theta).items()}
-    cov = covariance(prob, y)
+    cov = covariance(prob, y, solution=solution)
     se = {k: cov["stderr"][k].tolist() for k in phys}
     rel = {k: (np.asarray(se[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist() for k in phys}
     msgs, bad = [], list(cov["null_names"])
