@@ -808,8 +808,10 @@ def discover(
             start = _start_effect(name, current.model, series)
             m = Model(current.model.params, list(current.model.effects) + [start])
             try:
-                f = fit_model(ws, m, max_steps=cfg.max_steps, tau_int=tau_int,
-                              starts=(current.starts, current.test_starts))
+                # every candidate starts from the log's start estimates: the current
+                # model's fitted starts have absorbed what it misses and hold the candidate
+                # in a local minimum (a hardening spring stayed at its first guess)
+                f = fit_model(ws, m, max_steps=cfg.max_steps, tau_int=tau_int)
             except (ValueError, FloatingPointError) as e:
                 failed[name] = str(e)
                 say(f"  {name}: fit failed ({e})")

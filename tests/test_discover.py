@@ -208,3 +208,33 @@ def test_delay_and_lag_are_named_when_the_log_tells_them_apart_and_tied_when_not
         assert ev["params"]["T"]["value"] == pytest.approx(truth, rel=0.1), k
         assert 0 < ev["aic_weight"] < 1
     assert rep["gap_after"] <= 0.5 * rep["gap_before"]
+
+
+def test_fitted_starts_bring_a_correct_model_to_the_noise():
+    """The true model replayed from start states estimated from the log (angles,
+    Savitzky-Golay velocities, z at its steady state) misses the link angle by several times
+    the encoder noise: the estimate's error, not the model's. With each segment's start
+    fitted from its own samples, parameters fixed (``fit_starts``, how discover starts its
+    held-out segments), the true model's error is the noise, so the held-out gap measures
+    the model."""
+    import math
+
+    from jaxflex.discover import Model, fit_starts, workspace
+    from jaxflex.fit import simulated_outputs
+    from jaxflex.params import Params
+
+    g = generate_log((), seed=4, t_final=4.0)
+    true = Params.from_dict(g.truth["plant"])
+    ws = workspace(g.log, true, ("torque_offset",), segment=0.3, train_frac=0.5, substeps=1,
+                   max_effects=1)
+    _, test, theta = ws.for_model(Model(true, []))
+    res = 2 * math.pi / 2 ** g.truth["bits"]
+    noise = res * math.sqrt(g.truth["noise_counts"] ** 2 + 1 / 12)  # white noise, quantised
+    q1 = np.asarray(test.segs.y_meas)[..., 0]
+
+    def rms(x0):
+        return float(np.sqrt(np.mean((np.asarray(simulated_outputs(test, (theta, x0)))[..., 0]
+                                      - q1) ** 2)))
+
+    assert rms(test.segs.x0) > 3 * noise
+    assert rms(fit_starts(test, theta, test.segs.x0)) < 1.3 * noise
