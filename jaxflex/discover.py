@@ -5,16 +5,24 @@ engine ``jaxflex.fit``; it defines no solver, replay, reparametrisation or log r
 Workflow (``discover``), for one joint:
 
 1. Split the log in time: the first ``train_frac`` for fitting, the rest held out. Cut both in
-   short segments (``segment`` seconds), each replayed open loop from the state measured at its
-   start under the logged torque (``jaxflex.fit.Problem`` with ``free_starts=False``). This is
-   how a closed-loop log of an integrating plant can be replayed honestly: one long open-loop
-   replay drifts without bound, short segments re-initialised from data do not.
+   short segments (``segment`` seconds), each replayed open loop under the logged torque from
+   its own start state (``jaxflex.fit.Problem`` with ``free_starts=True`` and no continuity
+   weight). This is how a closed-loop log of an integrating plant can be replayed honestly:
+   one long open-loop replay drifts without bound, short segments do not. The start states
+   (q1, q1', q2, q2', z) are unknowns fitted from each segment's samples, first guessed from
+   the log (angles, Savitzky-Golay velocities, z at its steady state): a start *estimated*
+   from noisy, quantised angles is off by far more than the noise (velocity errors grow
+   linearly over the segment, z and the rotor velocity are not measured), and a refit from
+   such starts bends the parameters to absorb the error and buries small effects.
 2. Refit the nominal model (I, J, K, Fc, Fs, sigma2; vs, sigma0, sigma1 kept, they are poorly
-   identifiable from positions, docs/spec.md section 9) on the training segments with the
-   engine's Levenberg-Marquardt, so that a parameter mismatch is not taken for missing physics.
+   identifiable from positions, docs/spec.md section 9) and the training start states with
+   the engine's Levenberg-Marquardt (the structured multiple-shooting solve), so that a
+   parameter mismatch is not taken for missing physics.
 3. Gap metric (``Problem.gap``): normalised RMS error of the simulated q1 and q2 over the
    held-out segments, relative to the measured motion within each segment. 0 is perfect, 1 is
-   as bad as predicting no motion.
+   as bad as predicting no motion. The held-out segments' start states are fitted with the
+   parameters fixed (``fit_starts``): no parameter sees the held-out data, and every model
+   gets the same freedom there.
 4. Localise: inverse-dynamics torque residuals (``FlexibleJointPlant.torque_residuals``) on the
    link and rotor sides, binned against link velocity (with sign), position, spring deflection,
    deflection rate and rotor velocity, their spectra, and the worst time windows, next to a
@@ -29,8 +37,8 @@ Workflow (``discover``), for one joint:
    nothing is significant; an effect whose polished refit does not lower the held-out gap is
    dropped. Every round records the Akaike and Schwarz weights of "none" and each candidate.
 6. Gap floor (``gap_floor``): the held-out gap a correct model reaches on this log, by a
-   parametric bootstrap through the workflow's own steps (noise, quantisation, start-state
-   estimate, replay). The answer is the first effect added, or ``indistinguishable`` when
+   parametric bootstrap through the workflow's own held-out steps (noise, quantisation,
+   fitted starts, replay). The answer is the first effect added, or ``indistinguishable`` when
    candidates of its size explain the log as well within its noise (``tied``: not told apart
    by both the Akaike difference and a paired held-out test per segment; all are reported in
    the evidence, none is guessed); else ``none`` when the gap is
@@ -71,7 +79,6 @@ from jaxflex.fit import (
     params_of_plant,
     residuals,
     savgol,
-    Segments,
     simulated_outputs,
 )
 from jaxflex.logs import Log
@@ -180,31 +187,43 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     effs = [Gated(EFFECTS[n].typical(1), jnp.asarray(0.0)) for n in universe]
     base = nominal.to_plant(with_effects=False).with_effects(*effs)
     space = ParamSpace.build(base, NOMINAL_FIT + tuple(k for n in universe for k in fitted_names(n)))
-    kw = dict(kind="flexible", outputs=("q1", "q2"), length=L)
+    # start estimates (the solver's first guess of each segment's start state): angles and
+    # Savitzky-Golay velocities from the log, z at its steady state for that velocity
+    z_ss = nominal.to_plant(with_effects=False).friction.z_steady
+    kw = dict(kind="flexible", outputs=("q1", "q2"), length=L, z_of_velocity=z_ss)
     train_segs = make_segments(log, start=0, stop=split, **kw)
     test_segs = make_segments(log, start=split, stop=N, **kw)
 
-    def problem(segs):
+    def problem(segs, columns):
         m = segs.y_meas[..., :1]
         scale = jnp.sqrt(jnp.mean((m - m[:, :1]) ** 2))
+        # free starts without continuity (w_def 0): every segment's start state is fitted
+        # from the segment's own samples, so no estimate error is left for the parameters to
+        # absorb
         return Problem(space=space, segs=segs, w_y=1.0 / scale, w_def=jnp.zeros(5), dt=dt,
                        kind="flexible", substeps=substeps, outputs=("q1", "q2"),
-                       free_starts=False, jac_columns=jac_columns)
+                       free_starts=True, steady_z=True, jac_columns=columns)
 
-    return Workspace(space=space, train=problem(train_segs), test=problem(test_segs),
+    # no parameter is fitted on the held-out segments (only their starts): no theta tangents
+    return Workspace(space=space, train=problem(train_segs, jac_columns),
+                     test=problem(test_segs, 0),
                      universe=universe)
 
 
 @dataclasses.dataclass
 class CandidateFit:
-    """One fitted model: the model, engine coordinates ``theta``, fitted physical ``values``
-    and their standard errors (name -> float), training residual sum of squares ``rss``
-    (residuals in units of the segments' RMS motion), their count ``n_res``, fitted parameter
-    count ``n_par``, training and held-out gaps, solver steps, whether the solver met its
-    tolerance, and wall time [s]."""
+    """One fitted model: the model, engine coordinates ``theta``, the fitted start states of
+    the training segments ``starts`` and of the held-out segments ``test_starts`` (S,
+    n_state, 1) (q1 [rad], q1' [rad/s], q2 [rad], q2' [rad/s], z [rad]), fitted physical
+    ``values`` and their standard errors (name -> float), training residual sum of squares
+    ``rss`` (residuals in units of the segments' RMS motion), their count ``n_res``, fitted
+    parameter count ``n_par`` (start states included), training and held-out gaps, solver
+    steps, whether the solver met its tolerance, and wall time [s]."""
 
     model: Model
     theta: dict[str, jax.Array]
+    starts: jax.Array
+    test_starts: jax.Array
     values: dict[str, float]
     stderr: dict[str, float]
     rss: float
@@ -216,32 +235,67 @@ class CandidateFit:
     converged: bool
     seconds: float
 
+    @property
+    def y_train(self) -> tuple[dict[str, jax.Array], jax.Array]:
+        """The training problem's unknowns (theta, starts)."""
+        return self.theta, self.starts
 
-def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15,
-              tau_int: float = 1.0) -> CandidateFit:
-    """Refit ``model`` on the training segments with the engine; standard errors inflated by
-    the residual autocorrelation time ``tau_int`` (samples)."""
+    @property
+    def y_test(self) -> tuple[dict[str, jax.Array], jax.Array]:
+        """The held-out problem's unknowns (theta, held-out starts)."""
+        return self.theta, self.test_starts
+
+
+def start_residuals(x0s: jax.Array, args: tuple[Problem, dict[str, jax.Array]]) -> jax.Array:
+    """Residuals of the free-start problem ``args[0]`` at fixed parameters ``args[1]`` as a
+    function of the segment start states ``x0s`` (S, n_state, n) alone."""
+    prob, theta = args
+    return prob.residuals((theta, x0s))
+
+
+def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
+               max_steps: int = 20) -> jax.Array:
+    """The start states (S, n_state, n) that replay each segment of ``prob`` best with the
+    parameters ``theta`` held fixed (the engine's Levenberg-Marquardt from ``x0s``): how the
+    held-out segments are started, so that their gap measures the model and not an estimate
+    of the start (no parameter sees the held-out data)."""
+    sol = least_squares((prob, theta), x0s, fn=start_residuals, rtol=_RTOL, atol=_ATOL,
+                        max_steps=max_steps, scaling="marquardt", structure="dense")
+    return sol.y
+
+
+def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: float = 1.0,
+              starts: tuple[jax.Array, jax.Array] | None = None) -> CandidateFit:
+    """Refit ``model`` on the training segments with the engine, every segment's start state
+    fitted with the parameters; then fit the held-out segments' start states with the
+    parameters fixed (``fit_starts``) and take the held-out gap. ``starts``: first guesses of
+    the (training, held-out) start states (default: the workspace's estimates from the log).
+    Standard errors are inflated by the residual autocorrelation time ``tau_int``
+    (samples)."""
     t0 = time.perf_counter()
     train, test, theta0 = ws.for_model(model)
-    sol = least_squares(train, theta0, rtol=_RTOL, atol=_ATOL, max_steps=max_steps,
-                        scaling="marquardt")
+    x_train, x_test = starts if starts is not None else (train.segs.x0, test.segs.x0)
+    sol = least_squares(train, (theta0, x_train), rtol=_RTOL, atol=_ATOL,
+                        max_steps=max_steps, scaling="marquardt")
+    theta, x_train = sol.y
     cov = covariance(train, sol.y, inflation=tau_int)
+    x_test = fit_starts(test, theta, x_test)
     space = train.space
-    phys = space.physical(sol.y)
+    phys = space.physical(theta)
     fitted = space.fitted_names()
     values = {k: float(np.ravel(phys[k])[0]) for k in fitted}
     stderr = {k: float(np.ravel(cov["stderr"][k])[0]) for k in fitted}
-    plant = space.plant(sol.y)
+    plant = space.plant(theta)
     params = params_of_plant(plant, model.params)
     act = {e.name: e for e in plant.effects if e.name in model.active}
     effects = [act[e.name].inner for e in model.effects]
     params.effects = {e.name: e.params() for e in effects}
     fitted_model = Model(params, effects, model.starts)
     return CandidateFit(
-        model=fitted_model, theta=sol.y, values=values, stderr=stderr, rss=cov["rss"],
-        n_res=cov["n_res"], n_par=cov["n_free"], gap_train=float(gap(train, sol.y)),
-        gap_test=float(gap(test, sol.y)), steps=sol.steps, converged=sol.converged,
-        seconds=time.perf_counter() - t0,
+        model=fitted_model, theta=theta, starts=x_train, test_starts=x_test, values=values,
+        stderr=stderr, rss=cov["rss"], n_res=cov["n_res"], n_par=cov["n_free"],
+        gap_train=float(gap(train, sol.y)), gap_test=float(gap(test, (theta, x_test))),
+        steps=sol.steps, converged=sol.converged, seconds=time.perf_counter() - t0,
     )
 
 
@@ -274,7 +328,7 @@ def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     """Simulated outputs (S, L, 2) = (q1, q2) [rad] of a fitted model on the held-out
     segments (for plots)."""
     _, test, _ = ws.for_model(fit.model)
-    return np.asarray(simulated_outputs(test, fit.theta))
+    return np.asarray(simulated_outputs(test, fit.y_test))
 
 
 # ---------------------------------------------------------------------------- localisation
@@ -422,9 +476,11 @@ def effective_count(r: np.ndarray, max_lag: int = 2000) -> float:
 
 
 def score(base: CandidateFit, cand: CandidateFit, n_eff: float) -> dict[str, float]:
-    """F-test, BIC/AIC difference (effective count) and held-out gain of ``cand`` over ``base``."""
+    """F-test, BIC/AIC difference (effective count) and held-out gain of ``cand`` over ``base``.
+    The F-test's residual degrees of freedom are the effective count less the share of it
+    the fitted unknowns (parameters and start states) take, n_eff (1 - n_par / n_res)."""
     k = cand.n_par - base.n_par
-    dof = max(n_eff - cand.n_par, 1.0)
+    dof = max(n_eff * (1.0 - cand.n_par / max(cand.n_res, 1)), 1.0)
     drss = max(base.rss - cand.rss, 0.0)
     F = (drss / k) / (cand.rss / dof) if cand.rss > 0 else math.inf
     p = float(scipy.stats.f.sf(F, k, dof))
@@ -595,8 +651,9 @@ class DiscoverResult:
             "effect": self.effect, "effects": list(self.effects), "tied": list(self.tied),
             "gap_before": self.gap_before, "gap_after": self.gap_after,
             "gap_metric": "normalised RMS error of simulated q1 and q2 over held-out segments "
-                          "(open-loop replay from measured state under logged torque), "
-                          "relative to the measured motion within each segment",
+                          "(open-loop replay under logged torque from start states fitted "
+                          "with the parameters fixed), relative to the measured motion within "
+                          "each segment",
             "gap_floor": self.gap_floor, "floor": self.floor,
             "unexplained": self.unexplained,
             "evidence": self.evidence(),
@@ -623,54 +680,29 @@ def white_noise_std(q: np.ndarray, orders: Sequence[int] = (2, 3, 4, 5, 6)) -> f
     return float(min(est))
 
 
-def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3, seed: int = 0,
-              window: int = 31, pad: int = 60, warmup: int = 30) -> dict[str, Any]:
+def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
+              seed: int = 0) -> dict[str, Any]:
     """The held-out gap a *correct* model reaches on this log (parametric bootstrap).
 
-    The fitted model ``fit`` stands in for the truth. For each held-out segment it is run
-    (4 x the substeps) under the logged torque from ``pad`` + ``window``/2 samples before the
-    segment's start; the synthetic angles get the log's white noise (``white_noise_std``
-    less the quantisation) and are quantised to the log's encoder steps; then the workflow's
-    own steps follow on the synthetic data: start state from the Savitzky-Golay estimate at
-    the segment's start, z at its steady state, open-loop replay with the workflow's
-    substeps, and the gap. So the floor holds what noise, quantisation, the start-state
-    estimate (including its bias on fast modes and the steady-state z) and the replay's
-    integration cost a correct model on this log, and not the model's own errors.
+    The fitted model ``fit`` stands in for the truth: it is replayed over the held-out
+    segments from its fitted held-out start states with 4 x the workflow's substeps; the
+    synthetic angles get the log's white noise (``white_noise_std`` less the quantisation)
+    and are quantised to the log's encoder steps; then the workflow's own held-out steps
+    follow on the synthetic data: start states fitted from the log's start estimates
+    (``fit_starts``), open-loop replay with the workflow's substeps, and the gap. So the
+    floor holds what noise, quantisation, the fitted starts and the replay's integration
+    error cost a correct model on this log, and not the model's own errors.
 
     Returns ``floor`` (mean over ``draws``), ``floor_sd`` (their spread), ``noise_std`` and
     ``step`` [rad] per output (q1, q2), ``segments`` used."""
     _, test, _ = ws.for_model(fit.model)
     th = fit.theta
-    dt, L = log.dt, test.segs.length
-    W = pad + window // 2
-    first = int(round((float(test.segs.t0[0]) - float(log.t[0])) / dt))
-    starts = first + np.arange(test.segs.count) * L
-    starts = starts[(starts - W - warmup >= 0) & (starts + L <= log.N)]
-    if starts.size == 0:
-        return {"floor": math.nan, "floor_sd": math.nan, "segments": 0}
     chans = [np.asarray(log.q1, float)[:, 0], np.asarray(log.q2, float)[:, 0]]
     steps = [noise_level(c)["step"] for c in chans]
     sig = [math.sqrt(max(white_noise_std(c) ** 2 - st**2 / 12.0, 0.0))
            for c, st in zip(chans, steps)]
-    tau = np.asarray(log.tau, float)
-
-    def segs_at(a, length, x0, y):
-        idx = a[:, None] + np.arange(length)[None, :]
-        pre = a[:, None] + np.arange(-warmup, 0)[None, :]
-        return Segments(tau=jnp.asarray(tau[idx]), y_meas=jnp.asarray(y),
-                        tau_pre=jnp.asarray(tau[pre]), x0=jnp.asarray(x0),
-                        t0=jnp.asarray(log.t[a]))
-
-    # the synthetic truth: the model from the measured state W samples before each start
-    a0 = starts - W
-    v = [savgol(c, dt, 1, window) for c in chans]
-    x_init = np.stack([chans[0][a0], v[0][a0], chans[1][a0], v[1][a0], np.zeros(a0.size)],
-                      axis=1)[..., None]
-    ext = dataclasses.replace(test, segs=segs_at(a0, W + L, x_init, np.zeros((a0.size, W + L, 2))),
-                              substeps=test.substeps * 4)
-    y_true = np.asarray(simulated_outputs(ext, th))  # (S, W + L, 2)
-    c1 = scipy.signal.savgol_coeffs(window, 3, deriv=1, delta=dt, use="dot")
-    h = window // 2
+    fine = dataclasses.replace(test, substeps=test.substeps * 4)
+    y_true = np.asarray(simulated_outputs(fine, fit.y_test))  # (S, L, 2)
     rng = np.random.default_rng(seed)
     gaps = []
     for _ in range(draws):
@@ -678,14 +710,11 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3, see
         for k, st in enumerate(steps):
             if st > 0:
                 y[..., k] = np.round(y[..., k] / st) * st
-        # the workflow's start: the measured angle, its Savitzky-Golay derivative
-        v0 = np.einsum("w,swk->sk", c1, y[:, W - h:W + h + 1])
-        x0 = np.stack([y[:, W, 0], v0[:, 0], y[:, W, 1], v0[:, 1], np.zeros(starts.size)],
-                      axis=1)[..., None]
-        rep = dataclasses.replace(test, segs=segs_at(starts, L, x0, y[:, W:]))
-        gaps.append(float(gap(rep, th)))
+        rep = eqx.tree_at(lambda p: p.segs.y_meas, test, jnp.asarray(y))
+        x0 = fit_starts(rep, th, test.segs.x0)
+        gaps.append(float(gap(rep, (th, x0))))
     return {"floor": float(np.mean(gaps)), "floor_sd": float(np.std(gaps)), "noise_std": sig,
-            "step": steps, "segments": int(starts.size), "draws": draws}
+            "step": steps, "segments": int(test.segs.count), "draws": draws}
 
 
 def evidence_weights(scores: dict[str, dict[str, Any]], key: str = "dAIC") -> dict[str, float]:
@@ -768,7 +797,7 @@ def discover(
     S, L = ws.train.segs.count, ws.train.segs.length
     while len(added) < cfg.max_effects:
         train, _, _ = ws.for_model(current.model)
-        r = np.asarray(residuals(train, current.theta)).reshape(S, L, -1)
+        r = np.asarray(residuals(train, current.y_train))[: train.n_out].reshape(S, L, -1)
         tau_int = max(effective_count(r[..., c]) for c in range(r.shape[-1]))
         n_eff = current.n_res / tau_int
         series = loc_current.series
@@ -778,20 +807,36 @@ def discover(
                 continue
             start = _start_effect(name, current.model, series)
             m = Model(current.model.params, list(current.model.effects) + [start])
-            try:
-                f = fit_model(ws, m, max_steps=cfg.max_steps, tau_int=tau_int)
-            except (ValueError, FloatingPointError) as e:
-                failed[name] = str(e)
-                say(f"  {name}: fit failed ({e})")
-                continue
-            if not (math.isfinite(f.gap_test) and math.isfinite(f.rss)):
-                failed[name] = f"non-finite held-out gap {f.gap_test} or residual {f.rss}"
+            # Two first guesses of the start states, both from training data only: the
+            # current model's fitted starts (close for most candidates), and, when that fit is
+            # not significant, the log's start estimates; the fit with the lower training
+            # residual is kept. Each alone leaves some candidates in a local minimum: the
+            # current starts have absorbed what the current model misses (a hardening spring
+            # stayed at its first guess), the estimates put some segments in another
+            # friction regime (an asymmetric friction stopped at 80% of its size).
+            f, s = None, None
+            for first in ((current.starts, current.test_starts), None):
+                try:
+                    g = fit_model(ws, m, max_steps=cfg.max_steps, tau_int=tau_int,
+                                  starts=first)
+                except (ValueError, FloatingPointError) as e:
+                    failed[name] = str(e)
+                    continue
+                if not (math.isfinite(g.gap_test) and math.isfinite(g.rss)):
+                    failed[name] = f"non-finite held-out gap {g.gap_test} or residual {g.rss}"
+                    continue
+                if f is None or g.rss < f.rss:
+                    f = g
+                    s = score(current, f, n_eff)
+                    s["significant"] = bool(
+                        s["p_value"] < cfg.alpha and s["dBIC"] < 0
+                        and s["gain"] >= cfg.min_gain)
+                if s["significant"]:
+                    break
+            if f is None:
                 say(f"  {name}: fit failed ({failed[name]})")
                 continue
-            s = score(current, f, n_eff)
-            s["significant"] = bool(
-                s["p_value"] < cfg.alpha and s["dBIC"] < 0 and s["gain"] >= cfg.min_gain
-            )
+            failed.pop(name, None)
             s["seconds"] = f.seconds
             s["steps"] = f.steps
             s["converged"] = bool(f.converged)
@@ -817,7 +862,8 @@ def discover(
         # the held-out gap after this refit is dropped
         # (standard errors inflated by the same residual autocorrelation time as the round's)
         polished = fit_model(ws, fits[winner].model, max_steps=cfg.max_steps * 2,
-                             tau_int=tau_int)
+                             tau_int=tau_int,
+                             starts=(fits[winner].starts, fits[winner].test_starts))
         if not polished.gap_test < current.gap_test:
             rounds[-1]["winner"] = "none"
             rounds[-1]["dropped"] = {winner: f"held-out gap {polished.gap_test:.4g} after the "

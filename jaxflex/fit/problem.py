@@ -6,10 +6,11 @@ q2'], z) and is replayed under the logged torque (zero-order hold) by ``jaxflex.
 the effects' internal states are first brought into line with the W torque samples before the
 segment (``jaxflex.step.warm_effects``). Two ways to start a segment:
 
-- ``free_starts=True`` (identification): the start states are unknowns beside the parameters;
-  residuals are the weighted output errors and the continuity defects
-  ``w_def (x_end(segment s) - x0(segment s+1))``. With one segment this is single shooting.
-- ``free_starts=False`` (discovery, validation): each segment starts from the state measured at
+- ``free_starts=True`` (identification, discovery): the start states are unknowns beside the
+  parameters; residuals are the weighted output errors and the continuity defects
+  ``w_def (x_end(segment s) - x0(segment s+1))`` (discovery sets ``w_def`` to zero: independent
+  segments). With one segment this is single shooting.
+- ``free_starts=False`` (validation): each segment starts from the state measured at
   its start (angles from the log, velocities by Savitzky-Golay differentiation, z at the
   steady state of the current friction model for that velocity); only output errors.
 
@@ -166,9 +167,14 @@ class Problem(eqx.Module):
     Unknowns ``y``: ``(theta, x0s)`` with free starts, else ``theta`` (dict name -> (n,)).
     ``w_y`` scales output residuals, one value or one per output column (channel-major:
     ``outputs`` in order, n joints each; 1 / noise level for identification, 1 / motion for
-    discovery); ``w_def`` (n_state,) or per joint (n_state, n) scales continuity defects. ``jac_columns``: with a
-    parameter mask, the most fitted theta entries any mask will have; the structured Jacobian
-    then takes only that many tangents (the fitted directions) instead of all of theta.
+    discovery); ``w_def`` (n_state,) or per joint (n_state, n) scales continuity defects.
+    ``steady_z``: with free starts, each segment's start z is set at the steady state of its
+    start velocity (as with estimated starts) instead of being fitted; its entry in the start
+    vector is then unused (the bristle state relaxes within milliseconds of sliding and is
+    otherwise poorly determined, so a fitted z wanders to unphysical values). ``jac_columns``:
+    with a parameter mask, the most fitted theta entries any mask will have; the structured
+    Jacobian then takes only that many tangents (the fitted directions) instead of all of
+    theta.
     """
 
     space: ParamSpace
@@ -180,6 +186,7 @@ class Problem(eqx.Module):
     substeps: int = eqx.field(static=True)
     outputs: tuple[str, ...] = eqx.field(static=True)
     free_starts: bool = eqx.field(static=True, default=True)
+    steady_z: bool = eqx.field(static=True, default=False)
     structured: bool = eqx.field(static=True, default=True)
     jac_columns: int | None = eqx.field(static=True, default=None)
 
@@ -206,7 +213,7 @@ class Problem(eqx.Module):
         n = plant.n
         aux = tuple(e.aux_init(n) for e in plant.effects) if plant.effects else None
         x0 = unpack_state(self.kind, v0, aux)
-        if not self.free_starts and plant.friction is not None:
+        if (self.steady_z or not self.free_starts) and plant.friction is not None:
             x0 = eqx.tree_at(lambda s: s.z, x0, plant.friction.z_steady(x0.dq1))
         x0 = warm_effects(plant, x0, tau_pre, self.dt)
         # segments and Jacobian columns run batched: unrolled substeps are faster there
