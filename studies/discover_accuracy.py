@@ -46,6 +46,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--outside", type=int, default=2)
     ap.add_argument("--pairs", type=int, default=2)
     ap.add_argument("--small", action="store_true", help="tiny run (for a slow test)")
+    ap.add_argument("--from-case", type=int, default=0,
+                    help="skip the cases before this index (same seeds and variants: resumes "
+                         "or splits a long run)")
     ap.add_argument("--rescore", action="store_true",
                     help="re-apply the current selection rule to the saved candidate scores of "
                          "--out/results.json (first round) and rewrite the summary")
@@ -95,6 +98,8 @@ def main(argv: list[str] | None = None) -> None:
     max_eff = max(a.max_effects, 2) if a.grown else a.max_effects
     cfg = DiscoverConfig(max_effects=max_eff, candidates=names if a.effects else None)
     for i, eff in enumerate(cases):
+        if i < a.from_case:
+            continue
         t0 = time.perf_counter()
         kw = dict(variants[i])
         if eff == ("outside",):
