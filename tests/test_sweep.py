@@ -358,23 +358,23 @@ def test_robustness_study_runs_at_small_size(tmp_path):
     assert (tmp_path / "results.json").exists() and (tmp_path / "error_bands.png").exists()
 
 
-@pytest.mark.slow
-def test_benchmark_runs_at_small_size(tmp_path):
+def _bench_sweep(tmp_path, *args: str, result: str = "results.json") -> dict:
     r = subprocess.run([sys.executable, str(ROOT / "studies" / "bench_sweep.py"), "--small",
-                        "--skip-profile", "--out", str(tmp_path)], capture_output=True, text=True,
+                        *args, "--out", str(tmp_path)], capture_output=True, text=True,
                        timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
-    res = json.loads((tmp_path / "results.json").read_text())
+    return json.loads((tmp_path / result).read_text())
+
+
+@pytest.mark.slow
+def test_benchmark_runs_at_small_size(tmp_path):
+    res = _bench_sweep(tmp_path, "--skip-profile")
     assert len(res["scaling"]) == 2 and res["ratio"]["speedup_vs_solve_ivp"] > 1
 
 
 @pytest.mark.slow
 def test_benchmark_target_runs_at_small_size(tmp_path):
-    r = subprocess.run([sys.executable, str(ROOT / "studies" / "bench_sweep.py"), "--target",
-                        "--small", "--out", str(tmp_path)], capture_output=True, text=True,
-                       timeout=900)
-    assert r.returncode == 0, r.stderr[-3000:]
-    res = json.loads((tmp_path / "target.json").read_text())
+    res = _bench_sweep(tmp_path, "--target", result="target.json")
     assert res["accuracy"][str(res["substeps"])] <= res["tolerance_rel"]
     assert set(res["best_steps_per_s"]) == {"one_core", "one_device", "two_devices"}
     assert res["rms_max_rel_diff_between_setups"] < 1e-12  # the devices change no number
