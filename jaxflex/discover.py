@@ -278,7 +278,7 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     sol = least_squares(train, (theta0, x_train), rtol=_RTOL, atol=_ATOL,
                         max_steps=max_steps, scaling="marquardt")
     theta, x_train = sol.y
-    cov = covariance(train, sol.y, inflation=tau_int)
+    cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
     x_test = fit_starts(test, theta, x_test)
     space = train.space
     phys = space.physical(theta)
