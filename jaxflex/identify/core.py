@@ -207,8 +207,9 @@ def identify(
     the free static parameters (Fc, Fs, vs, sigma2) from a fit of eq. 35 to the friction the
     log shows by inverse dynamics (``start_from_static_map``), where that fit determines them,
     joint by joint (each joint's map from its own inverse dynamics; a joint whose map fixes
-    nothing keeps its values in ``init``); the user's ``init`` is the second start, tried when the first does not reach the noise
-    level (a portfolio of starts x schedules, stopping at the first success).
+    nothing keeps its values in ``init``); the user's ``init`` is the second start, tried
+    when the first does not reach the noise level (a portfolio of starts x schedules,
+    stopping at the first success).
     Parameters the data cannot determine keep their initial values and are marked (see
     ``finish``); a converged fit is then repeated without them.
     """
