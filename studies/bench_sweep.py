@@ -271,6 +271,29 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
             "controller_only_steps_per_s": timed(ctrl_only, plant, ctrl)}
 
 
+def alternating(setups: dict, rounds: int, **kw) -> tuple[dict, dict, dict, float]:
+    """``run_worker`` for each setup (name -> its ``run_worker`` keywords, e.g. devices and
+    cores) in ``rounds`` rounds, the order reversed every other round, with the common
+    keywords ``kw`` (``keep=True``). Returns the runs per setup (per-sample RMS dropped),
+    the best and median steps/s per setup, and the largest relative difference of the
+    per-sample RMS errors between any run and the first setup's first run."""
+    import numpy as np
+
+    runs: dict = {k: [] for k in setups}
+    for r in range(rounds):
+        for name in (list(setups) if r % 2 == 0 else list(setups)[::-1]):
+            runs[name].append(run_worker(**setups[name], **kw))
+    r0 = np.asarray(runs[next(iter(setups))][0]["_rms"])
+    same = max(float(np.max(np.abs(np.asarray(w["_rms"]) - r0) / r0))
+               for v in runs.values() for w in v)
+    for v in runs.values():
+        for w in v:
+            w.pop("_rms")
+    best = {k: max(w["steps_per_s"] for w in v) for k, v in runs.items()}
+    med = {k: statistics.median(w["steps_per_s"] for w in v) for k, v in runs.items()}
+    return runs, best, med, same
+
+
 def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
     """The issue-17 throughput target: ``samples`` x ``T`` s of the spread in float64 with the
     fewest plant substeps (of 1, 2, 3, 5, 10) whose per-sample RMS link error is within
@@ -304,19 +327,9 @@ def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
     # "one device": one host device free to use every core; "two devices": one per core
     setups = {"one_core": dict(devices=1, cores=1), "one_device": dict(devices=1),
               "two_devices": dict(devices=2)}
-    runs: dict[str, list[dict]] = {k: [] for k in setups}
-    for r in range(rounds):
-        for name in (list(setups) if r % 2 == 0 else list(setups)[::-1]):
-            w = run_worker(samples=samples, chunk=samples, substeps=chosen, **setups[name], **kw)
-            runs[name].append(w)
-    r0 = np.asarray(runs["one_core"][0]["_rms"])
-    res["rms_max_rel_diff_between_setups"] = max(
-        float(np.max(np.abs(np.asarray(w["_rms"]) - r0) / r0)) for v in runs.values() for w in v)
-    for v in runs.values():
-        for w in v:
-            w.pop("_rms")
-    best = {k: max(w["steps_per_s"] for w in v) for k, v in runs.items()}
-    med = {k: statistics.median(w["steps_per_s"] for w in v) for k, v in runs.items()}
+    runs, best, med, same = alternating(setups, rounds, samples=samples, chunk=samples,
+                                        substeps=chosen, **kw)
+    res["rms_max_rel_diff_between_setups"] = same
     res.update(runs=runs, best_steps_per_s=best, median_steps_per_s=med,
                ratio_two_devices_over_one_core_best=best["two_devices"] / best["one_core"],
                ratio_two_devices_over_one_core_median=med["two_devices"] / med["one_core"],
@@ -433,20 +446,9 @@ def main() -> None:
         rounds = 1 if a.small else 3
         print(f"[bench] host devices: {nd_samples} samples, chunk {nd_chunk}, 1 vs 2 devices, "
               f"{rounds} alternating pair(s)")
-        runs: dict[int, list[dict]] = {1: [], 2: []}
-        for r in range(rounds):
-            for nd in ((1, 2) if r % 2 == 0 else (2, 1)):
-                w = run_worker(devices=nd, samples=nd_samples, t_final=H, chunk=nd_chunk,
-                               substeps=10, method="model", float32=False, keep=True)
-                runs[nd].append(w)
-        r0 = np.asarray(runs[1][0]["_rms"])
-        same = max(float(np.max(np.abs(np.asarray(x["_rms"]) - r0) / r0))
-                   for x in runs[1] + runs[2])
-        for v in runs.values():
-            for w in v:
-                w.pop("_rms")
-        best = {nd: max(w["steps_per_s"] for w in v) for nd, v in runs.items()}
-        med = {nd: statistics.median(w["steps_per_s"] for w in v) for nd, v in runs.items()}
+        runs, best, med, same = alternating(
+            {1: dict(devices=1), 2: dict(devices=2)}, rounds, samples=nd_samples, t_final=H,
+            chunk=nd_chunk, substeps=10, method="model", float32=False, keep=True)
         res["devices"] = {"runs": {str(k): v for k, v in runs.items()},
                           "best_steps_per_s": best, "median_steps_per_s": med,
                           "ratio_2_over_1_best": best[2] / best[1],
