@@ -186,13 +186,20 @@ def identify(
     warm_steps: int = 40, accept_cost: float = 4.0,
     rtol: float = 1e-10, atol: float = 1e-10, max_steps: int = 200,
     rel_stderr_limit: float = 0.5, progress: bool | int = False, static_start: bool = True,
+    decrement_tol: float | None = 1e-2, geodesic: float = 0.75,
 ) -> IdentResult:
     """Identify the ``free`` parameters of ``init`` from ``log`` (docs/spec.md section 5).
 
     ``model``: "flexible" (eq. 3) or "rigid" (eq. 37, Jx = I + J). ``segment_length``:
     samples per multiple-shooting segment (None: single shooting); ``substeps``: integrator
     substeps per sample; ``rtol``/``atol``: Levenberg-Marquardt termination; ``max_steps``:
-    iteration cap. A parameter whose relative standard error exceeds ``rel_stderr_limit``, or
+    iteration cap; ``decrement_tol``: the solver's statistical stop (``least_squares``): the
+    residuals are in units of the log's noise, so a point from which a full Gauss-Newton step
+    would lower chi-square by less than this is as settled as the data can tell (default 1e-2:
+    the remaining step is below 0.1 standard errors; None: the tolerances alone);
+    ``geodesic``: the solver's geodesic acceleration (``least_squares``; 0: off), which takes
+    LuGre's curved Fs-vs-sigma valley in a few steps where plain Levenberg-Marquardt creeps
+    along it for hundreds. A parameter whose relative standard error exceeds ``rel_stderr_limit``, or
     that lies in a numerically null direction of the Jacobian, is named in an
     ``IdentificationWarning`` and in ``IdentResult.unidentifiable``. ``progress``: print the
     cost every ``progress`` steps (True: every step).
@@ -243,17 +250,20 @@ def identify(
         if factor is None or problem.segs.count == 1:
             return y
         loose = eqx.tree_at(lambda q: q.w_def, problem, problem.w_def * factor)
-        return least_squares(loose, y, rtol=rtol, atol=atol, max_steps=warm_steps,
+        return least_squares(loose, y, rtol=rtol, atol=atol, decrement_tol=decrement_tol,
+                             geodesic=geodesic, max_steps=warm_steps,
                              progress=say).y
 
     for origin, y_start in starts:
         for factor in schedules:
             y = warmed(prob, y_start, factor)
-            sol = least_squares(prob, y, rtol=rtol, atol=atol, max_steps=max_steps,
+            sol = least_squares(prob, y, rtol=rtol, atol=atol, decrement_tol=decrement_tol,
+                             geodesic=geodesic, max_steps=max_steps,
                                 progress=say)
             if sol.cost <= good and not sol.converged:
                 # at the noise level but still moving: let it settle before judging
-                more = least_squares(prob, sol.y, rtol=rtol, atol=atol, max_steps=max_steps,
+                more = least_squares(prob, sol.y, rtol=rtol, atol=atol, decrement_tol=decrement_tol,
+                             geodesic=geodesic, max_steps=max_steps,
                                      progress=say)
                 sol = dataclasses.replace(more, steps=sol.steps + more.steps,
                                           seconds=sol.seconds + more.seconds)
@@ -303,7 +313,8 @@ def identify(
         sol = None
         for label, start_of in (("fitted", lambda: kept(y_cur)),
                                 ("user", lambda: warmed(sub, kept(y0), best_factor))):
-            s_ = least_squares(sub, start_of(), rtol=rtol, atol=atol, max_steps=max_steps,
+            s_ = least_squares(sub, start_of(), rtol=rtol, atol=atol, decrement_tol=decrement_tol,
+                             geodesic=geodesic, max_steps=max_steps,
                                progress=say)
             total += s_.steps
             attempts.append({"refit_without": list(fixed_why), "start": label,
