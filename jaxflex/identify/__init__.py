@@ -19,7 +19,9 @@ Public API (a workflow on the fitting engine ``jaxflex.fit``):
 
 from jaxflex.fit import ParamSpace, Problem, covariance, get_value, set_values
 from jaxflex.identify.core import (
+    DECREMENT_TOL,
     DEFAULT_FREE,
+    GEODESIC,
     IdentificationWarning,
     IdentResult,
     finish,
@@ -45,7 +47,7 @@ from jaxflex.identify.static import (
 from jaxflex.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
 
 __all__ = [
-    "DEFAULT_FREE", "MODEL_KINDS", "STATIC_NAMES", "IdentResult", "IdentificationWarning",
+    "DECREMENT_TOL", "DEFAULT_FREE", "GEODESIC", "MODEL_KINDS", "STATIC_NAMES", "IdentResult", "IdentificationWarning",
     "ParamSpace", "Problem", "StaticMap", "TwoStepResult", "covariance", "excitation_torque",
     "finish", "fit_static_map", "get_value", "identify", "make_problem", "perturb", "replay",
     "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",

@@ -46,6 +46,10 @@ from jaxflex.validation import requires_float64
 from jaxflex.step import MODEL_KINDS, ModelKind, replay
 
 DEFAULT_FREE: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")
+#: identify's solver settings (``least_squares``): geodesic acceleration's bound on
+#: 2 |a| / |v|, and the statistical stop (Gauss-Newton decrement, chi-square units)
+GEODESIC: float = 0.3
+DECREMENT_TOL: float = 1e-2
 
 
 class IdentificationWarning(UserWarning):
@@ -186,7 +190,7 @@ def identify(
     warm_steps: int = 40, accept_cost: float = 4.0,
     rtol: float = 1e-10, atol: float = 1e-10, max_steps: int = 200,
     rel_stderr_limit: float = 0.5, progress: bool | int = False, static_start: bool = True,
-    decrement_tol: float | None = 1e-2, geodesic: float = 0.75,
+    decrement_tol: float | None = DECREMENT_TOL, geodesic: float = GEODESIC,
 ) -> IdentResult:
     """Identify the ``free`` parameters of ``init`` from ``log`` (docs/spec.md section 5).
 
