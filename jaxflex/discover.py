@@ -80,6 +80,7 @@ from jaxflex.fit import (
     residuals,
     savgol,
     simulated_outputs,
+    white_noise_std,
 )
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -668,16 +669,6 @@ class DiscoverResult:
             "config": dataclasses.asdict(self.config) | {"candidates": self.candidates},
             "log": self.log_info, "seconds": self.seconds,
         }
-
-
-def white_noise_std(q: np.ndarray, orders: Sequence[int] = (2, 3, 4, 5, 6)) -> float:
-    """White measurement noise [rad] of a sampled angle by differencing: the k-th difference
-    of white noise has variance C(2k, k) sigma^2, a smooth motion's is attenuated by
-    (2 sin(w dt / 2))^k; the smallest estimate over ``orders`` bounds sigma from above with
-    the least motion left in it (quantisation included)."""
-    q = np.asarray(q, float).reshape(len(q), -1)[:, 0]
-    est = [math.sqrt(np.var(np.diff(q, k)) / math.comb(2 * k, k)) for k in orders]
-    return float(min(est))
 
 
 def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,

@@ -18,6 +18,7 @@ from jaxflex.fit.problem import (
     pack_state,
     savgol,
     unpack_state,
+    white_noise_std,
 )
 from jaxflex.fit.solve import (
     Solution,
@@ -45,5 +46,5 @@ __all__ = [
     "constraint_of", "cost", "covariance", "gap", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
     "problem_residuals", "residuals", "simulated_outputs",
-    "relative", "savgol", "set_values", "unpack_state",
+    "relative", "savgol", "set_values", "unpack_state", "white_noise_std",
 ]

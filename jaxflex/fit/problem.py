@@ -321,16 +321,29 @@ class Problem(eqx.Module):
         return jnp.sqrt(jnp.sum((ys - m) ** 2) / jnp.sum((m - m[:, :1]) ** 2))
 
 
-def noise_level(q: np.ndarray, window: int = 31) -> dict[str, float]:
-    """Angle measurement noise of a logged channel [rad]: the quantisation step (the 2nd
-    percentile of the nonzero increments), its step^2/12 standard deviation, and the total
-    standard deviation, what a Savitzky-Golay fit over ``window`` samples leaves (corrected for
-    the fit's own degrees of freedom), at least the quantisation's."""
+def white_noise_std(q: np.ndarray, orders: Sequence[int] = (2, 3, 4, 5, 6)) -> float:
+    """White measurement noise [rad] of a sampled angle by differencing: the k-th difference
+    of white noise has variance C(2k, k) sigma^2, a smooth motion's is attenuated by
+    (2 sin(w dt / 2))^k; the smallest estimate over ``orders`` bounds sigma from above with
+    the least motion left in it (quantisation included, where the motion makes it white)."""
+    q = np.asarray(q, float).reshape(len(q), -1)[:, 0]
+    est = [math.sqrt(np.var(np.diff(q, k)) / math.comb(2 * k, k)) for k in orders]
+    return float(min(est))
+
+
+def noise_level(q: np.ndarray) -> dict[str, float]:
+    """Angle measurement noise of a logged channel [rad]: the quantisation step (the smallest
+    increment above floating-point rounding: one count, which a quantised channel shows
+    wherever it moves slowly or its noise toggles a count; a percentile of the increments
+    reads several counts on a channel that moves fast), its step^2/12 standard deviation, and
+    the total standard deviation: the white noise by differencing (``white_noise_std``,
+    quantisation included), at least the quantisation's (a channel that stands still leaves
+    no white quantisation error to difference). A smoothing residual, the estimate before,
+    keeps part of the motion: on a 20-bit encoder at 1 kHz it read 2x the noise, and every
+    cost in units of it looked 4x smaller than it is."""
     q = np.asarray(q, float).reshape(q.shape[0], -1)[:, 0]
     d = np.abs(np.diff(q))
-    d = d[d > 0]
-    step = float(np.quantile(d, 0.02)) if d.size else 0.0
-    resid = q - savgol(q, 1.0, 0, window)
-    total = float(np.var(resid)) * window / (window - 4)
+    d = d[d > 1e-12 * max(1.0, float(np.max(np.abs(q))))]
+    step = float(np.min(d)) if d.size else 0.0
     return {"step": step, "quantisation_std": step / math.sqrt(12.0),
-            "total_std": math.sqrt(max(total, step**2 / 12.0))}
+            "total_std": max(white_noise_std(q), step / math.sqrt(12.0))}

@@ -27,6 +27,7 @@ from jaxflex.identify.core import (
     finish,
     identify,
     make_problem,
+    noise_cost,
     simulate_log,
 )
 from jaxflex.identify.experiments import (
@@ -49,7 +50,7 @@ from jaxflex.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
 __all__ = [
     "DECREMENT_TOL", "DEFAULT_FREE", "GEODESIC", "MODEL_KINDS", "STATIC_NAMES", "IdentResult", "IdentificationWarning",
     "ParamSpace", "Problem", "StaticMap", "TwoStepResult", "covariance", "excitation_torque",
-    "finish", "fit_static_map", "get_value", "identify", "make_problem", "perturb", "replay",
+    "finish", "fit_static_map", "get_value", "identify", "make_problem", "noise_cost", "perturb", "replay",
     "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",
     "start_from_static_map", "static_map_from_log",
     "synthetic_log", "two_step",

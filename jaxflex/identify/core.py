@@ -5,7 +5,7 @@ Output-error least squares with multiple shooting and free segment start states
 (``jaxflex.fit.Problem``): residuals are the output errors ``w_y (y_sim - y_meas)`` with
 ``y = q1`` (and ``q2`` for the flexible model) and the continuity defects between segments,
 ``w_y`` the inverse of the encoder-noise level estimated from the log, so a cost of about
-``n_out / 2`` is what noise explains. Physical constraints hold by reparametrisation
+``n_out / 2`` (``noise_cost``, less with a finer second encoder) is what noise explains. Physical constraints hold by reparametrisation
 (``jaxflex.fit.ParamSpace``); the solver is the engine's Levenberg-Marquardt
 (``jaxflex.fit.least_squares``); standard errors come from the engine's covariance with the
 nuisance start states included. A portfolio of continuation schedules guards against local
@@ -68,7 +68,7 @@ class IdentResult:
     names the data cannot identify (they keep their initial values in ``params`` and are
     marked ``"identified": false`` with the reason in the file); warnings: messages; steps:
     solver steps; converged: the final cost is explained by the measurement noise (0.5 ||r||^2
-    <= accept_cost x n_out / 2, residuals in units of the noise estimated from the log) and
+    <= accept_cost x ``noise_cost``, what the noise estimated from the log explains) and
     the solver met its tolerance;
     reason: why not, or "cost explained by noise"; noise_cost: that bound; wall_s: solve time
     [s]; problem: the ``Problem`` (for re-simulation and benchmarks); solution: the solver's
@@ -197,7 +197,8 @@ def identify(
     ``model``: "flexible" (eq. 3) or "rigid" (eq. 37, Jx = I + J). ``segment_length``:
     samples per multiple-shooting segment (None: single shooting); ``substeps``: integrator
     substeps per sample; ``rtol``/``atol``: Levenberg-Marquardt termination; ``max_steps``:
-    iteration cap; ``decrement_tol``: the solver's statistical stop (``least_squares``): the
+    iteration cap; ``accept_cost``: the factor on ``noise_cost`` below which the cost counts as
+    explained by the noise; ``decrement_tol``: the solver's statistical stop (``least_squares``): the
     residuals are in units of the log's noise, so a point from which a full Gauss-Newton step
     would lower chi-square by less than this is as settled as the data can tell (default 1e-2:
     the remaining step is below 0.1 standard errors; None: the tolerances alone);
@@ -211,8 +212,9 @@ def identify(
     the continuity weight multiplied by this factor (segments nearly independent, a far less
     nonconvex problem), then tighten to the full weight (a continuation; None: off). A
     sequence of factors is a portfolio of such schedules, tried in order from the same start
-    until one ends with a cost the noise explains (0.5 ||r||^2 <= ``accept_cost`` x n_out / 2,
-    the residuals being scaled by the estimated noise level); otherwise the lowest cost wins.
+    until one ends with a cost the noise explains (0.5 ||r||^2 <= ``accept_cost`` x
+    ``noise_cost``, what the noise estimated from each channel of the log gives); otherwise the
+    lowest cost wins.
     All stages share one compilation (the engine's solver loops on the host).
     ``static_start``: for the flexible and link models (both encoders), a first start takes
     the free static parameters (Fc, Fs, vs, sigma2) from a fit of eq. 35 to the friction the
@@ -243,7 +245,9 @@ def identify(
         raise ValueError("identify: warm_start needs at least one schedule (a factor or None)")
     if prob.segs.count == 1:  # one segment: nothing to loosen
         schedules = [None]
-    good = accept_cost * prob.n_out / 2
+    good = accept_cost * noise_cost(log, prob)
+    solve = dict(rtol=rtol, atol=atol, decrement_tol=decrement_tol, geodesic=geodesic,
+                 progress=say)
     t0 = time.perf_counter()
     best, best_factor = None, None
     attempts = []
@@ -254,21 +258,15 @@ def identify(
         if factor is None or problem.segs.count == 1:
             return y
         loose = eqx.tree_at(lambda q: q.w_def, problem, problem.w_def * factor)
-        return least_squares(loose, y, rtol=rtol, atol=atol, decrement_tol=decrement_tol,
-                             geodesic=geodesic, max_steps=warm_steps,
-                             progress=say).y
+        return least_squares(loose, y, max_steps=warm_steps, **solve).y
 
     for origin, y_start in starts:
         for factor in schedules:
             y = warmed(prob, y_start, factor)
-            sol = least_squares(prob, y, rtol=rtol, atol=atol, decrement_tol=decrement_tol,
-                             geodesic=geodesic, max_steps=max_steps,
-                                progress=say)
+            sol = least_squares(prob, y, max_steps=max_steps, **solve)
             if sol.cost <= good and not sol.converged:
                 # at the noise level but still moving: let it settle before judging
-                more = least_squares(prob, sol.y, rtol=rtol, atol=atol, decrement_tol=decrement_tol,
-                             geodesic=geodesic, max_steps=max_steps,
-                                     progress=say)
+                more = least_squares(prob, sol.y, max_steps=max_steps, **solve)
                 sol = dataclasses.replace(more, steps=sol.steps + more.steps,
                                           seconds=sol.seconds + more.seconds)
             attempts.append({"start": origin, "warm_start": factor, "cost": sol.cost,
@@ -295,6 +293,7 @@ def identify(
     # determined first (a null direction, else the largest relative standard error; never
     # one marked only because its Fs/Fc partner is), until the rest are all determined.
     first, fixed_why, cur, y_cur, total = res, {}, prob, best.y, best.steps
+    cur_cost = best.cost
     for _ in range(len(prob.space.names)):
         own = [k for k in res.unidentifiable if k in cur.space.names
                and not res.why.get(k, "").startswith("kept at its initial value with")]
@@ -317,9 +316,7 @@ def identify(
         sol = None
         for label, start_of in (("fitted", lambda: kept(y_cur)),
                                 ("user", lambda: warmed(sub, kept(y0), best_factor))):
-            s_ = least_squares(sub, start_of(), rtol=rtol, atol=atol, decrement_tol=decrement_tol,
-                             geodesic=geodesic, max_steps=max_steps,
-                               progress=say)
+            s_ = least_squares(sub, start_of(), max_steps=max_steps, **solve)
             total += s_.steps
             attempts.append({"refit_without": list(fixed_why), "start": label,
                              "cost": s_.cost, "steps": s_.steps, "reason": s_.reason})
@@ -327,17 +324,38 @@ def identify(
                 sol = s_
             if _settled(sol, good):
                 break
+        if not _settled(sol, good) and sol.cost > cur_cost:
+            # neither settled nor better: the fit with the parameter free stays the answer (a
+            # refit from an unconverged fit can land far worse, e.g. 4e9 against 1.4e6)
+            attempts.append({"refit_without": list(fixed_why),
+                             "kept": "the previous fit (the refit is unconverged and worse)"})
+            break
         res = finish(sub, init, sol.y, steps=total, converged=_settled(sol, good),
                      wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                      reason=_reason(sol, good), noise_cost=good, log=log,
                      unidentified=dict(fixed_why), solution=sol)
-        cur, y_cur = sub, sol.y
+        cur, y_cur, cur_cost = sub, sol.y, sol.cost
     if res is not first:
         res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
         res.warnings = first.warnings + res.warnings
         res.attempts = attempts
     res.params.extra["identification"]["attempts"] = attempts
     return res
+
+
+def noise_cost(log: Log, prob: Problem) -> float:
+    """The cost 0.5 ||r||^2 that measurement noise alone gives ``prob`` (a ``make_problem``
+    problem of ``log``), in its weighted units: 0.5 sum over the output columns (channel,
+    joint) of samples x (sigma w)^2, sigma the column's own noise (``noise_level``, at least
+    1e-6 rad, the floor of ``make_problem``'s scale) and w its weight. About n_out / 2 when
+    every channel is as noisy as the one that set the scale; less for a finer second encoder
+    (a 20-bit link encoder with the motor's far finer one: about n_out / 4)."""
+    N = int(prob.segs.y_meas.shape[0] * prob.segs.y_meas.shape[1])
+    w = np.asarray(prob.w_y, float).reshape(-1)
+    sig = [max(noise_level(np.asarray(getattr(log, c), float).reshape(log.N, log.n)[:, j])
+               ["total_std"], 1e-6) for c in prob.outputs for j in range(log.n)]
+    w = np.broadcast_to(w, (len(sig),))
+    return 0.5 * N * float(np.sum((np.asarray(sig) * w) ** 2))
 
 
 def _settled(sol: Any, good: float) -> bool:
