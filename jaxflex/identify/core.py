@@ -335,6 +335,24 @@ def identify(
                      reason=_reason(sol, good), noise_cost=good, log=log,
                      unidentified=dict(fixed_why), solution=sol)
         cur, y_cur, cur_cost = sub, sol.y, sol.cost
+    if fixed_why and cur is not prob:
+        # the parameters were judged unidentifiable at the first fit's point, which may be a
+        # local minimum (a 3 s log: vs "unidentifiable" at a cost 20x the optimum's, fixed
+        # 50% off, Fs then fitted 46% off to make up for it). From the refit's lower point,
+        # free them again: if every parameter is then determined at a lower cost, that fit
+        # is the answer
+        th = {k: (y_cur[0][k] if k in y_cur[0] else y0[0][k]) for k in prob.space.names}
+        full = least_squares(prob, (th, y_cur[1]), max_steps=max_steps, **solve)
+        total += full.steps
+        attempts.append({"released": list(fixed_why), "start": "refit", "cost": full.cost,
+                         "steps": full.steps, "reason": full.reason})
+        if full.cost < cur_cost:
+            again = finish(prob, init, full.y, steps=total, converged=_settled(full, good),
+                           wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
+                           reason=_reason(full, good), noise_cost=good, log=log,
+                           solution=full)
+            if not again.unidentifiable:
+                res = first = again
     if res is not first:
         res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
         res.warnings = first.warnings + res.warnings
