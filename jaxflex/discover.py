@@ -10,7 +10,10 @@ Workflow (``discover``), for one joint:
    weight). This is how a closed-loop log of an integrating plant can be replayed honestly:
    one long open-loop replay drifts without bound, short segments do not. The start states
    (q1, q1', q2, q2', z) are unknowns fitted from each segment's samples, first guessed from
-   the log (angles, Savitzky-Golay velocities, z at its steady state): a start *estimated*
+   the log (angles, Savitzky-Golay velocities, and the bristle load that balances the link's
+   inverse dynamics, ``bristle_entries``; z is fitted within the friction's capacity,
+   ``Problem.bounded_z``, since a segment that starts in stick or just after a reversal
+   carries a partial load that the steady state of its velocity cannot): a start *estimated*
    from noisy, quantised angles is off by far more than the noise (velocity errors grow
    linearly over the segment, z and the rotor velocity are not measured), and a refit from
    such starts bends the parameters to absorb the error and buries small effects.

@@ -222,7 +222,8 @@ class Problem(eqx.Module):
         x0 = unpack_state(self.kind, v0, aux)
         fr = plant.friction
         if self.free_starts and self.bounded_z and fr is not None:
-            x0 = eqx.tree_at(lambda s: s.z, x0, fr.g(x0.dq1) / fr.sigma0 * jnp.clip(x0.z, -1.0, 1.0))
+            load = jnp.clip(x0.z, -1.0, 1.0)  # fraction of the capacity g / sigma0
+            x0 = eqx.tree_at(lambda s: s.z, x0, fr.g(x0.dq1) / fr.sigma0 * load)
         elif (self.steady_z or not self.free_starts) and fr is not None:
             x0 = eqx.tree_at(lambda s: s.z, x0, fr.z_steady(x0.dq1))
         x0 = warm_effects(plant, x0, tau_pre, self.dt)
