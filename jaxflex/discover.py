@@ -222,11 +222,11 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
 
 def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
                     window: int = 31, bound: float = 0.995) -> np.ndarray:
-    """First guesses of the bounded start-z entries u [-] (``Problem.bounded_z``: z =
-    g(q1') / sigma0 clip(u, -1, 1)) at samples ``idx`` of a one-joint log: the bristle deflection z
-    [rad] at which the link's inverse dynamics (``FlexibleJointPlant.torque_residuals``, angles
-    and their derivatives by Savitzky-Golay over ``window`` samples) leave no residual, as a
-    fraction of the friction's capacity g(q1') / sigma0, clipped to +-``bound``. While
+    """First guesses of the bounded start z [rad] (``Problem.bounded_z``) at samples ``idx``
+    of a one-joint log: the bristle deflection at which the link's inverse dynamics
+    (``FlexibleJointPlant.torque_residuals``, angles and their derivatives by Savitzky-Golay
+    over ``window`` samples) leave no residual, within +-``bound`` x the friction's capacity
+    g(q1') / sigma0. While
     sliding this is (near) the steady state; in stick, or just after a reversal, the load
     lies between +-capacity and has either sign, where the steady state of the velocity
     (only 0 or +-capacity at rest) puts the start in another basin of the fit (measured: a
@@ -250,7 +250,7 @@ def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
 
     r0, r1 = r_link(np.zeros_like(cap)), r_link(cap)
     frac = -r0 / np.where(r1 != r0, r1 - r0, 1.0)
-    return np.clip(frac, -bound, bound)
+    return cap * np.clip(frac, -bound, bound)
 
 
 @dataclasses.dataclass
@@ -289,15 +289,18 @@ class CandidateFit:
         return self.theta, self.test_starts
 
 
-def within_capacity(x0s: jax.Array, bound: float = 0.995) -> jax.Array:
-    """Start states (S, n_state, 1) with their bounded z entries (``Problem.bounded_z``, the
-    bristle load as a fraction [-] of the friction's capacity) brought back within
-    +-``bound``. An entry a long solver step pushed past +-1 stops moving there (the clip
-    has no slope); from just inside, a further solve can bring it back when the data want a
-    partial load (measured on a clean open-loop log: training gap 0.00089 from the first
-    solve, 0.00032 after a second solve from the entries brought back, as from the true
+def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
+                    bound: float = 0.995) -> jax.Array:
+    """Start states (S, n_state, 1) with their bounded z entries [rad] (``Problem.bounded_z``)
+    brought back within ``bound`` x the friction's capacity g(q1') / sigma0 of ``plant``. An
+    entry a long solver step pushed past the capacity stops moving there (the clip has no
+    slope); from just inside, a further solve can bring it back when the data want a partial
+    load (measured on a clean open-loop log: training gap 0.00089 from the first solve,
+    0.00032 after a second solve from the entries brought back, as from the true
     parameters)."""
-    return x0s.at[:, 4].set(jnp.clip(x0s[:, 4], -bound, bound))
+    fr = plant.friction
+    cap = bound * fr.g(x0s[:, 1]) / fr.sigma0
+    return x0s.at[:, 4].set(jnp.clip(x0s[:, 4], -cap, cap))
 
 
 def start_residuals(x0s: jax.Array, args: tuple[Problem, dict[str, jax.Array]]) -> jax.Array:
@@ -329,7 +332,8 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     (samples)."""
     t0 = time.perf_counter()
     train, test, theta0 = ws.for_model(model)
-    x_train, x_test = (within_capacity(x) for x in
+    plant0 = train.space.plant(theta0)
+    x_train, x_test = (within_capacity(x, plant0) for x in
                        (starts if starts is not None else (train.segs.x0, test.segs.x0)))
     sol = least_squares(train, (theta0, x_train), rtol=_RTOL, atol=_ATOL,
                         max_steps=max_steps, scaling="marquardt")

@@ -172,12 +172,13 @@ class Problem(eqx.Module):
     start velocity (as with estimated starts) instead of being fitted; its entry in the start
     vector is then unused (the bristle state relaxes within milliseconds of sliding and is
     otherwise poorly determined, so a fitted z wanders to unphysical values). ``bounded_z``:
-    with free starts, each segment's start z is fitted within the friction's capacity instead,
-    z = g(q1') / sigma0 clip(u, -1, 1) [rad] with u the start vector's z entry (the bristle
-    load as a fraction of the capacity, dimensionless; +-1 is the steady state of sliding): a
-    segment that starts in stick carries any bristle load up to breakaway, which the steady
-    state (only 0 or +-g / sigma0 at rest) cannot, and z stays physical (an entry past +-1,
-    poorly determined while sliding, stops moving instead of wandering). ``jac_columns``:
+    with free starts, each segment's start z is fitted within the friction's capacity instead:
+    the start vector's z entry [rad] clipped to +-g(q1') / sigma0 (the bounds are the steady
+    states of sliding): a segment that starts in stick carries any bristle load up to
+    breakaway, which the steady state (only 0 or +-g / sigma0 at rest) cannot, and z stays
+    physical (an entry past the capacity, poorly determined while sliding, stops moving
+    instead of wandering; the load is absolute, so a fitted Fs moves only the bound, not
+    every load with it). ``jac_columns``:
     with a parameter mask, the most fitted theta entries any mask will have; the structured
     Jacobian then takes only that many tangents (the fitted directions) instead of all of
     theta.
@@ -222,8 +223,8 @@ class Problem(eqx.Module):
         x0 = unpack_state(self.kind, v0, aux)
         fr = plant.friction
         if self.free_starts and self.bounded_z and fr is not None:
-            load = jnp.clip(x0.z, -1.0, 1.0)  # fraction of the capacity g / sigma0
-            x0 = eqx.tree_at(lambda s: s.z, x0, fr.g(x0.dq1) / fr.sigma0 * load)
+            cap = fr.g(x0.dq1) / fr.sigma0  # the friction's capacity [rad]
+            x0 = eqx.tree_at(lambda s: s.z, x0, jnp.clip(x0.z, -cap, cap))
         elif (self.steady_z or not self.free_starts) and fr is not None:
             x0 = eqx.tree_at(lambda s: s.z, x0, fr.z_steady(x0.dq1))
         x0 = warm_effects(plant, x0, tau_pre, self.dt)
