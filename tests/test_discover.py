@@ -253,3 +253,50 @@ def test_fitted_starts_bring_a_correct_model_to_the_noise():
 
     assert rms(test.segs.x0) > 3 * noise
     assert rms(fit_starts(test, theta, test.segs.x0)) < 1.3 * noise
+
+
+def test_bristle_load_at_a_segment_start_is_estimated_in_stick():
+    """A segment that starts while the link sticks (or just after a reversal) carries a
+    bristle load anywhere between the friction's capacities; the steady state of the start
+    velocity can only say 0 or +-capacity. ``bristle_entries`` takes the load that balances
+    the link's inverse dynamics, as a fraction of the capacity: it matches the true z."""
+    from jaxflex.discover import bristle_entries
+    from jaxflex.identify.experiments import synthetic_log
+    from jaxflex.presets import paper_params
+
+    plant = paper_params().to_plant(with_effects=False)
+    t = np.arange(4000) * 1e-3
+    tau = 0.3 * np.sin(2 * np.pi * 0.5 * t)[:, None]  # stick at every reversal
+    log, xs = synthetic_log(plant, tau)
+    idx = np.arange(100, 3900, 37)
+    v = np.asarray(xs.dq1)[idx, 0]
+    fr = plant.friction
+    cap = np.asarray(fr.g(v)) / float(np.ravel(fr.sigma0)[0])
+    true = np.asarray(xs.z)[idx, 0] / cap
+    u = bristle_entries(log, plant, idx) / cap  # as a fraction of the capacity
+    inner = np.abs(true) < 0.9  # loads the steady state cannot carry
+    assert inner.sum() >= 5
+    assert np.max(np.abs(u[inner] - true[inner])) < 0.1
+    steady = np.abs(np.sign(v) - true) < 0.02  # sliding
+    assert np.max(np.abs(u[steady] - np.sign(v[steady]))) < 0.1
+
+
+@pytest.mark.slow
+def test_a_correct_model_replays_every_held_out_segment_to_the_noise():
+    """The clean PD-loop log of the grown study (seed 113): with the steady-state start z a
+    held-out segment starting just after a reversal (true load -0.6 x capacity) stayed at
+    16x the others' error even with the true parameters, and the clean log was answered
+    "unexplained". With the bounded start z no segment stands out."""
+    from jaxflex.discover import Model, fit_starts, workspace
+    from jaxflex.fit import simulated_outputs
+    from jaxflex.params import Params
+
+    g = generate_log((), seed=113, t_final=12.0, loop="pd_rotor", excitation="multisine")
+    true = Params.from_dict(g.truth["plant"])
+    ws = workspace(g.log, true, ("torque_offset",), segment=0.3, train_frac=0.7, substeps=1,
+                   max_effects=1)
+    _, test, theta = ws.for_model(Model(true, []))
+    x0 = fit_starts(test, theta, test.segs.x0)
+    err = np.sqrt(np.mean((np.asarray(simulated_outputs(test, (theta, x0)))
+                           - np.asarray(test.segs.y_meas)) ** 2, axis=(1, 2)))
+    assert err.max() < 1.5 * np.median(err)

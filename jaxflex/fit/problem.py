@@ -171,7 +171,14 @@ class Problem(eqx.Module):
     ``steady_z``: with free starts, each segment's start z is set at the steady state of its
     start velocity (as with estimated starts) instead of being fitted; its entry in the start
     vector is then unused (the bristle state relaxes within milliseconds of sliding and is
-    otherwise poorly determined, so a fitted z wanders to unphysical values). ``jac_columns``:
+    otherwise poorly determined, so a fitted z wanders to unphysical values). ``bounded_z``:
+    with free starts, each segment's start z is fitted within the friction's capacity instead:
+    the start vector's z entry [rad] clipped to +-g(q1') / sigma0 (the bounds are the steady
+    states of sliding): a segment that starts in stick carries any bristle load up to
+    breakaway, which the steady state (only 0 or +-g / sigma0 at rest) cannot, and z stays
+    physical (an entry past the capacity, poorly determined while sliding, stops moving
+    instead of wandering; the load is absolute, so a fitted Fs moves only the bound, not
+    every load with it). ``jac_columns``:
     with a parameter mask, the most fitted theta entries any mask will have; the structured
     Jacobian then takes only that many tangents (the fitted directions) instead of all of
     theta.
@@ -187,6 +194,7 @@ class Problem(eqx.Module):
     outputs: tuple[str, ...] = eqx.field(static=True)
     free_starts: bool = eqx.field(static=True, default=True)
     steady_z: bool = eqx.field(static=True, default=False)
+    bounded_z: bool = eqx.field(static=True, default=False)
     structured: bool = eqx.field(static=True, default=True)
     jac_columns: int | None = eqx.field(static=True, default=None)
 
@@ -213,8 +221,12 @@ class Problem(eqx.Module):
         n = plant.n
         aux = tuple(e.aux_init(n) for e in plant.effects) if plant.effects else None
         x0 = unpack_state(self.kind, v0, aux)
-        if (self.steady_z or not self.free_starts) and plant.friction is not None:
-            x0 = eqx.tree_at(lambda s: s.z, x0, plant.friction.z_steady(x0.dq1))
+        fr = plant.friction
+        if self.free_starts and self.bounded_z and fr is not None:
+            cap = fr.g(x0.dq1) / fr.sigma0  # the friction's capacity [rad]
+            x0 = eqx.tree_at(lambda s: s.z, x0, jnp.clip(x0.z, -cap, cap))
+        elif (self.steady_z or not self.free_starts) and fr is not None:
+            x0 = eqx.tree_at(lambda s: s.z, x0, fr.z_steady(x0.dq1))
         x0 = warm_effects(plant, x0, tau_pre, self.dt)
         # segments and Jacobian columns run batched: unrolled substeps are faster there
         xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps, unroll=True)
