@@ -40,13 +40,15 @@ def test_clean_log_gives_none():
 
 
 def test_floor_is_honest_and_an_effect_outside_the_library_is_unexplained():
-    """The gap floor (bootstrap of a correct model through the workflow's steps) sits just
-    below the clean log's final gap; a hidden effect that no candidate describes (joint
+    """The gap floor (bootstrap of a correct model through the workflow's steps) sits at the
+    clean log's final gap: above half of it and at most 10% above it (a three-draw estimate;
+    measured 0.3% above once the floor's synthetic angles got the encoder's true one-count
+    quantisation step, ``fit.noise_level``); a hidden effect that no candidate describes (joint
     damping, not among CANDS) leaves the gap far above the floor: answer "unexplained"; the
     report carries evidence weights that sum to one."""
     clean = discover(generate_log((), seed=4, t_final=8.0).log, config=CFG).to_json()
     assert clean["effect"] == "none" and not clean["unexplained"]
-    assert 0.5 * clean["gap_after"] < clean["gap_floor"] <= clean["gap_after"]
+    assert 0.5 * clean["gap_after"] < clean["gap_floor"] <= 1.1 * clean["gap_after"]
     w = clean["evidence"]["rounds"][0]["aic_weights"]
     assert set(w) == {"none", *CANDS} and sum(w.values()) == pytest.approx(1.0)
     g = generate_log(("joint_damping",), seed=8, t_final=8.0)
