@@ -1,6 +1,7 @@
 """Effects library (docs/spec.md section 8): names, construction from params, where each acts, the
 physics of each hook, constraints, gradients."""
 
+import dataclasses
 import math
 
 import jax
@@ -129,3 +130,34 @@ def test_gradient_reaches_effect_parameters():
 
     g = jax.grad(f)(300.0)
     assert float(g) == pytest.approx(0.05**3 / 0.07, rel=1e-9)
+
+
+@pytest.mark.parametrize("name", sorted(n for n, e in EFFECTS.items() if e.candidate))
+def test_gated_effect_equals_the_effect_or_nothing(name):
+    """A gated effect (``Gated``: the discrepancy workflow's switch, a run-time branch when the
+    gate is not batched) gives the plant's accelerations with the effect (gate 1) or without it
+    (gate 0), exactly; batched gates (vmap over models: both branches, then a select) give the
+    same numbers."""
+    from jaxflex.effects import Gated
+
+    eff = EFFECTS[name].typical(1)
+    # typical() of a signed effect is zero: give every parameter a size
+    eff = jax.tree_util.tree_map(lambda a: a + 0.01 if a.shape == (1,) else a, eff)
+    base = paper_plant()
+    u = jnp.array([0.2])
+
+    def acc(plant):
+        x = plant.init_state(q1=0.3, dq1=0.4, q2=0.32, dq2=-0.7)
+        if x.aux is not None:  # an effect's internal state away from rest (lag, delay)
+            x = dataclasses.replace(x, aux=tuple(
+                None if a is None else jnp.asarray(a) + jnp.arange(1.0, 1.0 + jnp.size(a)).reshape(
+                    jnp.shape(a)) for a in x.aux))
+        return jnp.concatenate(plant.accelerations(x, u))
+
+    on, off = acc(base.with_effects(eff)), acc(base.with_effects(Gated(eff, jnp.asarray(0.0))))
+    assert not np.allclose(np.asarray(on), np.asarray(acc(base)))  # the effect acts here
+    np.testing.assert_array_equal(np.asarray(acc(base.with_effects(Gated(eff, jnp.asarray(1.0))))),
+                                  np.asarray(on))
+    np.testing.assert_allclose(np.asarray(off), np.asarray(acc(base)), rtol=1e-15, atol=0)
+    batched = jax.vmap(lambda g: acc(base.with_effects(Gated(eff, g))))(jnp.array([1.0, 0.0]))
+    np.testing.assert_allclose(np.asarray(batched), np.stack([on, off]), rtol=1e-14, atol=1e-14)

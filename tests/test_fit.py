@@ -337,6 +337,15 @@ def test_statistical_stop_ends_within_a_small_fraction_of_a_standard_error():
     J = np.asarray(jax.jacfwd(_decay)(full.y, (t, z)))
     se = np.sqrt(np.diag(np.linalg.inv(J.T @ J)))
     assert np.all(np.abs(np.asarray(stat.y) - np.asarray(full.y)) < 0.1 * se)
+    # residuals 7x their noise units: the stop measured against the fit's own residual
+    # variance (a callable bound, discover's ``relative_stop``) ends at the same point
+    from jaxflex.discover import relative_stop
+
+    rel = least_squares((t, z * 7.0), y0 * jnp.array([7.0, 1.0, 7.0]),
+                        fn=_decay, max_steps=500, decrement_tol=relative_stop(t.size - 3))
+    assert rel.reason.startswith("statistical stop"), rel.reason
+    assert np.all(np.abs(np.asarray(rel.y) / np.array([7.0, 1.0, 7.0]) - np.asarray(full.y))
+                  < 0.1 * se)
     with pytest.raises(ValueError, match="decrement_tol"):
         least_squares((t, z), y0, fn=_decay, decrement_tol=-1.0)
 

@@ -524,7 +524,7 @@ def least_squares(
     prob: Any, y0: Any, *, fn: Callable = problem_residuals, rtol: float = 1e-10,
     atol: float = 1e-10, max_steps: int = 200, scaling: str = "identity",
     structure: str = "auto", progress: Callable[[int, float], None] | None = None,
-    decrement_tol: float | None = None, geodesic: float = 0.0,
+    decrement_tol: float | Callable[[float], float] | None = None, geodesic: float = 0.0,
 ) -> Solution:
     """Levenberg-Marquardt on the residuals ``fn(y, prob)`` from ``y0`` (module docstring).
 
@@ -542,15 +542,20 @@ def least_squares(
     accepted point whose Gauss-Newton decrement (``gauss_newton_decrement``, in units of
     chi-square) is below ``decrement_tol``, i.e. the step that remains is smaller than
     sqrt(decrement_tol) standard errors in every direction, far inside what the noise lets the
-    data determine (None: off; the tolerances alone decide). ``geodesic``: > 0 turns on
+    data determine (None: off; the tolerances alone decide); a callable of the current cost
+    0.5 ||r||^2 gives the bound at each point instead (for residuals in other units: e.g.
+    ``lambda c: 0.01 * 2 c / m`` measures the decrement in units of the residual variance the
+    fit itself estimates, so the step that remains is below 0.1 of the standard errors
+    ``covariance`` reports). ``geodesic``: > 0 turns on
     geodesic acceleration (``geodesic_step``) with this bound on 2 |a| / |v| (0.75 is the
     usual choice; 0: plain Levenberg-Marquardt). Raises ``ValueError`` for
     ``max_steps < 1`` or a negative ``decrement_tol``.
     """
     if max_steps < 1:
         raise ValueError(f"fit: max_steps must be >= 1, got {max_steps}")
-    if decrement_tol is not None and not decrement_tol >= 0:
-        raise ValueError(f"fit: decrement_tol must be >= 0 or None, got {decrement_tol}")
+    if decrement_tol is not None and not callable(decrement_tol) and not decrement_tol >= 0:
+        raise ValueError(f"fit: decrement_tol must be >= 0, a callable or None, "
+                         f"got {decrement_tol}")
     t0 = time.perf_counter()
     if structure == "auto":
         shooting = isinstance(prob, Problem) and prob.free_starts and prob.segs.count > 1
@@ -567,11 +572,11 @@ def least_squares(
             done, ok, stalled = bool(done_a), bool(ok_a), bool(stalled_a)
             if progress is not None:
                 progress(steps, float(c))
-            if ok and not done and decrement_tol is not None and float(dec) < decrement_tol:
+            bound = decrement_tol(float(c)) if callable(decrement_tol) else decrement_tol
+            if ok and not done and bound is not None and float(dec) < bound:
                 done = True
-                reason = (f"statistical stop: a full Gauss-Newton step would lower chi-square "
-                          f"by {float(dec):.3g} < {decrement_tol:g} (the remaining step is "
-                          f"below {math.sqrt(decrement_tol):.2g} standard errors)")
+                reason = (f"statistical stop: a full Gauss-Newton step would lower ||r||^2 "
+                          f"by {float(dec):.3g} < {bound:.3g}")
             if ok and stalled and not done:
                 done = True
                 reason = ("tolerance met (the trust region shrank below the tolerance on the "
