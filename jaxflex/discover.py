@@ -378,6 +378,27 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     )
 
 
+def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float = 1.0,
+           rounds: int = 3, tol: float = 1e-3) -> CandidateFit:
+    """``fit`` solved again from its own start states, their loads brought back within the
+    friction's capacity (``within_capacity``), until the training residual falls by less than
+    ``tol`` (relative) or ``rounds`` solves: the base every candidate is compared with. A
+    solve's long steps push some start loads past the capacity, where the clip has no slope
+    and they stop moving; every candidate fit starts with them brought back, so against an
+    unsettled base every candidate gains (measured, open-loop log with a hidden actuator lag
+    and hardening spring: after the spring was added, all ten candidates of the next round
+    lowered the held-out gap by 51-78%, and the one named was a 0.002 N m asymmetry)."""
+    for _ in range(rounds):
+        nxt = fit_model(ws, fit.model, max_steps=max_steps, tau_int=tau_int,
+                        starts=(fit.starts, fit.test_starts))
+        better = nxt.rss < fit.rss
+        done = not nxt.rss < fit.rss * (1.0 - tol)
+        fit = nxt if better else fit
+        if done:
+            break
+    return fit
+
+
 def segment_errors(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     """RMS error [rad] of a fitted model's replay per held-out segment (S,), q1 and q2
     together: the held-out evidence, segment by segment, for comparing two models on the
@@ -845,11 +866,9 @@ def discover(
     ws = workspace(log, nominal, cands, segment=cfg.segment, train_frac=cfg.train_frac,
                    substeps=cfg.substeps, max_effects=cfg.max_effects)
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2)
-    # a second solve from the first's result, start loads brought back within the capacity
-    # (``within_capacity``): the base every candidate is compared with must not keep a load
-    # that the first solve's long early steps pushed past the capacity
-    current = fit_model(ws, current.model, max_steps=cfg.max_steps * 2,
-                        starts=(current.starts, current.test_starts))
+    # the base every candidate is compared with must not keep a load that the first solve's
+    # long early steps pushed past the capacity (``settle``)
+    current = settle(ws, current, max_steps=cfg.max_steps * 2)
     if not (math.isfinite(current.gap_test) and math.isfinite(current.rss)):
         raise ValueError(
             "discover: the nominal model's replay of this log is not finite (held-out gap "
@@ -935,9 +954,7 @@ def discover(
         # base, not with one that merely had fewer iterations; an effect that does not lower
         # the held-out gap after this refit is dropped
         # (standard errors inflated by the same residual autocorrelation time as the round's)
-        polished = fit_model(ws, fits[winner].model, max_steps=cfg.max_steps * 2,
-                             tau_int=tau_int,
-                             starts=(fits[winner].starts, fits[winner].test_starts))
+        polished = settle(ws, fits[winner], max_steps=cfg.max_steps * 2, tau_int=tau_int)
         if not polished.gap_test < current.gap_test:
             rounds[-1]["winner"] = "none"
             rounds[-1]["dropped"] = {winner: f"held-out gap {polished.gap_test:.4g} after the "
