@@ -51,7 +51,11 @@ Workflow (``discover``), for one joint:
 
 All candidates share one compiled model: the plant holds every candidate effect, wrapped in
 ``jaxflex.effects.Gated`` (gate 0 or 1), and the engine's parameter mask says which are fitted;
-both are data, so the solver compiles once per log shape.
+both are data, so the solver compiles once per log shape. The gates are run-time branches
+(``lax.cond``), so an inactive candidate costs nothing per substep (before: the eleven gated
+candidates made every replay 5-13x dearer than the nominal model's). Every fit ends at the
+engine's statistical stop measured against its own residual variance (``relative_stop``), and
+the base each round compares with is settled (``settle``).
 """
 
 from __future__ import annotations
@@ -524,21 +528,34 @@ def localise(log: Log, params: Params, window: int = 41) -> Localisation:
     return Localisation(summary=summary, series=series)
 
 
-def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging") -> AbstractEffect:
+def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
+                   min_periods: float = 2.0) -> AbstractEffect:
     """Cogging start: the spatial frequency N [1/rad] and phase that best explain the link
     residual against q1 ("cogging") or the rotor residual against q2 ("motor_cogging") by
-    linear least squares over a grid (gradient cannot find a frequency)."""
+    linear least squares over a grid (gradient cannot find a frequency). The residual is
+    first cleared of what a refit of the nominal model absorbs anyway (a constant, the angle,
+    the velocity, a Coulomb term, the deflection and the acceleration), and the grid starts at
+    ``min_periods`` periods over the angle's travel: a slower "ripple" is a smooth trend, not
+    cogging (measured: a PD-loop log with a motor ripple of N = 60 1/rad, nominal 10% off:
+    the raw residual's best fit was N = 4.5, half a period over the travel; cleared, 60.06)."""
     rotor = name == "motor_cogging"
     q, r = (series["q2"], series["r_rotor"]) if rotor else (series["q1"], series["r_link"])
+    v = series["v2"] if rotor else series["v1"]
+    nuisance = np.column_stack([np.ones_like(q), q, v, np.tanh(v / 0.01), series["d"],
+                                np.gradient(v, series["t"])])
+    Q, _ = np.linalg.qr(nuisance)
+    clear = lambda x: x - Q @ (Q.T @ x)  # noqa: E731
+    r = clear(r)
     best = (-1.0, 60.0 if rotor else 25.0, 0.0, 0.01)
-    coarse = np.arange(5.0, 400.0 if rotor else 80.0, 0.5)
+    lowest = max(5.0, 2.0 * math.pi * min_periods / max(float(np.ptp(q)), 1e-9))
+    coarse = np.arange(lowest, 400.0 if rotor else 80.0, 0.5)
     for grid in (coarse, None):  # a coarse grid, then a fine one around its best
         if grid is None:
             grid = best[1] + np.arange(-0.5, 0.51, 0.02)
         for N in grid:
-            X = np.column_stack([np.sin(N * q), np.cos(N * q), np.ones_like(q)])
+            X = clear(np.column_stack([np.sin(N * q), np.cos(N * q)]))
             c, *_ = np.linalg.lstsq(X, r, rcond=None)
-            expl = float(np.sum((X[:, :2] @ c[:2]) ** 2))
+            expl = float(np.sum((X @ c) ** 2))
             if expl > best[0]:
                 # the residual equals the missing torque A sin(N q + phi)
                 best = (expl, float(N), math.atan2(c[1], c[0]), max(math.hypot(c[0], c[1]), 1e-3))
