@@ -244,19 +244,19 @@ class Problem(eqx.Module):
 
         Non-finite entries are replaced by ``BLOWN_RESIDUAL``. With ``structured`` (the
         default) a custom JVP uses the multiple-shooting sparsity (module docstring); values
-        and derivatives equal plain autodiff (a test checks this)."""
+        and derivatives equal plain autodiff (a test checks this). The segment replays and
+        their Jacobian blocks are module-level compiled functions (``replay_segments``,
+        ``segment_jacobians``), so that the solver's several traces of the residual (start,
+        trial point, linearisation) trace the replay once each instead of every time."""
         theta, x0s = self.split(y)
-        th_flat, th_unravel = ravel_pytree(theta)
+        th_flat, _ = ravel_pytree(theta)
+        spec = theta_spec(theta)
         S, n_state, n = x0s.shape
         n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
         free = self.free_starts
         # The problem's arrays go in as an argument (no closed-over tracers); their tangents
         # are ignored (the data are not differentiated).
         dyn, static = eqx.partition(self, eqx.is_array)
-
-        def seg_flat(prob, th, v0, tau, tau_pre):
-            ys, x_end = prob._segment(th_unravel(th), v0.reshape(n_state, n), tau, tau_pre)
-            return jnp.concatenate([ys.reshape(-1), x_end.reshape(-1)])
 
         def assemble(prob, out, nxt, y_ref):
             r = prob.w_y * (out[:, :n_y].reshape(prob.segs.y_meas.shape) - y_ref)
@@ -271,8 +271,7 @@ class Problem(eqx.Module):
 
         def primal(th, v0s, d):
             prob = eqx.combine(d, static)
-            out = jax.vmap(seg_flat, in_axes=(None, None, 0, 0, 0))(
-                prob, th, v0s, prob.segs.tau, prob.segs.tau_pre)
+            out = replay_segments(prob, th, v0s, spec, (n_state, n))
             return guard(assemble(prob, out, v0s, prob.segs.y_meas))
 
         args_ = (th_flat, x0s.reshape(S, n_state * n), dyn)
@@ -285,35 +284,10 @@ class Problem(eqx.Module):
             th, v0s, d = primals
             dth, dv0s, _ = tangents
             prob = eqx.combine(d, static)
-
-            k = th.shape[0]
-            if prob.jac_columns is None:
-                basis = jnp.eye(k, dtype=th.dtype)
-            else:  # unit vectors of the fitted entries (masked ones have zero derivative)
-                fitted = ravel_pytree({nm: jnp.broadcast_to(prob.space.mask[nm], (n,))
-                                       for nm in prob.space.names})[0]
-                idx = jnp.nonzero(fitted, size=prob.jac_columns, fill_value=k)[0]
-                basis = jax.nn.one_hot(idx, k + 1, dtype=th.dtype)[:, :k].T
-
-            P = basis.shape[1]
-
-            def seg_and_jac(v0, tau, tau_pre):
-                # one forward pass with P (+ n_state*n) tangents: the fitted theta directions
-                # (and the segment's own start state)
-                f = lambda t_, v_: seg_flat(prob, t_, v_, tau, tau_pre)
-                d = v0.shape[0]
-                t_th = basis.T if not free else jnp.concatenate(
-                    [basis.T, jnp.zeros((d, k), th.dtype)])
-                t_v = jnp.zeros((P, d), v0.dtype) if not free else jnp.concatenate(
-                    [jnp.zeros((P, d), v0.dtype), jnp.eye(d, dtype=v0.dtype)])
-                out, cols = jax.vmap(lambda a, b: jax.jvp(f, (th, v0), (a, b)),
-                                     out_axes=(None, 1))(t_th, t_v)
-                return out, (cols[:, :P], cols[:, P:])
-
-            out, jac = jax.vmap(seg_and_jac)(v0s, prob.segs.tau, prob.segs.tau_pre)
-            dout = jnp.einsum("smc,c->sm", jac[0], basis.T @ dth)
+            out, jac_th, jac_v, basis = segment_jacobians(prob, th, v0s, spec, (n_state, n))
+            dout = jnp.einsum("smc,c->sm", jac_th, basis.T @ dth)
             if free:
-                dout = dout + jnp.einsum("smd,sd->sm", jac[1], dv0s)
+                dout = dout + jnp.einsum("smd,sd->sm", jac_v, dv0s)
             r = guard(assemble(prob, out, v0s, prob.segs.y_meas))
             dr = assemble(prob, dout, dv0s, 0.0)
             return r, jnp.where(r == BLOWN_RESIDUAL, 0.0, dr)
@@ -331,6 +305,66 @@ class Problem(eqx.Module):
         ys, _ = self.simulate(y)
         m = self.segs.y_meas
         return jnp.sqrt(jnp.sum((ys - m) ** 2) / jnp.sum((m - m[:, :1]) ** 2))
+
+
+def theta_spec(theta: dict[str, Array]) -> tuple[tuple[str, tuple[int, ...]], ...]:
+    """The structure of engine coordinates ``theta`` (names and shapes), hashable: what
+    ``replay_segments`` needs to unflatten them."""
+    return tuple((k, tuple(jnp.shape(v))) for k, v in sorted(theta.items()))
+
+
+def _segment_flat(prob: Problem, spec: tuple, dims: tuple[int, int], th: Array, v0: Array,
+                  tau: Array, tau_pre: Array) -> Array:
+    """One segment's outputs and end state, flattened, from flat coordinates ``th``."""
+    unravel = ravel_pytree({k: jnp.zeros(shape, th.dtype) for k, shape in spec})[1]
+    ys, x_end = prob._segment(unravel(th), v0.reshape(dims), tau, tau_pre)
+    return jnp.concatenate([ys.reshape(-1), x_end.reshape(-1)])
+
+
+@eqx.filter_jit
+def replay_segments(prob: Problem, th: Array, v0s: Array, spec: tuple,
+                    dims: tuple[int, int]) -> Array:
+    """Every segment of ``prob`` replayed from flat coordinates ``th`` and flat start states
+    ``v0s`` (S, n_state * n): (S, outputs + end state) [rad, rad/s], flattened per segment.
+    ``spec``: ``theta_spec`` of the coordinates; ``dims``: (n_state, n)."""
+    return jax.vmap(lambda v, u, p: _segment_flat(prob, spec, dims, th, v, u, p))(
+        v0s, prob.segs.tau, prob.segs.tau_pre)
+
+
+@eqx.filter_jit
+def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
+                      dims: tuple[int, int]) -> tuple[Array, Array, Array, Array]:
+    """``replay_segments`` and its Jacobian blocks in one forward pass per segment, with P
+    tangents for the fitted coordinates (``jac_columns`` of them with a mask, else all) and,
+    with free starts, the segment's own n_state * n start entries: (outputs (S, m), d/dtheta
+    (S, m, P), d/dstart (S, m, n_state n), basis (k, P): the unit vectors of the P fitted
+    coordinates among the k)."""
+    k = th.shape[0]
+    n = dims[1]
+    if prob.jac_columns is None:
+        basis = jnp.eye(k, dtype=th.dtype)
+    else:  # unit vectors of the fitted entries (masked ones have zero derivative)
+        fitted = ravel_pytree({nm: jnp.broadcast_to(prob.space.mask[nm], (n,))
+                               for nm in prob.space.names})[0]
+        idx = jnp.nonzero(fitted, size=prob.jac_columns, fill_value=k)[0]
+        basis = jax.nn.one_hot(idx, k + 1, dtype=th.dtype)[:, :k].T
+    P = basis.shape[1]
+    free = prob.free_starts
+
+    def seg_and_jac(v0, tau, tau_pre):
+        # one forward pass with P (+ n_state*n) tangents: the fitted theta directions (and
+        # the segment's own start state)
+        f = lambda t_, v_: _segment_flat(prob, spec, dims, t_, v_, tau, tau_pre)  # noqa: E731
+        d = v0.shape[0]
+        t_th = basis.T if not free else jnp.concatenate([basis.T, jnp.zeros((d, k), th.dtype)])
+        t_v = jnp.zeros((P, d), v0.dtype) if not free else jnp.concatenate(
+            [jnp.zeros((P, d), v0.dtype), jnp.eye(d, dtype=v0.dtype)])
+        out, cols = jax.vmap(lambda a, b: jax.jvp(f, (th, v0), (a, b)),
+                             out_axes=(None, 1))(t_th, t_v)
+        return out, cols[:, :P], cols[:, P:]
+
+    out, jac_th, jac_v = jax.vmap(seg_and_jac)(v0s, prob.segs.tau, prob.segs.tau_pre)
+    return out, jac_th, jac_v, basis
 
 
 def white_noise_std(q: np.ndarray, orders: Sequence[int] = (2, 3, 4, 5, 6)) -> float:
