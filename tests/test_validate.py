@@ -159,3 +159,47 @@ def test_loop_controller_sections_name_their_problem():
         declared({"type": "cascade", "gains": {"KD3": 1.0}})
     with pytest.raises(ParamsError, match="q2d_method"):
         declared({"type": "cascade", "q2d_method": "guess"})
+
+
+def test_sampled_reference_gives_the_derivatives_the_cascade_needs():
+    """The logged q1d of a 1 kHz multisine, interpolated: derivatives 0-4 at a sample instant
+    and between samples match the analytic ones (measured relative errors <= 3e-7 up to the
+    3rd, <= 3e-5 for the 4th)."""
+    import jax.numpy as jnp
+
+    from jaxflex.trajectory import Multisine, SampledReference
+
+    tr = Multisine.schroeder(rms=0.15, f_min=0.1, f_max=2.0, count=6)
+    dt = 1e-3
+    ref = SampledReference(samples=jax.vmap(tr.position)(jnp.arange(3000) * dt), dt=dt)
+    ts = jnp.asarray([0.0, 0.0123, 1.5005, 2.9])
+    exact, interp = np.asarray(tr.sample(ts, 4)), np.asarray(ref.sample(ts, 4))  # (4, 5, 1)
+    rel = np.abs(exact - interp).max(axis=(0, 2)) / np.abs(exact).max(axis=(0, 2))
+    assert np.all(rel[:4] < 1e-5) and rel[4] < 1e-3, rel
+
+
+def test_declared_cascade_reproduces_a_cascade_log_and_wrong_parameters_do_not():
+    """A log of jaxflex's cascade (``generate_log(loop="cascade")``: IDENT_GAINS, the paper's
+    parameters as the controller's nominal model, 2 N m) simulated back through the declared
+    cascade with the truth. Exact sensing (no noise, 2^30 counts): measured position error
+    0.001%, torque 0.05%; K 30% off: 12% position, Fc 30% off: 3.0%. With the generator's
+    default 16-bit noisy encoders: 0.5% position (torque 21%: the logged torque holds the
+    loop's response to encoder noise, which the simulation does not have)."""
+    from jaxflex.datagen import IDENT_GAINS, generate_log
+    from jaxflex.presets import paper_params
+    from jaxflex.validate import CascadeLoop, closed_loop_errors, loop_controller
+
+    nominal = paper_params()
+    section = {"type": "cascade", "gains": IDENT_GAINS.to_dict(), "tau_max": 2.0,
+               "model": {"plant": nominal.plant, "friction": nominal.friction}}
+    gen = generate_log(seed=1, t_final=2.0, loop="cascade", noise_counts=0.0, bits=30)
+    truth = _declared(gen, section)
+    assert isinstance(loop_controller(truth), CascadeLoop)
+    err = closed_loop_errors(truth, gen.log, kind="flexible")
+    assert err["position_pct"] < 0.01 and err["torque_pct"] < 0.3
+    for wrong in (("plant", "K", 1.3), ("friction", "Fc", 1.3)):
+        bad = closed_loop_errors(_declared(gen, section, wrong), gen.log, kind="flexible")
+        assert bad["position_pct"] > 100 * err["position_pct"], wrong
+    noisy = generate_log(seed=1, t_final=2.0, loop="cascade")
+    assert closed_loop_errors(_declared(noisy, section), noisy.log,
+                              kind="flexible")["position_pct"] < 1.0
