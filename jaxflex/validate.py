@@ -13,8 +13,11 @@ Per log, three numbers (each from the one implementation of its equation):
   measured q1 and q2; for "rotor" the link reading passes the ``encoder_skew`` effect);
 - **closed-loop simulation error** in the benchmark metric ``100 ||y - y_sim|| / ||y||`` [%]
   for position, velocity and torque, when the parameters declare the controller that ran
-  (``PPCascade``: the EMPS P position / P velocity cascade, in the parameter file's
-  top-level ``loop_controller`` section) and the log has a reference ``q1d``.
+  (the parameter file's top-level ``loop_controller`` section, ``LOOP_TYPES``: ``PPCascade``,
+  the EMPS P position / P velocity cascade; ``PDLoop``, a PD on the rotor or link angle;
+  ``CascadeLoop``, jaxflex's own cascade) and the log has a reference ``q1d``. Every declared
+  loop is a ``SampledLaw`` run by one sampled-data scan around ``jaxflex.step.model_step``
+  (rigid or flexible model), the log's q1d sampled as the reference.
 
 Returns plain dicts; figures and files are written by ``jaxflex.cli.validate``.
 """
