@@ -194,8 +194,8 @@ class PPCascade:
 
     def law(self, params: Params, q_ref: Float[Array, "N n"], dt: float) -> PPLaw:
         """The sampled law for a loop of period ``dt`` [s] (``params``, ``q_ref`` unused)."""
-        c = jnp.asarray([self.kp, self.kv, self.gtau, self.vmax], float)
-        return PPLaw(kp=c[0], kv=c[1], gtau=c[2], vmax=c[3], dt=float(dt))
+        kp, kv, gtau, vmax = self.constants()
+        return PPLaw(kp=kp, kv=kv, gtau=gtau, vmax=vmax, dt=float(dt))
 
 
 @dataclasses.dataclass(frozen=True)
