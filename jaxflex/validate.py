@@ -110,7 +110,8 @@ class PPLaw(SampledLaw):
         """(last position, last filtered position) [m or rad], both the current position."""
         return q1, q1
 
-    def step(self, state, t, r, q1, q2, d):
+    def step(self, state: Any, t: Array, r: Array, q1: Array, q2: Array,
+             d: Array) -> tuple[Any, Array]:
         """EMPS P/P cascade: the half-sum filter, the velocity P loop, the saturation in V."""
         q_prev, qf_prev = state
         qf = 0.5 * q1 + 0.5 * q_prev
@@ -136,7 +137,8 @@ class PDLaw(SampledLaw):
         q = q1 if self.on == "q1" else q2
         return q, jnp.zeros_like(q)
 
-    def step(self, state, t, r, q1, q2, d):
+    def step(self, state: Any, t: Array, r: Array, q1: Array, q2: Array,
+             d: Array) -> tuple[Any, Array]:
         """The PD torque toward the reference sample, plus the disturbance [N m]."""
         q = q1 if self.on == "q1" else q2
         q_prev, dq_prev = state
@@ -155,7 +157,8 @@ class CascadeLaw(SampledLaw):
         """``CascadeController.init`` at the angles, at rest."""
         return self.controller.init(t0, q1, q2)
 
-    def step(self, state, t, r, q1, q2, d):
+    def step(self, state: Any, t: Array, r: Array, q1: Array, q2: Array,
+             d: Array) -> tuple[Any, Array]:
         """``CascadeController.step`` (saturated at its tau_max), plus the disturbance."""
         state, out = self.controller.step(state, t, q1, q2)
         return state, out.tau + d
@@ -369,7 +372,8 @@ def _need_x64(what: str) -> None:
 
 @eqx.filter_jit
 def _sampled_loop(plant: FlexibleJointPlant, kind: str, law: SampledLaw, r: jax.Array,
-                  d: jax.Array, x0: PlantState, dt: float, substeps: int):
+                  d: jax.Array, x0: PlantState, dt: float,
+                  substeps: int) -> tuple[jax.Array, jax.Array]:
     """The sampled-data loop of a declared controller around the model ``kind``: at t_k = k dt
     the law reads the plant's angles and its torque is held over the sample while
     ``jaxflex.step.model_step`` advances the plant. Returns (q1 before each step, torque),
