@@ -99,6 +99,21 @@ class CascadeGains(eqx.Module):
         return jnp.concatenate([getattr(self, k) for k in GAIN_NAMES])
 
 
+def dirty_derivative(y_prev: ArrayLike, x: ArrayLike, x_prev: ArrayLike, tc: ArrayLike,
+                     h: float) -> Array:
+    """One sample of the filtered ("dirty") derivative of a sampled signal x, backward Euler:
+    y = (tc y_prev + x - x_prev) / (tc + h), time constant ``tc`` [s] (0: the backward
+    difference), sample period ``h`` [s]; units of x per second."""
+    return (tc * y_prev + x - x_prev) / (tc + h)
+
+
+def pd_torque(kp: ArrayLike, kd: ArrayLike, tau_max: ArrayLike, r: ArrayLike, q: ArrayLike,
+              dq: ArrayLike) -> Array:
+    """PD law toward a set point: tau = clip(kp (r - q) - kd q', -tau_max, tau_max) [N m],
+    with kp [N m/rad], kd [N m s/rad], angles [rad] and q' [rad/s]."""
+    return jnp.clip(kp * (r - q) - kd * dq, -tau_max, tau_max)
+
+
 class ControllerState(eqx.Module):
     """State of the sampled-data controller (all (n,)).
 
@@ -303,7 +318,7 @@ class CascadeController(eqx.Module):
         Returns the next state and the law's output (tau [N m], saturated).
         """
         h = self.dt
-        dirty = lambda y_prev, x, x_prev, tc: (tc * y_prev + x - x_prev) / (tc + h)
+        dirty = lambda y_prev, x, x_prev, tc: dirty_derivative(y_prev, x, x_prev, tc, h)
         if dq1 is None:
             dq1 = dirty(state.dq1, q1, state.q1_prev, self.velocity_tc)
         if dq2 is None:

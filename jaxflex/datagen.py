@@ -23,7 +23,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxflex.controller import CascadeController, CascadeGains, ControllerState, LawOutput
+from jaxflex.controller import (
+    CascadeController, CascadeGains, ControllerState, LawOutput, dirty_derivative, pd_torque,
+)
 from jaxflex.effects import EFFECTS, AbstractEffect
 from jaxflex.identify.experiments import synthetic_log
 from jaxflex.logs import Log
@@ -91,7 +93,8 @@ class FrictionBump(AbstractEffect):
 
 class RotorPD(eqx.Module):
     """A PD loop on the rotor angle toward the link reference (sampled, dirty-derivative
-    velocity): tau = kp (q1d - q2) - kd q2' [N m], saturated at tau_max. Duck-types the
+    velocity): tau = kp (q1d - q2) - kd q2' [N m], saturated at tau_max
+    (``jaxflex.controller.pd_torque``, ``dirty_derivative``). Duck-types the
     controller interface of ``jaxflex.simulate.simulate_sampled`` (``init``, ``step``)."""
 
     model: FlexibleJointPlant
@@ -110,11 +113,10 @@ class RotorPD(eqx.Module):
                                q2d_prev=zero, dq2d=zero, ddq2d=zero)
 
     def step(self, state: ControllerState, t, q1, q2, dq1=None, dq2=None):
-        h = self.dt
         if dq2 is None:
-            dq2 = (self.velocity_tc * state.dq2 + q2 - state.q2_prev) / (self.velocity_tc + h)
+            dq2 = dirty_derivative(state.dq2, q2, state.q2_prev, self.velocity_tc, self.dt)
         ref = self.trajectory.position(jnp.asarray(t, q1.dtype))
-        tau = jnp.clip(self.kp * (ref - q2) - self.kd * dq2, -self.tau_max, self.tau_max)
+        tau = pd_torque(self.kp, self.kd, self.tau_max, ref, q2, dq2)
         new = dataclasses.replace(state, q1_prev=q1, q2_prev=q2, dq2=dq2)
         zero = jnp.zeros_like(q1)
         return new, LawOutput(tau=tau, z_hat_dot=zero, F_hat=zero, q2d=ref, s1=zero,

@@ -124,3 +124,40 @@ class Multisine(Trajectory):
             f, ph, a = (jnp.tile(x[:, None], (1, n)) for x in (f, ph, a))
         return cls(amplitudes=a, frequencies=f, phases=ph)
 
+
+
+class SampledReference(Trajectory):
+    """A reference known by uniformly spaced samples (a logged q1d): on each sample interval
+    the degree-5 polynomial through the six nearest samples (Lagrange interpolation), so that
+    the position and its derivatives (up to the 4th, as the cascade needs) exist at any t.
+    At the sample instants the derivatives are those of a 6-point stencil (error O(dt^2) for
+    the 4th); outside the samples the end polynomials extrapolate.
+
+    samples [rad] shape (N, n) (or (N,) for one joint), N >= 6; dt [s] the sample period;
+    t0 [s] the time of the first sample. Samples rounded to few digits amplify in the high
+    derivatives (a 4th derivative divides by dt^4): give the reference at full precision.
+    """
+
+    samples: Float[Array, "N n"] = eqx.field(converter=lambda a: jnp.asarray(a, float))
+    dt: float = eqx.field(static=True)
+    t0: float = eqx.field(static=True, default=0.0)
+
+    def __check_init__(self) -> None:
+        if self.samples.ndim not in (1, 2) or self.samples.shape[0] < 6:
+            raise ValueError("SampledReference: need samples of shape (N, n) or (N,) with N >= 6, "
+                             f"got {self.samples.shape}")
+        if not self.dt > 0:
+            raise ValueError(f"SampledReference: dt must be > 0 s, got {self.dt}")
+
+    def position(self, t: Array) -> Array:
+        y = self.samples if self.samples.ndim == 2 else self.samples[:, None]
+        s = (t - self.t0) / self.dt
+        i = jnp.clip(jnp.floor(s), 2, y.shape[0] - 4)
+        u = s - i  # position within the stencil's nodes -2..3
+        nodes = jnp.arange(-2.0, 4.0)
+        diff = u - nodes
+        # Lagrange basis: w_j = prod_{m != j} (u - x_m) / (x_j - x_m)
+        rows = [jnp.prod(jnp.delete(diff, j)) / jnp.prod(jnp.delete(nodes[j] - nodes, j))
+                for j in range(6)]
+        window = jax.lax.dynamic_slice_in_dim(y, i.astype(int) - 2, 6, axis=0)
+        return jnp.stack(rows) @ window

@@ -2,10 +2,12 @@
 
 For each log: the open-loop segment replay gap, the torque prediction error from the measured
 motion ``100 ||tau - tau_hat|| / ||tau||`` [%], and, when the parameter file declares the
-controller that ran (top-level ``loop_controller`` section, e.g. the EMPS P/P cascade) and the
-log has a reference q1d, the closed-loop errors in the benchmark metric (position, velocity,
-torque). ``--against`` adds the same rows for a reference parameter set. Writes
-``DIR/report.json``, ``DIR/table.md`` and figures (measured against predicted, residuals).
+controller that ran (top-level ``loop_controller`` section: the EMPS P/P cascade
+``{"type": "pp_cascade", ...}``, a PD loop ``{"type": "pd", "kp": ..., "kd": ...}`` or
+jaxflex's cascade ``{"type": "cascade"}``; docs/spec.md section 7) and the log has a
+reference q1d, the closed-loop errors in the benchmark metric (position, velocity, torque).
+``--against`` adds the same rows for a reference parameter set. Writes ``DIR/report.json``,
+``DIR/table.md`` and figures (measured against predicted, residuals).
 
 Example (EMPS, with the pulses of the validation file injected in volts):
 
@@ -33,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="model structure (default flexible)")
     p.add_argument("--disturbance", default=None,
                    help="expression on the log file's variables added to the controller output "
-                        "in the closed loop [V], e.g. pulses_N (default: none; a file without "
+                        "in the closed loop [V for pp_cascade, N m otherwise], e.g. pulses_N (default: none; a file without "
                         "the variable runs without it)")
     p.add_argument("--segment", type=int, default=None,
                    help="samples per replay segment (default: 0.5 s)")
@@ -50,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.logs import LogError, evaluate, load_log, parse_mapping, read_variables
     from jaxflex.params import load_params
     from jaxflex.plots.validate import plot_table, plot_validation_log
-    from jaxflex.validate import validate
+    from jaxflex.validate import loop_controller, validate
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -58,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
     sets = {"params": load_params(args.params)}
     if args.against:
         sets["against"] = load_params(args.against)
+    for p in sets.values():  # a bad loop_controller section is refused before any work
+        loop_controller(p)
     mapping = parse_mapping(args.map)
     logs = []
     for f in args.logs:
