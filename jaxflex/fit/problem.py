@@ -234,10 +234,15 @@ class Problem(eqx.Module):
         return ys, pack_state(self.kind, x_end)
 
     def simulate(self, y: Any) -> tuple[Array, Array]:
-        """Simulated outputs (S, L, n_out) [rad] and segment end states (S, n_state, n)."""
+        """Simulated outputs (S, L, n_out) [rad] and segment end states (S, n_state, n)
+        (``replay_segments``: the replay traced once for the residual and every other use)."""
         theta, x0s = self.split(y)
-        return jax.vmap(lambda v, u, p: self._segment(theta, v, u, p))(
-            x0s, self.segs.tau, self.segs.tau_pre)
+        S, n_state, n = x0s.shape
+        out = replay_segments(self, ravel_pytree(theta)[0], x0s.reshape(S, n_state * n),
+                              theta_spec(theta), (n_state, n))
+        n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
+        return (out[:, :n_y].reshape(self.segs.y_meas.shape),
+                out[:, n_y:].reshape(S, n_state, n))
 
     def residuals(self, y: Any, args: Any = None) -> Array:
         """Weighted output residuals and (with free starts) continuity defects, flattened.
