@@ -14,6 +14,19 @@ EXAMPLE = ("jaxflex identify log.csv --params init.json --out identified.json "
            "--free Fc,Fs,vs,sigma0,sigma1,sigma2")
 
 
+def _substeps(text: str) -> int | str:
+    """``--substeps``: a positive integer or "auto"."""
+    if text == "auto":
+        return text
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {text!r}")
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {k}")
+    return k
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``identify`` subcommand."""
     p = sub.add_parser(
@@ -38,7 +51,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "measured rotor motion (no motor model: friction on the link side)")
     p.add_argument("--segment", type=int, default=500,
                    help="samples per multiple-shooting segment (default 500; 0: whole log)")
-    p.add_argument("--substeps", type=int, default=4, help="integrator substeps per sample")
+    p.add_argument("--substeps", type=_substeps, default="auto",
+                   help="integrator substeps per sample, or 'auto' (default): the fewest whose "
+                        "replay error is a tenth of the log's noise, refined until the "
+                        "integrator moves no fitted parameter by more than half a standard "
+                        "error (docs/spec.md section 5)")
     p.add_argument("--max-steps", type=int, default=200, help="solver iteration cap")
     p.add_argument("--start", type=int, default=0, help="first sample used")
     p.add_argument("--stop", type=int, default=None, help="one past the last sample used")

@@ -24,6 +24,9 @@ from jaxflex.fit.solve import (
     Solution,
     cost,
     covariance,
+    discretisation_bias,
+    integration_error,
+    refined,
     gap,
     least_squares,
     problem_residuals,
@@ -43,7 +46,8 @@ from jaxflex.fit.space import (
 
 __all__ = [
     "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "ParamSpace", "Problem", "Segments", "Solution",
-    "constraint_of", "cost", "covariance", "gap", "get_value", "is_fitted", "least_squares",
+    "constraint_of", "cost", "covariance", "discretisation_bias", "gap",
+    "integration_error", "refined", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
     "problem_residuals", "residuals", "simulated_outputs",
     "relative", "savgol", "set_values", "unpack_state", "white_noise_std",

@@ -44,6 +44,8 @@ from jaxflex.step import MODEL_KINDS, ModelKind, replay, warm_effects
 #: Value given to a residual that is not finite (a trial that blew up is then rejected by
 #: the solver's cost comparison instead of propagating NaN).
 BLOWN_RESIDUAL = 1e8
+#: Most substeps a segment replay unrolls (``Problem._segment``).
+UNROLL_SUBSTEPS = 4
 
 
 def savgol(x: np.ndarray, dt: float, deriv: int = 0, window: int = 31, order: int = 3) -> np.ndarray:
@@ -228,8 +230,11 @@ class Problem(eqx.Module):
         elif (self.steady_z or not self.free_starts) and fr is not None:
             x0 = eqx.tree_at(lambda s: s.z, x0, fr.z_steady(x0.dq1))
         x0 = warm_effects(plant, x0, tau_pre, self.dt)
-        # segments and Jacobian columns run batched: unrolled substeps are faster there
-        xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps, unroll=True)
+        # segments and Jacobian columns run batched: unrolled substeps are faster there, up to
+        # UNROLL_SUBSTEPS (past it XLA's compile time and run time on a CPU explode: 8 / 16 /
+        # 32 unrolled substeps compiled in 1.6 / 5.2 / 62 s and the last ran 30x slower)
+        xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps,
+                           unroll=self.substeps <= UNROLL_SUBSTEPS)
         ys = jnp.concatenate([getattr(xs, o) for o in self.outputs], axis=-1)
         return ys, pack_state(self.kind, x_end)
 

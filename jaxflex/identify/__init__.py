@@ -19,15 +19,20 @@ Public API (a workflow on the fitting engine ``jaxflex.fit``):
 
 from jaxflex.fit import ParamSpace, Problem, covariance, get_value, set_values
 from jaxflex.identify.core import (
+    BIAS_TOL,
     DECREMENT_TOL,
     DEFAULT_FREE,
     GEODESIC,
+    MAX_SUBSTEPS,
+    OUTPUT_TOL,
     IdentificationWarning,
     IdentResult,
+    choose_substeps,
     finish,
     identify,
     make_problem,
     noise_cost,
+    refine_fit,
     simulate_log,
 )
 from jaxflex.identify.experiments import (
@@ -48,7 +53,8 @@ from jaxflex.identify.static import (
 from jaxflex.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
 
 __all__ = [
-    "DECREMENT_TOL", "DEFAULT_FREE", "GEODESIC", "MODEL_KINDS", "STATIC_NAMES", "IdentResult", "IdentificationWarning",
+    "BIAS_TOL", "DECREMENT_TOL", "DEFAULT_FREE", "GEODESIC", "MAX_SUBSTEPS", "MODEL_KINDS",
+    "OUTPUT_TOL", "choose_substeps", "refine_fit", "STATIC_NAMES", "IdentResult", "IdentificationWarning",
     "ParamSpace", "Problem", "StaticMap", "TwoStepResult", "covariance", "excitation_torque",
     "finish", "fit_static_map", "get_value", "identify", "make_problem", "noise_cost", "perturb", "replay",
     "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",
