@@ -47,7 +47,9 @@ class Solution:
     solver's tolerance was met (``converged``), the final ``cost`` 0.5 ||r||^2 (weighted
     units), ``reason`` in words, ``seconds`` of wall time; ``residual`` r at ``y`` and
     ``normal``, the undamped normal equations there (the blocks of ``shooting_blocks`` or
-    ``dense_normal_equations``), which ``covariance`` reuses instead of linearising again."""
+    ``dense_normal_equations``), which ``covariance`` reuses instead of linearising again;
+    ``decrement``, the Gauss-Newton decrement at ``y`` (``gauss_newton_decrement``: the drop
+    of ||r||^2 a further full Gauss-Newton step would bring were the residuals linear)."""
 
     y: Any
     steps: int
@@ -57,6 +59,7 @@ class Solution:
     seconds: float
     residual: Any = None
     normal: dict[str, Any] | None = None
+    decrement: float | None = None
 
 
 class _WithAux(eqx.Module):
@@ -564,7 +567,7 @@ def least_squares(
     wrapped = _WithAux(fn)
     y = y0
     state = _init(solver, wrapped, y, prob)
-    steps, done, ok, reason, c = 0, False, True, "", None
+    steps, done, ok, reason, c, dec = 0, False, True, "", None, None
     try:
         while steps < max_steps:
             y, state, done_a, ok_a, c, stalled_a, dec = _step(solver, wrapped, y, state, prob)
@@ -600,7 +603,8 @@ def least_squares(
     return Solution(y=y, steps=steps, converged=bool(done and ok and not reason.startswith("int")),
                     cost=final, reason=reason, seconds=time.perf_counter() - t0,
                     residual=None if c is None else state.f_info.residual,
-                    normal=None if c is None else state.descent_state.normal)
+                    normal=None if c is None else state.descent_state.normal,
+                    decrement=None if dec is None else float(dec))
 
 
 @eqx.filter_jit
