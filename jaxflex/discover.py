@@ -112,6 +112,12 @@ _RTOL, _ATOL = 1e-7, 1e-10
 #: Statistical stop of every fit (``relative_stop``): the step that remains is below
 #: sqrt(DECREMENT) of the standard errors the fit reports.
 DECREMENT = 0.01
+#: ... or the drops achieved stayed below that bound for this many steps in a row
+#: (``least_squares(stall_steps=...)``; measured on a 20 s log with a hidden joint damping:
+#: the nominal fit, its settle and the held-out start fits ran their 60 / 20-step caps with the
+#: cost unchanged to 1e-6 over the last 20-55 steps, the predicted decrement held 100-5000x
+#: above the bound by start loads at the friction's capacity).
+STALL_STEPS = 5
 
 
 def relative_stop(n_res: int, inflation: float = 1.0,
@@ -339,7 +345,7 @@ def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
     of the start (no parameter sees the held-out data)."""
     sol = least_squares((prob, theta), x0s, fn=start_residuals, rtol=_RTOL, atol=_ATOL,
                         max_steps=max_steps, scaling="marquardt", structure="dense",
-                        decrement_tol=relative_stop(prob.n_out))
+                        decrement_tol=relative_stop(prob.n_out), stall_steps=STALL_STEPS)
     return sol.y
 
 
@@ -359,7 +365,8 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
                        (starts if starts is not None else (train.segs.x0, test.segs.x0)))
     sol = least_squares(train, (theta0, x_train), rtol=_RTOL, atol=_ATOL,
                         max_steps=max_steps, scaling="marquardt",
-                        decrement_tol=relative_stop(train.n_out, tau_int))
+                        decrement_tol=relative_stop(train.n_out, tau_int),
+                        stall_steps=STALL_STEPS)
     theta, x_train = sol.y
     cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
     x_test = fit_starts(test, theta, x_test)
