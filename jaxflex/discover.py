@@ -62,10 +62,11 @@ both are data, so the solver compiles once per log shape. The gates are run-time
 (``lax.cond``), so an inactive candidate costs nothing per substep (before: the eleven gated
 candidates made every replay 5-13x dearer than the nominal model's). Every fit ends at the
 engine's statistical stop measured against its own residual variance (``relative_stop``), and
-the base each round compares with is settled (``settle``). Measured on a 20 s, 1 kHz log with a hidden joint damping and every
-candidate (2 shared cores, persistent compilation cache warm): 100-115 s before the screen and
-these stops, about 30 s after; a third of what is left is tracing and compiling the training
-and held-out problems' solver steps.
+the base each round compares with is settled (``settle``). Measured on a 20 s, 1 kHz log with
+a hidden joint damping and every candidate (``jaxflex discover``, 2 shared cores, persistent
+compilation cache warm): 100-115 s when every candidate of every round was fitted fully, about
+35 s with the screen; most of what is left is tracing and compiling the training and held-out
+problems' solver steps (about 9 s) and the first, nominal refit.
 """
 
 from __future__ import annotations

@@ -228,8 +228,9 @@ def test_shortlist_fits_the_promising_and_the_rivals_of_the_best():
     """``shortlist``: a candidate is fitted fully when it could be significant (predicted
     p-value below alpha and a lower predicted BIC) and either explains at least ``keep`` of
     the best one's predicted drop, comes within ``decisive`` of its predicted Akaike
-    difference or achieved less than half its predicted drop; the ``least`` best with a negative predicted Akaike difference are fitted in
-    any case; a failed screen is never shortlisted."""
+    difference or achieved less than half its predicted drop; the ``least`` best with a
+    negative predicted Akaike difference are fitted in any case; a failed screen is never
+    shortlisted."""
     from jaxflex.discover import shortlist
 
     def rec(rss_pred, dAIC, p, dBIC):
