@@ -228,10 +228,10 @@ def test_shortlist_fits_the_promising_and_the_rivals_of_the_best():
     """``shortlist``: a candidate is fitted fully when it could be significant (predicted
     p-value below alpha and a lower predicted BIC) and either explains at least ``keep`` of
     the best one's predicted drop, comes within ``decisive`` of its predicted Akaike
-    difference or achieved less than half its predicted drop; the ``least`` best with a
-    negative predicted Akaike difference are fitted in any case; a failed screen is never
-    shortlisted."""
-    from jaxflex.discover import shortlist
+    difference; the ``least`` best with a negative predicted Akaike difference are fitted in
+    any case; a failed screen is never shortlisted. A screen that achieved less than half its
+    predicted drop is ``unresolved`` (screened again with more steps)."""
+    from jaxflex.discover import shortlist, unresolved
 
     def rec(rss_pred, dAIC, p, dBIC):
         return {"rss": rss_pred * 1.1, "rss_predicted": rss_pred, "predicted_dAIC": dAIC,
@@ -245,13 +245,14 @@ def test_shortlist_fits_the_promising_and_the_rivals_of_the_best():
         "rival": rec(9.9, -895.0, 1e-9, -5.0),        # within decisive of the best: kept
         "noise": rec(9.99, 1.5, 0.3, 8.0),            # could not be significant
         "failed": {"error": "non-finite"},
-        # the screen fit ended above the base: its prediction is not trusted, fitted
+        # the screen fit ended above the base: its prediction is not trusted (``unresolved``)
         "unresolved": {**rec(8.0, -40.0, 1e-8, -20.0), "rss": 12.0},
     }
     kw = dict(alpha=1e-3, keep=0.5, decisive=10.0, least=1)
-    assert shortlist(screens, base, **kw) == ["best", "rival", "half", "unresolved"]
+    assert shortlist(screens, base, **kw) == ["best", "rival", "half"]
     assert shortlist(screens, base, **(kw | {"keep": 0.2})) == [
         "best", "rival", "half", "small", "unresolved"]
+    assert unresolved(screens, base, alpha=1e-3) == ["rival", "unresolved"]
     quiet = {"noise": rec(9.99, 1.5, 0.3, 8.0), "weak": rec(9.9, -0.5, 0.01, 4.0)}
     assert shortlist(quiet, base, **kw) == ["weak"]           # the guard: least = 1
     assert shortlist(quiet, base, **(kw | {"least": 0})) == []
