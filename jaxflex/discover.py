@@ -30,7 +30,14 @@ Workflow (``discover``), for one joint:
    link and rotor sides, binned against link velocity (with sign), position, spring deflection,
    deflection rate and rotor velocity, their spectra, and the worst time windows, next to a
    noise floor from encoder quantisation plus measured angle noise.
-5. Fit every candidate effect (nominal parameters refitted with it) and score it: held-out gap,
+5. Screen every candidate effect (``screen``: a few Levenberg-Marquardt steps on the training
+   segments from the current fit, then the Gauss-Newton decrement, the further drop of the
+   training residual a full step would bring: from the current optimum with a candidate that
+   starts at no effect, the score test) and fit fully only the shortlist (``shortlist``: those
+   whose predicted residual could make them significant and that come near the best of them,
+   and the best in any case); a candidate the screen leaves out is reported with its screen
+   values and marked ``screened_out``, with no held-out gap. Fit each shortlisted candidate
+   (nominal parameters refitted with it) and score it: held-out gap,
    BIC on the training residual, and an F-test on the training residual sums of squares with an
    effective sample count (the residuals of a simulated trajectory are strongly correlated; the
    count is divided by their integrated autocorrelation time). A candidate is significant when
@@ -55,7 +62,11 @@ both are data, so the solver compiles once per log shape. The gates are run-time
 (``lax.cond``), so an inactive candidate costs nothing per substep (before: the eleven gated
 candidates made every replay 5-13x dearer than the nominal model's). Every fit ends at the
 engine's statistical stop measured against its own residual variance (``relative_stop``), and
-the base each round compares with is settled (``settle``).
+the base each round compares with is settled (``settle``). Measured on a 20 s, 1 kHz log with
+a hidden joint damping and every candidate (``jaxflex discover``, 2 shared cores, persistent
+compilation cache warm): 100-115 s when every candidate of every round was fitted fully, about
+35 s with the screen; most of what is left is tracing and compiling the training and held-out
+problems' solver steps (about 9 s) and the first, nominal refit.
 """
 
 from __future__ import annotations
@@ -344,14 +355,16 @@ def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
 
 
 def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: float = 1.0,
-              starts: tuple[jax.Array, jax.Array] | None = None) -> CandidateFit:
+              starts: tuple[jax.Array, jax.Array] | None = None,
+              held_out: bool = True) -> CandidateFit:
     """Refit ``model`` on the training segments with the engine, every segment's start state
     fitted with the parameters; then fit the held-out segments' start states with the
     parameters fixed (``fit_starts``) and take the held-out gap. ``starts``: first guesses of
     the (training, held-out) start states (default: the workspace's estimates from the log),
     their start loads brought within the friction's capacity (``within_capacity``).
     Standard errors are inflated by the residual autocorrelation time ``tau_int``
-    (samples)."""
+    (samples). ``held_out`` False: the held-out part is left for later (``with_held_out``):
+    the held-out starts are the first guesses and the held-out gap is NaN."""
     t0 = time.perf_counter()
     train, test, theta0 = ws.for_model(model)
     plant0 = train.space.plant(theta0)
@@ -362,7 +375,8 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
                         decrement_tol=relative_stop(train.n_out, tau_int))
     theta, x_train = sol.y
     cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
-    x_test = fit_starts(test, theta, x_test)
+    if held_out:
+        x_test = fit_starts(test, theta, x_test)
     space = train.space
     phys = space.physical(theta)
     fitted = space.fitted_names()
@@ -377,9 +391,25 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     return CandidateFit(
         model=fitted_model, theta=theta, starts=x_train, test_starts=x_test, values=values,
         stderr=stderr, rss=cov["rss"], n_res=cov["n_res"], n_par=cov["n_free"],
-        gap_train=float(gap(train, sol.y)), gap_test=float(gap(test, (theta, x_test))),
+        gap_train=float(gap(train, sol.y)),
+        gap_test=float(gap(test, (theta, x_test))) if held_out else math.nan,
         steps=sol.steps, converged=sol.converged, seconds=time.perf_counter() - t0,
     )
+
+
+def with_held_out(ws: Workspace, fit: CandidateFit) -> CandidateFit:
+    """``fit`` with its held-out part (``fit_model``'s ``held_out``): the held-out segments'
+    start states fitted with the parameters fixed, from its held-out starts, and the gap."""
+    if math.isfinite(fit.gap_test):
+        return fit
+    t0 = time.perf_counter()
+    _, test, _ = ws.for_model(fit.model)
+    # twice fit_starts' default steps: the solves it replaces each continued the held-out
+    # start fit of the one before (the statistical stop ends it sooner where it can)
+    x_test = fit_starts(test, fit.theta, fit.test_starts, max_steps=40)
+    return dataclasses.replace(fit, test_starts=x_test,
+                               gap_test=float(gap(test, (fit.theta, x_test))),
+                               seconds=fit.seconds + time.perf_counter() - t0)
 
 
 def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float = 1.0,
@@ -393,14 +423,15 @@ def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float =
     and hardening spring: after the spring was added, all ten candidates of the next round
     lowered the held-out gap by 51-78%, and the one named was a 0.002 N m asymmetry)."""
     for _ in range(rounds):
+        # the held-out part only for the fit kept (one held-out start fit, not one a solve)
         nxt = fit_model(ws, fit.model, max_steps=max_steps, tau_int=tau_int,
-                        starts=(fit.starts, fit.test_starts))
+                        starts=(fit.starts, fit.test_starts), held_out=False)
         better = nxt.rss < fit.rss
         done = not nxt.rss < fit.rss * (1.0 - tol)
         fit = nxt if better else fit
         if done:
             break
-    return fit
+    return with_held_out(ws, fit)
 
 
 def segment_errors(ws: Workspace, fit: CandidateFit) -> np.ndarray:
@@ -592,22 +623,127 @@ def effective_count(r: np.ndarray, max_lag: int = 2000) -> float:
     return tau
 
 
-def score(base: CandidateFit, cand: CandidateFit, n_eff: float) -> dict[str, float]:
-    """F-test, BIC/AIC difference (effective count) and held-out gain of ``cand`` over ``base``.
-    The F-test's residual degrees of freedom are the effective count less the share of it
-    the fitted unknowns (parameters and start states) take, n_eff (1 - n_par / n_res)."""
-    k = cand.n_par - base.n_par
-    dof = max(n_eff * (1.0 - cand.n_par / max(cand.n_res, 1)), 1.0)
-    drss = max(base.rss - cand.rss, 0.0)
-    F = (drss / k) / (cand.rss / dof) if cand.rss > 0 else math.inf
+def training_evidence(base_rss: float, rss: float, k: int, n_par: int, n_res: int,
+                      n_eff: float) -> dict[str, float]:
+    """F-test and BIC/AIC differences (effective count ``n_eff``) of a model with training
+    residual sum of squares ``rss`` and ``n_par`` fitted unknowns (``k`` more than the base)
+    over a base with ``base_rss`` (same ``n_res`` residuals, units of the segments' RMS
+    motion). The F-test's residual degrees of freedom are the effective count less the share
+    of it the fitted unknowns (parameters and start states) take, n_eff (1 - n_par / n_res)."""
+    dof = max(n_eff * (1.0 - n_par / max(n_res, 1)), 1.0)
+    drss = max(base_rss - rss, 0.0)
+    F = (drss / k) / (rss / dof) if rss > 0 else math.inf
     p = float(scipy.stats.f.sf(F, k, dof))
-    ll = lambda rss: n_eff * math.log(rss / n_eff)
+    ll = lambda r: n_eff * math.log(max(r, 1e-300) / n_eff)  # noqa: E731
     return {
         "F": float(F), "p_value": p,
-        "dBIC": ll(cand.rss) - ll(base.rss) + k * math.log(n_eff),
-        "dAIC": ll(cand.rss) - ll(base.rss) + 2 * k,
+        "dBIC": ll(rss) - ll(base_rss) + k * math.log(n_eff),
+        "dAIC": ll(rss) - ll(base_rss) + 2 * k,
+    }
+
+
+def score(base: CandidateFit, cand: CandidateFit, n_eff: float) -> dict[str, float]:
+    """F-test, BIC/AIC difference (effective count) and held-out gain of ``cand`` over ``base``
+    (``training_evidence`` of their training residuals)."""
+    return {
+        **training_evidence(base.rss, cand.rss, cand.n_par - base.n_par, cand.n_par,
+                            cand.n_res, n_eff),
         "gap_test": cand.gap_test, "gain": 1.0 - cand.gap_test / base.gap_test,
     }
+
+
+def screen(ws: Workspace, base: CandidateFit, model: Model, name: str, *, steps: int,
+           tau_int: float, n_eff: float) -> dict[str, Any]:
+    """The cheap look at candidate ``name`` (``model``: the base's model with the candidate's
+    start added) that decides whether it is fitted fully (``shortlist``): at most ``steps``
+    Levenberg-Marquardt steps on the training segments from the base's fitted starts (no
+    held-out fit, no gap), then the Gauss-Newton decrement there, the further drop of the
+    training residual a full Gauss-Newton step would bring. From the base's optimum with a
+    candidate that starts at no effect, one step's decrement is the score (Rao) test of the
+    candidate; the few steps carry a start that is an effect already (a lag or a backlash of
+    the typical size, a cogging from the residual's spectrum) toward its optimum first.
+
+    Returns (JSON-ready) ``rss`` (training residual sum of squares reached, units of the
+    segments' RMS motion), ``decrement``, ``rss_predicted`` (rss - decrement, at least 1e-6
+    rss), the ``training_evidence`` of both against the base (``screen_*`` keys: the fit
+    reached; ``predicted_*``: the prediction), the candidate's parameter values and standard
+    errors at the point reached (``params``: name -> {value, stderr}), ``steps`` and
+    ``seconds``."""
+    t0 = time.perf_counter()
+    train, _, theta0 = ws.for_model(model)
+    x_train = within_capacity(base.starts, train.space.plant(theta0))
+    sol = least_squares(train, (theta0, x_train), rtol=_RTOL, atol=_ATOL, max_steps=steps,
+                        scaling="marquardt", decrement_tol=relative_stop(train.n_out, tau_int))
+    r = np.asarray(sol.residual)[: train.n_out] if sol.residual is not None else None
+    rss = float(np.sum(r**2)) if r is not None and np.all(np.isfinite(r)) else math.inf
+    dec = sol.decrement if sol.decrement is not None and math.isfinite(sol.decrement) else 0.0
+    pred = max(rss - max(dec, 0.0), 1e-6 * rss)
+    k = fitted_count(name)
+    n_par = base.n_par + k
+    out: dict[str, Any] = {"rss": rss, "decrement": dec, "rss_predicted": pred,
+                           "steps": sol.steps}
+    if math.isfinite(rss):
+        for tag, value in (("screen", rss), ("predicted", pred)):
+            ev = training_evidence(base.rss, value, k, n_par, base.n_res, n_eff)
+            out |= {f"{tag}_{key}": v for key, v in ev.items()}
+        cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
+        phys = train.space.physical(sol.y[0])
+        out["params"] = {p.split(".", 1)[1]: {"value": float(np.ravel(phys[p])[0]),
+                                              "stderr": float(np.ravel(cov["stderr"][p])[0])}
+                         for p in fitted_names(name)}
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def shortlist(screens: dict[str, dict[str, Any]], base_rss: float, *, alpha: float,
+              keep: float, decisive: float, least: int) -> list[str]:
+    """The screened candidates (``screen``) to fit fully, best predicted Akaike difference
+    first: those that could be significant (predicted F-test p-value below ``alpha`` and a
+    lower predicted BIC; significance also needs a held-out gain, which the screen does not
+    see) and either explain at least ``keep`` of the predicted drop of the training residual
+    (from ``base_rss``) of the best of them (so that a smaller candidate nearly as good, which
+    ``select`` prefers, is fitted too) or come within ``decisive`` of its predicted Akaike
+    difference (so that a rival that ``tied`` might not tell apart is fitted too); and in any
+    case the ``least`` best with a negative predicted Akaike difference."""
+    ok = {k: s for k, s in screens.items() if "predicted_dAIC" in s}
+    order = sorted(ok, key=lambda k: ok[k]["predicted_dAIC"])
+    could = [k for k in order
+             if ok[k]["predicted_p_value"] < alpha and ok[k]["predicted_dBIC"] < 0]
+    chosen = [k for k in order[:least] if ok[k]["predicted_dAIC"] < 0]
+    if could:
+        drop = {k: base_rss - ok[k]["rss_predicted"] for k in could}
+        best = could[0]
+        chosen += [k for k in could
+                   if drop[k] >= keep * max(drop.values())
+                   or ok[k]["predicted_dAIC"] <= ok[best]["predicted_dAIC"] + decisive]
+    return [k for k in order if k in chosen]
+
+
+def unresolved(screens: dict[str, dict[str, Any]], base_rss: float, *,
+               alpha: float) -> list[str]:
+    """The screened candidates (``screen``) that could be significant (as in ``shortlist``)
+    but whose screen fit achieved less than half the drop of the training residual (from
+    ``base_rss``) that it predicts: the start is far from where the residual is linear in the
+    candidate, so the prediction is not to be trusted either way; ``discover`` screens them
+    again with more steps (measured: an actuator lag started at 3 ms behind a hardening
+    spring, its 3-step screen worse than the base and predicted 500 in Akaike difference
+    behind the best, was left out; after 12 steps it was the best predicted, and its full
+    fit the best candidate by 900)."""
+    return [k for k, s in screens.items() if "predicted_dAIC" in s
+            and s["predicted_p_value"] < alpha and s["predicted_dBIC"] < 0
+            and base_rss - s["rss"] < 0.5 * (base_rss - s["rss_predicted"])]
+
+
+def screened_out(rec: dict[str, Any]) -> dict[str, Any]:
+    """A round's score entry for a candidate the screen left out (``shortlist``): not fitted
+    fully, so no held-out gap, gain or per-segment errors (None, never estimated), not
+    significant; its F, p_value, dBIC and dAIC are those of the training residual its screen
+    fit reached (``screen``; an unconverged fit, so they understate what a full fit could
+    give), the screen record under ``screen``."""
+    return {"screened_out": True, "significant": False, "gap_test": None, "gain": None,
+            "F": rec["screen_F"], "p_value": rec["screen_p_value"], "dBIC": rec["screen_dBIC"],
+            "dAIC": rec["screen_dAIC"], "seconds": rec["seconds"], "steps": rec["steps"],
+            "screen": rec}
 
 
 def select(scores: dict[str, dict[str, Any]], parsimony: float = 0.1) -> str | None:
@@ -654,9 +790,12 @@ class DiscoverConfig:
     """Settings of ``discover``: segment length [s], training fraction, LM steps, substeps per
     sample, significance level, minimal relative held-out gain, max number of effects added,
     the candidate names (default: all registered effects), the parsimony margin, the
-    factor over the gap floor above which a remaining gap counts as unexplained, and the
+    factor over the gap floor above which a remaining gap counts as unexplained, the
     Akaike difference below which, and the held-out paired test's p-value above which, two
-    equally sized candidates are not told apart (``tied``)."""
+    equally sized candidates are not told apart (``tied``); and the screen of each round
+    (``screen``, ``shortlist``): LM steps per candidate (0: no screen, every candidate is
+    fitted fully), the share of the best predicted drop a candidate must explain to be
+    fitted, and how many of the best predicted are fitted in any case."""
 
     segment: float = 0.3
     train_frac: float = 0.7
@@ -670,6 +809,9 @@ class DiscoverConfig:
     unexplained_factor: float = 2.0
     decisive: float = 10.0
     tie_alpha: float = 0.05
+    screen_steps: int = 3
+    screen_keep: float = 0.5
+    screen_least: int = 1
 
 
 @dataclasses.dataclass
@@ -721,7 +863,8 @@ class DiscoverResult:
 
     @property
     def candidate_scores(self) -> dict[str, dict[str, Any]]:
-        """Scores of every candidate in the first round."""
+        """Scores of every candidate in the first round (those the screen left out marked
+        ``screened_out``, without a held-out gap: ``screened_out``)."""
         return self.rounds[0]["scores"] if self.rounds else {}
 
     def effect_params(self) -> dict[str, dict[str, dict[str, Any]]]:
@@ -911,12 +1054,45 @@ def discover(
         tau_int = max(effective_count(r[..., c]) for c in range(r.shape[-1]))
         n_eff = current.n_res / tau_int
         series = loc_current.series
-        scores, fits, failed = {}, {}, {}
-        for name in cands:
-            if name in added:
-                continue
-            start = _start_effect(name, current.model, series)
-            m = Model(current.model.params, list(current.model.effects) + [start])
+        scores, fits, failed, screens = {}, {}, {}, {}
+        remaining = [name for name in cands if name not in added]
+        starts = {name: _start_effect(name, current.model, series) for name in remaining}
+        models = {name: Model(current.model.params, list(current.model.effects) + [starts[name]])
+                  for name in remaining}
+        to_fit = remaining
+        if cfg.screen_steps > 0:
+            # every candidate is screened (a few training steps and the Gauss-Newton
+            # decrement, ``screen``); only the shortlist is fitted fully (held-out starts,
+            # gap, two first guesses): the full fits were nine tenths of a run's time
+            for name in remaining:
+                try:
+                    screens[name] = screen(ws, current, models[name], name,
+                                           steps=cfg.screen_steps, tau_int=tau_int, n_eff=n_eff)
+                except (ValueError, FloatingPointError) as e:
+                    screens[name] = {"error": str(e)}
+            # a screen whose few steps did not reach the region where its prediction holds
+            # (a lag or backlash started at the typical size) looks again with 4x the steps
+            for name in unresolved(screens, current.rss, alpha=cfg.alpha):
+                try:
+                    again = screen(ws, current, models[name], name,
+                                   steps=4 * cfg.screen_steps, tau_int=tau_int, n_eff=n_eff)
+                except (ValueError, FloatingPointError):
+                    continue
+                if "predicted_dAIC" in again:
+                    screens[name] = again | {"first": screens[name]}
+            to_fit = shortlist(screens, current.rss, alpha=cfg.alpha, keep=cfg.screen_keep,
+                               decisive=cfg.decisive, least=cfg.screen_least)
+            for name in remaining:
+                if name not in to_fit and "screen_dAIC" in screens[name]:
+                    scores[name] = screened_out(screens[name])
+                    say(f"  {name:20s} screened out: predicted dAIC "
+                        f"{screens[name]['predicted_dAIC']:+.1f} p "
+                        f"{screens[name]['predicted_p_value']:.2e} "
+                        f"({screens[name]['seconds']:.1f} s)")
+                elif name not in to_fit:
+                    failed[name] = f"screen failed: {screens[name].get('error', 'non-finite')}"
+        for name in to_fit:
+            m = models[name]
             # Two first guesses of the start states, both from training data only: the
             # current model's fitted starts (close for most candidates), and, when that fit is
             # not significant, the log's start estimates; the fit with the lower training
@@ -951,6 +1127,9 @@ def discover(
             s["steps"] = f.steps
             s["converged"] = bool(f.converged)
             s["segment_errors"] = segment_errors(ws, f).tolist()
+            s["screened_out"] = False
+            if name in screens:
+                s["screen"] = screens[name]
             scores[name], fits[name] = s, f
             say(f"  {name:20s} gap {f.gap_test:.4f} gain {s['gain']:+.3f} p {s['p_value']:.2e} "
                 f"dBIC {s['dBIC']:+.1f} {'*' if s['significant'] else ''} ({f.seconds:.1f} s)")
@@ -959,6 +1138,8 @@ def discover(
         winner = select(scores, cfg.parsimony)
         rounds.append({"base_gap_test": current.gap_test, "tau_int": tau_int, "n_eff": n_eff,
                        "scores": scores, "failed": failed, "winner": winner or "none",
+                       "screened_out": sorted(k for k, v in scores.items()
+                                              if v.get("screened_out")),
                        "tied": tied(scores, winner, cfg.decisive, cfg.tie_alpha),
                        "fitted": {k: {p.split(".", 1)[1]: {"value": f.values[p],
                                                            "stderr": f.stderr[p]}

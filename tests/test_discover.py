@@ -30,6 +30,20 @@ def test_hidden_backlash_is_named_and_gap_halved():
     assert b["stderr"] is not None and 0 < b["stderr"] < 0.2 * b["value"]
     assert set(rep["candidate_scores"]) == set(CANDS)
     assert rep["candidate_scores"]["backlash"]["significant"]
+    # the true effect survives the screen; a candidate the screen left out is reported as
+    # screened (its screen values, no held-out gap, no fitted values), never as fitted
+    first = rep["rounds"][0]
+    assert not rep["candidate_scores"]["backlash"]["screened_out"]
+    assert first["screened_out"], "the screen fitted every candidate of a one-effect log"
+    for k, s in rep["candidate_scores"].items():
+        assert "screen" in s and s["screen"]["rss_predicted"] <= s["screen"]["rss"]
+        if s["screened_out"]:
+            assert k in first["screened_out"] and k not in first["fitted"]
+            assert s["gap_test"] is None and s["gain"] is None and not s["significant"]
+            assert "segment_errors" not in s
+            assert s["screen"]["predicted_dAIC"] > first["scores"]["backlash"]["dAIC"]
+        else:
+            assert k in first["fitted"] and s["gap_test"] > 0
 
 
 def test_clean_log_gives_none():
@@ -208,6 +222,41 @@ def test_delay_and_lag_are_named_when_the_log_tells_them_apart():
     T = rep["effect_params"]["time_delay"]["T"]["value"]
     assert T == pytest.approx(short.truth["effects"]["time_delay"]["T"], rel=0.1)
     assert rep["gap_after"] <= 0.5 * rep["gap_before"]
+
+
+def test_shortlist_fits_the_promising_and_the_rivals_of_the_best():
+    """``shortlist``: a candidate is fitted fully when it could be significant (predicted
+    p-value below alpha and a lower predicted BIC) and either explains at least ``keep`` of
+    the best one's predicted drop, comes within ``decisive`` of its predicted Akaike
+    difference; the ``least`` best with a negative predicted Akaike difference are fitted in
+    any case; a failed screen is never shortlisted. A screen that achieved less than half its
+    predicted drop is ``unresolved`` (screened again with more steps)."""
+    from jaxflex.discover import shortlist, unresolved
+
+    def rec(rss_pred, dAIC, p, dBIC):
+        return {"rss": rss_pred * 1.1, "rss_predicted": rss_pred, "predicted_dAIC": dAIC,
+                "predicted_p_value": p, "predicted_dBIC": dBIC}
+
+    base = 10.0
+    screens = {
+        "best": rec(1.0, -900.0, 0.0, -880.0),
+        "half": rec(5.0, -300.0, 1e-20, -280.0),      # 5/9 of the best drop: kept
+        "small": rec(8.0, -50.0, 1e-8, -30.0),        # 2/9 of the drop: left out
+        "rival": rec(9.9, -895.0, 1e-9, -5.0),        # within decisive of the best: kept
+        "noise": rec(9.99, 1.5, 0.3, 8.0),            # could not be significant
+        "failed": {"error": "non-finite"},
+        # the screen fit ended above the base: its prediction is not trusted (``unresolved``)
+        "unresolved": {**rec(8.0, -40.0, 1e-8, -20.0), "rss": 12.0},
+    }
+    kw = dict(alpha=1e-3, keep=0.5, decisive=10.0, least=1)
+    assert shortlist(screens, base, **kw) == ["best", "rival", "half"]
+    assert shortlist(screens, base, **(kw | {"keep": 0.2})) == [
+        "best", "rival", "half", "small", "unresolved"]
+    assert unresolved(screens, base, alpha=1e-3) == ["rival", "unresolved"]
+    quiet = {"noise": rec(9.99, 1.5, 0.3, 8.0), "weak": rec(9.9, -0.5, 0.01, 4.0)}
+    assert shortlist(quiet, base, **kw) == ["weak"]           # the guard: least = 1
+    assert shortlist(quiet, base, **(kw | {"least": 0})) == []
+    assert shortlist({"failed": {"error": "x"}}, base, **kw) == []
 
 
 def test_candidates_not_told_apart_are_tied_not_guessed():

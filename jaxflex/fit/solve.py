@@ -37,6 +37,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
+from optimistix._solver.gauss_newton import _GaussNewtonState
 
 from jaxflex.fit.problem import Problem
 
@@ -47,7 +48,9 @@ class Solution:
     solver's tolerance was met (``converged``), the final ``cost`` 0.5 ||r||^2 (weighted
     units), ``reason`` in words, ``seconds`` of wall time; ``residual`` r at ``y`` and
     ``normal``, the undamped normal equations there (the blocks of ``shooting_blocks`` or
-    ``dense_normal_equations``), which ``covariance`` reuses instead of linearising again."""
+    ``dense_normal_equations``), which ``covariance`` reuses instead of linearising again;
+    ``decrement``, the Gauss-Newton decrement at ``y`` (``gauss_newton_decrement``: the drop
+    of ||r||^2 a further full Gauss-Newton step would bring were the residuals linear)."""
 
     y: Any
     steps: int
@@ -57,6 +60,7 @@ class Solution:
     seconds: float
     residual: Any = None
     normal: dict[str, Any] | None = None
+    decrement: float | None = None
 
 
 class _WithAux(eqx.Module):
@@ -337,6 +341,30 @@ def shooting_mv(blocks: dict[str, jax.Array], v_theta: jax.Array, v_x: jax.Array
     return jnp.concatenate([R[:, :my].reshape(-1), R[:-1, my:].reshape(-1)])
 
 
+#: The Jacobian blocks of each descent structure that ``BlockJacobian`` keeps.
+_JACOBIAN_BLOCKS = {"dense": ("J",), "shooting": ("Jt", "Jx", "Jn")}
+
+
+class BlockJacobian(eqx.Module):
+    """The Jacobian at the solver's last accepted point in the form its state keeps it: the
+    blocks the descent formed there (``J`` of ``dense_normal_equations``, or ``Jt``, ``Jx``,
+    ``Jn`` of ``shooting_blocks``). The trust region reads it only through ``mv`` (the
+    predicted reduction); holding blocks instead of a linearised function means the solver's
+    ``init`` traces no linearisation to learn the state's structure (measured: that trace was
+    about half of the first fit's compile time in the discrepancy workflow)."""
+
+    blocks: dict[str, jax.Array]
+    structure: str = eqx.field(static=True)
+
+    def mv(self, v: Any) -> jax.Array:
+        """J v for unknowns-shaped ``v``: residual-shaped (m,)."""
+        if self.structure == "shooting":
+            v_theta, v_x = v
+            return shooting_mv(self.blocks, ravel_pytree(v_theta)[0],
+                               v_x.reshape(v_x.shape[0], -1))
+        return self.blocks["J"] @ ravel_pytree(v)[0]
+
+
 class LevenbergMarquardt(optx.AbstractGaussNewton):
     """optimistix's Gauss-Newton machinery (trust region, termination) with the scaled
     damped-Newton descent above: the one least-squares solver of jaxflex. ``geodesic`` > 0
@@ -349,6 +377,25 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
     search: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion()
     verbose: Callable = eqx.field(static=True, default=lambda **kw: None)
     geodesic: float = eqx.field(static=True, default=0.0)
+
+    def init(self, fn: Callable, y: Any, args: Any, options: dict[str, Any], f_struct: Any,
+             aux_struct: Any, tags: frozenset) -> Any:
+        """optimistix's Gauss-Newton state, except that its Jacobian is a ``BlockJacobian``
+        (zeros until the first accepted point): only the residual's shape ``f_struct`` is
+        needed, no linearisation is traced."""
+        info_struct = optx.FunctionInfo.ResidualJac(f_struct, None)
+        descent_state = self.descent.init(y, info_struct)
+        structure = self.descent.structure
+        jac = BlockJacobian({k: descent_state.normal[k] for k in _JACOBIAN_BLOCKS[structure]},
+                            structure)
+        return _GaussNewtonState(
+            first_step=jnp.array(True), y_eval=y,
+            search_state=self.search.init(y, info_struct),
+            f_info=optx.FunctionInfo.ResidualJac(jnp.zeros(f_struct.shape, f_struct.dtype), jac),
+            aux=jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aux_struct),
+            descent_state=descent_state, terminate=jnp.array(False),
+            result=optx.RESULTS.successful, num_steps=jnp.array(0),
+            num_accepted_steps=jnp.array(0), num_steps_since_acceptance=jnp.array(0))
 
     def step(self, fn: Callable, y: Any, args: Any, options: dict[str, Any], state: Any,
              tags: frozenset) -> tuple[Any, Any, Any]:
@@ -370,11 +417,12 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
         def accepted(_):
             f_new, lin, aux_new = jax.linearize(lambda u: fn(u, args), state.y_eval,
                                                 has_aux=True)
-            jac = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: state.y_eval), tags)
-            # the same static part (jaxpr) as the state's operator, as optimistix does
-            jac = eqx.combine(eqx.filter(jac, eqx.is_array), jac_static)
-            info = optx.FunctionInfo.ResidualJac(f_new, jac)
+            lin_op = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: state.y_eval), tags)
+            info = optx.FunctionInfo.ResidualJac(f_new, lin_op)
             desc = self.descent.query(state.y_eval, info, state.descent_state)
+            # the state keeps the descent's blocks, not the linearised function
+            jac = BlockJacobian({k: desc.normal[k] for k in jac_static.blocks},
+                                jac_static.structure)
             y_diff = jax.tree_util.tree_map(lambda a, b: a - b, state.y_eval, y)
             terminate = cauchy_termination(self.rtol, self.atol, self.norm, state.y_eval, y_diff,
                                            f_new, f_new - state.f_info.residual)
@@ -564,7 +612,7 @@ def least_squares(
     wrapped = _WithAux(fn)
     y = y0
     state = _init(solver, wrapped, y, prob)
-    steps, done, ok, reason, c = 0, False, True, "", None
+    steps, done, ok, reason, c, dec = 0, False, True, "", None, None
     try:
         while steps < max_steps:
             y, state, done_a, ok_a, c, stalled_a, dec = _step(solver, wrapped, y, state, prob)
@@ -600,7 +648,8 @@ def least_squares(
     return Solution(y=y, steps=steps, converged=bool(done and ok and not reason.startswith("int")),
                     cost=final, reason=reason, seconds=time.perf_counter() - t0,
                     residual=None if c is None else state.f_info.residual,
-                    normal=None if c is None else state.descent_state.normal)
+                    normal=None if c is None else state.descent_state.normal,
+                    decrement=None if dec is None else float(dec))
 
 
 #: Error bound factor of a step-doubling estimate: the error of the coarse replay is at most

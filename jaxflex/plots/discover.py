@@ -70,7 +70,9 @@ def plot_replay(result: Any, path: Path, count: int = 4) -> None:
 
 
 def plot_scores(scores: dict[str, dict[str, Any]], base_gap: float, path: Path) -> None:
-    """Held-out gap of every candidate (round 1) against the refit nominal model."""
+    """Held-out gap of every candidate fitted in round 1 against the refit nominal model
+    (those the screen left out have no held-out gap and are not drawn)."""
+    scores = {k: s for k, s in scores.items() if s.get("gap_test") is not None}
     names = sorted(scores, key=lambda k: scores[k]["gap_test"])
     fig, ax = plt.subplots(figsize=(8, 4))
     gaps = [scores[k]["gap_test"] for k in names]
