@@ -707,8 +707,7 @@ def shortlist(screens: dict[str, dict[str, Any]], base_rss: float, *, alpha: flo
     case the ``least`` best with a negative predicted Akaike difference."""
     ok = {k: s for k, s in screens.items() if "predicted_dAIC" in s}
     order = sorted(ok, key=lambda k: ok[k]["predicted_dAIC"])
-    could = [k for k in order
-             if ok[k]["predicted_p_value"] < alpha and ok[k]["predicted_dBIC"] < 0]
+    could = [k for k in order if _could_be_significant(ok[k], alpha)]
     chosen = [k for k in order[:least] if ok[k]["predicted_dAIC"] < 0]
     if could:
         drop = {k: base_rss - ok[k]["rss_predicted"] for k in could}
@@ -730,8 +729,14 @@ def unresolved(screens: dict[str, dict[str, Any]], base_rss: float, *,
     behind the best, was left out; after 12 steps it was the best predicted, and its full
     fit the best candidate by 900)."""
     return [k for k, s in screens.items() if "predicted_dAIC" in s
-            and s["predicted_p_value"] < alpha and s["predicted_dBIC"] < 0
+            and _could_be_significant(s, alpha)
             and base_rss - s["rss"] < 0.5 * (base_rss - s["rss_predicted"])]
+
+
+def _could_be_significant(rec: dict[str, Any], alpha: float) -> bool:
+    """A screen (``screen``) whose predicted training residual would pass the F-test at
+    ``alpha`` and lower the BIC (significance also needs a held-out gain)."""
+    return rec["predicted_p_value"] < alpha and rec["predicted_dBIC"] < 0
 
 
 def screened_out(rec: dict[str, Any]) -> dict[str, Any]:

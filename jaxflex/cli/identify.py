@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="samples per multiple-shooting segment (default 500; 0: whole log)")
     p.add_argument("--substeps", type=_substeps, default="auto",
                    help="integrator substeps per sample, or 'auto' (default): the fewest whose "
-                        "replay error is a tenth of the log's noise, refined until the "
+                        "replay error is at most half the log's noise, refined until the "
                         "integrator moves no fitted parameter by more than half a standard "
                         "error (docs/spec.md section 5)")
     p.add_argument("--max-steps", type=int, default=200, help="solver iteration cap")

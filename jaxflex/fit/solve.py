@@ -39,7 +39,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from optimistix._solver.gauss_newton import _GaussNewtonState
 
-from jaxflex.fit.problem import Problem
+from jaxflex.fit.problem import BLOWN_RESIDUAL, Problem
 
 
 @dataclasses.dataclass
@@ -358,11 +358,34 @@ class BlockJacobian(eqx.Module):
 
     def mv(self, v: Any) -> jax.Array:
         """J v for unknowns-shaped ``v``: residual-shaped (m,)."""
-        if self.structure == "shooting":
-            v_theta, v_x = v
-            return shooting_mv(self.blocks, ravel_pytree(v_theta)[0],
-                               v_x.reshape(v_x.shape[0], -1))
-        return self.blocks["J"] @ ravel_pytree(v)[0]
+        return blocks_mv(self.blocks, self.structure, v)
+
+
+def blocks_mv(blocks: dict[str, jax.Array], structure: str, v: Any) -> jax.Array:
+    """J v from the Jacobian blocks a descent keeps (``J`` for "dense", ``Jt``, ``Jx``, ``Jn``
+    for "shooting") and unknowns-shaped ``v``: residual-shaped (m,)."""
+    if structure == "shooting":
+        v_theta, v_x = v
+        return shooting_mv(blocks, ravel_pytree(v_theta)[0], v_x.reshape(v_x.shape[0], -1))
+    return blocks["J"] @ ravel_pytree(v)[0]
+
+
+def with_gradient(normal: dict[str, jax.Array], structure: str, w: jax.Array) -> dict[str, Any]:
+    """The normal equations ``normal`` with their right-hand side J^T r replaced by J^T ``w``
+    (``w`` residual-shaped), from the Jacobian blocks they keep: the system whose solution is
+    the Gauss-Newton step for the residual ``w``."""
+    if structure == "shooting":
+        gt, gx = shooting_tmv(normal, w)
+        return {**normal, "gt": gt, "gx": gx}
+    return {**normal, "g": normal["J"].T @ w}
+
+
+def undamped_solve(normal: dict[str, jax.Array], structure: str, template: Any) -> jax.Array:
+    """(J^T J)^-1 g of the normal equations ``normal`` (structure "dense" or "shooting"),
+    flattened; a relative Marquardt damping of 1e-9 keeps directions the data do not see
+    (where g is zero too) out of it."""
+    solve = shooting_damped_solve if structure == "shooting" else dense_damped_solve
+    return ravel_pytree(solve(normal, jnp.asarray(1e-9), "marquardt", template))[0]
 
 
 class LevenbergMarquardt(optx.AbstractGaussNewton):
@@ -472,21 +495,15 @@ def geodesic_step(fn: Callable, args: Any, y: Any, r: jax.Array,
     normal = state.normal
     flat_v, unravel = ravel_pytree(v)
     shooting = descent.structure == "shooting"
-    if shooting:
-        v_theta, v_x = v
-        Jv = shooting_mv(normal, ravel_pytree(v_theta)[0], v_x.reshape(v_x.shape[0], -1))
-    else:
-        Jv = normal["J"] @ flat_v
+    Jv = blocks_mv(normal, descent.structure, v)
     r_h, _ = fn(jax.tree_util.tree_map(lambda a, b: a + h * b, y, v), args)
     rvv = (2.0 / h) * ((r_h - r) / h - Jv)
+    rhs = with_gradient(normal, descent.structure, rvv)
     if shooting:
-        gt, gx = shooting_tmv(normal, rvv)
-        rhs = {**normal, "gt": gt, "gx": gx}
         dam = jnp.concatenate([_damping(jnp.diag(normal["Ntt"]), descent.scaling),
                                _damping(jnp.diagonal(normal["Dx"], axis1=1, axis2=2).reshape(-1),
                                         descent.scaling)])
     else:
-        rhs = {**normal, "g": normal["J"].T @ rvv}
         dam = _damping(jnp.diag(normal["A"]), descent.scaling)
     solve = shooting_damped_solve if shooting else dense_damped_solve
     lam = 1.0 / jnp.maximum(step_size, 1e-30)
@@ -548,8 +565,7 @@ def gauss_newton_decrement(normal: dict[str, jax.Array], structure: str,
     stderr(c . y) (standard errors from the same J^T J). A relative Marquardt damping of
     1e-9 keeps directions the data do not see (where g is zero too) out of it; NaN or inf if
     the solve fails."""
-    solve = shooting_damped_solve if structure == "shooting" else dense_damped_solve
-    dy = ravel_pytree(solve(normal, jnp.asarray(1e-9), "marquardt", template))[0]
+    dy = undamped_solve(normal, structure, template)
     g = (jnp.concatenate([normal["gt"], normal["gx"].reshape(-1)]) if structure == "shooting"
          else normal["g"])
     return jnp.dot(g, dy)
@@ -680,15 +696,8 @@ def integration_error(prob: Problem, y: Any) -> float:
 @eqx.filter_jit
 def _induced_step(normal: dict[str, Any], dr: jax.Array, structure: str, template: Any):
     """The undamped Gauss-Newton step (J^T J)^-1 J^T dr at the point whose normal equations are
-    ``normal`` (a 1e-9 relative Marquardt damping keeps unseen directions out, as in
-    ``gauss_newton_decrement``), flattened."""
-    if structure == "shooting":
-        gt, gx = shooting_tmv(normal, dr)
-        rhs = {**normal, "gt": gt, "gx": gx}
-        return ravel_pytree(shooting_damped_solve(rhs, jnp.asarray(1e-9), "marquardt",
-                                                  template))[0]
-    rhs = {**normal, "g": normal["J"].T @ dr}
-    return ravel_pytree(dense_damped_solve(rhs, jnp.asarray(1e-9), "marquardt", template))[0]
+    ``normal`` (``with_gradient``, ``undamped_solve``), flattened."""
+    return undamped_solve(with_gradient(normal, structure, dr), structure, template)
 
 
 def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
@@ -712,7 +721,14 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
                          "(it took no step)")
     y = solution.y
     structure = "shooting" if "Ntt" in solution.normal else "dense"
-    e = RICHARDSON * (residuals(refined(prob), y) - solution.residual)
+    fine = residuals(refined(prob), y)
+    e = RICHARDSON * (fine - solution.residual)
+    # the output rows of e are RICHARDSON w_y (fine - coarse replay): ``integration_error``
+    # without replaying twice more (inf where a replay blew up, as there)
+    n_out = prob.n_out
+    blown = (np.any(np.asarray(fine[:n_out]) == BLOWN_RESIDUAL)
+             or np.any(np.asarray(solution.residual[:n_out]) == BLOWN_RESIDUAL))
+    out_err = math.inf if blown else float(np.sqrt(np.mean(np.asarray(e[:n_out]) ** 2)))
     template = jax.tree_util.tree_map(lambda a: jnp.zeros(jnp.shape(a), jnp.result_type(a)), y)
     step = np.asarray(_induced_step(solution.normal, e, structure, template))
     theta = prob.split(y)[0] if hasattr(prob, "split") else y
@@ -727,7 +743,7 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     labels = [f"{k}[{j}]" for k in sorted(theta) for j in range(np.size(theta[k]))]
     return {"bias_se": float(np.max(np.abs(shift) / se)) if finite and shift.size
             else (0.0 if finite else math.inf),
-            "bias_mahalanobis": maha, "output_error": integration_error(prob, y),
+            "bias_mahalanobis": maha, "output_error": out_err,
             "substeps": prob.substeps,
             "shift_theta": {labels[i]: float(v) for i, v in zip(fitted, shift)},
             "stderr_theta": {labels[i]: float(v) for i, v in zip(fitted, se)}}

@@ -440,7 +440,6 @@ def identify(
     if res is not first:
         res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
         res.warnings = first.warnings + res.warnings
-        res.attempts = attempts
     res.attempts = attempts
     res.params.extra["identification"]["attempts"] = attempts
     res.params.extra["identification"]["discretisation"] = discretisation
@@ -486,9 +485,9 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
     the noise explains, in 2-3 steps: the shift is a Gauss-Newton correction; a fit the model
     cannot bring to the noise, e.g. real data, runs on to its step cap at the finer level,
     and a capped continuation of 20 steps left an EMPS fit 400x above the coarse cost). On
-    the generated logs the
-    shift fell 6x from 4 to 16 substeps, not the 16x of a second-order scheme (logs made by a
-    10-substep simulator); on EMPS it fell from 11.6 to 0.0005 standard errors from 4 to 32.
+    the generated logs the shift fell 6x from 4 to 16 substeps, not the 16x of a second-order
+    scheme (logs made by a 10-substep simulator); on EMPS it fell from 11.6 to 0.0005
+    standard errors from 4 to 32.
     Each refinement costs a compilation of the solver. ``solve``: ``least_squares`` options.
     Returns the final problem, solution and every check."""
     checks = []
