@@ -33,8 +33,11 @@ from jaxflex.estimator import KalmanEstimator, kalman_for
 from jaxflex.sensing import AbstractSensing, Sensing
 from jaxflex.plant import FlexibleJointPlant, PlantState
 from jaxflex.step import plant_step, plant_step_diffrax
+from jaxflex.trajectory import Taylor
 
 _tmap = jax.tree_util.tree_map
+#: Reference derivatives the sampled-data loop hands the controller (q2d'' needs the 4th).
+REFERENCE_ORDER = 4
 
 
 class Metrics(eqx.Module):
@@ -237,12 +240,20 @@ def simulate_sampled(
                  -jnp.ones((), jnp.int32))
     band = lost_band(jax.vmap(controller.trajectory.position)(ts))
 
+    # The reference's derivatives ride in the carry, one sample ahead: each sample evaluates
+    # them once for the next, and the controller reads them through a Taylor reference at
+    # the sample time (exactly the same values; otherwise XLA repeats a sinusoid's sine and
+    # cosine in every kernel that uses a derivative, issue 17)
+    def reference(t):
+        return controller.trajectory.derivatives(t, order=REFERENCE_ORDER)
+
     def body(carry, inp):
-        x, c, m = carry
-        t, e1n, e2n = inp
+        x, c, m, ref = carry
+        t, t_next, e1n, e2n = inp
+        ctl = eqx.tree_at(lambda k: k.trajectory, controller, Taylor(ref, t))
         q1m = sensing.measure(x.q1, sensing.q1_resolution, e1n)
         q2m = sensing.measure(x.q2, sensing.q2_resolution, e2n)
-        c_new, out, tau = controller_sample(controller, sensing, estimator, c, t, q1m, q2m,
+        c_new, out, tau = controller_sample(ctl, sensing, estimator, c, t, q1m, q2m,
                                             x.dq1, x.dq2)
         if integrator == "split":
             x_new = plant_step(plant, x, tau, dt, substeps, unroll_substeps)
@@ -250,7 +261,7 @@ def simulate_sampled(
             x_new = plant_step_diffrax(plant, x, tau, dt)
         blown = _blown(x_new)
         x_new = _tmap(lambda a, b: jnp.where(blown, a, b), x, x_new)  # hold the last finite state
-        e = x.q1 - controller.trajectory.position(t)
+        e = x.q1 - ref[0]
         bad = blown | jnp.any(jnp.abs(e) > band) | m.diverged
         sat = jnp.abs(out.tau) >= controller.tau_max
         m_new = Metrics(
@@ -263,9 +274,10 @@ def simulate_sampled(
         if save:
             F = plant.friction_torque(x)
             rec = (x, c.z_hat, tau, F, out.F_hat, e, q1m, q2m, c_new.dq1, c_new.dq2)
-        return (x_new, c_new, m_new), rec
+        return (x_new, c_new, m_new, reference(t_next)), rec
 
-    (_, _, m), rec = jax.lax.scan(body, (x0, c0, m0), (ts, n1, n2))
+    ts_next = jnp.arange(1, N + 1) * dt
+    (_, _, m, _), rec = jax.lax.scan(body, (x0, c0, m0, reference(ts[0])), (ts, ts_next, n1, n2))
     if not save:
         return SimResult(metrics=m)
     xs, zh, tau, F, F_hat, e, q1m, q2m, v1, v2 = rec

@@ -40,6 +40,29 @@ class Trajectory(eqx.Module):
         return jax.vmap(lambda tt: self.derivatives(tt, order))(jnp.asarray(t))
 
 
+class Taylor(Trajectory):
+    """q1d near ``t0`` [s] from its derivatives there: sum_k derivs[k] (t - t0)^k / k!.
+
+    ``derivs`` (k+1, n): [q1d, q1d', ..., q1d^(k)] at t0 (units rad/s^j). At t = t0 the
+    position and every derivative up to order k are exactly the given ones (forward-mode
+    derivatives of the polynomial at t - t0 = 0). The sampled-data loop hands the controller
+    the reference at each sample this way (``jaxflex.simulate.simulate_sampled``): the
+    reference's derivatives are evaluated once per sample, where XLA would otherwise copy a
+    sinusoid's sine and cosine into every kernel that uses one of its derivatives (16 float64
+    evaluations per sample, most of a batched sweep's time on a CPU; issue 17).
+    """
+
+    derivs: Float[Array, "k n"]
+    t0: Float[Array, ""]
+
+    def position(self, t: Array) -> Array:
+        tau = t - self.t0
+        acc = self.derivs[-1]
+        for k in range(self.derivs.shape[0] - 2, -1, -1):  # Horner: d_k + tau/(k+1) (...)
+            acc = self.derivs[k] + acc * (tau / (k + 1))
+        return acc
+
+
 class Sinusoid(Trajectory):
     """q1d = offset + amplitude sin(2 pi frequency t + phase); amplitude [rad], frequency [Hz]."""
 

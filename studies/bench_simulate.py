@@ -438,6 +438,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=7, help="paired rounds of the fast methods")
     ap.add_argument("--slow-repeats", type=int, default=3,
                     help="rounds of the scipy and plain-Python baselines")
+    ap.add_argument("--xla-default", action="store_true",
+                    help="keep XLA's default CPU options (otherwise jaxflex's LEAN_XLA_CPU_FLAGS, "
+                         "as the jaxflex command sets them, for every JAX method alike)")
     args = ap.parse_args()
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -446,7 +449,8 @@ def main() -> None:
         merged: dict = {}
         for part in ("single", "batched64", "batched32"):
             cmd = [sys.executable, __file__, "--out", str(out_dir / part), "--batch", str(args.batch),
-                   "--part", part] + (["--small"] if args.small else [])
+                   "--part", part] + (["--small"] if args.small else []) + (
+                       ["--xla-default"] if args.xla_default else [])
             subprocess.run(cmd, check=True)
             merged[part] = json.loads((out_dir / part / "results.json").read_text())
         ref = np.load(out_dir / "batched64" / "rms_float64_sub10_model.npy")
@@ -459,11 +463,18 @@ def main() -> None:
             print(f"accuracy of {key}: RMS-error metric within {d:.1e} (relative) of float64/10 substeps")
         (out_dir / "results.json").write_text(json.dumps(merged, indent=2) + "\n")
         return
+    import os
+
     import jax
 
+    from jaxflex.sweep.engine import use_lean_xla_cpu
+
+    if not args.xla_default:
+        use_lean_xla_cpu()  # before any JAX computation; the hand-written JAX scan gets it too
     if args.part != "batched32":
         jax.config.update("jax_enable_x64", True)
     out: dict = {"device": str(jax.devices()[0]), "blas_threads": BLAS,
+                 "xla_flags": os.environ.get("XLA_FLAGS", ""),
                  "machine": benchkit.machine_state()}
     T = 1.0 if args.small else 10.0
     if args.part == "single":

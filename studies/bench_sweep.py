@@ -42,6 +42,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchkit  # noqa: E402
 
 BLAS = benchkit.limit_blas_threads(1)
+#: --xla-default: the workers keep XLA's default CPU options (otherwise they get jaxflex's
+#: LEAN_XLA_CPU_FLAGS, as the jaxflex command sets them)
+XLA_DEFAULT = False
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -101,8 +104,12 @@ def run_worker(devices: int = 1, cores: int | None = None, **kw) -> dict:
     ``devices`` host devices (the sweep shards each chunk over them), pinned to the first
     ``cores`` CPU cores if given (XLA's own threads included)."""
     cmd = [sys.executable, __file__, "--worker", json.dumps(kw)]
+    from jaxflex.sweep.engine import LEAN_XLA_CPU_FLAGS
+
+    flags = os.environ.get("XLA_FLAGS", "").split() + (
+        [] if XLA_DEFAULT else list(LEAN_XLA_CPU_FLAGS))
     env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}
+           "XLA_FLAGS": " ".join(flags + [f"--xla_force_host_platform_device_count={devices}"])}
     pin = None
     if cores is not None:
         allowed = sorted(os.sched_getaffinity(0))[:cores]
@@ -307,7 +314,8 @@ def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     res: dict = {"samples": samples, "t_final": T, "reference": {"samples": n_ref, "substeps": 100},
                  "tolerance_rel": tol, "cpu_count": os.cpu_count(),
-                 "load_avg_start": os.getloadavg(), "blas_threads": BLAS}
+                 "load_avg_start": os.getloadavg(), "blas_threads": BLAS,
+                 "xla_flags": "default" if XLA_DEFAULT else "lean (jaxflex.sweep.engine)"}
     kw = dict(t_final=T, method="model", float32=False, keep=True)
     ref = np.asarray(run_worker(samples=n_ref, chunk=n_ref, substeps=100, **kw)["_rms"])
     res["accuracy"] = {}
@@ -357,7 +365,11 @@ def main() -> None:
     ap.add_argument("--profile-only", action="store_true", help="skip scaling and baseline")
     ap.add_argument("--target", action="store_true",
                     help="only the issue-17 target: 1000 x 10 s at a stated accuracy, one core vs two devices")
+    ap.add_argument("--xla-default", action="store_true",
+                    help="workers keep XLA's default CPU options (else jaxflex's lean flags)")
     a = ap.parse_args()
+    global XLA_DEFAULT
+    XLA_DEFAULT = a.xla_default
     if a.worker:
         print(json.dumps(worker(**json.loads(a.worker))))
         return

@@ -9,8 +9,8 @@ import pytest
 from jaxflex.controller import CascadeController, CascadeGains
 from jaxflex.friction import LuGre
 from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid, two_link_plant
-from jaxflex.simulate import simulate_continuous, simulate_sampled
-from jaxflex.trajectory import RestToRest, Sinusoid
+from jaxflex.simulate import REFERENCE_ORDER, simulate_continuous, simulate_sampled
+from jaxflex.trajectory import Multisine, RestToRest, Sinusoid, Taylor
 
 
 def _ctrl(plant=None, comp=True, method="model", dt=1e-3, traj=None, gains=None):
@@ -135,3 +135,28 @@ def test_simulate_bad_arguments(bad):
     kw = dict(t_final=1.0) | bad
     with pytest.raises(ValueError):
         simulate_sampled(paper_plant(), _ctrl(), kw.pop("t_final"), **kw)
+
+
+@pytest.mark.parametrize("traj", [
+    paper_sinusoid(),
+    RestToRest(waypoints=jnp.array([0.0, 0.8, -0.3]), durations=jnp.array([0.7, 1.1])),
+    Multisine.schroeder(0.1, 0.5, 4.0, 5),
+])
+@pytest.mark.parametrize("method", ["model", "reference"])
+def test_taylor_reference_hands_the_controller_the_same_law(traj, method):
+    """The sampled loop hands the controller the reference through ``Taylor`` at each sample
+    time (derivatives evaluated once per sample, issue 17): the derivatives and the law's
+    torque must be those of the trajectory itself, to rounding."""
+    t = jnp.asarray(1.2345)
+    d = traj.derivatives(t, order=REFERENCE_ORDER)
+    tay = Taylor(d, t)
+    np.testing.assert_allclose(tay.derivatives(t, order=REFERENCE_ORDER), d, rtol=1e-14, atol=0)
+    c = _ctrl(traj=traj, method=method)
+    c_tay = eqx.tree_at(lambda k: k.trajectory, c, tay)
+    q1, q2 = jnp.array([0.3]), jnp.array([0.31])
+    st = c.init(0.0, q1, q2, jnp.array([0.2]), jnp.array([0.25]))
+    st = eqx.tree_at(lambda s: s.z_hat, st, jnp.array([1e-3]))
+    args = (st, t, q1 + 0.01, q2 + 0.02, jnp.array([0.4]), jnp.array([0.5]))
+    (s_a, out_a), (s_b, out_b) = c.step(*args), c_tay.step(*args)
+    for a, b in zip(jax.tree_util.tree_leaves((s_a, out_a)), jax.tree_util.tree_leaves((s_b, out_b))):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)

@@ -6,7 +6,8 @@ compilation cache (in ``$JAXFLEX_CACHE_DIR``, default ``~/.cache/jaxflex/jax``; 
 turns it off), so a second run on the same machine does not compile again, expose every CPU
 core to JAX as a host device before JAX starts (``jaxflex.sweep.engine.use_all_cores``; a
 count already set in ``XLA_FLAGS`` is kept; ``--host-devices 1`` turns it off), so batched
-sweeps use all cores, and turn the
+sweeps use all cores, add XLA CPU options for loops of small kernels
+(``jaxflex.sweep.engine.use_lean_xla_cpu``; ``--no-lean-xla`` turns it off), and turn the
 library's ``ValueError``s (bad logs, bad parameters, bad gains, bad output paths) and OS errors
 into a one-line message and exit code 2 (Ctrl-C: exit 130, no traceback). Every command with
 outputs gets ``--force`` and checks its outputs before computing (``jaxflex.cli.outputs``); its
@@ -54,6 +55,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--host-devices", type=int, default=None, metavar="N",
                         help="CPU cores JAX may use as host devices for batched sweeps "
                              "(default: every core, unless XLA_FLAGS sets a count; 1: one)")
+    parser.add_argument("--no-lean-xla", action="store_true",
+                        help="keep XLA's default CPU scheduling (otherwise the options in "
+                             "jaxflex.sweep.engine.LEAN_XLA_CPU_FLAGS are added to XLA_FLAGS: "
+                             "sequential loops of small kernels run on one thread)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -104,13 +109,15 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import jax
 
-    from jaxflex.sweep.engine import use_all_cores
+    from jaxflex.sweep.engine import use_all_cores, use_lean_xla_cpu
 
     if args.host_devices is not None and args.host_devices < 1:
         print(f"jaxflex: error: --host-devices must be >= 1, got {args.host_devices}",
               file=sys.stderr)
         return 2
     use_all_cores(args.host_devices)  # before any JAX computation
+    if not args.no_lean_xla:
+        use_lean_xla_cpu()
 
     jax.config.update("jax_enable_x64", True)
     if not args.no_cache:

@@ -211,7 +211,7 @@ def identify(
     substeps: int | str = "auto",
     outputs: Sequence[str] | None = None, output_scale: float | Sequence[float] | None = None,
     continuity_weight: float = 10.0,
-    warm_start: float | None | Sequence[float | None] = (1e-3, None, 1e-2),
+    warm_start: float | None | Sequence[float | None] = (1e-3, 1e-2, None),
     warm_steps: int = 40, accept_cost: float = 4.0,
     rtol: float = 1e-10, atol: float = 1e-10, max_steps: int = 200,
     rel_stderr_limit: float = 0.5, progress: bool | int = False, static_start: bool = True,
@@ -244,7 +244,9 @@ def identify(
     the continuity weight multiplied by this factor (segments nearly independent, a far less
     nonconvex problem), then tighten to the full weight (a continuation; None: off). A
     sequence of factors is a portfolio of such schedules, tried in order from the same start
-    until one ends with a cost the noise explains (0.5 ||r||^2 <= ``accept_cost`` x
+    until one ends with a cost the noise explains (the default tries 1e-2 before the plain
+    schedule: on the 3 s closed-loop logs of datagen seeds 7-14 both orders converge the same
+    eight, but on seed 7 the plain schedule runs its 200 steps into a local minimum first) (0.5 ||r||^2 <= ``accept_cost`` x
     ``noise_cost``, what the noise estimated from each channel of the log gives); otherwise the
     lowest cost wins.
     All stages share one compilation (the engine's solver loops on the host).
