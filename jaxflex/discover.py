@@ -583,13 +583,21 @@ def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
     for grid in (coarse, None):  # a coarse grid, then a fine one around its best
         if grid is None:
             grid = best[1] + np.arange(-0.5, 0.51, 0.02)
-        for N in grid:
-            X = clear(np.column_stack([np.sin(N * q), np.cos(N * q)]))
-            c, *_ = np.linalg.lstsq(X, r, rcond=None)
-            expl = float(np.sum((X @ c) ** 2))
-            if expl > best[0]:
+        for k in range(0, grid.size, 64):  # 64 frequencies at a time, each a 2-column fit
+            Ns = grid[k:k + 64]
+            S, C = clear(np.sin(np.outer(q, Ns))), clear(np.cos(np.outer(q, Ns)))
+            ss, sc, cc = (np.einsum("ij,ij->j", a, b) for a, b in ((S, S), (S, C), (C, C)))
+            bs, bc = S.T @ r, C.T @ r
+            det = ss * cc - sc * sc
+            ok = det > 1e-12 * np.maximum(ss * cc, 1e-300)  # a fit that can be solved
+            det = np.where(ok, det, 1.0)
+            a_s, a_c = (cc * bs - sc * bc) / det, (ss * bc - sc * bs) / det
+            expl = np.where(ok, a_s * bs + a_c * bc, -1.0)  # ||X c||^2 of the fit
+            j = int(np.argmax(expl))
+            if expl[j] > best[0]:
                 # the residual equals the missing torque A sin(N q + phi)
-                best = (expl, float(N), math.atan2(c[1], c[0]), max(math.hypot(c[0], c[1]), 1e-3))
+                best = (float(expl[j]), float(Ns[j]), math.atan2(a_c[j], a_s[j]),
+                        max(math.hypot(a_s[j], a_c[j]), 1e-3))
     _, N, phi, A = best
     # both residuals equal the missing torque with its own sign (torque_residuals)
     return EFFECTS[name](A=jnp.full(1, A), N=jnp.full(1, N), phi=jnp.full(1, phi))
