@@ -72,3 +72,33 @@ def test_cli_exposes_every_core_before_jax_starts():
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        timeout=120)
     assert r.stdout.split() == ["2", "2"], r.stdout + r.stderr[-2000:]
+
+
+_LEAN = textwrap.dedent("""
+    import os, sys
+    import jax, jax.numpy as jnp
+    from jaxflex.sweep.engine import LEAN_XLA_CPU_FLAGS, use_lean_xla_cpu
+    before = use_lean_xla_cpu()
+    flags = os.environ.get("XLA_FLAGS", "")
+    jnp.ones(1).block_until_ready()  # backends start: the flags must have been accepted
+    after = use_lean_xla_cpu()
+    print(before, after, flags)
+""")
+
+
+@pytest.mark.parametrize("user", ["", "--xla_cpu_enable_concurrency_optimized_scheduler=true"])
+def test_lean_xla_flags_are_added_before_jax_starts_and_keep_the_users(user):
+    """``use_lean_xla_cpu`` adds its options before the backends start (XLA accepts them),
+    keeps an option the user set, and changes nothing once JAX has started."""
+    from jaxflex.sweep.engine import LEAN_XLA_CPU_FLAGS
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": user}
+    r = subprocess.run([sys.executable, "-c", _LEAN], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    before, after, *flags = r.stdout.split()
+    assert (before, after) == ("True", "False")
+    for f in LEAN_XLA_CPU_FLAGS:
+        name = f.split("=")[0]
+        kept = [g for g in flags if g.startswith(name)]
+        assert kept == ([user] if user.startswith(name) else [f]), flags
