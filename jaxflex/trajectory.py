@@ -48,7 +48,7 @@ class Taylor(Trajectory):
     derivatives of the polynomial at t - t0 = 0). The sampled-data loop hands the controller
     the reference at each sample this way (``jaxflex.simulate.simulate_sampled``): the
     reference's derivatives are evaluated once per sample, where XLA would otherwise copy a
-    sinusoid's sine and cosine into every kernel that uses one of its derivatives (16 float64
+    sinusoid's sine and cosine into every kernel that uses one of its derivatives (17 float64
     evaluations per sample, most of a batched sweep's time on a CPU; issue 17).
     """
 

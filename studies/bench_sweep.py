@@ -68,6 +68,10 @@ def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str,
     """One sweep in this (fresh) process; returns throughput and peak memory."""
     import jax
 
+    from jaxflex.sweep.engine import use_lean_xla_cpu
+
+    if not XLA_DEFAULT:
+        use_lean_xla_cpu()  # as the jaxflex command does, before any JAX computation
     jax.config.update("jax_enable_x64", True)
     from jaxflex.sweep import parse_spread, run_sweep
 
@@ -103,11 +107,9 @@ def run_worker(devices: int = 1, cores: int | None = None, **kw) -> dict:
     """``worker`` in a fresh Python process (so ru_maxrss is this sweep's own peak) with
     ``devices`` host devices (the sweep shards each chunk over them), pinned to the first
     ``cores`` CPU cores if given (XLA's own threads included)."""
-    cmd = [sys.executable, __file__, "--worker", json.dumps(kw)]
-    from jaxflex.sweep.engine import LEAN_XLA_CPU_FLAGS
-
-    flags = os.environ.get("XLA_FLAGS", "").split() + (
-        [] if XLA_DEFAULT else list(LEAN_XLA_CPU_FLAGS))
+    cmd = [sys.executable, __file__, "--worker", json.dumps(kw)] + (
+        ["--xla-default"] if XLA_DEFAULT else [])
+    flags = os.environ.get("XLA_FLAGS", "").split()
     env = {**os.environ, "JAX_PLATFORMS": "cpu",
            "XLA_FLAGS": " ".join(flags + [f"--xla_force_host_platform_device_count={devices}"])}
     pin = None

@@ -75,9 +75,9 @@ def test_cli_exposes_every_core_before_jax_starts():
 
 
 _LEAN = textwrap.dedent("""
-    import os, sys
-    import jax, jax.numpy as jnp
-    from jaxflex.sweep.engine import LEAN_XLA_CPU_FLAGS, use_lean_xla_cpu
+    import os
+    import jax.numpy as jnp
+    from jaxflex.sweep.engine import use_lean_xla_cpu
     before = use_lean_xla_cpu()
     flags = os.environ.get("XLA_FLAGS", "")
     jnp.ones(1).block_until_ready()  # backends start: the flags must have been accepted

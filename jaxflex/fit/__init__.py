@@ -27,6 +27,7 @@ from jaxflex.fit.solve import (
     discretisation_bias,
     integration_error,
     refined,
+    step_doubling_error,
     gap,
     least_squares,
     problem_residuals,
@@ -47,7 +48,7 @@ from jaxflex.fit.space import (
 __all__ = [
     "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "ParamSpace", "Problem", "Segments", "Solution",
     "constraint_of", "cost", "covariance", "discretisation_bias", "gap",
-    "integration_error", "refined", "get_value", "is_fitted", "least_squares",
+    "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
     "problem_residuals", "residuals", "simulated_outputs",
     "relative", "savgol", "set_values", "unpack_state", "white_noise_std",

@@ -687,8 +687,14 @@ def integration_error(prob: Problem, y: Any) -> float:
     units (``w_y``; for identification, units of the log's noise), by step doubling: RICHARDSON
     x RMS of the weighted difference between the replay with the problem's substeps and with
     twice as many. Compiles the finer replay once per problem shape."""
-    coarse = simulated_outputs(prob, y)
-    fine = simulated_outputs(refined(prob), y)
+    return step_doubling_error(prob, simulated_outputs(prob, y),
+                               simulated_outputs(refined(prob), y))
+
+
+def step_doubling_error(prob: Problem, coarse: jax.Array, fine: jax.Array) -> float:
+    """``integration_error`` from replays already made: ``coarse``, ``prob``'s outputs
+    (``simulated_outputs``) with its substeps, and ``fine``, with twice as many; inf if
+    either is not finite."""
     d = np.asarray(prob.w_y * (fine - coarse))
     return RICHARDSON * float(np.sqrt(np.mean(d**2))) if np.all(np.isfinite(d)) else math.inf
 
