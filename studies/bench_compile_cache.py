@@ -1,7 +1,9 @@
 """Question: does a second run of a command on the same machine compile again?
 
 The ``jaxflex`` command turns on JAX's persistent compilation cache (``$JAXFLEX_CACHE_DIR``,
-``jaxflex.cli.enable_compilation_cache``; every compilation is kept). This study runs
+``jaxflex.cli.enable_compilation_cache``; every compilation is kept), and the fitting
+engine's traced programs beside it (``jaxflex.tracecache``: no tracing or lowering of those
+in a second run). This study runs
 one command (``--command``: ``reproduce`` (a short paper experiment), ``identify`` (a 3 s
 closed-loop log of ``jaxflex.datagen``, seed 7, 20-bit encoder, six LuGre parameters from 50%
 off) or ``discover`` (a 20 s log of the same generator with a hidden joint damping, every
@@ -96,7 +98,9 @@ def main(argv: list[str] | None = None) -> dict:
            "first_empty_cache": first, "second_same_cache": second, "no_cache": nocache,
            "note": "seconds summed from jax.monitoring events in each process; every "
                    "compilation is cached (jax_persistent_cache_min_compile_time_secs 0); "
-                   "tracing is never cached"}
+                   "the fitting engine's traced programs are kept too (jaxflex.tracecache, "
+                   "in the cache's traces/ folder); other functions are traced in every "
+                   "process"}
     for k, r in (("first (empty cache)", first), ("second (same cache)", second),
                  ("--no-cache", nocache)):
         print(f"{k:>20}: wall {r['wall_s']:.1f} s, compile {r['compile_total_s']:.2f} s (trace "

@@ -101,6 +101,9 @@ def enable_compilation_cache() -> Path | None:
         return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    from jaxflex import tracecache
+
+    tracecache.enable(folder / "traces")
     return folder
 
 

@@ -39,6 +39,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from optimistix._solver.gauss_newton import _GaussNewtonState
 
+from jaxflex.tracecache import persistent_jit
 from jaxflex.fit.problem import BLOWN_RESIDUAL, Problem
 
 
@@ -530,13 +531,13 @@ def _solver(rtol: float, atol: float, scaling: str, structure: str,
                                                                 structure=structure))
 
 
-@eqx.filter_jit
+@persistent_jit
 def _init(solver: LevenbergMarquardt, fn: _WithAux, y: Any, args: Any):
     f_struct = jax.eval_shape(lambda: fn(y, args)[0])
     return solver.init(fn, y, args, {}, f_struct, None, frozenset())
 
 
-@eqx.filter_jit
+@persistent_jit
 def _step(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: Any):
     y, state, _ = solver.step(fn, y, args, {}, state, frozenset())
     done, result = solver.terminate(fn, y, args, {}, state, frozenset())
@@ -571,7 +572,7 @@ def gauss_newton_decrement(normal: dict[str, jax.Array], structure: str,
     return jnp.dot(g, dy)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _cost(fn: Callable, y: Any, args: Any) -> jax.Array:
     r = fn(y, args)
     return 0.5 * jnp.sum(r**2)
@@ -699,7 +700,7 @@ def step_doubling_error(prob: Problem, coarse: jax.Array, fine: jax.Array) -> fl
     return RICHARDSON * float(np.sqrt(np.mean(d**2))) if np.all(np.isfinite(d)) else math.inf
 
 
-@eqx.filter_jit
+@persistent_jit
 def _induced_step(normal: dict[str, Any], dr: jax.Array, structure: str, template: Any):
     """The undamped Gauss-Newton step (J^T J)^-1 J^T dr at the point whose normal equations are
     ``normal`` (``with_gradient``, ``undamped_solve``), flattened."""
@@ -755,25 +756,25 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
             "stderr_theta": {labels[i]: float(v) for i, v in zip(fitted, se)}}
 
 
-@eqx.filter_jit
+@persistent_jit
 def simulated_outputs(prob: Problem, y: Any) -> jax.Array:
     """Simulated outputs (S, L, n_out) [rad] of ``prob`` at ``y`` (compiled once per shape)."""
     return prob.simulate(y)[0]
 
 
-@eqx.filter_jit
+@persistent_jit
 def gap(prob: Problem, y: Any) -> jax.Array:
     """``prob.gap(y)`` (normalised RMS output error), compiled once per problem shape."""
     return prob.gap(y)
 
 
-@eqx.filter_jit
+@persistent_jit
 def residuals(prob: Problem, y: Any) -> jax.Array:
     """``prob.residuals(y)``, compiled once per problem shape."""
     return prob.residuals(y)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _theta_information(prob: Problem, y: Any):
     """Residual and the Schur complement of the normal matrix in theta (starts eliminated)."""
     r, lin = jax.linearize(prob.residuals, y)
@@ -782,7 +783,7 @@ def _theta_information(prob: Problem, y: Any):
     return r, _schur_in_theta({k: blk[k] for k in ("Ntt", "Nxt", "Dx", "U", "gt", "gx")})
 
 
-@eqx.filter_jit
+@persistent_jit
 def _schur_in_theta(blk: dict[str, jax.Array]) -> jax.Array:
     """The Schur complement in theta of the shooting normal blocks (starts eliminated)."""
     Dx = blk["Dx"]
@@ -793,7 +794,7 @@ def _schur_in_theta(blk: dict[str, jax.Array]) -> jax.Array:
     return _arrow_solve(blk["Ntt"], blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], None, None)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _jacobian(fn: Callable, prob: Any, y: Any):
     flat, unravel = ravel_pytree(y)
     return fn(y, prob), jax.jacfwd(lambda f: fn(unravel(f), prob))(flat)

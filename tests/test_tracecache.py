@@ -1,0 +1,161 @@
+"""Traces kept across processes (``jaxflex.tracecache``, issue 17 "a second run of any
+command compiles under 2 s"): a kept program gives the same numbers without tracing, the key
+changes with everything that shapes the trace, and code the key cannot cover is never kept."""
+
+import dataclasses
+import json
+import subprocess
+import sys
+import textwrap
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxflex import tracecache
+from jaxflex.fit import least_squares, residuals
+from jaxflex.identify import DEFAULT_FREE, excitation_torque, make_problem, perturb, synthetic_log
+from jaxflex.presets import paper_params
+
+pytest.importorskip("flatbuffers")  # jax.export's serialisation
+
+
+def _problem(substeps: int = 1):
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.3), substeps=1)
+    init = perturb(p, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
+    return make_problem(log, init, DEFAULT_FREE, segment_length=100, substeps=substeps)
+
+
+@pytest.fixture
+def kept(tmp_path):
+    """The cache on, in a fresh folder, with empty in-process tables; off afterwards."""
+    jax.config.update("jax_enable_x64", True)
+    tracecache.enable(tmp_path / "traces")
+    tracecache.forget()
+    yield tmp_path / "traces"
+    tracecache.enable(None)
+    tracecache.forget()
+
+
+def test_a_kept_program_gives_the_same_numbers_without_tracing(kept, monkeypatch):
+    prob, y0 = _problem()
+    plain = np.asarray(residuals.plain(prob, y0))
+    first = np.asarray(residuals(prob, y0))
+    files = sorted(kept.iterdir())
+    assert len(files) == 1 and files[0].suffix == ".jaxflex-trace"
+    np.testing.assert_array_equal(first, plain)
+
+    # a new process: nothing in memory; the program must come from the file, untraced
+    tracecache.forget()
+
+    def no_tracing(*a, **k):
+        raise AssertionError("traced again although the program was kept")
+
+    monkeypatch.setattr(tracecache, "_trace_and_store", no_tracing)
+    np.testing.assert_array_equal(np.asarray(residuals(prob, y0)), plain)
+    # the whole solver (init and step programs, pytree outputs with static parts)
+    monkeypatch.undo()
+    sol = least_squares(prob, y0, max_steps=3)
+    tracecache.forget()
+    monkeypatch.setattr(tracecache, "_trace_and_store", no_tracing)
+    again = least_squares(prob, y0, max_steps=3)
+    assert again.steps == sol.steps and again.cost == sol.cost
+    np.testing.assert_array_equal(np.asarray(jax.flatten_util.ravel_pytree(again.y)[0]),
+                                  np.asarray(jax.flatten_util.ravel_pytree(sol.y)[0]))
+
+
+def test_the_key_changes_with_what_shapes_the_trace():
+    prob, y0 = _problem()
+    k = tracecache.canonical((prob, y0))
+    assert tracecache.canonical((prob, y0)) == k  # deterministic
+    assert tracecache.canonical((dataclasses.replace(prob, substeps=2), y0)) != k  # static
+    wider = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a]), y0)
+    assert tracecache.canonical((prob, wider)) != k  # shapes
+    as32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), y0)
+    assert tracecache.canonical((prob, as32)) != k  # dtypes
+    # two lambdas on one line share a name, not a body
+    f, g = (lambda x: x + 1), (lambda x: x * 2)
+    f.__module__ = g.__module__ = "jaxflex.fake"
+    assert tracecache.canonical(f) != tracecache.canonical(g)
+
+
+class _UserModule(eqx.Module):
+    """A model class written outside jaxflex (its code is not in the key)."""
+
+    a: jax.Array
+
+    def __call__(self, x):
+        return self.a * x
+
+
+def _user_call(m, x):  # noqa: ANN001, ANN202 - a user's function (module tests.*)
+    return m(x)
+
+
+def test_code_outside_jaxflex_is_never_kept(kept):
+    with pytest.raises(tracecache.Unkeyable, match="outside jaxflex"):
+        tracecache.canonical(_UserModule(jnp.ones(2)))
+    with pytest.raises(tracecache.Unkeyable, match="outside jaxflex"):
+        tracecache.canonical(lambda x: x)
+    # the engine's jitted cost with a user's residual function: compiled as before, not kept
+    from jaxflex.fit.solve import _cost
+
+    c = _cost(lambda y, a: y * a, jnp.ones(3), jnp.asarray(2.0))
+    assert float(c) == 6.0
+    assert not any(kept.iterdir())
+
+
+def test_inside_another_trace_and_damaged_files(kept):
+    prob, y0 = _problem()
+    # under jit (tracers): the plain path, which inlines; nothing is kept
+    out = jax.jit(lambda y: residuals(prob, y))(y0)
+    assert not any(kept.iterdir())
+    np.testing.assert_allclose(np.asarray(out), np.asarray(residuals.plain(prob, y0)))
+    # a damaged file is ignored and written again
+    residuals(prob, y0)
+    (path,) = kept.iterdir()
+    path.write_bytes(b"not a program")
+    tracecache.forget()
+    np.testing.assert_array_equal(np.asarray(residuals(prob, y0)),
+                                  np.asarray(residuals.plain(prob, y0)))
+    assert path.read_bytes() != b"not a program"
+
+
+_CHILD = textwrap.dedent("""
+    import json, sys
+    import jax, jax.monitoring as mon
+    jax.config.update("jax_enable_x64", True)
+    traced = []
+    mon.register_event_duration_secs_listener(
+        lambda ev, s, fun_name=None, **k: traced.append(fun_name)
+        if ev.endswith("jaxpr_trace_duration") else None)
+    from jaxflex import tracecache
+    tracecache.enable(sys.argv[1])
+    from jaxflex.fit import residuals
+    from jaxflex.identify import DEFAULT_FREE, excitation_torque, make_problem, perturb
+    from jaxflex.identify import synthetic_log
+    from jaxflex.presets import paper_params
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.3), substeps=1)
+    prob, y0 = make_problem(log, perturb(p, DEFAULT_FREE, (1.1,) * 6), DEFAULT_FREE,
+                            segment_length=100, substeps=2)
+    traced.clear()
+    r = residuals(prob, y0)
+    print(json.dumps({"r": [float(v) for v in r[:50]], "traced": traced}))
+""")
+
+
+def test_a_second_process_does_not_trace(tmp_path):
+    """The claim itself, across real processes: the second one reads the program and traces
+    nothing of the engine's function, with bitwise the same residuals."""
+    runs = []
+    for _ in range(2):
+        p = subprocess.run([sys.executable, "-c", _CHILD, str(tmp_path)], capture_output=True,
+                           text=True, timeout=300, check=True)
+        runs.append(json.loads(p.stdout.strip().splitlines()[-1]))
+    assert "flat" in runs[0]["traced"]  # the first process traced the engine's function
+    assert "flat" not in runs[1]["traced"] and "residuals" not in runs[1]["traced"]
+    assert runs[1]["r"] == runs[0]["r"]
