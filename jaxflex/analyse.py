@@ -43,6 +43,7 @@ from jaxflex.plant import FlexibleJointPlant, PlantState
 from jaxflex.sensing import AbstractSensing, Sensing
 from jaxflex.simulate import controller_sample, init_controller, loop_estimator
 from jaxflex.step import plant_step
+from jaxflex.tracecache import persistent_jit
 
 
 def state_names(plant: FlexibleJointPlant, controller: CascadeController,
@@ -182,7 +183,7 @@ def jacobian_at(m: ClosedLoopMap, t: float, xi: Float[Array, " d"], unravel: Cal
     return _jacobian_compiled(m, jnp.asarray(t, xi.dtype), xi)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _jacobian_compiled(m: ClosedLoopMap, t: Array, xi: Array) -> Array:
     _, unravel = m.initial()
     return _jac_step(m, unravel)(xi, t)

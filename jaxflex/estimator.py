@@ -47,6 +47,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxflex.plant import FlexibleJointPlant
+from jaxflex.tracecache import persistent_jit
 from jaxflex.validation import as_param, check_nonnegative
 
 NX: int = 5
@@ -155,6 +156,27 @@ def solve_filter_riccati(A: Array, C: Array, Q: Array, R: Array,
     return P
 
 
+@persistent_jit
+def _filter_design(I: Array, J: Array, K: Array, q1_var: Array, q2_var: Array, tau_var: Array,
+                   rate: Array, tn: Array, floor: Array, dt: float) -> tuple[Array, ...]:
+    """Per joint (all (n,)): transition A, torque column B, gain L and prediction covariance P
+    of the steady-state filter (``KalmanEstimator.build``), in one compiled program."""
+    C = jnp.zeros((2, NX), dtype=I.dtype).at[0, 0].set(1.0).at[1, 2].set(1.0)
+
+    def one(I_, J_, K_, r1, r2, tv, rate_, tn_, fl):
+        A, B = joint_model(I_, J_, K_, dt)
+        ed = jnp.zeros(NX, dtype=A.dtype).at[4].set(1.0)
+        Q = ((tv + tn_**2) * jnp.outer(B, B) + rate_**2 * dt * jnp.outer(ed, ed))
+        # the random walk's effect on the link within the sample (second order in dt)
+        # is left out
+        R = jnp.diag(jnp.stack([r1 + fl**2, r2 + fl**2]))
+        P = solve_filter_riccati(A, C, Q, R)
+        L = P @ C.T @ jnp.linalg.inv(C @ P @ C.T + R)
+        return A, B, L, P
+
+    return jax.vmap(one)(I, J, K, q1_var, q2_var, tau_var, rate, tn, floor)
+
+
 class KalmanEstimator(eqx.Module):
     """Steady-state Kalman filter of q1', q2' per joint (module docstring); fields (n, ...).
 
@@ -199,20 +221,8 @@ class KalmanEstimator(eqx.Module):
         q1_var, q2_var, tau_var = full(q1_var), full(q2_var), full(tau_var)
         rate, tn, floor = (full(tuning.disturbance_rate), full(tuning.torque_noise),
                            full(tuning.angle_floor))
-        C = jnp.zeros((2, NX), dtype=I.dtype).at[0, 0].set(1.0).at[1, 2].set(1.0)
-
-        def one(I_, J_, K_, r1, r2, tv, rate_, tn_, fl):
-            A, B = joint_model(I_, J_, K_, dt)
-            ed = jnp.zeros(NX, dtype=A.dtype).at[4].set(1.0)
-            Q = ((tv + tn_**2) * jnp.outer(B, B) + rate_**2 * dt * jnp.outer(ed, ed))
-            # the random walk's effect on the link within the sample (second order in dt)
-            # is left out
-            R = jnp.diag(jnp.stack([r1 + fl**2, r2 + fl**2]))
-            P = solve_filter_riccati(A, C, Q, R)
-            L = P @ C.T @ jnp.linalg.inv(C @ P @ C.T + R)
-            return A, B, L, P
-
-        A, B, L, P = jax.vmap(one)(I, model.J, model.K, q1_var, q2_var, tau_var, rate, tn, floor)
+        A, B, L, P = _filter_design(I, model.J, model.K, q1_var, q2_var, tau_var, rate, tn,
+                                    floor, float(dt))
         return cls(A=A, B=B, L=L, P=P, angles=tuning.angles)
 
     def init(self, q1: Array, q2: Array, dq1: Array | None = None,

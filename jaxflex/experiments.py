@@ -51,6 +51,7 @@ from jaxflex.presets import (
 )
 from jaxflex.sensing import AbstractSensing
 from jaxflex.simulate import SimResult, simulate_sampled, tracking_summary
+from jaxflex.tracecache import persistent_jit
 from jaxflex.trajectory import Trajectory
 
 COMPENSATION_KEYS: tuple[str, ...] = ("without_compensation", "with_compensation")
@@ -69,8 +70,15 @@ def run_closed_loop(
         model=plant, gains=gains, trajectory=traj, compensation=compensation,
         q2d_method=q2d_method, dt=dt, tau_max=tau_max, **controller_kw,
     )
-    sim = eqx.filter_jit(lambda p, c, s, k: simulate_sampled(p, c, t_final, sensing=s, key=k))
-    return sim(plant, c, sensing, jax.random.PRNGKey(seed))
+    return _closed_loop(plant, c, sensing, jax.random.PRNGKey(seed), float(t_final))
+
+
+@persistent_jit
+def _closed_loop(plant: FlexibleJointPlant, controller: CascadeController,
+                 sensing: AbstractSensing | None, key: jax.Array, t_final: float) -> SimResult:
+    """``simulate_sampled`` compiled once per structure (and kept across runs when the
+    command's trace cache is on)."""
+    return simulate_sampled(plant, controller, t_final, sensing=sensing, key=key)
 
 
 def run_summary(r: SimResult) -> dict[str, Any]:
