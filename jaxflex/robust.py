@@ -66,6 +66,7 @@ from jaxflex.sensing import StraightThrough
 from jaxflex.simulate import lost_band, simulate_sampled
 from jaxflex.sweep.engine import is_noisy, run_sweep, sample_models
 from jaxflex.sweep.spec import SweepSpec
+from jaxflex.tracecache import persistent_jit
 from jaxflex.trajectory import Trajectory
 from jaxflex.presets import trajectory_preset
 from jaxflex.tune import (StartRecord, adam_search, ascend_feasibility, gains_of,
@@ -230,7 +231,7 @@ def _with_gains(ctrl, gains):
     return eqx.tree_at(lambda c: c.gains, ctrl, gains)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _risk_and_grad(theta, leak, batch, settings):
     """(log risk, (risk, aux)) and its gradient in theta = log(gains) over the batch."""
     t_final, substeps, noisy, tw, risk, lost = settings
@@ -253,18 +254,18 @@ def _risk_and_grad(theta, leak, batch, settings):
     return jax.value_and_grad(objective, has_aux=True)(theta)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _sample_lambda_min(gains, plants, vgrid, eps):
     """lambda_min(N2) per plant of the batch over the speed grid (B, V)."""
     return jax.vmap(lambda p: lambda_min_curve(p, gains, vgrid, eps))(plants)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _box_min(gains, box, vgrid, eps):
     return jnp.min(box_lambda_min_curve(box, gains, vgrid, eps))
 
 
-@eqx.filter_jit
+@persistent_jit
 def _max_speed(gains, batch, t_final, substeps, noisy):
     """Fastest link speed max |q1'| [rad/s] per plant of the batch (inf when lost)."""
     _, plant, ctrl, sensing, keys, _ = batch
@@ -419,7 +420,7 @@ def tune_robust(
         evaluations=evals, feasibility_steps=phase)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _box_min_and_grad(theta, leak, box, vgrid, eps):
     return jax.value_and_grad(lambda th: _box_min(gains_of(th, leak), box, vgrid, eps))(theta)
 

@@ -5,7 +5,12 @@ JAX's persistent compilation cache (``jaxflex.cli.enable_compilation_cache``) ke
 compiled executables, but the key of that cache is the lowered program, so every new process
 still traces the Python function and lowers it before it can look there. For the engine's
 solver step that is most of a second run's compile time (issue 17: a second ``identify`` on
-a 3 s log spent 1.7 s tracing and 0.9 s lowering against 0.9 s reading XLA's cache).
+a 3 s log spent 1.7 s tracing and 0.9 s lowering against 0.9 s reading XLA's cache). The
+fitting engine (``jaxflex.fit``), the paper's closed loop (``jaxflex.experiments``), the
+loop Jacobian (``jaxflex.analyse``), the Kalman design (``jaxflex.estimator``), the tuner,
+the robust tuner, the certificate and ``validate``'s loops compile through it. The command
+line turns it on (``--no-trace-cache`` off); in a script call ``enable(folder)``. The folder
+must be the user's own: its files are unpickled (as JAX's cache folder holds executables).
 
 ``persistent_jit(f)`` behaves like ``eqx.filter_jit(f)`` (array leaves of the arguments are
 traced, every other leaf is static) and, once ``enable(folder)`` has been called, keeps each
@@ -208,35 +213,35 @@ def _rebuild(program: _Program, flat: list) -> Any:
 
 def persistent_jit(fun: Callable) -> Callable:
     """``eqx.filter_jit(fun)`` whose traced programs are kept across processes once ``enable``
-    was called (module docstring). Keyword arguments are not supported (pass them
-    positionally); ``fun`` must be a module-level function."""
+    was called (module docstring); ``fun`` should be a module-level function of jaxflex."""
     plain = eqx.filter_jit(fun)
     programs: dict[str, _Program | None] = {}
     _TABLES.append(programs)
     name = f"{fun.__module__}.{fun.__qualname__}"
 
     @functools.wraps(fun)
-    def wrapper(*args: Any) -> Any:
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
         if (_folder is None or jax.config.jax_disable_jit
-                or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))):
-            return plain(*args)  # off, or inside another trace (where plain jit inlines)
+                or any(isinstance(x, jax.core.Tracer)
+                       for x in jax.tree_util.tree_leaves((args, kwargs)))):
+            return plain(*args, **kwargs)  # off, or inside a trace (where plain jit inlines)
         # weak types are dropped at the boundary: the exported program's outputs come back
         # strongly typed, and a weak leaf would key (and trace) a second program
-        args = jax.tree_util.tree_map(_strong, args)
+        call = jax.tree_util.tree_map(_strong, (args, dict(sorted(kwargs.items()))))
         try:
-            key_src = repr((_environment_digest(), _config_digest(), name, canonical(args)))
+            key_src = repr((_environment_digest(), _config_digest(), name, canonical(call)))
         except Unkeyable:
-            return plain(*args)
+            return plain(*args, **kwargs)
         key = hashlib.sha256(key_src.encode()).hexdigest()
         if key not in programs:
-            programs[key] = _load(key) or _trace_and_store(fun, args, key)
+            programs[key] = _load(key) or _trace_and_store(fun, call, key)
         program = programs[key]
         if program is None:
-            return plain(*args)
+            return plain(*args, **kwargs)
         # committed leaves only: the outputs of a call are committed, and a call with an
         # uncommitted argument lowers (and fetches from XLA's cache) the program once more
         leaves = [x if isinstance(x, jax.Array) and x.committed else jax.device_put(x, _device())
-                  for x in jax.tree_util.tree_leaves(eqx.filter(args, eqx.is_array))]
+                  for x in jax.tree_util.tree_leaves(eqx.filter(call, eqx.is_array))]
         return _rebuild(program, program.call(*leaves))
 
     wrapper.plain = plain  # type: ignore[attr-defined]
@@ -273,16 +278,17 @@ def _load(key: str) -> _Program | None:
         return None
 
 
-def _trace_and_store(fun: Callable, args: Any, key: str) -> _Program | None:
-    """Trace ``fun`` on ``args`` as a flat function of the array leaves, export it, store it
-    under ``key`` (atomically) and return it; None if the program cannot be exported or its
-    output's static part cannot be stored."""
-    dyn, static = eqx.partition(args, eqx.is_array)
+def _trace_and_store(fun: Callable, call: tuple[tuple, dict], key: str) -> _Program | None:
+    """Trace ``fun(*args, **kwargs)`` (``call``: the pair) as a flat function of the array
+    leaves, export it, store it under ``key`` (atomically) and return it; None if the
+    program cannot be exported or its output's static part cannot be stored."""
+    dyn, static = eqx.partition(call, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(dyn)
     kept: dict[str, Any] = {}
 
     def flat(*xs: jax.Array) -> list[jax.Array]:
-        out = fun(*eqx.combine(jax.tree_util.tree_unflatten(treedef, list(xs)), static))
+        args, kwargs = eqx.combine(jax.tree_util.tree_unflatten(treedef, list(xs)), static)
+        out = fun(*args, **kwargs)
         out_dyn, kept["static"] = eqx.partition(out, eqx.is_array)
         out_leaves, out_tree = jax.tree_util.tree_flatten(out_dyn)
         kept["index"] = jax.tree_util.tree_unflatten(out_tree, list(range(len(out_leaves))))

@@ -47,6 +47,7 @@ from jaxflex.plant import FlexibleJointPlant
 from jaxflex.presets import rig_sensing
 from jaxflex.sensing import AbstractSensing, StraightThrough
 from jaxflex.simulate import SimResult, simulate_sampled, tracking_summary
+from jaxflex.tracecache import persistent_jit
 from jaxflex.trajectory import Trajectory
 from jaxflex.validation import requires_float64
 
@@ -470,10 +471,10 @@ def _rest_damping(theta, rest):
     return rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, g))
 
 
-_damping_value = eqx.filter_jit(_rest_damping)
+_damping_value = persistent_jit(_rest_damping)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _constraint_and_grad(theta, leak, model, vgrid, margin, eps, rest, zeta, use_n2):
     def c(th):
         d = _rest_damping(th, rest) - zeta
@@ -485,7 +486,7 @@ def _constraint_and_grad(theta, leak, model, vgrid, margin, eps, rest, zeta, use
     return jax.value_and_grad(c)(theta)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _log_cost_and_grad(theta, leak, plant, model, trajectories, sensing, settings):
     """(log cost, (cost, aux)) and its gradient in theta = log(gains); module-level so that
     repeated ``tune`` calls on same-shaped tasks reuse the compiled function."""
@@ -499,7 +500,7 @@ def _log_cost_and_grad(theta, leak, plant, model, trajectories, sensing, setting
     return jax.value_and_grad(objective, has_aux=True)(theta)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _constraint(theta, leak, model, vgrid, margin, eps):
     """min over the speed grid of lambda_min(N2) minus the margin (>= 0: certified)."""
     return jnp.min(lambda_min_curve(model, gains_of(theta, leak), vgrid, eps)) - margin
@@ -515,7 +516,7 @@ def simulate_task(plant: FlexibleJointPlant, gains: CascadeGains, task: TuneTask
             for tr in task.trajectories]
 
 
-@eqx.filter_jit
+@persistent_jit
 def _simulate_saved(plant, controller, t_final, substeps, sensing, key):
     return simulate_sampled(plant, controller, t_final, substeps=substeps, sensing=sensing,
                             key=key)

@@ -46,6 +46,7 @@ from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
 from jaxflex.state import PlantState
 from jaxflex.step import MODEL_KINDS, link_reading, model_step
+from jaxflex.tracecache import persistent_jit
 from jaxflex.trajectory import SampledReference
 from jaxflex.validation import check_keys
 
@@ -370,7 +371,7 @@ def _need_x64(what: str) -> None:
                          "first (the jaxflex command does)")
 
 
-@eqx.filter_jit
+@persistent_jit
 def _sampled_loop(plant: FlexibleJointPlant, kind: str, law: SampledLaw, r: jax.Array,
                   d: jax.Array, x0: PlantState, dt: float,
                   substeps: int) -> tuple[jax.Array, jax.Array]:

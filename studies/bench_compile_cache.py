@@ -1,14 +1,15 @@
 """Question: does a second run of a command on the same machine compile again?
 
 The ``jaxflex`` command turns on JAX's persistent compilation cache (``$JAXFLEX_CACHE_DIR``,
-``jaxflex.cli.enable_compilation_cache``; every compilation is kept), and the fitting
-engine's traced programs beside it (``jaxflex.tracecache``: no tracing or lowering of those
-in a second run). This study runs
+``jaxflex.cli.enable_compilation_cache``; every compilation is kept), and the traced
+programs of the fitting engine, simulator and tuner beside it (``jaxflex.tracecache``: no
+tracing or lowering of those in a second run). This study runs
 one command (``--command``: ``reproduce`` (a short paper experiment), ``identify`` (a 3 s
 closed-loop log of ``jaxflex.datagen``, seed 7, 20-bit encoder, six LuGre parameters from 50%
 off) or ``discover`` (a 20 s log of the same generator with a hidden joint damping, every
-candidate)) three times in fresh processes: with an empty cache folder, again with the
-same folder (the second run of a user), and with ``--no-cache``. In each process a
+candidate)) in fresh processes: with an empty cache folder, again with the same folder (the
+second run of a user; then with ``--no-trace-cache``, to show what the kept traces save, and
+the second run once more), and with ``--no-cache``. In each process a
 ``jax.monitoring`` listener sums the seconds spent tracing, lowering and compiling (XLA
 backend) and reading the cache, and counts cache hits; wall time is also recorded. Target
 (issue 17): the second run spends under 2 s compiling.
@@ -92,16 +93,24 @@ def main(argv: list[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory() as cache:
         first = run_once(cmd, cache)
         second = run_once(cmd, cache)
+        # the same warm compilation cache, every function traced again: what the kept
+        # traces (jaxflex.tracecache) save
+        second_traced = run_once(["--no-trace-cache"] + cmd, cache)
+        second_again = run_once(cmd, cache)  # a repeat of the second run (spread)
     nocache = run_once(["--no-cache"] + cmd, None)
     res = {"command": "jaxflex " + " ".join(cmd), "cpu_count": os.cpu_count(),
            "target": "second run under 2 s compiling (trace + lower + XLA, cache reads included)",
-           "first_empty_cache": first, "second_same_cache": second, "no_cache": nocache,
+           "first_empty_cache": first, "second_same_cache": second,
+           "second_same_cache_repeat": second_again,
+           "second_same_cache_no_trace_cache": second_traced, "no_cache": nocache,
            "note": "seconds summed from jax.monitoring events in each process; every "
                    "compilation is cached (jax_persistent_cache_min_compile_time_secs 0); "
-                   "the fitting engine's traced programs are kept too (jaxflex.tracecache, "
-                   "in the cache's traces/ folder); other functions are traced in every "
-                   "process"}
+                   "the traced programs of the fitting engine, simulator and tuner are kept "
+                   "too (jaxflex.tracecache, in the cache's traces/ folder; "
+                   "second_same_cache_no_trace_cache: the same warm cache with "
+                   "--no-trace-cache); other functions are traced in every process"}
     for k, r in (("first (empty cache)", first), ("second (same cache)", second),
+                 ("second, repeated", second_again), ("second, --no-trace-cache", second_traced),
                  ("--no-cache", nocache)):
         print(f"{k:>20}: wall {r['wall_s']:.1f} s, compile {r['compile_total_s']:.2f} s (trace "
               f"{r['trace_s']:.2f}, lower {r['lower_s']:.2f}, XLA {r['backend_compile_s']:.2f}; "

@@ -3,7 +3,9 @@
 
 Commands turn on float64 (identification and certificates need it), turn on JAX's persistent
 compilation cache (in ``$JAXFLEX_CACHE_DIR``, default ``~/.cache/jaxflex/jax``; ``--no-cache``
-turns it off), so a second run on the same machine does not compile again, expose every CPU
+turns it off) and keep the traced programs of the fitting engine, the simulator and the tuner
+beside it (``jaxflex.tracecache``, its ``traces/`` folder; ``--no-trace-cache`` turns that
+part off), so a second run on the same machine neither traces nor compiles them again, expose every CPU
 core to JAX as a host device before JAX starts (``jaxflex.sweep.engine.use_all_cores``; a
 count already set in ``XLA_FLAGS`` is kept; ``--host-devices 1`` turns it off), so batched
 sweeps use all cores, add XLA CPU options for loops of small kernels
@@ -52,6 +54,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-cache", action="store_true",
                         help="do not use the persistent JAX compilation cache "
                              "($JAXFLEX_CACHE_DIR, default ~/.cache/jaxflex/jax)")
+    parser.add_argument("--no-trace-cache", action="store_true",
+                        help="trace every function again in each run (otherwise the traced "
+                             "programs of the fitting engine, the simulator and the tuner are "
+                             "kept in the cache's traces/ folder, jaxflex.tracecache)")
     parser.add_argument("--host-devices", type=int, default=None, metavar="N",
                         help="CPU cores JAX may use as host devices for batched sweeps "
                              "(default: every core, unless XLA_FLAGS sets a count; 1: one)")
@@ -84,13 +90,14 @@ def _show_warning(command: str):
     return show
 
 
-def enable_compilation_cache() -> Path | None:
+def enable_compilation_cache(traces: bool = True) -> Path | None:
     """Turn on JAX's persistent compilation cache in ``$JAXFLEX_CACHE_DIR`` (default
     ``~/.cache/jaxflex/jax``); every compilation is kept (JAX's default keeps those over 1 s;
     an identification compiles some 85 small functions, and with a 0.5 s threshold only 4-5
     were kept: a second run of `identify` on a 3 s log took 1.5-2 s more CPU than with all
-    kept, cache 1.2 MB). Returns the folder, or None (with a note on stderr) if it cannot be
-    created."""
+    kept, cache 1.2 MB). ``traces``: also keep traced programs in its ``traces/`` folder
+    (``jaxflex.tracecache.enable``). Returns the folder, or None (with a note on stderr) if
+    it cannot be created."""
     import jax
 
     folder = Path(os.environ.get("JAXFLEX_CACHE_DIR", Path.home() / ".cache" / "jaxflex" / "jax"))
@@ -101,9 +108,13 @@ def enable_compilation_cache() -> Path | None:
         return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    from jaxflex import tracecache
+    if traces:
+        from jaxflex import tracecache
 
-    tracecache.enable(folder / "traces")
+        try:
+            tracecache.enable(folder / "traces")
+        except OSError as e:
+            print(f"jaxflex: note: trace cache off ({folder / 'traces'}: {e})", file=sys.stderr)
     return folder
 
 
@@ -124,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     if not args.no_cache:
-        enable_compilation_cache()
+        enable_compilation_cache(traces=not args.no_trace_cache)
     if args.accept_unconverged:
         os.environ["JAXFLEX_ACCEPT_UNCONVERGED"] = "1"
     old_show = warnings.showwarning

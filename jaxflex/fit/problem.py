@@ -40,6 +40,7 @@ from jaxflex.fit.space import ParamSpace
 from jaxflex.logs import Log
 from jaxflex.state import PlantState
 from jaxflex.step import MODEL_KINDS, ModelKind, replay, warm_effects
+from jaxflex.tracecache import persistent_jit
 
 #: Value given to a residual that is not finite (a trial that blew up is then rejected by
 #: the solver's cost comparison instead of propagating NaN).
@@ -331,7 +332,7 @@ def _segment_flat(prob: Problem, spec: tuple, dims: tuple[int, int], th: Array, 
     return jnp.concatenate([ys.reshape(-1), x_end.reshape(-1)])
 
 
-@eqx.filter_jit
+@persistent_jit
 def replay_segments(prob: Problem, th: Array, v0s: Array, spec: tuple,
                     dims: tuple[int, int]) -> Array:
     """Every segment of ``prob`` replayed from flat coordinates ``th`` and flat start states
@@ -341,7 +342,7 @@ def replay_segments(prob: Problem, th: Array, v0s: Array, spec: tuple,
         v0s, prob.segs.tau, prob.segs.tau_pre)
 
 
-@eqx.filter_jit
+@persistent_jit
 def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
                       dims: tuple[int, int]) -> tuple[Array, Array, Array, Array]:
     """``replay_segments`` and its Jacobian blocks in one forward pass per segment, with P
