@@ -104,6 +104,7 @@ from jaxflex.logs import Log
 from jaxflex.params import Params
 from jaxflex.plant import FlexibleJointPlant
 from jaxflex.presets import paper_params
+from jaxflex.tracecache import persistent_jit
 from jaxflex.validation import requires_float64
 
 #: Nominal parameters refitted with every model.
@@ -252,6 +253,27 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
                      universe=universe)
 
 
+@persistent_jit
+def _bristle_residuals(plant: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
+                       q2: jax.Array, v2: jax.Array, a2: jax.Array,
+                       u: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(capacity g(q1') / sigma0 [rad], link residual at z = 0, at z = capacity [N m]) at each
+    sample of ``bristle_entries`` (the residual is affine in z: F = sigma0 z + sigma1 z' +
+    sigma2 q1'), in one compiled program."""
+    fr = plant.friction
+    cap = fr.g(v1) / fr.sigma0[0]
+
+    def r_link(z):
+        def one(q1_, v1_, a1_, q2_, v2_, a2_, u_, z_):
+            x = plant.init_state(q1=q1_, dq1=v1_, q2=q2_, dq2=v2_)
+            x = eqx.tree_at(lambda s: s.z, x, jnp.atleast_1d(z_))
+            return plant.torque_residuals(x, jnp.atleast_1d(a1_), jnp.atleast_1d(a2_),
+                                          jnp.atleast_1d(u_))[0][0]
+        return jax.vmap(one)(q1, v1, a1, q2, v2, a2, u, z)
+
+    return cap, r_link(jnp.zeros_like(cap)), r_link(cap)
+
+
 def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
                     window: int = 31, bound: float = 0.995) -> np.ndarray:
     """First guesses of the bounded start z [rad] (``Problem.bounded_z``) at samples ``idx``
@@ -269,18 +291,8 @@ def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
     q1, q2 = (savgol(q, dt, 0, window)[idx] for q in (q1s, q2s))
     v1, v2 = (savgol(q, dt, 1, window)[idx] for q in (q1s, q2s))
     a1, a2 = (savgol(q, dt, 2, window)[idx] for q in (q1s, q2s))
-    fr = plant.friction
-    cap = np.asarray(fr.g(jnp.asarray(v1))) / float(np.ravel(fr.sigma0)[0])
-
-    def r_link(z):  # the link residual is affine in z (F = sigma0 z + sigma1 z' + sigma2 q1')
-        def one(q1_, v1_, a1_, q2_, v2_, a2_, u_, z_):
-            x = plant.init_state(q1=q1_, dq1=v1_, q2=q2_, dq2=v2_)
-            x = eqx.tree_at(lambda s: s.z, x, jnp.atleast_1d(z_))
-            return plant.torque_residuals(x, jnp.atleast_1d(a1_), jnp.atleast_1d(a2_),
-                                          jnp.atleast_1d(u_))[0][0]
-        return np.asarray(jax.vmap(one)(q1, v1, a1, q2, v2, a2, taus[idx], jnp.asarray(z)))
-
-    r0, r1 = r_link(np.zeros_like(cap)), r_link(cap)
+    cap, r0, r1 = (np.asarray(a) for a in _bristle_residuals(plant, q1, v1, a1, q2, v2, a2,
+                                                              taus[idx]))
     frac = -r0 / np.where(r1 != r0, r1 - r0, 1.0)
     return cap * np.clip(frac, -bound, bound)
 
