@@ -229,11 +229,15 @@ def test_studies_run_small(tmp_path, name):
     if name == "ident_two_step":  # the static map gives Fc, Fs, vs, sigma2 within 5%
         assert max(abs(res["two_step"]["rel_error"][k]) for k in STATIC_NAMES) < 0.05
     elif name == "ident_bench_scipy":  # both solvers lower the cost; the ratio is recorded
-        # (on this 1 s log from 2x off the raw LM stops in a local minimum that scipy's trf
-        # avoids: cost 5.5e6 vs 472; identify's portfolio of starts is what guards against it)
+        # (--small: the closed-loop 1 s log from its static-map start, 2 substeps; too short
+        # to determine vs and sigma1, both end in the same degenerate minimum, cost 1.8e4
+        # against 543 the noise explains: a smoke test, not a result). A speed ratio is
+        # given exactly when the final costs are equal to within CHI2_EQUAL chi-square.
         assert res["jax"]["cost"] < 1e-2 * res["initial_cost"]
         assert res["scipy"]["cost"] < 1e-2 * res["initial_cost"]
         assert math.isfinite(res["cost_ratio_jax_over_scipy"])
+        assert res["equal_cost"] == (abs(res["chi2_jax_minus_scipy"]) <= mod.CHI2_EQUAL)
+        assert (res["speed_ratio_warm"] is not None) == res["equal_cost"]
 
 
 def _closed_loop_log(t_final, seed=7):
