@@ -152,7 +152,7 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
 
 def _damping(diag: jax.Array, scaling: str) -> jax.Array:
     if scaling == "marquardt":
-        return jnp.maximum(diag, 1e-12 * jnp.maximum(jnp.max(diag), 1e-300))
+        return jnp.maximum(diag, 1e-12 * jnp.maximum(jnp.max(diag, initial=0.0), 1e-300))
     return jnp.ones_like(diag)
 
 
