@@ -1090,12 +1090,8 @@ def discover(
                    substeps=cfg.substeps, max_effects=cfg.max_effects)
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2, held_out=False)
     # the base every candidate is compared with must not keep a load that the first solve's
-    # long early steps pushed past the capacity (``settle``); its statistical stop measured
-    # against the standard errors the rounds report, inflated by the residual
-    # autocorrelation time (measured, 20 s log: with none, each settling solve crept on for
-    # 35-60 steps along a direction the data hardly see)
-    current = settle(ws, current, max_steps=cfg.max_steps * 2,
-                     tau_int=autocorrelation_time(ws, current))
+    # long early steps pushed past the capacity (``settle``)
+    current = settle(ws, current, max_steps=cfg.max_steps * 2)
     if not (math.isfinite(current.gap_test) and math.isfinite(current.rss)):
         raise ValueError(
             "discover: the nominal model's replay of this log is not finite (held-out gap "
