@@ -159,3 +159,38 @@ def test_a_second_process_does_not_trace(tmp_path):
     assert "flat" in runs[0]["traced"]  # the first process traced the engine's function
     assert "flat" not in runs[1]["traced"] and "residuals" not in runs[1]["traced"]
     assert runs[1]["r"] == runs[0]["r"]
+
+
+def test_the_in_process_key_memo_follows_every_static_change(kept, monkeypatch):
+    """A call's key is remembered under its signature (``_signature``): a repeated call does
+    not walk its arguments again, and a change ``canonical`` would see changes the
+    signature, so it is keyed anew (never served another call's program)."""
+    prob, y0 = _problem()
+    r0 = np.asarray(residuals(prob, y0))
+    walked = []
+    real = tracecache.canonical
+    def counted(obj, _depth=0):  # noqa: ANN001, ANN202 - canonical, top-level calls counted
+        if _depth == 0:
+            walked.append(1)
+        return real(obj, _depth)
+
+    monkeypatch.setattr(tracecache, "canonical", counted)
+    np.testing.assert_array_equal(np.asarray(residuals(prob, y0)), r0)
+    assert not walked  # the same call: its key from the memo
+    np.testing.assert_array_equal(np.asarray(residuals(dataclasses.replace(prob, substeps=2),
+                                                       y0)),
+                                  np.asarray(residuals.plain(dataclasses.replace(prob,
+                                                                                 substeps=2),
+                                                             y0)))
+    assert len(walked) == 1  # a static field changed: keyed anew
+    sig = tracecache._signature
+    leaves, tree = jax.tree_util.tree_flatten((0.0,))
+    assert sig(tree, [jnp.zeros(2)]) != sig(tree, [jnp.zeros(2, jnp.float32)])  # dtypes
+    assert sig(tree, [jnp.zeros(2)]) != sig(tree, [jnp.zeros(3)])  # shapes
+    assert sig(tree, leaves) != sig(tree, [-0.0])  # equal floats with other reprs differ
+    assert sig(tree, [1]) != sig(tree, [1.0]) != sig(tree, [True])  # and other types
+    # an uncommitted array's committed copy is reused while the array lives
+    x = jnp.arange(3.0)
+    (a,) = tracecache._committed([x])
+    (b,) = tracecache._committed([x])
+    assert a.committed and a is b
