@@ -48,7 +48,8 @@ Workflow (``discover``), for one joint:
    dropped, and so is one that is no longer significant at its polished optimum against the
    base refitted from there without it (``without_effect``; a candidate's fit can lift the
    shared parameters out of a local minimum of the base and then let the effect go): the
-   round is then repeated once on that better base (``MAX_REBASE``). Every round records the Akaike and Schwarz weights of "none" and each candidate.
+   better base is kept and the round repeated once on it (``MAX_REBASE``). Every round
+   records the Akaike and Schwarz weights of "none" and each candidate.
 6. Gap floor (``gap_floor``): the held-out gap a correct model reaches on this log, by a
    parametric bootstrap through the workflow's own held-out steps (noise, quantisation,
    fitted starts, replay). The answer is the first effect added, or ``indistinguishable`` when
@@ -69,9 +70,9 @@ the base each round compares with is settled (``settle``). Measured on a 20 s, 1
 a hidden joint damping and every candidate (``jaxflex discover``, 2 shared cores, persistent
 compilation cache warm): 100-115 s when every candidate of every round was fitted fully, about
 35 s with the screen (two rounds); on the log of ``studies/bench_compile_cache.py`` (seed 3),
-whose third round repeats the second on the base a dropped gravity improved, 53 s quiet, of
-which about 3 s compilation (kept traces, ``jaxflex.tracecache``), ~1,100 Levenberg-Marquardt
-steps at 15-35 ms, a third of them settling the base (``settle``).
+whose third round repeats the second on the base a dropped gravity improved, 37-43 s quiet,
+of which about 3 s compilation (kept traces, ``jaxflex.tracecache``), ~1,100
+Levenberg-Marquardt steps at 15-35 ms, a third of them settling the base (``settle``).
 """
 
 from __future__ import annotations
@@ -1225,7 +1226,7 @@ def discover(
         # refitted from there without it: a candidate's fit can carry the shared parameters
         # out of a local minimum of the base and then let the effect go (measured: after a
         # joint damping, a gravity fit moved Fs from 0.26 to the true 0.14 N m, the held-out
-        # gap fell by 22%, and the polished mgl was 0.2 standard errors from zero)
+        # gap fell by 17%, and the polished mgl was 0.2 standard errors from zero)
         reduced = without_effect(ws, polished, winner, max_steps=cfg.max_steps,
                                  tau_int=tau_int)
         k = polished.n_par - reduced.n_par
@@ -1243,12 +1244,14 @@ def discover(
                         f"it, {polished.gap_test:.4g} with it)"}
             say(f"dropped {winner}: not needed once the base is refitted from its optimum "
                 f"(held-out gap {reduced.gap_test:.4f})")
-            if rebased >= MAX_REBASE or not reduced.rss < current.rss:
+            if not reduced.rss < current.rss:
+                break
+            current = reduced  # the better base is kept, repeated round or not
+            loc_current = localise(log, current.model.params)
+            if rebased >= MAX_REBASE:
                 break
             say("the round is repeated on that base")
             rebased += 1
-            current = reduced
-            loc_current = localise(log, current.model.params)
             continue
         added.append(winner)
         current = polished
