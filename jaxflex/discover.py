@@ -241,20 +241,23 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     def segments(a, b):
         segs = make_segments(log, start=a, stop=b, **kw)
         u = bristle_entries(log, plant, a + L * np.arange(segs.count))
-        return eqx.tree_at(lambda s: s.x0, segs, segs.x0.at[:, 4, 0].set(jnp.asarray(u)))
+        x0 = np.array(segs.x0)  # on the host: op by op, each update would compile anew
+        x0[:, 4, 0] = u
+        return eqx.tree_at(lambda s: s.x0, segs, jnp.asarray(x0))
 
     train_segs, test_segs = segments(0, split), segments(split, N)
 
     def problem(segs, columns):
-        m = segs.y_meas[..., :1]
-        scale = jnp.sqrt(jnp.mean((m - m[:, :1]) ** 2))
+        m = np.asarray(segs.y_meas[..., :1])
+        scale = float(np.sqrt(np.mean((m - m[:, :1]) ** 2)))
         # free starts without continuity (w_def 0): every segment's start state is fitted
         # from the segment's own samples, so no estimate error is left for the parameters to
         # absorb; the start z is fitted within the friction's capacity (bounded_z): a
         # segment that starts in stick carries a bristle load between the steady states
-        return Problem(space=space, segs=segs, w_y=1.0 / scale, w_def=jnp.zeros(5), dt=dt,
-                       kind="flexible", substeps=substeps, outputs=("q1", "q2"),
-                       free_starts=True, bounded_z=True, jac_columns=columns)
+        return Problem(space=space, segs=segs, w_y=jnp.asarray(1.0 / scale),
+                       w_def=jnp.zeros(5), dt=dt, kind="flexible", substeps=substeps,
+                       outputs=("q1", "q2"), free_starts=True, bounded_z=True,
+                       jac_columns=columns)
 
     # no parameter is fitted on the held-out segments (only their starts): no theta tangents
     return Workspace(space=space, train=problem(train_segs, jac_columns),
@@ -342,6 +345,7 @@ class CandidateFit:
         return self.theta, self.test_starts
 
 
+@persistent_jit
 def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
                     bound: float = 0.995) -> jax.Array:
     """Start states (S, n_state, 1) with their bounded z entries [rad] (``Problem.bounded_z``)
@@ -350,7 +354,8 @@ def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
     slope); from just inside, a further solve can bring it back when the data want a partial
     load (measured on a clean open-loop log: training gap 0.00089 from the first solve,
     0.00032 after a second solve from the entries brought back, as from the true
-    parameters)."""
+    parameters). Compiled (one program per shape, kept by ``jaxflex.tracecache``): run op by
+    op it cost a dozen small compilations per shape on every run."""
     fr = plant.friction
     cap = bound * fr.g(x0s[:, 1]) / fr.sigma0
     return x0s.at[:, 4].set(jnp.clip(x0s[:, 4], -cap, cap))
@@ -535,6 +540,22 @@ class Localisation:
     series: dict[str, np.ndarray]
 
 
+@persistent_jit
+def inverse_dynamics(plant: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
+                     q2: jax.Array, v2: jax.Array, a2: jax.Array,
+                     tau: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Link and rotor torque residuals [N m], (N, 1) each, of ``plant`` at the measured motion
+    (samples (N,): angles [rad], velocities [rad/s], accelerations [rad/s^2], torque [N m])
+    with z at its steady state (``FlexibleJointPlant.torque_residuals``; F = F_ss, eq. 35)."""
+    def resid(q1_, v1_, a1_, q2_, v2_, a2_, u):
+        x = plant.init_state(q1=q1_, dq1=v1_, q2=q2_, dq2=v2_)
+        x = eqx.tree_at(lambda s: s.z, x, plant.friction.z_steady(x.dq1))
+        return plant.torque_residuals(x, jnp.atleast_1d(a1_), jnp.atleast_1d(a2_),
+                                      jnp.atleast_1d(u))
+
+    return jax.vmap(resid)(q1, v1, a1, q2, v2, a2, tau)
+
+
 def localise(log: Log, params: Params, window: int = 41) -> Localisation:
     """Inverse-dynamics torque residuals [N m] of the nominal model on the link and rotor sides
     (``FlexibleJointPlant.torque_residuals`` with z at its steady state, so F = F_ss of
@@ -550,14 +571,8 @@ def localise(log: Log, params: Params, window: int = 41) -> Localisation:
     a1, a2 = (savgol(q, dt, 2, window) for q in (q1s, q2s))
     tau = savgol(taus, dt, 0, window)
 
-    def resid(q1_, v1_, a1_, q2_, v2_, a2_, u):
-        x = plant.init_state(q1=q1_, dq1=v1_, q2=q2_, dq2=v2_)
-        x = eqx.tree_at(lambda s: s.z, x, plant.friction.z_steady(x.dq1))
-        return plant.torque_residuals(x, jnp.atleast_1d(a1_), jnp.atleast_1d(a2_),
-                                      jnp.atleast_1d(u))
-
     r_link, r_rot = (np.asarray(a)[:, 0] for a in
-                     jax.vmap(resid)(q1, v1, a1, q2, v2, a2, tau))
+                     inverse_dynamics(plant, q1, v1, a1, q2, v2, a2, tau))
     K, I, J = (float(np.ravel(a)[0]) for a in (plant.K, plant.links.I, plant.J))
     d, dd = q2 - q1, v2 - v1
     nf1, nf2 = noise_level(q1s), noise_level(q2s)

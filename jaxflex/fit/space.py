@@ -299,10 +299,9 @@ class ParamSpace(eqx.Module):
 
     def fitted_flat(self) -> np.ndarray:
         """Boolean per flattened theta entry: fitted under the current mask."""
-        flat = ravel_pytree(
-            {k: jnp.broadcast_to(self.mask[k], (self.base.n,)) for k in self.names}
-        )[0]
-        return np.asarray(flat).astype(bool)
+        # on the host, in ravel_pytree's order (sorted names): no compilation per call
+        return np.concatenate([np.broadcast_to(np.asarray(self.mask[k]), (self.base.n,))
+                               for k in sorted(self.names)]).astype(bool)
 
 
 def _where(name: str, idx: int):
