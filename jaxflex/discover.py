@@ -63,8 +63,10 @@ Workflow (``discover``), for one joint:
 All candidates share one compiled model: the plant holds every candidate effect, wrapped in
 ``jaxflex.effects.Gated`` (gate 0 or 1), and the engine's parameter mask says which are fitted;
 both are data, so the solver compiles once per log shape. The gates are run-time branches
-(``lax.cond``), so an inactive candidate costs nothing per substep (before: the eleven gated
-candidates made every replay 5-13x dearer than the nominal model's). Every fit ends at the
+(``lax.cond``, one per hook for all candidates together: ``jaxflex.effects.effect_torque``),
+so an inactive candidate costs no arithmetic per substep (before: the eleven gated
+candidates made every replay 5-13x dearer than the nominal model's); the branches and the
+wider Jacobian still make a step about twice the nominal model's alone. Every fit ends at the
 engine's statistical stop measured against its own residual variance (``relative_stop``), and
 the base each round compares with is settled (``settle``). Measured on a 20 s, 1 kHz log with
 a hidden joint damping and every candidate (``jaxflex discover``, 2 shared cores, persistent

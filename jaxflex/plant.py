@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.effects import AbstractEffect
+from jaxflex.effects import AbstractEffect, applied_torque, effect_torque
 from jaxflex.friction import LuGre
 from jaxflex.state import PlantState
 from jaxflex.validation import as_param, check_positive
@@ -189,24 +189,22 @@ class FlexibleJointPlant(eqx.Module):
     def spring_torque(self, x: PlantState) -> Float[Array, " n"]:
         """Elastic joint torque K (q2 - q1) plus effects' spring terms [N m] (eq. 3)."""
         d, dd = x.q2 - x.q1, x.dq2 - x.dq1
-        return self.K * d + sum((e.spring_torque(d, dd) for e in self.effects), 0.0)
+        return self.K * d + effect_torque(self.effects, "spring_torque", d, dd)
 
     def applied_torque(self, x: PlantState, tau: Array) -> Float[Array, " n"]:
         """Motor torque reaching the rotor after input-path effects [N m]."""
-        for e, a in zip(self.effects, x.aux or ()):
-            tau = e.applied_torque(tau, a)
-        return tau
+        return applied_torque(self.effects, tau, x.aux or ())
 
     def accelerations(self, x: PlantState, tau: Array) -> tuple[Array, Array]:
         """(q1'', q2'') [rad/s^2] from eq. 3 with friction and effects."""
         Ts = self.spring_torque(x)
         link_rhs = (
             Ts - self.links.coriolis(x.q1, x.dq1, x.dq1) - self.links.gravity(x.q1)
-            - self.friction_torque(x) + sum((e.link_torque(x) for e in self.effects), 0.0)
+            - self.friction_torque(x) + effect_torque(self.effects, "link_torque", x)
         )
         ddq1 = self.links.solve_mass(x.q1, link_rhs)
         rotor_rhs = (
-            self.applied_torque(x, tau) - Ts + sum((e.rotor_torque(x) for e in self.effects), 0.0)
+            self.applied_torque(x, tau) - Ts + effect_torque(self.effects, "rotor_torque", x)
         )
         return ddq1, rotor_rhs / self.J
 
@@ -228,11 +226,11 @@ class FlexibleJointPlant(eqx.Module):
         r_link = (
             self.links.mass_matrix(x.q1) @ ddq1 + self.links.coriolis(x.q1, x.dq1, x.dq1)
             + self.links.gravity(x.q1) + self.friction_torque(x) - Ts
-            - sum((e.link_torque(x) for e in self.effects), 0.0)
+            - effect_torque(self.effects, "link_torque", x)
         )
         r_rotor = (
             self.J * ddq2 + Ts - self.applied_torque(x, tau)
-            - sum((e.rotor_torque(x) for e in self.effects), 0.0)
+            - effect_torque(self.effects, "rotor_torque", x)
         )
         return r_link, r_rotor
 

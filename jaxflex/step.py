@@ -47,6 +47,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
+from jaxflex.effects import effect_torque
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 from jaxflex.state import PlantState
 
@@ -83,8 +84,8 @@ def rigid_vector_field(plant: FlexibleJointPlant, x: PlantState, tau: Array) -> 
     the plant's input effects plus the effects' link and rotor torques; z follows eq. 5.
     """
     u = plant.applied_torque(x, tau)
-    u = u + sum((e.link_torque(x) for e in plant.effects), 0.0)
-    u = u + sum((e.rotor_torque(x) for e in plant.effects), 0.0)
+    u = u + effect_torque(plant.effects, "link_torque", x)
+    u = u + effect_torque(plant.effects, "rotor_torque", x)
     acc = (u - plant.friction_torque(x)) / rigid_inertia(plant)
     dz = jnp.zeros_like(x.z) if plant.friction is None else plant.friction.z_dot(x.dq1, x.z)
     daux = (

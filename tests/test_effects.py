@@ -161,3 +161,48 @@ def test_gated_effect_equals_the_effect_or_nothing(name):
     np.testing.assert_allclose(np.asarray(off), np.asarray(acc(base)), rtol=1e-15, atol=0)
     batched = jax.vmap(lambda g: acc(base.with_effects(Gated(eff, g))))(jnp.array([1.0, 0.0]))
     np.testing.assert_allclose(np.asarray(batched), np.stack([on, off]), rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("active", [(), ("cogging", "gravity", "joint_damping"),
+                                    ("actuator_lag", "time_delay", "torque_offset"),
+                                    ("backlash", "hardening_spring", "motor_cogging",
+                                     "motor_friction", "asymmetric_friction")])
+def test_gated_effects_taken_in_one_branch_per_hook_equal_the_active_effects(active):
+    """Every candidate gated in (the discrepancy workflow's universal model), some on: the
+    gated effects of each hook are taken in one run-time branch (``effect_torque``,
+    ``applied_torque``), and the accelerations equal those of the plant holding only the
+    active effects, in their order; an inactive effect's value never enters (one is given a
+    parameter that makes its torque infinite); batched gates give the same numbers."""
+    from jaxflex.effects import Gated
+
+    names = sorted(n for n, e in EFFECTS.items() if e.candidate)
+    effs = {n: jax.tree_util.tree_map(lambda a: a + 0.01 if a.shape == (1,) else a,
+                                      EFFECTS[n].typical(1)) for n in names}
+    idle = next(n for n in ("gravity", "torque_offset") if n not in active)
+    effs[idle] = jax.tree_util.tree_map(lambda a: jnp.full_like(a, jnp.inf), effs[idle])
+    base = paper_plant()
+    u = jnp.array([0.2])
+
+    def acc(plant, aux_of):
+        x = plant.init_state(q1=0.3, dq1=0.4, q2=0.32, dq2=-0.7)
+        if x.aux is not None:  # internal states away from rest, the same per effect
+            x = dataclasses.replace(x, aux=tuple(aux_of(e, a) for e, a in zip(plant.effects,
+                                                                          x.aux)))
+        return jnp.concatenate(plant.accelerations(x, u))
+
+    def aux_of(e, a):
+        if a is None:
+            return None
+        return jnp.asarray(a) + (1.0 + names.index(e.name)) * jnp.ones(jnp.shape(a))
+
+    def gated(gates):
+        return base.with_effects(*(Gated(effs[n], g) for n, g in zip(names, gates)))
+
+    want = acc(base.with_effects(*(effs[n] for n in names if n in active)), aux_of)
+    gates = jnp.asarray([1.0 if n in active else 0.0 for n in names])
+    got = acc(gated(gates), aux_of)
+    assert np.all(np.isfinite(np.asarray(got)))
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-14, atol=1e-14)
+    batched = jax.vmap(lambda g: acc(gated(g), aux_of))(jnp.stack([gates, gates]))
+    np.testing.assert_allclose(np.asarray(batched), np.stack([want, want]), rtol=1e-14,
+                               atol=1e-14)
