@@ -72,9 +72,10 @@ the base each round compares with is settled (``settle``). Measured on a 20 s, 1
 a hidden joint damping and every candidate (``jaxflex discover``, 2 shared cores, persistent
 compilation cache warm): 100-115 s when every candidate of every round was fitted fully, about
 35 s with the screen (two rounds); on the log of ``studies/bench_compile_cache.py`` (seed 3),
-whose third round repeats the second on the base a dropped gravity improved, 37-43 s quiet,
-of which about 3 s compilation (kept traces, ``jaxflex.tracecache``), ~1,100
-Levenberg-Marquardt steps at 15-35 ms, a third of them settling the base (``settle``).
+whose third round repeats the second on the base a dropped gravity improved, 34-41 s
+(three paired runs against 40-43 s before settle's probe; the machine's own spread is about
+10%), of which about 3 s compilation (kept traces, ``jaxflex.tracecache``), ~970
+Levenberg-Marquardt steps at 20-35 ms, 260 of them settling the base (``settle``).
 """
 
 from __future__ import annotations
