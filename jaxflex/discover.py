@@ -251,7 +251,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     train_segs, test_segs = segments(0, split), segments(split, N)
 
     def problem(segs, columns):
-        m = np.asarray(segs.y_meas[..., :1])
+        m = np.asarray(segs.y_meas)[..., :1]
         scale = float(np.sqrt(np.mean((m - m[:, :1]) ** 2)))
         # free starts without continuity (w_def 0): every segment's start state is fitted
         # from the segment's own samples, so no estimate error is left for the parameters to

@@ -448,7 +448,7 @@ class Gated(AbstractEffect):
         return jax.lax.cond(self.gate != 0, on, off)
 
     def _gated(self, name: str, *args: Any) -> Any:
-        if getattr(type(self.inner), name) is getattr(AbstractEffect, name):
+        if not _overrides(self.inner, name):
             return 0.0  # the effect has no such hook
         hook = getattr(self.inner, name)
         out = jax.eval_shape(lambda: jnp.asarray(hook(*args)))
@@ -513,15 +513,15 @@ def effect_torque(effects: Sequence[AbstractEffect], hook: str, *args: Any) -> A
     taken one by one (a test checks)."""
     if not _one_branch(effects, hook):
         return sum((getattr(e, hook)(*args) for e in effects), 0.0)
+    # effects without the hook contribute nothing (AbstractEffect's default)
     gated = [e for e in effects if _overrides(e, hook)]
-    rest = sum((getattr(e, hook)(*args) for e in effects if not _overrides(e, hook)), 0.0)
 
     def on():
         return sum(jnp.where(e.gate != 0, e.gate * jnp.asarray(getattr(e.inner, hook)(*args)),
                              0.0) for e in gated)
 
     out = jax.eval_shape(on)
-    return rest + jax.lax.cond(_any_on(gated), on, lambda: jnp.zeros(out.shape, out.dtype))
+    return jax.lax.cond(_any_on(gated), on, lambda: jnp.zeros(out.shape, out.dtype))
 
 
 def applied_torque(effects: Sequence[AbstractEffect], tau: Array, aux: Sequence[Any]) -> Array:
