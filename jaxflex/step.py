@@ -154,8 +154,10 @@ def model_step(
     Strang splitting per substep: exact z half-step (velocity frozen), RK4 on the rest with z
     frozen, exact z half-step; the half-steps that meet between substeps are taken as one
     step. Without friction this is plain RK4. ``unroll``: unroll the substep loop; on a CPU
-    20-30% faster under ``vmap`` (batched sweeps), about 1.4x slower for a single run
-    (measured in one process, issue 17). The numbers are the same either way.
+    10-20% faster under ``vmap`` (batched sweeps) when ``tau`` is cheap to compute, slower
+    when it is not (XLA copies its computation into every unrolled substep; the sweep engine
+    decides per controller), about 1.4x slower for a single run (measured in one process,
+    issue 17). The numbers are the same either way.
     """
     f = _vector_field(kind, plant)
     hs = h / substeps
