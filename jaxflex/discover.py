@@ -648,18 +648,28 @@ def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
     nuisance = np.column_stack([np.ones_like(q), q, v, np.tanh(v / 0.01), series["d"],
                                 np.gradient(v, series["t"])])
     Q, _ = np.linalg.qr(nuisance)
-    clear = lambda x: x - Q @ (Q.T @ x)  # noqa: E731
-    r = clear(r)
+    r = r - Q @ (Q.T @ r)
     best = (-1.0, 60.0 if rotor else 25.0, 0.0, 0.01)
     lowest = max(5.0, 2.0 * math.pi * min_periods / max(float(np.ptp(q)), 1e-9))
     coarse = np.arange(lowest, 400.0 if rotor else 80.0, 0.5)
-    for grid in (coarse, None):  # a coarse grid, then a fine one around its best
+    dot = lambda a, b: np.einsum("ij,ij->j", a, b)  # noqa: E731 - column by column
+    for grid, step in ((coarse, 0.5), (None, 0.02)):  # a coarse grid, then a fine one
         if grid is None:
-            grid = best[1] + np.arange(-0.5, 0.51, 0.02)
+            grid = best[1] + np.arange(-0.5, 0.51, step)
+        turn = np.exp(1j * step * q)
         for k in range(0, grid.size, 64):  # 64 frequencies at a time, each a 2-column fit
             Ns = grid[k:k + 64]
-            S, C = clear(np.sin(np.outer(q, Ns))), clear(np.cos(np.outer(q, Ns)))
-            ss, sc, cc = (np.einsum("ij,ij->j", a, b) for a, b in ((S, S), (S, C), (C, C)))
+            # exp(i N q) for the chunk's evenly spaced N by repeated turns (3x faster than a
+            # sine and a cosine each; the same fits to 1e-14)
+            E = np.empty((q.size, Ns.size), complex)
+            E[:, 0] = np.exp(1j * Ns[0] * q)
+            for j in range(1, Ns.size):
+                np.multiply(E[:, j - 1], turn, out=E[:, j])
+            S, C = np.ascontiguousarray(E.imag), np.ascontiguousarray(E.real)
+            # the Gram entries of the columns cleared of the nuisance span, without clearing
+            # them: ||P x||^2 = ||x||^2 - ||Q^T x||^2 (Q orthonormal); r is cleared already
+            QS, QC = Q.T @ S, Q.T @ C
+            ss, sc, cc = dot(S, S) - dot(QS, QS), dot(S, C) - dot(QS, QC), dot(C, C) - dot(QC, QC)
             bs, bc = S.T @ r, C.T @ r
             det = ss * cc - sc * sc
             ok = det > 1e-12 * np.maximum(ss * cc, 1e-300)  # a fit that can be solved
