@@ -257,7 +257,7 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
     @eqx.filter_vmap
     def full(p, c, s):
         return simulate_sampled(p, c, t_final, substeps=substeps, sensing=s, save=False,
-                                unroll_substeps=True).metrics.sum_e2
+                                unroll_substeps=c.q2d_method == "filtered").metrics.sum_e2
 
     @eqx.filter_vmap
     def plant_only(p, c):
