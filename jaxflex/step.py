@@ -156,8 +156,9 @@ def model_step(
     step. Without friction this is plain RK4. ``unroll``: unroll the substep loop; on a CPU
     10-20% faster under ``vmap`` (batched sweeps) when ``tau`` is cheap to compute, slower
     when it is not (XLA copies its computation into every unrolled substep; the sweep engine
-    decides per controller), about 1.4x slower for a single run (measured in one process,
-    issue 17). The numbers are the same either way.
+    decides per controller: ``jaxflex.sweep.engine.unrolls_substeps``), about 1.4x slower
+    for a single run (measured in one process, issue 17). The numbers are the same either
+    way.
     """
     f = _vector_field(kind, plant)
     hs = h / substeps

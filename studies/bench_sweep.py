@@ -241,6 +241,7 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
     from jaxflex.simulate import simulate_sampled
     from jaxflex.step import plant_step
     from jaxflex.sweep import build_models, parse_spread, sample_parameters
+    from jaxflex.sweep.engine import unrolls_substeps
 
     spec = parse_spread({**SPREAD, "t_final": t_final, "substeps": substeps})
     N = round(t_final / spec.dt)
@@ -257,7 +258,7 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
     @eqx.filter_vmap
     def full(p, c, s):
         return simulate_sampled(p, c, t_final, substeps=substeps, sensing=s, save=False,
-                                unroll_substeps=c.q2d_method == "filtered").metrics.sum_e2
+                                unroll_substeps=unrolls_substeps(c)).metrics.sum_e2
 
     @eqx.filter_vmap
     def plant_only(p, c):

@@ -239,6 +239,18 @@ def sample_models(spec: SweepSpec, index: jax.Array) -> tuple[
     return theta, plant, ctrl, sensing, k_noise, fs_raised
 
 
+def unrolls_substeps(controller: CascadeController) -> bool:
+    """Whether a batched (vmapped) closed loop with ``controller`` unrolls the plant's substep
+    loop (``simulate_sampled(unroll_substeps=...)``). Unrolled substeps fuse across substeps,
+    but XLA:CPU then copies the control law into every substep kernel that reads the torque;
+    the rolled loop takes the law once. The law is cheap with filtered q2d derivatives and a
+    jvp tower with "model"/"reference" (1000 x 10 s, float64, two host devices, controller
+    steps/s, unrolled against rolled: "model" 0.94e7 vs 1.2e7 at 3 substeps, 3.4e6 vs 4.7e6
+    at 10; "filtered" 1.7e7 vs 1.46e7 at 3, 6.4e6 vs 5.5e6 at 10). The same numbers either
+    way, to the last bit."""
+    return controller.q2d_method == "filtered"
+
+
 def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
     """Closed loop of one sample: parameters, metrics (worst joint) and the band-grid error.
 
@@ -246,16 +258,10 @@ def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
     diverged; fs_raised; e1_band (T, n) [rad] link error every ``band_dt`` s.
     """
     theta, plant, ctrl, sensing, k_noise, fs_raised = sample_models(spec, index)
-    # Unrolled substeps fuse across substeps, but XLA:CPU then copies the control law into
-    # every substep kernel that reads the torque; the rolled loop takes the law once. The
-    # law is cheap with filtered q2d derivatives and a jvp tower with "model"/"reference"
-    # (1000 x 10 s, float64, two host devices, controller steps/s, unrolled against rolled:
-    # "model" 0.94e7 vs 1.2e7 at 3 substeps, 3.4e6 vs 4.7e6 at 10; "filtered" 1.7e7 vs
-    # 1.46e7 at 3, 6.4e6 vs 5.5e6 at 10). The same numbers either way, to the last bit.
     r = simulate_sampled(
         plant, ctrl, spec.t_final, substeps=spec.substeps, sensing=sensing,
         key=k_noise if is_noisy(spec) else None, save=True,
-        unroll_substeps=ctrl.q2d_method == "filtered",
+        unroll_substeps=unrolls_substeps(ctrl),
     )
     # only metrics and e1 are used below: jit's dead-code elimination drops the other
     # saved trajectories, so save=True costs one (N, n) array per sample of the chunk.
