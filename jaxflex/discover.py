@@ -246,7 +246,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
         u = bristle_entries(log, plant, a + L * np.arange(segs.count))
         x0 = np.array(segs.x0)  # on the host: op by op, each update would compile anew
         x0[:, 4, 0] = u
-        return eqx.tree_at(lambda s: s.x0, segs, jnp.asarray(x0))
+        return eqx.tree_at(lambda s: s.x0, segs, jax.device_put(x0))
 
     train_segs, test_segs = segments(0, split), segments(split, N)
 
@@ -414,7 +414,7 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     if held_out:
         x_test = fit_starts(test, theta, x_test)
     space = train.space
-    phys = space.physical(theta)
+    phys = space.physical_values(theta)
     fitted = space.fitted_names()
     values = {k: float(np.ravel(phys[k])[0]) for k in fitted}
     stderr = {k: float(np.ravel(cov["stderr"][k])[0]) for k in fitted}
@@ -788,7 +788,7 @@ def screen(ws: Workspace, base: CandidateFit, model: Model, name: str, *, steps:
             ev = training_evidence(base.rss, value, k, n_par, base.n_res, n_eff)
             out |= {f"{tag}_{key}": v for key, v in ev.items()}
         cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
-        phys = train.space.physical(sol.y[0])
+        phys = train.space.physical_values(sol.y[0])
         out["params"] = {p.split(".", 1)[1]: {"value": float(np.ravel(phys[p])[0]),
                                               "stderr": float(np.ravel(cov["stderr"][p])[0])}
                          for p in fitted_names(name)}
@@ -1066,7 +1066,7 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
         for k, st in enumerate(steps):
             if st > 0:
                 y[..., k] = np.round(y[..., k] / st) * st
-        rep = eqx.tree_at(lambda p: p.segs.y_meas, test, jnp.asarray(y))
+        rep = eqx.tree_at(lambda p: p.segs.y_meas, test, jax.device_put(y))
         x0 = fit_starts(rep, th, test.segs.x0)
         gaps.append(float(gap(rep, (th, x0))))
     return {"floor": float(np.mean(gaps)), "floor_sd": float(np.std(gaps)), "noise_std": sig,

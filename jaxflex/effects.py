@@ -130,7 +130,7 @@ class Gravity(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> Gravity:
-        return cls(mgl=jnp.full(n, 0.05), q0=jnp.zeros(n))
+        return cls(mgl=np.full(n, 0.05), q0=np.zeros(n))
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
         return -self.mgl * jnp.sin(x.q1 - self.q0)
@@ -147,7 +147,7 @@ class TorqueOffset(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> TorqueOffset:
-        return cls(offset=jnp.zeros(n))
+        return cls(offset=np.zeros(n))
 
     def applied_torque(self, tau: Array, aux: Any) -> Float[Array, " n"]:
         return tau + self.offset
@@ -185,7 +185,7 @@ class AsymmetricFriction(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> AsymmetricFriction:
-        return cls(dF=jnp.zeros(n))
+        return cls(dF=np.zeros(n))
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
         return -self.dF * jnp.abs(_smooth_sign(x.dq1, self.width))
@@ -212,7 +212,7 @@ class Cogging(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> Cogging:
-        return cls(A=jnp.full(n, 0.01), N=jnp.full(n, 25.0), phi=jnp.zeros(n))
+        return cls(A=np.full(n, 0.01), N=np.full(n, 25.0), phi=np.zeros(n))
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
         return self.A * jnp.sin(self.N * x.q1 + self.phi)
@@ -241,7 +241,7 @@ class MotorCogging(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> MotorCogging:
-        return cls(A=jnp.full(n, 0.01), N=jnp.full(n, 60.0), phi=jnp.zeros(n))
+        return cls(A=np.full(n, 0.01), N=np.full(n, 60.0), phi=np.zeros(n))
 
     def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
         return self.A * jnp.sin(self.N * x.q2 + self.phi)
@@ -269,7 +269,7 @@ class Backlash(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> Backlash:
-        return cls(b=jnp.full(n, 1e-3), K=jnp.full(n, 6.77))
+        return cls(b=np.full(n, 1e-3), K=np.full(n, 6.77))
 
     def dead_zone(self, d: Array) -> Array:
         """Smooth dead zone of the deflection d [rad]."""
@@ -293,7 +293,7 @@ class HardeningSpring(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> HardeningSpring:
-        return cls(K3=jnp.full(n, 10.0))
+        return cls(K3=np.full(n, 10.0))
 
     def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"]:
         return self.K3 * d**3
@@ -314,7 +314,7 @@ class JointDamping(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> JointDamping:
-        return cls(D=jnp.full(n, 1e-3))
+        return cls(D=np.full(n, 1e-3))
 
     def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"]:
         return self.D * dd
@@ -341,7 +341,7 @@ class MotorFriction(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> MotorFriction:
-        return cls(Fm=jnp.full(n, 2e-3), bm=jnp.full(n, 1e-3))
+        return cls(Fm=np.full(n, 2e-3), bm=np.full(n, 1e-3))
 
     def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
         return -(self.Fm * _smooth_sign(x.dq2, self.width) + self.bm * x.dq2)
@@ -363,7 +363,7 @@ class ActuatorLag(AbstractEffect):
     @classmethod
     def typical(cls, n: int) -> ActuatorLag:
         # above the constraint's 1.5 ms bound (a start on the bound has a dead coordinate)
-        return cls(T=jnp.full(n, 3e-3))
+        return cls(T=np.full(n, 3e-3))
 
     def aux_init(self, n: int) -> Array:
         return jnp.zeros(n)
@@ -402,7 +402,7 @@ class TimeDelay(AbstractEffect):
     @classmethod
     def typical(cls, n: int) -> TimeDelay:
         # above the constraint's 1.5 ms bound (a start on the bound has a dead coordinate)
-        return cls(T=jnp.full(n, 3e-3))
+        return cls(T=np.full(n, 3e-3))
 
     def aux_init(self, n: int) -> Array:
         return jnp.zeros((2, n))
@@ -586,7 +586,7 @@ class EncoderSkew(AbstractEffect):
 
     @classmethod
     def typical(cls, n: int) -> EncoderSkew:
-        return cls(skew=jnp.zeros(n), offset=jnp.zeros(n))
+        return cls(skew=np.zeros(n), offset=np.zeros(n))
 
     def link_reading(self, q1: Array, dq1: Array, ddq1: Array) -> tuple[Array, Array]:
         """(q1 + skew q1' + offset [rad], q1' + skew q1'' [rad/s])."""

@@ -560,7 +560,7 @@ def closed_loop_fit(
     sol = least_squares(data, space.theta0(), fn=closed_loop_residuals, max_steps=max_steps,
                         rtol=rtol, atol=atol, scaling="marquardt")
     cov = covariance(data, sol.y, fn=closed_loop_residuals)
-    phys = {k: np.asarray(v) for k, v in space.physical(sol.y).items()}
+    phys = space.physical_values(sol.y)
     return {"params": set_values(params, phys),
             "stderr": {k: np.asarray(v).tolist() for k, v in cov["stderr"].items()},
             "converged": bool(sol.converged), "steps": int(sol.steps),

@@ -17,9 +17,18 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 
+_HOST = (np.ndarray, np.generic, int, float)
+
+
 def as_param(x: ArrayLike) -> Array:
     """A per-joint parameter as a float array of shape (n,) (scalars become (1,))."""
-    return jnp.atleast_1d(jnp.asarray(x, dtype=jnp.result_type(float)))
+    dtype = jnp.result_type(float)
+    if isinstance(x, _HOST) or (isinstance(x, (list, tuple)) and all(isinstance(e, _HOST)
+                                                                      for e in x)):
+        # host values through numpy and device_put: jnp.asarray and jnp.atleast_1d compile a
+        # program per shape, paid again by every new process
+        return jax.device_put(np.atleast_1d(np.asarray(x, dtype=dtype)))
+    return jnp.atleast_1d(jnp.asarray(x, dtype=dtype))
 
 
 def is_concrete(x: Any) -> bool:

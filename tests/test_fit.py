@@ -376,3 +376,36 @@ def test_shooting_jacobian_blocks_give_J_and_J_transpose():
     JTw = J.T @ w
     np.testing.assert_allclose(np.concatenate([gt, np.ravel(gx)]), JTw,
                                atol=1e-12 * np.max(np.abs(JTw)))
+
+
+def test_host_side_conversions_compile_no_programs():
+    """Building segments, parameters and starts from host data, and reading physical values
+    back, lowers no per-shape program (``jnp.asarray`` of a numpy array compiles a copy in
+    JAX 0.10, and every new process paid those compilations again: 66 programs on a second
+    ``discover`` run, 25 after). Fails if one of these paths goes back to eager jnp."""
+    from jaxflex.validation import as_param
+
+    t = np.arange(437) * 1e-3  # shapes no other test uses
+    log = Log.from_arrays(t=t, tau=np.sin(t), q1=np.cos(t), q2=np.cos(t) + 1e-3)
+    plant = paper_params().to_plant(with_effects=False)
+    space = ParamSpace.build(plant, ("Fc", "Fs", "sigma0"))
+    theta = space.theta0()
+    space.physical_values(theta)  # its one program, compiled (and kept) before counting
+    lowered: list[str] = []
+
+    def listen(event: str, secs: float, **kw) -> None:
+        if event.endswith("jaxpr_to_mlir_module_duration"):
+            lowered.append(kw.get("fun_name", "?"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        as_param(np.full(3, 0.25)), as_param(7.5), as_param([1.0, 2.0, 4.0])
+        make_segments(log, kind="flexible", outputs=("q1", "q2"), length=109)
+        space.theta_of({"Fc": 0.3})
+        values = space.physical_values(space.theta_of({"Fc": 0.3}))
+        space.plant(theta)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert lowered == [], lowered
+    assert values["Fc"][0] == pytest.approx(0.3, rel=1e-12)
+    assert isinstance(as_param(7.5), jax.Array) and as_param(7.5).shape == (1,)

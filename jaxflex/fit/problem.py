@@ -142,9 +142,11 @@ def make_segments(
         if log.q2 is None:
             raise ValueError("fit: the link model needs the motor angle q2 in the log")
         u = np.stack([q2, v2, savgol(q2, dt, 2, window)], axis=1)
+    # device_put, not jnp.asarray: the latter compiles a copy program per shape (JAX 0.10)
     return Segments(
-        tau=jnp.asarray(u[idx]), y_meas=jnp.asarray(y[idx]),
-        tau_pre=jnp.asarray(log.tau[pre]), x0=jnp.asarray(x0), t0=jnp.asarray(log.t[starts]),
+        tau=jax.device_put(u[idx]), y_meas=jax.device_put(y[idx]),
+        tau_pre=jax.device_put(log.tau[pre]), x0=jax.device_put(x0),
+        t0=jax.device_put(log.t[starts]),
     )
 
 

@@ -869,8 +869,10 @@ def _covariance_report(prob: Any, theta: Any, cov_fit: np.ndarray, null: np.ndar
     cov_phys = T @ cov_theta @ T.T
     se_flat = np.sqrt(np.maximum(np.diag(cov_phys), 0.0))
     se_flat = np.where(fitted_theta, se_flat, np.nan)
-    _, phys_unravel = ravel_pytree(prob.space.physical(theta))
-    se = {name: np.asarray(v) for name, v in phys_unravel(jnp.asarray(se_flat)).items()}
+    se, at = {}, 0  # ravel_pytree's order: sorted names
+    for name, v in sorted(prob.space.physical_values(theta).items()):
+        se[name] = se_flat[at:at + v.size].reshape(v.shape)
+        at += v.size
     null_names: list[str] = []
     if null.shape[1]:
         mark = np.max(np.abs(null), axis=1) > 0.2

@@ -42,6 +42,7 @@ from jaxflex.effects import EFFECTS, unwrap
 from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params
 from jaxflex.plant import FlexibleJointPlant
+from jaxflex.tracecache import persistent_jit
 
 _FLOOR = 1e-12
 
@@ -251,7 +252,7 @@ class ParamSpace(eqx.Module):
     def theta_of(self, values: Mapping[str, Any]) -> dict[str, Array]:
         """Coordinates of physical ``values`` (dict name -> (n,) or scalar); names not given
         take the base plant's value. Values on a constraint's boundary are moved inside."""
-        th: dict[str, Array] = {}
+        th: dict[str, np.ndarray] = {}
         cur = {name: np.asarray(values[name], float) if name in values
                else np.asarray(self._current(name, i), float)
                for name, i in zip(self.names, self.effect_index)}
@@ -259,20 +260,21 @@ class ParamSpace(eqx.Module):
         for name, (kind, a, b) in zip(self.names, self.transforms):
             v = np.broadcast_to(cur[name], (self.base.n,))
             if kind == "exp":
-                th[name] = jnp.asarray(np.log(np.maximum(v, _FLOOR)))
+                th[name] = np.log(np.maximum(v, _FLOOR))
             elif kind == "lower":
-                th[name] = jnp.asarray(np.log(np.maximum(v - a, _FLOOR)))
+                th[name] = np.log(np.maximum(v - a, _FLOOR))
             elif kind == "bounded":
                 r = np.clip((v - a) / (b - a), 1e-9, 1 - 1e-9)
-                th[name] = jnp.asarray(np.log(r / (1 - r)))
+                th[name] = np.log(r / (1 - r))
             elif kind == "gap":
-                th[name] = jnp.asarray(np.log(np.maximum(v - fc, 1e-3 * fc)))
+                th[name] = np.log(np.maximum(v - fc, 1e-3 * fc))
             elif kind == "frac":
                 r = np.clip(v / np.asarray(self.base.friction.Fs, float), 1e-6, 1 - 1e-6)
-                th[name] = jnp.asarray(np.log(r / (1 - r)))
+                th[name] = np.log(r / (1 - r))
             else:
-                th[name] = jnp.asarray(v, float)
-        return th
+                th[name] = np.asarray(v, float)
+        # device_put, not jnp.asarray: the latter compiles a program per shape (JAX 0.10)
+        return {k: jax.device_put(np.asarray(v, float)) for k, v in th.items()}
 
     def theta0(self) -> dict[str, Array]:
         """Coordinates of the base plant's values."""
@@ -281,7 +283,10 @@ class ParamSpace(eqx.Module):
     def plant(self, theta: dict[str, Array]) -> FlexibleJointPlant:
         """The base plant with the parameters set from ``theta``; effect parameters with a
         "tied:K" constraint follow the plant's K."""
-        phys = self.physical(theta)
+        if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(theta)):
+            phys = self.physical(theta)
+        else:  # concrete: one kept program (``physical_values``), not eager operations
+            phys = {k: jax.device_put(v) for k, v in self.physical_values(theta).items()}
         p = self.base
         for name, idx in zip(self.names, self.effect_index):
             p = eqx.tree_at(_where(name, idx), p, phys[name])
@@ -292,16 +297,29 @@ class ParamSpace(eqx.Module):
         return p
 
     def physical_jacobian(self, theta: dict[str, Array]) -> np.ndarray:
-        """d physical / d theta over the flattened names (k x k) at ``theta``."""
-        flat, unravel = ravel_pytree(theta)
-        phys_flat = lambda f: ravel_pytree(self.physical(unravel(f)))[0]
-        return np.asarray(jax.jacfwd(phys_flat)(flat))
+        """d physical / d theta over the flattened names (k x k) at ``theta`` (host side)."""
+        return np.asarray(_physical_on_host(self, theta)[1])
+
+    def physical_values(self, theta: dict[str, Array]) -> dict[str, np.ndarray]:
+        """``physical(theta)`` evaluated on the host, as numpy arrays (one compiled program,
+        kept by ``jaxflex.tracecache``, instead of a handful of eager operations whose
+        compilations each new process pays again)."""
+        return {k: np.asarray(v) for k, v in _physical_on_host(self, theta)[0].items()}
 
     def fitted_flat(self) -> np.ndarray:
         """Boolean per flattened theta entry: fitted under the current mask."""
         # on the host, in ravel_pytree's order (sorted names): no compilation per call
         return np.concatenate([np.broadcast_to(np.asarray(self.mask[k]), (self.base.n,))
                                for k in sorted(self.names)]).astype(bool)
+
+
+@persistent_jit
+def _physical_on_host(space: ParamSpace, theta: dict[str, Array]) -> tuple[dict[str, Array],
+                                                                            Array]:
+    """``space.physical(theta)`` and its Jacobian over the flattened names, compiled once."""
+    flat, unravel = ravel_pytree(theta)
+    phys_flat = lambda f: ravel_pytree(space.physical(unravel(f)))[0]
+    return space.physical(theta), jax.jacfwd(phys_flat)(flat)
 
 
 def _where(name: str, idx: int):

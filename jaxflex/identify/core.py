@@ -334,7 +334,7 @@ def identify(
         # vs x2 or x3 it converges within 0.2%). Multi-start in vs, geometrically, from the
         # first start with the first schedule; the first that settles, else the lowest, wins.
         origin, (th0, x0) = starts[0]
-        phys = {k: np.asarray(v) for k, v in prob.space.physical(th0).items()}
+        phys = prob.space.physical_values(th0)
         for f in vs_restarts:
             th = prob.space.theta_of({**phys, "vs": phys["vs"] * f})
             y = warmed(prob, (th, x0), schedules[0])
@@ -560,7 +560,7 @@ def finish(
     initial values, with the reason. ``solution``: the ``jaxflex.fit.Solution`` that ended at
     ``y``, whose normal equations the covariance then reuses."""
     theta, _ = prob.split(y)
-    phys = {k: np.asarray(v) for k, v in prob.space.physical(theta).items()}
+    phys = prob.space.physical_values(theta)
     cov = covariance(prob, y, solution=solution)
     se = {k: cov["stderr"][k].tolist() for k in phys}
     rel = {k: (np.asarray(se[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist() for k in phys}

@@ -77,7 +77,7 @@ def fit_static_map(
     prob = StaticMapProblem(space=space, v=v, F=F)
     sol = least_squares(prob, space.theta0(), fn=_static_residuals, rtol=rtol, atol=atol,
                         max_steps=500)
-    phys = space.physical(sol.y)
+    phys = space.physical_values(sol.y)
     se = covariance(prob, sol.y)["stderr"]
     return {k: (float(phys[k][0]), float(se[k][0])) for k in STATIC_NAMES}
 
