@@ -194,3 +194,19 @@ def test_the_in_process_key_memo_follows_every_static_change(kept, monkeypatch):
     (a,) = tracecache._committed([x])
     (b,) = tracecache._committed([x])
     assert a.committed and a is b
+
+
+def test_the_configuration_digest_sees_every_flag_change():
+    """``_config_digest`` is remembered under the flags' values (every persistent_jit call
+    asks for it): a changed flag gives another digest at once, and the old flag the old
+    digest; equal to the unremembered digest either way."""
+    before = tracecache._config_digest()
+    assert before == tracecache._digest_of_config()
+    old = jax.config.jax_debug_nans
+    try:
+        jax.config.update("jax_debug_nans", not old)
+        changed = tracecache._config_digest()
+        assert changed != before and changed == tracecache._digest_of_config()
+    finally:
+        jax.config.update("jax_debug_nans", old)
+    assert tracecache._config_digest() == before
