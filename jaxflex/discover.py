@@ -232,7 +232,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     # the most entries a model fits: the nominal ones and the largest max_effects + 1 effects
     sizes = sorted((fitted_count(n) for n in universe), reverse=True)
     jac_columns = len(NOMINAL_FIT) + sum(sizes[: max_effects + 1])
-    effs = [Gated(EFFECTS[n].typical(1), jnp.asarray(0.0)) for n in universe]
+    effs = [Gated(EFFECTS[n].typical(1), jax.device_put(np.asarray(0.0))) for n in universe]
     base = nominal.to_plant(with_effects=False).with_effects(*effs)
     space = ParamSpace.build(base, NOMINAL_FIT + tuple(k for n in universe for k in fitted_names(n)))
     # start estimates (the solver's first guess of each segment's start state): angles and
@@ -257,8 +257,8 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
         # from the segment's own samples, so no estimate error is left for the parameters to
         # absorb; the start z is fitted within the friction's capacity (bounded_z): a
         # segment that starts in stick carries a bristle load between the steady states
-        return Problem(space=space, segs=segs, w_y=jnp.asarray(1.0 / scale),
-                       w_def=jnp.zeros(5), dt=dt, kind="flexible", substeps=substeps,
+        return Problem(space=space, segs=segs, w_y=jax.device_put(np.asarray(1.0 / scale)),
+                       w_def=jax.device_put(np.zeros(5)), dt=dt, kind="flexible", substeps=substeps,
                        outputs=("q1", "q2"), free_starts=True, bounded_z=True,
                        jac_columns=columns)
 
@@ -683,7 +683,7 @@ def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
                         max(math.hypot(a_s[j], a_c[j]), 1e-3))
     _, N, phi, A = best
     # both residuals equal the missing torque with its own sign (torque_residuals)
-    return EFFECTS[name](A=jnp.full(1, A), N=jnp.full(1, N), phi=jnp.full(1, phi))
+    return EFFECTS[name](A=np.full(1, A), N=np.full(1, N), phi=np.full(1, phi))
 
 
 def _start_effect(name: str, model: Model, series: dict[str, np.ndarray]) -> AbstractEffect:

@@ -203,8 +203,8 @@ class ParamSpace(eqx.Module):
         return cls(
             base=base, names=names, transforms=tuple(transforms[i] for i in order),
             effect_index=tuple(eidx[i] for i in order),
-            mask={k: jnp.asarray(True) for k in names},
-            fixed={k: jnp.zeros(n) for k in names},
+            mask={k: jax.device_put(np.asarray(True)) for k in names},
+            fixed={k: jax.device_put(np.zeros(n)) for k in names},
         )
 
     def with_mask(self, fitted: Sequence[str], theta_fixed: dict[str, Array]) -> ParamSpace:
@@ -212,7 +212,7 @@ class ParamSpace(eqx.Module):
         unknown = sorted(set(fitted) - set(self.names))
         if unknown:
             raise ValueError(f"fit: {unknown} are not parameters of this space ({self.names})")
-        mask = {k: jnp.asarray(k in fitted) for k in self.names}
+        mask = {k: jax.device_put(np.asarray(k in fitted)) for k in self.names}
         fixed = {k: jnp.asarray(theta_fixed[k]) for k in self.names}
         return eqx.tree_at(lambda s: (s.mask, s.fixed), self, (mask, fixed))
 
