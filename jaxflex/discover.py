@@ -114,7 +114,7 @@ from jaxflex.params import Params
 from jaxflex.plant import FlexibleJointPlant
 from jaxflex.presets import paper_params
 from jaxflex.tracecache import persistent_jit
-from jaxflex.validation import requires_float64
+from jaxflex.validation import requires_float64, to_device
 
 #: Nominal parameters refitted with every model.
 NOMINAL_FIT: tuple[str, ...] = ("I", "J", "K", "Fc", "Fs", "sigma2")
@@ -232,7 +232,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     # the most entries a model fits: the nominal ones and the largest max_effects + 1 effects
     sizes = sorted((fitted_count(n) for n in universe), reverse=True)
     jac_columns = len(NOMINAL_FIT) + sum(sizes[: max_effects + 1])
-    effs = [Gated(EFFECTS[n].typical(1), jax.device_put(np.asarray(0.0))) for n in universe]
+    effs = [Gated(EFFECTS[n].typical(1), to_device(0.0)) for n in universe]
     base = nominal.to_plant(with_effects=False).with_effects(*effs)
     space = ParamSpace.build(base, NOMINAL_FIT + tuple(k for n in universe for k in fitted_names(n)))
     # start estimates (the solver's first guess of each segment's start state): angles and
@@ -246,7 +246,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
         u = bristle_entries(log, plant, a + L * np.arange(segs.count))
         x0 = np.array(segs.x0)  # on the host: op by op, each update would compile anew
         x0[:, 4, 0] = u
-        return eqx.tree_at(lambda s: s.x0, segs, jax.device_put(x0))
+        return eqx.tree_at(lambda s: s.x0, segs, to_device(x0))
 
     train_segs, test_segs = segments(0, split), segments(split, N)
 
@@ -257,8 +257,8 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
         # from the segment's own samples, so no estimate error is left for the parameters to
         # absorb; the start z is fitted within the friction's capacity (bounded_z): a
         # segment that starts in stick carries a bristle load between the steady states
-        return Problem(space=space, segs=segs, w_y=jax.device_put(np.asarray(1.0 / scale)),
-                       w_def=jax.device_put(np.zeros(5)), dt=dt, kind="flexible", substeps=substeps,
+        return Problem(space=space, segs=segs, w_y=to_device(1.0 / scale),
+                       w_def=to_device(np.zeros(5)), dt=dt, kind="flexible", substeps=substeps,
                        outputs=("q1", "q2"), free_starts=True, bounded_z=True,
                        jac_columns=columns)
 
@@ -1066,7 +1066,7 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
         for k, st in enumerate(steps):
             if st > 0:
                 y[..., k] = np.round(y[..., k] / st) * st
-        rep = eqx.tree_at(lambda p: p.segs.y_meas, test, jax.device_put(y))
+        rep = eqx.tree_at(lambda p: p.segs.y_meas, test, to_device(y))
         x0 = fit_starts(rep, th, test.segs.x0)
         gaps.append(float(gap(rep, (th, x0))))
     return {"floor": float(np.mean(gaps)), "floor_sd": float(np.std(gaps)), "noise_std": sig,

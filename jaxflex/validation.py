@@ -20,14 +20,21 @@ from jaxtyping import Array, ArrayLike
 _HOST = (np.ndarray, np.generic, int, float)
 
 
+def to_device(x: ArrayLike, dtype: Any = None) -> Array:
+    """A host value (numpy array, number, list of numbers) as a JAX array on the default
+    device, through ``jax.device_put``: in JAX 0.10 ``jnp.asarray`` of a numpy array (and
+    ``jnp.atleast_1d``, ``jnp.zeros`` ...) compiles a small program per shape, which every new
+    process compiles again (docs/architecture.md, "Keeping a second run cheap"). ``dtype``:
+    as numpy's (canonicalised by JAX, e.g. float64 -> float32 without x64)."""
+    return jax.device_put(np.asarray(x, dtype=dtype))
+
+
 def as_param(x: ArrayLike) -> Array:
     """A per-joint parameter as a float array of shape (n,) (scalars become (1,))."""
     dtype = jnp.result_type(float)
     if isinstance(x, _HOST) or (isinstance(x, (list, tuple)) and all(isinstance(e, _HOST)
                                                                       for e in x)):
-        # host values through numpy and device_put: jnp.asarray and jnp.atleast_1d compile a
-        # program per shape, paid again by every new process
-        return jax.device_put(np.atleast_1d(np.asarray(x, dtype=dtype)))
+        return to_device(np.atleast_1d(np.asarray(x, dtype=dtype)))
     return jnp.atleast_1d(jnp.asarray(x, dtype=dtype))
 
 

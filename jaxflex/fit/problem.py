@@ -41,6 +41,7 @@ from jaxflex.logs import Log
 from jaxflex.state import PlantState
 from jaxflex.step import MODEL_KINDS, ModelKind, replay, warm_effects
 from jaxflex.tracecache import persistent_jit
+from jaxflex.validation import to_device
 
 #: Value given to a residual that is not finite (a trial that blew up is then rejected by
 #: the solver's cost comparison instead of propagating NaN).
@@ -142,11 +143,9 @@ def make_segments(
         if log.q2 is None:
             raise ValueError("fit: the link model needs the motor angle q2 in the log")
         u = np.stack([q2, v2, savgol(q2, dt, 2, window)], axis=1)
-    # device_put, not jnp.asarray: the latter compiles a copy program per shape (JAX 0.10)
     return Segments(
-        tau=jax.device_put(u[idx]), y_meas=jax.device_put(y[idx]),
-        tau_pre=jax.device_put(log.tau[pre]), x0=jax.device_put(x0),
-        t0=jax.device_put(log.t[starts]),
+        tau=to_device(u[idx]), y_meas=to_device(y[idx]), tau_pre=to_device(log.tau[pre]),
+        x0=to_device(x0), t0=to_device(log.t[starts]),
     )
 
 

@@ -43,6 +43,7 @@ from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params
 from jaxflex.plant import FlexibleJointPlant
 from jaxflex.tracecache import persistent_jit
+from jaxflex.validation import to_device
 
 _FLOOR = 1e-12
 
@@ -203,8 +204,8 @@ class ParamSpace(eqx.Module):
         return cls(
             base=base, names=names, transforms=tuple(transforms[i] for i in order),
             effect_index=tuple(eidx[i] for i in order),
-            mask={k: jax.device_put(np.asarray(True)) for k in names},
-            fixed={k: jax.device_put(np.zeros(n)) for k in names},
+            mask={k: to_device(True) for k in names},
+            fixed={k: to_device(np.zeros(n)) for k in names},
         )
 
     def with_mask(self, fitted: Sequence[str], theta_fixed: dict[str, Array]) -> ParamSpace:
@@ -212,7 +213,7 @@ class ParamSpace(eqx.Module):
         unknown = sorted(set(fitted) - set(self.names))
         if unknown:
             raise ValueError(f"fit: {unknown} are not parameters of this space ({self.names})")
-        mask = {k: jax.device_put(np.asarray(k in fitted)) for k in self.names}
+        mask = {k: to_device(k in fitted) for k in self.names}
         fixed = {k: jnp.asarray(theta_fixed[k]) for k in self.names}
         return eqx.tree_at(lambda s: (s.mask, s.fixed), self, (mask, fixed))
 
@@ -272,9 +273,8 @@ class ParamSpace(eqx.Module):
                 r = np.clip(v / np.asarray(self.base.friction.Fs, float), 1e-6, 1 - 1e-6)
                 th[name] = np.log(r / (1 - r))
             else:
-                th[name] = np.asarray(v, float)
-        # device_put, not jnp.asarray: the latter compiles a program per shape (JAX 0.10)
-        return {k: jax.device_put(np.asarray(v, float)) for k, v in th.items()}
+                th[name] = v
+        return {k: to_device(v, float) for k, v in th.items()}
 
     def theta0(self) -> dict[str, Array]:
         """Coordinates of the base plant's values."""
@@ -285,8 +285,8 @@ class ParamSpace(eqx.Module):
         "tied:K" constraint follow the plant's K."""
         if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(theta)):
             phys = self.physical(theta)
-        else:  # concrete: one kept program (``physical_values``), not eager operations
-            phys = {k: jax.device_put(v) for k, v in self.physical_values(theta).items()}
+        else:  # concrete: one kept program, not eager operations (its device arrays)
+            phys = _physical_on_host(self, theta)[0]
         p = self.base
         for name, idx in zip(self.names, self.effect_index):
             p = eqx.tree_at(_where(name, idx), p, phys[name])
