@@ -486,6 +486,21 @@ def _overrides(effect: AbstractEffect, hook: str) -> bool:
     return getattr(type(unwrap(effect)), hook) is not getattr(AbstractEffect, hook)
 
 
+#: The hooks through which an effect changes a flexible-joint plant's motion (the replay that
+#: ``jaxflex.discover`` fits); ``link_reading`` is not one (a sensor map of a measured input).
+MOTION_HOOKS: tuple[str, ...] = ("link_torque", "rotor_torque", "spring_torque",
+                                 "applied_torque", "aux_rhs")
+
+
+def acts_on_motion(name: str) -> bool:
+    """Whether the registered effect ``name`` changes the flexible plant's motion (any of
+    ``MOTION_HOOKS``): False for a pure sensor map such as ``encoder_skew``, which acts only
+    where a model takes the measured link motion as an input. Raises ``KeyError`` for an
+    unknown name."""
+    cls = EFFECTS[name]
+    return any(getattr(cls, h) is not getattr(AbstractEffect, h) for h in MOTION_HOOKS)
+
+
 def _one_branch(effects: Sequence[AbstractEffect], hook: str) -> bool:
     """Whether the ``hook`` contributions of ``effects`` are taken in one run-time branch:
     every effect that has the hook is ``Gated`` and there are at least two."""

@@ -447,6 +447,41 @@ def benchmark_derivative(q: np.ndarray, dt: float) -> np.ndarray:
     return np.gradient(filtfilt(b, a, q), dt)
 
 
+#: Coefficients of ``rigid_torque_fit``, in the order of its regressors.
+RIGID_TERMS: tuple[str, ...] = ("Jt", "Fv", "Fc", "offset")
+
+
+def _rigid_regressors(log: Log, joint: int, window: int) -> np.ndarray:
+    q = (log.q2 if log.q2 is not None else log.q1)[:, joint]
+    v, a = savgol(q, log.dt, 1, window), savgol(q, log.dt, 2, window)
+    return np.stack([a, v, np.sign(v), np.ones_like(v)], axis=1)
+
+
+def rigid_torque_fit(log: Log, joint: int = 0, window: int = 31) -> dict[str, float]:
+    """Rigid least-squares torque model of one joint on the motor encoder (q2, else q1):
+    ``tau = Jt q'' + Fv q' + Fc sign(q') + offset`` (the rigid model of eq. 37 with Coulomb
+    and viscous friction and a constant, linear in its coefficients), the derivatives by
+    zero-phase Savitzky-Golay differentiation over ``window`` samples (``jaxflex.fit.savgol``).
+    The baseline a flexible model must beat on real data (issue 14), and a starting point for
+    a model of a log no one has identified yet. Returns ``RIGID_TERMS``: Jt [kg m^2],
+    Fv [N m s/rad], Fc [N m], offset [N m]. Raises ``ValueError`` for a joint the log lacks
+    or a log without torque."""
+    if log.tau is None:
+        raise ValueError("rigid_torque_fit: the log has no torque column")
+    if not 0 <= joint < log.n:
+        raise ValueError(f"rigid_torque_fit: joint {joint} not in a {log.n}-joint log")
+    coef, *_ = np.linalg.lstsq(_rigid_regressors(log, joint, window), log.tau[:, joint],
+                               rcond=None)
+    return dict(zip(RIGID_TERMS, map(float, coef)))
+
+
+def rigid_torque(coef: Mapping[str, float], log: Log, joint: int = 0,
+                 window: int = 31) -> np.ndarray:
+    """Torque [N m] (N,) of ``rigid_torque_fit``'s model ``coef`` for the measured motion of
+    ``log``'s ``joint``."""
+    return _rigid_regressors(log, joint, window) @ np.array([coef[k] for k in RIGID_TERMS])
+
+
 def rel_error_pct(y: np.ndarray, y_hat: np.ndarray, drop: int = 0) -> float:
     """``100 ||y - y_hat|| / ||y||`` [%] after dropping the first ``drop`` samples."""
     y, y_hat = np.asarray(y)[drop:], np.asarray(y_hat)[drop:]

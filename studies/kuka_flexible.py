@@ -222,18 +222,13 @@ def deflection_torque_pcorr(log: Any) -> float:
     return float(d @ t / np.sqrt((d @ d) * (t @ t)))
 
 
-def rigid_baseline(log_fit: Any, logs: dict[str, Any]) -> tuple[dict[str, float], np.ndarray]:
-    """Rigid LS on the motor encoder fitted on ``log_fit``; torque errors [%] on ``logs``."""
-    from jaxflex.fit import savgol
-    from jaxflex.validate import rel_error_pct
+def rigid_baseline(log_fit: Any, logs: dict[str, Any]) -> tuple[dict[str, float], dict]:
+    """Rigid LS on the motor encoder (``jaxflex.validate.rigid_torque_fit``) fitted on
+    ``log_fit``; torque errors [%] on ``logs`` and the coefficients."""
+    from jaxflex.validate import rel_error_pct, rigid_torque, rigid_torque_fit
 
-    def X(lg):
-        q = lg.q2[:, 0]
-        v, a = savgol(q, lg.dt, 1), savgol(q, lg.dt, 2)
-        return np.stack([a, v, np.sign(v), np.ones_like(v)], axis=1)
-
-    coef, *_ = np.linalg.lstsq(X(log_fit), log_fit.tau[:, 0], rcond=None)
-    return {k: rel_error_pct(lg.tau[:, 0], X(lg) @ coef) for k, lg in logs.items()}, coef
+    coef = rigid_torque_fit(log_fit)
+    return {k: rel_error_pct(lg.tau[:, 0], rigid_torque(coef, lg)) for k, lg in logs.items()}, coef
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -81,14 +81,11 @@ def test_kuka_log_shape_period_units(trajectory, axis):
 
 def test_kuka_rigid_fit_signs():
     # tau ~ Jt q2'' + Fv q2' + Fc sign(q2') + c: a sign error in tau or q2 makes Jt or Fv < 0.
+    from jaxflex.validate import rigid_torque_fit
+
     for axis in data.KUKA_AXES:
-        log = data.load_kuka("A", axis)
-        q, t = log.q2[:, 0], log.t
-        v = np.gradient(q, t)
-        a = np.gradient(v, t)
-        X = np.c_[a, v, np.sign(v), np.ones_like(v)]
-        (Jt, Fv, Fc, _), *_ = np.linalg.lstsq(X, log.tau[:, 0], rcond=None)
-        assert Jt > 100 and Fv > 100 and Fc > 0, (axis, Jt, Fv, Fc)
+        c = rigid_torque_fit(data.load_kuka("A", axis))
+        assert c["Jt"] > 100 and c["Fv"] > 100 and c["Fc"] > 0, (axis, c)
 
 
 def test_kuka_multi_axis_and_conversion():

@@ -403,3 +403,44 @@ def test_an_effect_that_only_lifted_the_base_out_of_a_local_minimum_is_not_named
     true_fs = g.truth["plant"]["friction"]["Fs"][0]
     assert abs(res.after.values["Fs"] / true_fs - 1) < 0.05
     assert res.gap_after <= 1.5 * res.gap_floor
+
+
+def test_kuka_logs_get_an_answer_never_a_nan(tmp_path):
+    """Real data no one on the project made (issue 14): discover on the KUKA KR300 axis-1
+    recording C, every candidate, from the nominal a user has before identifying (datasheet J
+    and K, a rigid least-squares fit on trajectory A; ``studies/discover_kuka.py``), either
+    names an effect that lowers the held-out gap or answers none / unexplained, with finite
+    gaps (before the failures-are-errors work it answered from NaN gaps)."""
+    r = subprocess.run([sys.executable, "studies/discover_kuka.py", "--small", "--out",
+                        str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    res = json.loads((tmp_path / "results.json").read_text())
+    case = res["axis1"]["C"]
+    assert "refused" not in case, case
+    assert all(np.isfinite(case[k]) for k in ("gap_before", "gap_after", "gap_floor"))
+    assert case["rule_holds"] is True, case
+    if case["effects"]:
+        assert case["gap_after"] < case["gap_before"]
+    else:
+        assert case["effect"] in ("none", "unexplained")
+    assert (tmp_path / "gaps.png").exists()
+
+
+def test_a_candidate_that_cannot_change_the_replay_is_refused(tmp_path, capsys):
+    """encoder_skew is a sensor map of a measured input (the rotor model's); in discover's
+    flexible replay its parameters have no derivative, and asked for by name it used to be
+    screened as 'nothing found' in silence (KUKA axis 1, skew 0 +- 0). Now it is refused by
+    name, before any fit, by the library and by the command (exit 2)."""
+    from jaxflex.cli import main
+    from jaxflex.data import load_kuka
+
+    log = load_kuka("C", 1)
+    with pytest.raises(ValueError, match="'encoder_skew'.*does not change the motion"):
+        discover(log, config=DiscoverConfig(candidates=("backlash", "encoder_skew")))
+    path = tmp_path / "k.csv"
+    save_log(log, path)
+    code = main(["discover", str(path), "--out", str(tmp_path / "o"),
+                 "--candidates", "backlash,encoder_skew"])
+    assert code == 2
+    assert "does not change the motion" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "report.json").exists()

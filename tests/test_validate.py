@@ -6,7 +6,14 @@ import pytest
 
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
-from jaxflex.validate import PPCascade, rel_error_pct, segment_gap, torque_prediction
+from jaxflex.validate import (
+    PPCascade,
+    rel_error_pct,
+    rigid_torque,
+    rigid_torque_fit,
+    segment_gap,
+    torque_prediction,
+)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -216,3 +223,23 @@ def test_declared_cascade_reproduces_a_cascade_log_and_wrong_parameters_do_not()
     noisy = generate_log(seed=1, t_final=2.0, loop="cascade")
     assert closed_loop_errors(_declared(noisy, section), noisy.log,
                               kind="flexible")["position_pct"] < 1.0
+
+
+def test_rigid_torque_fit_recovers_a_rigid_axis_and_names_bad_input():
+    """The rigid baseline's regression (issue 14): a torque that obeys tau = Jt q'' + Fv q' +
+    Fc sign(q') + offset exactly for a smooth motion gives back its four coefficients, and
+    ``rigid_torque`` its torque; a missing joint is refused by name."""
+    dt = 2e-3
+    t = np.arange(3000) * dt
+    q = 0.4 * np.sin(1.3 * t) + 0.1 * np.sin(4.1 * t)
+    v = 0.52 * np.cos(1.3 * t) + 0.41 * np.cos(4.1 * t)
+    a = -0.676 * np.sin(1.3 * t) - 1.681 * np.sin(4.1 * t)
+    true = {"Jt": 2.0e3, "Fv": 8.0e2, "Fc": 3.0e2, "offset": -50.0}
+    tau = true["Jt"] * a + true["Fv"] * v + true["Fc"] * np.sign(v) + true["offset"]
+    log = Log.from_arrays(t=t, tau=tau, q1=q, q2=q)
+    got = rigid_torque_fit(log)
+    for k, x in true.items():
+        assert got[k] == pytest.approx(x, rel=2e-3, abs=0.5), (k, got)
+    assert rel_error_pct(tau, rigid_torque(got, log)) < 1.0
+    with pytest.raises(ValueError, match="joint 1"):
+        rigid_torque_fit(log, joint=1)
