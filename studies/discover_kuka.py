@@ -21,11 +21,15 @@ training part.
 Not modelled by any candidate: the multi-body link side (the other axes move too; axis 2
 carries a hydraulic counterbalance) and the encoders' ~3 ms time skew (``encoder_skew`` is a
 sensor nuisance, not a discover candidate). An ``unexplained`` answer is therefore expected
-where those dominate; the localisation in each report says where the residual lies.
+where those dominate; the localisation in each report says where the residual lies. A named
+effect is a hypothesis to check, not a measurement: its fitted size is recorded
+(``effect_params``) beside what the recording's datasheet says (``nominal``: e.g. the
+backlash ``q_back``), and a trustworthy one recurs on the other recordings of its axis
+(``first_effects``).
 
 Writes ``DIR/results.json``: ``{"axis1": {"nominal": {...}, "A": {"effect", "effects",
-"gap_before", "gap_after", "gap_floor", "unexplained", "tied", "evidence", "failed",
-"seconds", "rule_holds"}, "B": {...}, "C": {...}, "first_effects": {...}}, ...}`` (a log
+"gap_before", "gap_after", "gap_floor", "unexplained", "tied", "effect_params", "evidence",
+"failed", "seconds", "rule_holds"}, "B": {...}, "C": {...}, "first_effects": {...}}, ...}`` (a log
 discover refuses, e.g. one its refitted nominal replays worse than no motion, gets
 ``{"refused": message, "rule_holds": null}``), each
 case's full report under ``DIR/axis<i>_<T>/report.json``, and ``DIR/gaps.png``.
@@ -65,8 +69,8 @@ def nominal_params(axis: int) -> tuple[Any, dict[str, float]]:
         "friction": {"Fc": Fc, "Fs": 1.2 * Fc, "vs": 0.05, "sigma0": Fc / 1e-4, "sigma1": 0.0,
                      "sigma2": Fv},
     })
-    return params, {"J_datasheet": J, "K_datasheet": K, **{f"rigid_{k}": v
-                                                          for k, v in rigid.items()}, "I": I}
+    return params, {"J_datasheet": J, "K_datasheet": K, "backlash_datasheet_rad":
+                    float(rec.q_back[i]), **{f"rigid_{k}": v for k, v in rigid.items()}, "I": I}
 
 
 def rule_holds(rep: dict[str, Any]) -> bool:
@@ -151,7 +155,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             case.mkdir(exist_ok=True)
             (case / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
             keep = ("effect", "effects", "gap_before", "gap_after", "gap_floor", "unexplained",
-                    "tied", "evidence", "seconds")
+                    "tied", "effect_params", "evidence", "seconds")
             r = {k: rep.get(k) for k in keep}
             r["failed"] = {k: v for rnd in rep.get("rounds", []) for k, v in
                            rnd.get("failed", {}).items()}
