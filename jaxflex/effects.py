@@ -481,9 +481,14 @@ class Gated(AbstractEffect):
         return self.inner.params()
 
 
+def _class_overrides(cls: type[AbstractEffect], hook: str) -> bool:
+    """Whether effect class ``cls`` defines its own ``hook`` (not ``AbstractEffect``'s)."""
+    return getattr(cls, hook) is not getattr(AbstractEffect, hook)
+
+
 def _overrides(effect: AbstractEffect, hook: str) -> bool:
     """Whether ``effect`` (unwrapped) contributes through ``hook``."""
-    return getattr(type(unwrap(effect)), hook) is not getattr(AbstractEffect, hook)
+    return _class_overrides(type(unwrap(effect)), hook)
 
 
 #: The hooks through which an effect changes a flexible-joint plant's motion (the replay that
@@ -497,8 +502,7 @@ def acts_on_motion(name: str) -> bool:
     ``MOTION_HOOKS``): False for a pure sensor map such as ``encoder_skew``, which acts only
     where a model takes the measured link motion as an input. Raises ``KeyError`` for an
     unknown name."""
-    cls = EFFECTS[name]
-    return any(getattr(cls, h) is not getattr(AbstractEffect, h) for h in MOTION_HOOKS)
+    return any(_class_overrides(EFFECTS[name], h) for h in MOTION_HOOKS)
 
 
 def _one_branch(effects: Sequence[AbstractEffect], hook: str) -> bool:

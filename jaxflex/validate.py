@@ -452,6 +452,8 @@ RIGID_TERMS: tuple[str, ...] = ("Jt", "Fv", "Fc", "offset")
 
 
 def _rigid_regressors(log: Log, joint: int, window: int) -> np.ndarray:
+    if not 0 <= joint < log.n:
+        raise ValueError(f"rigid torque model: joint {joint} not in a {log.n}-joint log")
     q = (log.q2 if log.q2 is not None else log.q1)[:, joint]
     v, a = savgol(q, log.dt, 1, window), savgol(q, log.dt, 2, window)
     return np.stack([a, v, np.sign(v), np.ones_like(v)], axis=1)
@@ -468,8 +470,6 @@ def rigid_torque_fit(log: Log, joint: int = 0, window: int = 31) -> dict[str, fl
     or a log without torque."""
     if log.tau is None:
         raise ValueError("rigid_torque_fit: the log has no torque column")
-    if not 0 <= joint < log.n:
-        raise ValueError(f"rigid_torque_fit: joint {joint} not in a {log.n}-joint log")
     coef, *_ = np.linalg.lstsq(_rigid_regressors(log, joint, window), log.tau[:, joint],
                                rcond=None)
     return dict(zip(RIGID_TERMS, map(float, coef)))
@@ -478,7 +478,7 @@ def rigid_torque_fit(log: Log, joint: int = 0, window: int = 31) -> dict[str, fl
 def rigid_torque(coef: Mapping[str, float], log: Log, joint: int = 0,
                  window: int = 31) -> np.ndarray:
     """Torque [N m] (N,) of ``rigid_torque_fit``'s model ``coef`` for the measured motion of
-    ``log``'s ``joint``."""
+    ``log``'s ``joint``. Raises ``ValueError`` for a joint the log lacks."""
     return _rigid_regressors(log, joint, window) @ np.array([coef[k] for k in RIGID_TERMS])
 
 
