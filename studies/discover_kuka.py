@@ -168,9 +168,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         row["first_effects"] = {tr: (row[tr]["effects"][0] if row[tr].get("effects") else
                                      row[tr].get("effect", "refused")) for tr in trajs}
         results[f"axis{ax}"] = row
+        # written after every axis, so an interrupted run keeps what it finished
         (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     plot_gaps(results, out / "gaps.png")
-    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     return results
 
 
