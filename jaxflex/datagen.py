@@ -49,6 +49,7 @@ MODERATE: dict[str, dict[str, tuple[float, float]]] = {
     "actuator_lag": {"T": (0.002, 0.004)},
     "torque_offset": {"offset": (0.03, 0.06)},
     "time_delay": {"T": (0.002, 0.004)},
+    "encoder_skew": {"skew": (0.001, 0.003), "offset": (2e-4, 5e-4)},
 }
 #: Gentler gains than Table 3 for the identification experiment: with L1 = 200 1/s the loop
 #: chatters at the 2 N m limit on a 0.15 rad multisine (measured: 99% of samples saturated).
@@ -56,7 +57,10 @@ IDENT_GAINS = CascadeGains(Ke=0.001, KD1=0.5, KD2=0.5, kv=2.0, L1=15.0, L2=6.0)
 
 _simulate = eqx.filter_jit(simulate_sampled)
 
-_SIGNED = {("asymmetric_friction", "dF"), ("torque_offset", "offset")}
+_SIGNED = {("asymmetric_friction", "dF"), ("torque_offset", "offset"), ("encoder_skew", "offset")}
+#: Effects of the logging, not of the plant: applied to the recorded channels
+#: (``_recorded_link``), never simulated.
+_SENSOR_EFFECTS = ("encoder_skew",)
 
 
 LOOPS: tuple[str, ...] = ("cascade", "pd_rotor", "open_loop")
@@ -215,7 +219,7 @@ def generate_log(
                    "w": float(rng.uniform(0.01, 0.03))}
         extra.append(FrictionBump(**dist_kw))
     plant = true.to_plant(with_effects=False).with_effects(
-        *(EFFECTS[k](**kw) for k, kw in effect_kw.items()), *extra
+        *(EFFECTS[k](**kw) for k, kw in effect_kw.items() if k not in _SENSOR_EFFECTS), *extra
     )
     count = 6  # fixed so that every case shares one compiled simulation
     f_max = rng.uniform(1.0, 2.0)
@@ -236,8 +240,8 @@ def generate_log(
         ts = jnp.arange(int(round(t_final / dt))) * dt
         shape = jax.vmap(traj.position)(ts)
         tau_ol = np.asarray(shape / rms * 1.6 * float(true.friction["Fs"][0]))
-        log, _ = synthetic_log(plant, tau_ol, dt=dt, substeps=substeps, sensing=sensing,
-                               key=jax.random.PRNGKey(seed))
+        log, xs = synthetic_log(plant, tau_ol, dt=dt, substeps=substeps, sensing=sensing,
+                                key=jax.random.PRNGKey(seed))
         if not np.all(np.isfinite(log.q1)) or float(np.max(np.abs(log.q1))) > 50.0:
             raise RuntimeError(f"generate_log: open-loop run ran away (effects={effects}, seed={seed})")
         # the columns a rig logs (no exact velocity)
@@ -260,10 +264,29 @@ def generate_log(
     truth = _truth(effect_kw, true, seed, bits, noise_counts, mismatch, scale,
                    float(jnp.ravel(r.metrics.saturation_fraction)[0]), loop, excitation,
                    disturbance, extra)
-    log = Log.from_arrays(t=np.asarray(r.t), tau=np.asarray(r.tau), q1=np.asarray(r.q1_meas),
+    q1_log = np.asarray(r.q1_meas)
+    if "encoder_skew" in effect_kw:
+        q1_log = _recorded_link(np.asarray(r.t), np.asarray(r.q1), sensing,
+                                effect_kw["encoder_skew"], rng)
+    log = Log.from_arrays(t=np.asarray(r.t), tau=np.asarray(r.tau), q1=q1_log,
                           q2=np.asarray(r.q2_meas), q1d=np.asarray(r.q1d),
                           source=f"generate_log(effects={list(effects)}, seed={seed})")
     return GeneratedLog(log=log, effects=list(effects), truth=truth)
+
+
+def _recorded_link(t: np.ndarray, q1: np.ndarray, sensing: Sensing, kw: dict[str, Any],
+                   rng: np.random.Generator) -> np.ndarray:
+    """The link channel [rad] (N, n) of a recorder whose link encoder reads ``kw["skew"]``
+    [s] late and ``kw["offset"]`` [rad] low: the true link angle ``q1`` (N, n) at t - skew
+    (linear interpolation of the simulated samples, the exact delay, not the first-order
+    map the workflow fits), minus the offset, with its own white noise and quantisation
+    (``sensing``'s link encoder). The loop's controller still reads the unskewed encoder,
+    as on a rig where the link encoder is logged by a separate recorder (KUKA KR300)."""
+    skew, offset = float(np.ravel(kw["skew"])[0]), float(np.ravel(kw["offset"])[0])
+    late = np.stack([np.interp(t - skew, t, q1[:, j]) for j in range(q1.shape[1])], axis=1)
+    noise = float(np.ravel(sensing.q1_noise)[0]) * rng.standard_normal(late.shape)
+    return np.asarray(sensing.measure(jnp.asarray(late - offset), sensing.q1_resolution,
+                                      jnp.asarray(noise)))
 
 
 def _truth(effect_kw, true, seed, bits, noise_counts, mismatch, scale, saturation, loop,

@@ -93,7 +93,7 @@ import numpy as np
 import scipy.signal
 import scipy.stats
 
-from jaxflex.effects import EFFECTS, AbstractEffect, Gated, acts_on_motion, candidate_effects
+from jaxflex.effects import EFFECTS, AbstractEffect, Gated, acts_on_replay, candidate_effects
 from jaxflex.fit import (
     ParamSpace,
     Problem,
@@ -1113,8 +1113,8 @@ def discover(
     """Run the workflow of the module docstring on a one-joint log (columns t, tau, q1, q2).
 
     Raises ``ValueError`` for a multi-joint log or parameters, a log without q2, an unknown
-    candidate or one that does not change the replayed motion (``acts_on_motion``: a sensor
-    map such as ``encoder_skew``), or a log too short for two segments in each part."""
+    candidate or one that does not change the replayed outputs (``acts_on_replay``: an
+    effect with no hook there), or a log too short for two segments in each part."""
     cfg = config or DiscoverConfig()
     nominal = nominal or paper_params()
     if nominal.n != 1 or log.n != 1:
@@ -1127,12 +1127,12 @@ def discover(
     for c in cands:
         if c not in EFFECTS:
             raise ValueError(f"unknown candidate effect {c!r}; known: {sorted(EFFECTS)}")
-        if not acts_on_motion(c):
+        if not acts_on_replay(c):
             # its parameters would have no derivative: screened as "nothing found", silently
             raise ValueError(
                 f"candidate effect {c!r} ({EFFECTS[c].where}) does not change the motion that "
-                "discover replays: it acts only where a model takes the measured link motion "
-                "as an input (model kind 'rotor' of identify and validate)")
+                "discover replays nor its reading: it has none of the hooks "
+                "jaxflex.effects.REPLAY_HOOKS")
     t_start = time.perf_counter()
     nominal = Params.from_dict(nominal.to_dict())
     nominal.effects = {}

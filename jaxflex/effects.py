@@ -7,6 +7,8 @@ An effect says where it acts by overriding one or more hooks; the defaults do no
 - ``spring_torque(d, dd)`` extra elastic torque added to K (q2 - q1) (acts on both sides) [N m]
 - ``applied_torque(tau, aux)`` maps the commanded motor torque to the applied one [N m]
 - ``aux_init(n)``, ``aux_rhs(aux, tau, x)``  internal states (e.g. an actuator lag), if any
+- ``link_measured(q1, dq1)`` the link encoder's reading of the link motion [rad] (a sensor
+  map on the replayed link output, e.g. the ``encoder_skew``; identity by default)
 
 Plant equations with effects (docs/spec.md section 1 plus effects):
 
@@ -64,8 +66,7 @@ class AbstractEffect(eqx.Module):
     name: ClassVar[str] = ""
     where: ClassVar[str] = ""
     constraints: ClassVar[dict[str, str]] = {}
-    #: Whether the discrepancy workflow tries it by default (a sensor nuisance that adds no
-    #: torque, such as an encoder skew, is not a candidate for missing physics).
+    #: Whether the discrepancy workflow tries it by default.
     candidate: ClassVar[bool] = True
 
     @classmethod
@@ -96,6 +97,11 @@ class AbstractEffect(eqx.Module):
     def aux_rhs(self, aux: Any, tau: Array, x: PlantState) -> Any:
         """Time derivative of the internal state."""
         return None
+
+    def link_measured(self, q1: Array, dq1: Array) -> Array:
+        """The link encoder's reading [rad] of the link angle ``q1`` [rad] moving at ``dq1``
+        [rad/s] (an output map: what a replay compares with the logged q1)."""
+        return q1
 
     def aux_steady(self, tau: Float[Array, " n"]) -> Any:
         """Internal state in equilibrium with a constant commanded torque ``tau`` (used to
@@ -468,6 +474,13 @@ class Gated(AbstractEffect):
         return self._switched(lambda: tau + self.gate * (self.inner.applied_torque(tau, aux) - tau),
                               lambda: jnp.asarray(tau))
 
+    def link_measured(self, q1: Array, dq1: Array):
+        if not _overrides(self.inner, "link_measured"):
+            return q1
+        return self._switched(
+            lambda: q1 + self.gate * (self.inner.link_measured(q1, dq1) - q1),
+            lambda: jnp.asarray(q1))
+
     def aux_init(self, n: int):
         return self.inner.aux_init(n)
 
@@ -491,18 +504,28 @@ def _overrides(effect: AbstractEffect, hook: str) -> bool:
     return _class_overrides(type(unwrap(effect)), hook)
 
 
-#: The hooks through which an effect changes a flexible-joint plant's motion (the replay that
-#: ``jaxflex.discover`` fits); ``link_reading`` is not one (a sensor map of a measured input).
-MOTION_HOOKS: tuple[str, ...] = ("link_torque", "rotor_torque", "spring_torque",
-                                 "applied_torque", "aux_rhs")
+#: The hooks through which an effect changes what a flexible-joint replay outputs (the replay
+#: that ``jaxflex.discover`` fits): the motion, or the link encoder's reading of it
+#: (``link_measured``); ``link_reading`` is not one (a sensor map of a measured *input*).
+REPLAY_HOOKS: tuple[str, ...] = ("link_torque", "rotor_torque", "spring_torque",
+                                 "applied_torque", "aux_rhs", "link_measured")
 
 
-def acts_on_motion(name: str) -> bool:
-    """Whether the registered effect ``name`` changes the flexible plant's motion (any of
-    ``MOTION_HOOKS``): False for a pure sensor map such as ``encoder_skew``, which acts only
-    where a model takes the measured link motion as an input. Raises ``KeyError`` for an
-    unknown name."""
-    return any(_class_overrides(EFFECTS[name], h) for h in MOTION_HOOKS)
+def acts_on_replay(name: str) -> bool:
+    """Whether the registered effect ``name`` changes a flexible replay's outputs (any of
+    ``REPLAY_HOOKS``); an effect that does not has no derivative there, so the discrepancy
+    workflow cannot test it. Raises ``KeyError`` for an unknown name."""
+    return any(_class_overrides(EFFECTS[name], h) for h in REPLAY_HOOKS)
+
+
+def link_measurement(effects: Sequence[AbstractEffect], q1: Array, dq1: Array) -> Array:
+    """The logged link angle [rad] the effects' link-encoder maps (``link_measured``, in
+    order) make of the replayed link angle ``q1`` [rad] and velocity ``dq1`` [rad/s]; ``q1``
+    itself (no operation traced) when no effect has such a map."""
+    for e in effects:
+        if _overrides(e, "link_measured"):
+            q1 = e.link_measured(q1, dq1)
+    return q1
 
 
 def _one_branch(effects: Sequence[AbstractEffect], hook: str) -> bool:
@@ -588,24 +611,33 @@ def unwrap(effect: AbstractEffect) -> AbstractEffect:
 class EncoderSkew(AbstractEffect):
     """Link-encoder reading relative to the motor encoder: a time skew and an offset, the
     per-log sensor nuisances of real two-encoder logs (issue 14; KUKA KR300: about 3 ms).
-    The link angle used is ``q1 + skew q1' + offset`` [rad] (a first-order shift of the
-    measured link angle by ``skew`` [s]; skew > 0: the link encoder reads late).
+    First order in the skew ``skew`` [s] (skew > 0: the link encoder reads late), both ways:
 
-    Acts only where a model takes the *measured* link motion as an input (the "rotor" model
-    kind of ``jaxflex.step``, ``link_reading``); it adds no torque anywhere.
-    skew [s], offset [rad]: free (any sign).
+    - where a model takes the *measured* link motion as an input (the "rotor" model kind of
+      ``jaxflex.step``, ``link_reading``), the link angle used is ``q1 + skew q1' + offset``;
+    - where a model replays the link motion (the "flexible" and "link" kinds, and so
+      ``jaxflex.discover``), the reading it is compared with is ``q1 - skew q1' - offset``
+      (``link_measured``; the same map inverted).
+
+    It adds no torque anywhere, but it is a discrepancy candidate: on a two-encoder log a
+    skew changes the spring deflection read from the encoders, which a model of the motion
+    alone cannot reproduce (the KUKA logs' axis 1: named on all three recordings,
+    ``studies/discover_kuka.py``). skew [s], offset [rad]: free (any sign).
     """
 
     name: ClassVar[str] = "encoder_skew"
     where: ClassVar[str] = "link encoder reading"
     constraints: ClassVar[dict[str, str]] = {"skew": "free", "offset": "free"}
-    candidate: ClassVar[bool] = False
     skew: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
     offset: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
     @classmethod
     def typical(cls, n: int) -> EncoderSkew:
         return cls(skew=np.zeros(n), offset=np.zeros(n))
+
+    def link_measured(self, q1: Array, dq1: Array) -> Array:
+        """q1 - skew q1' - offset [rad]: the late link encoder's reading of the motion."""
+        return q1 - self.skew * dq1 - self.offset
 
     def link_reading(self, q1: Array, dq1: Array, ddq1: Array) -> tuple[Array, Array]:
         """(q1 + skew q1' + offset [rad], q1' + skew q1'' [rad/s])."""

@@ -18,10 +18,12 @@ reach Fc at 0.1 mrad), ``sigma1 = 0`` and ``sigma2 = Fv``. The constant ``offset
 nominal serves A, B and C; discover refits I, J, K, Fc, Fs and sigma2 on each log's own
 training part.
 
-Not modelled by any candidate: the multi-body link side (the other axes move too; axis 2
-carries a hydraulic counterbalance) and the encoders' ~3 ms time skew (``encoder_skew`` is a
-sensor nuisance, not a discover candidate). An ``unexplained`` answer is therefore expected
-where those dominate; the localisation in each report says where the residual lies. A named
+Among the candidates is the link encoder's time skew and offset (``encoder_skew``, a map of
+the replayed link reading): a regression of the deflection on the torque and link velocity
+gives a skew of 2.9-3.2 ms on all three recordings of axis 1. Not modelled by any candidate:
+the multi-body link side (the other axes move too; axis 2 carries a hydraulic
+counterbalance). An ``unexplained`` answer is therefore expected where it dominates; the
+localisation in each report says where the residual lies. A named
 effect is a hypothesis to check, not a measurement: its fitted size is recorded
 (``effect_params``) beside what the recording's datasheet says (``nominal``: e.g. the
 backlash ``q_back``), and a trustworthy one recurs on the other recordings of its axis

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.effects import EFFECTS
+from jaxflex.effects import EFFECTS, link_measurement
 from jaxflex.params import Params
 from jaxflex.presets import paper_params
 from jaxflex.presets import paper_plant
@@ -135,8 +135,8 @@ def test_gradient_reaches_effect_parameters():
 @pytest.mark.parametrize("name", sorted(n for n, e in EFFECTS.items() if e.candidate))
 def test_gated_effect_equals_the_effect_or_nothing(name):
     """A gated effect (``Gated``: the discrepancy workflow's switch, a run-time branch when the
-    gate is not batched) gives the plant's accelerations with the effect (gate 1) or without it
-    (gate 0), exactly; batched gates (vmap over models: both branches, then a select) give the
+    gate is not batched) gives the plant's accelerations and link reading with the effect
+    (gate 1) or without it (gate 0), exactly; batched gates (vmap over models: both branches, then a select) give the
     same numbers."""
     from jaxflex.effects import Gated
 
@@ -152,7 +152,9 @@ def test_gated_effect_equals_the_effect_or_nothing(name):
             x = dataclasses.replace(x, aux=tuple(
                 None if a is None else jnp.asarray(a) + jnp.arange(1.0, 1.0 + jnp.size(a)).reshape(
                     jnp.shape(a)) for a in x.aux))
-        return jnp.concatenate(plant.accelerations(x, u))
+        # the accelerations and the link encoder's reading (``link_measured``: a sensor map)
+        return jnp.concatenate([*plant.accelerations(x, u),
+                                link_measurement(plant.effects, x.q1, x.dq1)])
 
     on, off = acc(base.with_effects(eff)), acc(base.with_effects(Gated(eff, jnp.asarray(0.0))))
     assert not np.allclose(np.asarray(on), np.asarray(acc(base)))  # the effect acts here
@@ -188,7 +190,8 @@ def test_gated_effects_taken_in_one_branch_per_hook_equal_the_active_effects(act
         if x.aux is not None:  # internal states away from rest, the same per effect
             x = dataclasses.replace(x, aux=tuple(aux_of(e, a) for e, a in zip(plant.effects,
                                                                           x.aux)))
-        return jnp.concatenate(plant.accelerations(x, u))
+        return jnp.concatenate([*plant.accelerations(x, u),
+                                link_measurement(plant.effects, x.q1, x.dq1)])
 
     def aux_of(e, a):
         if a is None:
