@@ -8,7 +8,8 @@ An effect says where it acts by overriding one or more hooks; the defaults do no
 - ``applied_torque(tau, aux)`` maps the commanded motor torque to the applied one [N m]
 - ``aux_init(n)``, ``aux_rhs(aux, tau, x)``  internal states (e.g. an actuator lag), if any
 - ``link_measured(q1, dq1)`` the link encoder's reading of the link motion [rad] (a sensor
-  map on the replayed link output, e.g. the ``encoder_skew``; identity by default)
+  map on the replayed link output, e.g. the ``encoder_skew``; identity by default), and
+  ``link_reading(q1, dq1, ddq1)`` its inverse on a measured link motion used as an input
 
 Plant equations with effects (docs/spec.md section 1 plus effects):
 
@@ -102,6 +103,12 @@ class AbstractEffect(eqx.Module):
         """The link encoder's reading [rad] of the link angle ``q1`` [rad] moving at ``dq1``
         [rad/s] (an output map: what a replay compares with the logged q1)."""
         return q1
+
+    def link_reading(self, q1: Array, dq1: Array, ddq1: Array) -> tuple[Array, Array]:
+        """The link angle [rad] and velocity [rad/s] behind a *measured* link motion ``q1``,
+        ``dq1``, ``ddq1`` [rad, rad/s, rad/s^2] (an input map, the inverse of
+        ``link_measured``: used where a model takes the measured link motion as an input)."""
+        return q1, dq1
 
     def aux_steady(self, tau: Float[Array, " n"]) -> Any:
         """Internal state in equilibrium with a constant commanded torque ``tau`` (used to
@@ -481,6 +488,16 @@ class Gated(AbstractEffect):
             lambda: q1 + self.gate * (self.inner.link_measured(q1, dq1) - q1),
             lambda: jnp.asarray(q1))
 
+    def link_reading(self, q1: Array, dq1: Array, ddq1: Array):
+        if not _overrides(self.inner, "link_reading"):
+            return q1, dq1
+
+        def on():
+            a, v = self.inner.link_reading(q1, dq1, ddq1)
+            return q1 + self.gate * (a - q1), dq1 + self.gate * (v - dq1)
+
+        return self._switched(on, lambda: (jnp.asarray(q1), jnp.asarray(dq1)))
+
     def aux_init(self, n: int):
         return self.inner.aux_init(n)
 
@@ -516,6 +533,17 @@ def acts_on_replay(name: str) -> bool:
     ``REPLAY_HOOKS``); an effect that does not has no derivative there, so the discrepancy
     workflow cannot test it. Raises ``KeyError`` for an unknown name."""
     return any(_class_overrides(EFFECTS[name], h) for h in REPLAY_HOOKS)
+
+
+def link_input(effects: Sequence[AbstractEffect], q1: Array, dq1: Array, ddq1: Array
+               ) -> tuple[Array, Array]:
+    """The link angle [rad] and velocity [rad/s] the effects' input maps (``link_reading``,
+    in order; gated ones too) make of a measured link motion ``q1``, ``dq1``, ``ddq1``
+    [rad, rad/s, rad/s^2]; unchanged when no effect has such a map."""
+    for e in effects:
+        if _overrides(e, "link_reading"):
+            q1, dq1 = e.link_reading(q1, dq1, ddq1)
+    return q1, dq1
 
 
 def link_measurement(effects: Sequence[AbstractEffect], q1: Array, dq1: Array) -> Array:

@@ -47,7 +47,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
-from jaxflex.effects import effect_torque, state_in_use
+from jaxflex.effects import effect_torque, link_input, state_in_use
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
 from jaxflex.state import PlantState
 
@@ -101,11 +101,7 @@ def link_reading(
     """The link angle [rad] and velocity [rad/s] the plant's link-encoder effects
     (``encoder_skew``: ``q1 + skew q1' + offset``) make of a measured link motion; unchanged
     without such an effect."""
-    for e in plant.effects:
-        read = getattr(e, "link_reading", None)
-        if read is not None:
-            q1, dq1 = read(q1, dq1, ddq1)
-    return q1, dq1
+    return link_input(plant.effects, q1, dq1, ddq1)
 
 
 def rotor_vector_field(plant: FlexibleJointPlant, x: PlantState, u: Array) -> PlantState:

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.effects import EFFECTS, link_measurement
+from jaxflex.effects import EFFECTS, link_input, link_measurement
 from jaxflex.params import Params
 from jaxflex.presets import paper_params
 from jaxflex.presets import paper_plant
@@ -152,9 +152,10 @@ def test_gated_effect_equals_the_effect_or_nothing(name):
             x = dataclasses.replace(x, aux=tuple(
                 None if a is None else jnp.asarray(a) + jnp.arange(1.0, 1.0 + jnp.size(a)).reshape(
                     jnp.shape(a)) for a in x.aux))
-        # the accelerations and the link encoder's reading (``link_measured``: a sensor map)
+        # the accelerations and the link encoder's maps (``link_measured``, ``link_reading``)
         return jnp.concatenate([*plant.accelerations(x, u),
-                                link_measurement(plant.effects, x.q1, x.dq1)])
+                                link_measurement(plant.effects, x.q1, x.dq1),
+                                *link_input(plant.effects, x.q1, x.dq1, jnp.array([0.5]))])
 
     on, off = acc(base.with_effects(eff)), acc(base.with_effects(Gated(eff, jnp.asarray(0.0))))
     assert not np.allclose(np.asarray(on), np.asarray(acc(base)))  # the effect acts here
@@ -191,7 +192,8 @@ def test_gated_effects_taken_in_one_branch_per_hook_equal_the_active_effects(act
             x = dataclasses.replace(x, aux=tuple(aux_of(e, a) for e, a in zip(plant.effects,
                                                                           x.aux)))
         return jnp.concatenate([*plant.accelerations(x, u),
-                                link_measurement(plant.effects, x.q1, x.dq1)])
+                                link_measurement(plant.effects, x.q1, x.dq1),
+                                *link_input(plant.effects, x.q1, x.dq1, jnp.array([0.5]))])
 
     def aux_of(e, a):
         if a is None:
