@@ -23,7 +23,8 @@ Two model structures share that step (``ModelKind``):
   an array (4, n): tau [N m], q1 [rad], q1' [rad/s], q1'' [rad/s^2] measured; within a sample
   q1 follows the measured velocity and acceleration. Friction on the motor side is the
   ``motor_friction`` effect (the plant's LuGre acts on the link and is not used); a link
-  encoder's time skew and offset are the ``encoder_skew`` effect (``link_reading``).
+  encoder's time skew and offset are the ``encoder_skew`` effect (its ``link_reading``,
+  applied by ``jaxflex.effects.link_input``).
 - ``"link"``: the link subsystem alone, ``M q1'' + C q1' + G + F(q1', z) - link effects =
   K (q2 - q1)`` (the link line of eq. 3 with eq. 4-6), driven by the *measured* rotor motion
   through the spring: no model of the motor, its friction or its torque constant is needed.
@@ -95,15 +96,6 @@ def rigid_vector_field(plant: FlexibleJointPlant, x: PlantState, tau: Array) -> 
     return PlantState(q1=x.dq1, dq1=acc, q2=x.dq1, dq2=acc, z=dz, aux=daux)
 
 
-def link_reading(
-    plant: FlexibleJointPlant, q1: Array, dq1: Array, ddq1: Array,
-) -> tuple[Array, Array]:
-    """The link angle [rad] and velocity [rad/s] the plant's link-encoder effects
-    (``encoder_skew``: ``q1 + skew q1' + offset``) make of a measured link motion; unchanged
-    without such an effect."""
-    return link_input(plant.effects, q1, dq1, ddq1)
-
-
 def rotor_vector_field(plant: FlexibleJointPlant, x: PlantState, u: Array) -> PlantState:
     """Time derivative of the rotor subsystem (module docstring) under the input ``u`` (4, n)
     (``ROTOR_INPUTS``): q2'' [rad/s^2] from the rotor line of eq. 3
@@ -163,7 +155,7 @@ def model_step(
         if tau.ndim != 2 or tau.shape[0] != len(ROTOR_INPUTS):
             raise ValueError(f"rotor model: input per sample must be {ROTOR_INPUTS} stacked "
                              f"as (4, n), got shape {tau.shape}")
-        q1, dq1 = link_reading(plant, tau[1], tau[2], tau[3])
+        q1, dq1 = link_input(plant.effects, tau[1], tau[2], tau[3])
         x = eqx.tree_at(lambda s: (s.q1, s.dq1), x, (q1, dq1))
         fr = None  # the plant's LuGre acts on the link, which is not modelled here
     if kind == "link":  # the measured rotor motion sets the rotor state at each sample

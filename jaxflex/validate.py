@@ -40,12 +40,13 @@ from jaxflex.controller import (
     GAIN_NAMES, Q2D_METHODS, CascadeController, CascadeGains, ControllerState, dirty_derivative,
     pd_torque,
 )
+from jaxflex.effects import link_input
 from jaxflex.fit import ParamSpace, Problem, gap, make_segments, output_columns, savgol
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
 from jaxflex.state import PlantState
-from jaxflex.step import MODEL_KINDS, link_reading, model_step
+from jaxflex.step import MODEL_KINDS, model_step
 from jaxflex.tracecache import persistent_jit
 from jaxflex.trajectory import SampledReference
 from jaxflex.validation import check_keys
@@ -624,7 +625,7 @@ def predicted_torque(plant: FlexibleJointPlant, kind: str,
     ``FlexibleJointPlant.torque_residuals`` (module docstring); traceable in the plant."""
     def one(a1, v1, ac1, a2, v2, ac2, tau):
         if kind == "rotor":
-            a1, v1 = link_reading(plant, a1, v1, ac1)
+            a1, v1 = link_input(plant.effects, a1, v1, ac1)
         z = plant.friction.z_steady(v1) if plant.friction is not None else jnp.zeros_like(v1)
         aux = tuple(e.aux_steady(tau) for e in plant.effects) if plant.effects else None
         x = PlantState(q1=a1, dq1=v1, q2=a2, dq2=v2, z=z, aux=aux)

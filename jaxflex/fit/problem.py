@@ -36,7 +36,7 @@ import scipy.signal
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
-from jaxflex.effects import link_measurement
+from jaxflex.effects import link_input, link_measurement
 from jaxflex.fit.space import ParamSpace
 from jaxflex.logs import Log
 from jaxflex.state import PlantState
@@ -233,19 +233,20 @@ class Problem(eqx.Module):
         elif (self.steady_z or not self.free_starts) and fr is not None:
             x0 = eqx.tree_at(lambda s: s.z, x0, fr.z_steady(x0.dq1))
         reads_link = self.kind in ("flexible", "link") and "q1" in self.outputs
-        if reads_link and not self.free_starts and plant.effects:
-            # a measured start is the encoder's reading: the link angle that reads so (exact
-            # for a reading q1 + c(q1'), such as the encoder skew's)
-            shift = link_measurement(plant.effects, x0.q1, x0.dq1) - x0.q1
-            x0 = eqx.tree_at(lambda s: s.q1, x0, x0.q1 - shift)
+        if reads_link and not self.free_starts:
+            # a measured start is the encoder's reading: start from the link angle behind it
+            # (the effects' input maps, ``link_input``; the start's velocity is kept)
+            q1_start, _ = link_input(plant.effects, x0.q1, x0.dq1, 0.0)  # no q1'' at a start
+            x0 = eqx.tree_at(lambda s: s.q1, x0, q1_start)
         x0 = warm_effects(plant, x0, tau_pre, self.dt)
         # segments and Jacobian columns run batched: unrolled substeps are faster there, up to
         # UNROLL_SUBSTEPS (past it XLA's compile time and run time on a CPU explode: 8 / 16 /
         # 32 unrolled substeps compiled in 1.6 / 5.2 / 62 s and the last ran 30x slower)
         xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps,
                            unroll=self.substeps <= UNROLL_SUBSTEPS)
+
         def column(o):  # the link output as its encoder reads it (``link_measured``)
-            if o == "q1" and reads_link and plant.effects:
+            if o == "q1" and reads_link:
                 return link_measurement(plant.effects, xs.q1, xs.dq1)
             return getattr(xs, o)
 
