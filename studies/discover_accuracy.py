@@ -11,6 +11,10 @@ loop cycles through the paper's cascade, a PD loop on the rotor angle and open-l
 excitation through a multisine and one with a slow large swing; cases with a disturbance
 outside the effect library (truth "unexplained") and with two effects (right when both are
 named) are added; accuracy is reported over all cases and per loop.
+A round whose winner the data cannot tell apart from another candidate (``tied``) is scored as
+that tie, never as the pick: a single effect as ``indistinguishable``, the slot of a pair as
+``(a|b)``; both are wrong in ``accuracy_all``. ``accuracy_ties_holding_truth`` also counts as
+right a tie that holds the hidden effect (every hidden effect named or in its slot's tie).
 Writes ``results.json`` (updated after every case) and ``confusion.png`` to ``--out``.
 """
 
@@ -119,10 +123,18 @@ def main(argv: list[str] | None = None) -> None:
         else:
             true = eff[0] if eff else "none"
         found = rep["effect"]
-        if len(eff) > 1:
-            found = "+".join(sorted(rep["effects"][:2])) if rep["effects"] else rep["effect"]
+        # each added effect with the candidates its round could not tell apart from it
+        slots = [r["tied"] if len(r["tied"]) > 1 else [r["winner"]]
+                 for r in rep["rounds"] if r["winner"] != "none"]
+        if len(eff) > 1 and slots:
+            found = "+".join(sorted(s[0] if len(s) == 1 else "(" + "|".join(s) + ")"
+                                    for s in slots[:2]))
+        truth_in_ties = (bool(eff) and not kw.get("disturbance")
+                         and len(slots) >= len(eff)
+                         and all(any(e in s for s in slots[: len(eff)]) for e in eff))
         row = {
             "true": true, "found": found, "effects": rep["effects"], "tied": rep.get("tied", []),
+            "round_ties": slots, "truth_in_ties": truth_in_ties,
             **kw,
             "unexplained": rep["unexplained"],
             "gap_before": rep["gap_before"], "gap_after": rep["gap_after"],
@@ -154,6 +166,9 @@ def _write(rows: list[dict], labels: list[str], out: Path) -> None:
         "gap_halved_when_named": float(np.mean([r["gap_after"] <= 0.5 * r["gap_before"] for r in named])) if named else None,
         "median_gap_ratio_named": float(np.median([r["gap_after"] / r["gap_before"] for r in named])) if named else None,
         "accuracy_all": float(np.mean([r["found"] == r["true"] for r in rows])) if rows else None,
+        "accuracy_ties_holding_truth": float(np.mean(
+            [r["found"] == r["true"] or r.get("truth_in_ties", False) for r in rows]))
+        if rows else None,
         "by_loop": {lp: float(np.mean([r["found"] == r["true"] for r in rows if r.get("loop") == lp]))
                     for lp in sorted({r.get("loop") for r in rows if r.get("loop")})},
         "median_discover_seconds": float(np.median([r["discover_seconds"] for r in rows])),

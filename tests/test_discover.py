@@ -390,16 +390,27 @@ def test_cogging_start_finds_the_ripple_behind_a_mismatched_nominal():
 @pytest.mark.parametrize("seed,effects,loop,excitation", [
     (107, ("motor_cogging",), "pd_rotor", "multisine"),
     (117, ("actuator_lag", "hardening_spring"), "open_loop", "multisine_ramp"),
+    (118, ("actuator_lag", "hardening_spring"), "cascade", "multisine"),
+    (111, ("torque_offset",), "open_loop", "multisine_ramp"),
 ])
 def test_grown_cases_once_missed_are_named(seed, effects, loop, excitation):
-    """Two cases of the grown accuracy study (``studies/discover_accuracy.py --grown``) that
+    """Cases of the grown accuracy study (``studies/discover_accuracy.py --grown``) that
     were answered wrong: a motor ripple behind a PD loop on the rotor ("unexplained": the
-    cogging start picked a trend, N = 4.5) and an open-loop actuator lag with a hardening
-    spring (named asymmetric_friction + hardening_spring against an unsettled base). Both
-    effects are named and the final gap is within 1.5x the floor."""
+    cogging start picked a trend, N = 4.5); an open-loop actuator lag with a hardening spring
+    (named asymmetric_friction + hardening_spring against an unsettled base); the same pair
+    behind the cascade loop (named hardening_spring + time_delay: the nominal refit had
+    raised Fs to 75 N m, |tau| <= 2, and the base kept its own starts); a torque offset whose
+    held-out starts, carried from that nominal, left the final gap at 5x the floor. Each
+    hidden effect is named, or is in the tie of the round that added an effect (on the
+    open-loop log an actuator lag and a time delay both reach the floor after the spring:
+    0.00040 against 0.00036, Akaike difference 0.6; which of the two is picked is a coin
+    toss the report must show, as it does in the round's ``tied``), and the final gap is
+    within 1.5x the floor."""
     g = generate_log(effects, seed=seed, t_final=12.0, loop=loop, excitation=excitation)
     rep = discover(g.log, config=DiscoverConfig(max_effects=2)).to_json()
-    assert sorted(rep["effects"][:2]) == sorted(effects), rep["effects"]
+    slots = [set(r["tied"]) | {r["winner"]} for r in rep["rounds"] if r["winner"] != "none"]
+    assert len(slots) == len(effects), rep["effects"]
+    assert all(any(e in s for s in slots) for e in effects), (rep["effects"], slots)
     assert rep["gap_after"] < 1.5 * rep["gap_floor"], (rep["gap_after"], rep["gap_floor"])
 
 
@@ -408,13 +419,17 @@ def test_an_effect_that_only_lifted_the_base_out_of_a_local_minimum_is_not_named
     """The 20 s joint-damping log of ``studies/bench_compile_cache.py`` (seed 3): after the
     damping, a gravity fit moved Fs from a local minimum (0.26 N m) to the true 0.14 N m and
     lowered the held-out gap by 17%, and its polished mgl was 0.2 standard errors from zero;
-    gravity used to be named as a second effect. The check against the base refitted from the
-    polished optimum without it (``without_effect``) drops it and keeps the better base."""
+    gravity used to be named as a second effect. Then the check against the base refitted
+    from the polished optimum without it (``without_effect``) dropped it; since the base gets
+    the log's start estimates as a second first guess (``settle``) and Fs - Fc is bounded by
+    the largest torque, the base is out of that minimum before gravity is tried. Either way
+    gravity is not named, any drop is the "not needed" one, and the friction is right."""
     g = generate_log(("joint_damping",), seed=3, t_final=20.0)
     res = discover(g.log, config=DiscoverConfig(candidates=["joint_damping", "gravity"]))
     assert res.effects == ["joint_damping"]
-    dropped = [r["dropped"] for r in res.rounds if "dropped" in r]
-    assert dropped and "gravity" in dropped[0] and "not needed" in dropped[0]["gravity"]
+    for r in res.rounds:
+        for name, why in r.get("dropped", {}).items():
+            assert name == "gravity" and "not needed" in why, r["dropped"]
     # the better base is kept: the final friction is the true one within 5%
     true_fs = g.truth["plant"]["friction"]["Fs"][0]
     assert abs(res.after.values["Fs"] / true_fs - 1) < 0.05

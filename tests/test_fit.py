@@ -68,6 +68,28 @@ def test_constraint_vocabulary():
     assert float(ph0["K"][0]) == pytest.approx(6.77, rel=1e-12)
 
 
+def test_a_capped_stribeck_excess_stays_below_its_cap_and_the_default_is_exp():
+    """``ParamSpace.excess_cap`` bounds Fs - Fc (discover sets it to the largest logged
+    torque); left infinite it is exactly the "ordered" map Fs = Fc + exp(u), so no other fit
+    changes; values round-trip through theta either way, a value past the cap is moved
+    inside, and the map stays finite and differentiable far past it."""
+    space = ParamSpace.build(paper_params().to_plant(), ("Fc", "Fs"))
+    th = {"Fc": jnp.asarray([np.log(0.1)]), "Fs": jnp.asarray([np.log(0.05)])}
+    assert float(space.physical(th)["Fs"][0]) == 0.1 + 0.05  # exp, bit for bit
+    capped = eqx.tree_at(lambda s: s.excess_cap, space, jnp.asarray(2.0))
+    for u in (-3.0, 0.0, 3.0, 50.0, 800.0):
+        ph = capped.physical({"Fc": th["Fc"], "Fs": jnp.asarray([u])})
+        assert 0.1 < float(ph["Fs"][0]) <= (0.1 + 2.0) * (1 + 1e-12)
+        g = jax.grad(lambda v: capped.physical({"Fc": th["Fc"], "Fs": v})["Fs"][0])(
+            jnp.asarray([u]))
+        assert np.isfinite(float(g[0]))
+    for sp in (space, capped):
+        back = sp.physical(sp.theta_of({"Fc": 0.1, "Fs": 1.3}))
+        assert float(back["Fs"][0]) == pytest.approx(1.3, rel=1e-12)
+    past = capped.physical(capped.theta_of({"Fc": 0.1, "Fs": 40.0}))
+    assert float(past["Fs"][0]) < 0.1 + 2.0
+
+
 def test_gap_is_zero_for_exact_replay_and_one_for_standing_still():
     p = paper_params()
     log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.6), substeps=2)

@@ -77,6 +77,12 @@ def run(args: argparse.Namespace) -> int:
     (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
     print(f"effect: {rep['effect']}  effects: {rep['effects']}  gap {rep['gap_before']:.4f} -> "
           f"{rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})  {rep['seconds']:.0f} s")
+    added = [r for r in rep["rounds"] if r["winner"] != "none"]
+    for k, r in enumerate(added):
+        others = [t for t in r.get("tied", []) if t != r["winner"]]
+        if others:
+            print(f"effect {k + 1} ({r['winner']}) is not told apart from {', '.join(others)} "
+                  "on this log: the model carries one of them (report.json rounds[].tied)")
     if rep["unexplained"]:
         where = rep["localisation"].get("side", "?")
         print(f"unexplained: the held-out gap stays above {cfg.unexplained_factor:g} x the floor "

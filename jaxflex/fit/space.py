@@ -11,7 +11,9 @@ covers all n joints. Every parameter has a constraint, a string of this vocabula
                                                    fixed-step integrator needs above 1.5 ms)
     "bounded:a,b"   p = a + (b - a) sigmoid(u)
     "ordered"       Fs = Fc + exp(u)              (Fs >= Fc always, docs/spec.md section 2);
-                    Fc = Fs sigmoid(u) when Fc is free and Fs is not
+                    Fc = Fs sigmoid(u) when Fc is free and Fs is not; with a finite
+                    ``ParamSpace.excess_cap`` c: Fs = Fc + c sigmoid(u - log c), so
+                    Fs - Fc < c (discover: c = the largest logged torque)
     "free"          p = u
     "fixed"         never fitted (a smoothing width, a structural frequency)
     "tied:K"        copied from the plant's K (a backlash acts on the joint's own spring)
@@ -151,7 +153,9 @@ class ParamSpace(eqx.Module):
     the parameters in theta; ``transforms``: per name (kind, a, b) from ``_parse``;
     ``effect_index``: the position in ``base.effects`` of an effect parameter (-1 nominal);
     ``mask``: per name a boolean (array) whether it is fitted; ``fixed``: per name the
-    coordinates used where it is not.
+    coordinates used where it is not; ``excess_cap``: the bound [N m] on Fs - Fc of the
+    "ordered" map (data, so a new cap compiles nothing; infinite by default, where the map
+    is exactly Fs = Fc + exp(u)).
     """
 
     base: FlexibleJointPlant
@@ -160,6 +164,7 @@ class ParamSpace(eqx.Module):
     effect_index: tuple[int, ...] = eqx.field(static=True)
     mask: dict[str, Array]
     fixed: dict[str, Array]
+    excess_cap: Array = eqx.field(default_factory=lambda: to_device(math.inf))
 
     @classmethod
     def build(cls, base: FlexibleJointPlant, free: Sequence[str]) -> ParamSpace:
@@ -243,7 +248,11 @@ class ParamSpace(eqx.Module):
             elif kind == "bounded":
                 out[name] = a + (b - a) * jax.nn.sigmoid(t)
             elif kind == "gap":
-                out[name] = out.get("Fc", fr.Fc) + jnp.exp(t)
+                # Fs - Fc = exp(t) / (1 + exp(t) / cap) = cap sigmoid(t - log cap): exp(t)
+                # exactly while the cap is infinite (the default)
+                # (written exp(t - softplus(t - log cap)): finite for any t)
+                soft = jax.nn.softplus(t - jnp.log(self.excess_cap))
+                out[name] = out.get("Fc", fr.Fc) + jnp.exp(t - soft)
             elif kind == "frac":
                 out[name] = fr.Fs * jax.nn.sigmoid(t)
             else:
@@ -268,7 +277,10 @@ class ParamSpace(eqx.Module):
                 r = np.clip((v - a) / (b - a), 1e-9, 1 - 1e-9)
                 th[name] = np.log(r / (1 - r))
             elif kind == "gap":
-                th[name] = np.log(np.maximum(v - fc, 1e-3 * fc))
+                g = np.maximum(v - fc, 1e-3 * fc)
+                cap = float(self.excess_cap)
+                g = np.minimum(g, (1 - 1e-9) * cap) if math.isfinite(cap) else g
+                th[name] = np.log(g / (1.0 - g / cap))
             elif kind == "frac":
                 r = np.clip(v / np.asarray(self.base.friction.Fs, float), 1e-6, 1 - 1e-6)
                 th[name] = np.log(r / (1 - r))
