@@ -3,14 +3,15 @@
 The ``jaxflex`` command turns on JAX's persistent compilation cache (``$JAXFLEX_CACHE_DIR``,
 ``jaxflex.cli.enable_compilation_cache``; every compilation is kept), and the traced
 programs of the fitting engine, simulator and tuner beside it (``jaxflex.tracecache``: no
-tracing or lowering of those in a second run). This study runs
-one command (``--command``: ``reproduce`` (a short paper experiment), ``identify`` (a 3 s
-closed-loop log of ``jaxflex.datagen``, seed 7, 20-bit encoder, six LuGre parameters from 50%
-off) or ``discover`` (a 20 s log of the same generator with a hidden joint damping, every
-candidate)) in fresh processes: with an empty cache folder, again with the same folder (the
-second run of a user) and once more; twice with ``--no-trace-cache`` in another empty folder
-(what the kept traces save: there only XLA's executables are reused); and with
-``--no-cache``. In each process a
+tracing or lowering of those in a second run). This study runs one command (``--command``:
+``reproduce`` (a short paper experiment), ``identify`` (a 3 s closed-loop log of
+``jaxflex.datagen``, seed 7, 20-bit encoder, six LuGre parameters from 50% off) or
+``discover`` (a 20 s log of the same generator with a hidden joint damping, every candidate))
+in fresh processes: with an empty cache folder, again with the same folder (the second run of
+a user) and once more; for identify and discover, with the same folder, on a log of another
+length (2.6 s, 18 s: a user's next log, with other shapes); twice with ``--no-trace-cache`` in
+another empty folder (what the kept traces save: there only XLA's executables are reused);
+and with ``--no-cache``. In each process a
 ``jax.monitoring`` listener sums the seconds spent tracing, lowering and compiling (XLA
 backend) and reading the cache, and counts cache hits; wall time is also recorded. Target
 (issue 17): the second run spends under 2 s compiling.
@@ -95,6 +96,11 @@ def main(argv: list[str] | None = None) -> dict:
         first = run_once(cmd, cache)
         second = run_once(cmd, cache)
         second_again = run_once(cmd, cache)  # a repeat of the second run (spread)
+        # a log of another length, a user's next log: identify 2.6 s against 3 s (5
+        # multiple-shooting segments of 500 samples against 6; the solver runs in buckets of
+        # segment slots, 8 for both), discover 18 s against 20 s
+        other = None if a.command == "reproduce" else run_once(
+            _command(a.command, out, a.small, t_final=OTHER_LENGTH[a.command]), cache)
     with tempfile.TemporaryDirectory() as cache:
         # XLA's cache alone, every function traced again in each run: what the kept traces
         # (jaxflex.tracecache) save. Its own folder: a traced function lowers to another
@@ -106,6 +112,7 @@ def main(argv: list[str] | None = None) -> dict:
            "target": "second run under 2 s compiling (trace + lower + XLA, cache reads included)",
            "first_empty_cache": first, "second_same_cache": second,
            "second_same_cache_repeat": second_again,
+           **({"other_length_same_cache": other} if other else {}),
            "first_empty_cache_no_trace_cache": first_traced,
            "second_same_cache_no_trace_cache": second_traced, "no_cache": nocache,
            "note": "seconds summed from jax.monitoring events in each process; every "
@@ -116,6 +123,7 @@ def main(argv: list[str] | None = None) -> dict:
                    "functions are traced in every process"}
     for k, r in (("first (empty cache)", first), ("second (same cache)", second),
                  ("second, repeated", second_again),
+                 *((("other length, same cache", other),) if other else ()),
                  ("first, --no-trace-cache", first_traced),
                  ("second, --no-trace-cache", second_traced), ("--no-cache", nocache)):
         print(f"{k:>20}: wall {r['wall_s']:.1f} s, compile {r['compile_total_s']:.2f} s (trace "
@@ -126,8 +134,13 @@ def main(argv: list[str] | None = None) -> dict:
     return res
 
 
-def _command(name: str, out: Path, small: bool) -> list[str]:
-    """The jaxflex command line of ``name``, its input files written under ``out``."""
+#: The log length [s] of each command's "other length" run (after 3 s / 20 s ones).
+OTHER_LENGTH = {"identify": 2.6, "discover": 18.0}
+
+
+def _command(name: str, out: Path, small: bool, t_final: float | None = None) -> list[str]:
+    """The jaxflex command line of ``name``, its input files written under ``out``
+    (``t_final``: the log's length [s]; default 3 s for identify, 20 s for discover)."""
     if name == "reproduce":
         return ["reproduce", "--tasks", "sinusoid", "--no-q2d-comparison", "--duration",
                 "1" if small else "10", "--force", "--out", str(out / "reproduce")]
@@ -140,16 +153,20 @@ def _command(name: str, out: Path, small: bool) -> list[str]:
     from jaxflex.params import Params, save_params
 
     if name == "identify":
-        g = generate_log((), seed=7, t_final=3.0, bits=20, noise_counts=0.5)
-        save_log(g.log, out / "log3.csv")
+        t_final = 3.0 if t_final is None else t_final
+        g = generate_log((), seed=7, t_final=t_final, bits=20, noise_counts=0.5)
+        name = f"log{t_final:g}.csv"
+        save_log(g.log, out / name)
         truth = Params.from_dict(g.truth["plant"])
         save_params(perturb(truth, DEFAULT_FREE, (1.5, 1.5, 0.5, 1.5, 0.5, 1.5)),
                     out / "init.json")
-        return ["identify", str(out / "log3.csv"), "--params", str(out / "init.json"),
+        return ["identify", str(out / name), "--params", str(out / "init.json"),
                 "--out", str(out / "identified.json"), "--force"]
-    g = generate_log(("joint_damping",), seed=3, t_final=20.0)
-    save_log(g.log, out / "log20.csv")
-    return ["discover", str(out / "log20.csv"), "--out", str(out / "discover"), "--force"]
+    t_final = 20.0 if t_final is None else t_final
+    g = generate_log(("joint_damping",), seed=3, t_final=t_final)
+    name = f"log{t_final:g}.csv"
+    save_log(g.log, out / name)
+    return ["discover", str(out / name), "--out", str(out / "discover"), "--force"]
 
 
 if __name__ == "__main__":

@@ -229,6 +229,70 @@ def test_shooting_solve_equals_dense_solve(scaling):
         assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(a)), lam
 
 
+def test_segment_slots_hold_every_count_with_little_padding():
+    from jaxflex.fit.problem import segment_slots
+
+    slots = [segment_slots(c) for c in range(1, 3000)]
+    assert slots[:9] == [1, 2, 4, 4, 8, 8, 8, 8, 10]
+    assert all(s >= c for c, s in zip(range(1, 3000), slots))
+    assert max(s / c for c, s in zip(range(9, 3000), slots[8:])) <= 1.25
+    assert len(set(slots)) < 40  # few shapes for 3,000 lengths
+
+
+def test_logs_of_other_lengths_share_the_compiled_solver():
+    """A multiple-shooting problem is solved in its bucket of segment slots (inert padding
+    segments): the same steps, cost, residual and normal equations as in its own shape (to
+    1e-10), and a log with another segment count in the same bucket lowers no new solver,
+    residual, replay or covariance program."""
+    from jax.flatten_util import ravel_pytree
+
+    from jaxflex.fit import discretisation_bias, residuals, simulated_outputs
+    from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
+
+    p = paper_params()
+    init = perturb(p, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
+
+    def problem(t_final):
+        log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=t_final), substeps=1)
+        return make_problem(log, init, DEFAULT_FREE, segment_length=50, substeps=1)
+
+    prob, y0 = problem(0.45)  # 9 segments in 10 slots
+    assert prob.segs.count == 9
+    a = least_squares(prob, y0, max_steps=3)
+    b = least_squares(prob, y0, max_steps=3, bucket=False)
+    fa, fb = (np.asarray(ravel_pytree(s.y)[0]) for s in (a, b))
+    assert a.steps == b.steps and a.y[1].shape == y0[1].shape
+    assert np.max(np.abs(fa - fb)) <= 1e-10 * np.max(np.abs(fb))
+    assert a.cost == pytest.approx(b.cost, rel=1e-10)
+    np.testing.assert_allclose(a.residual, b.residual, rtol=0, atol=1e-10 * np.max(np.abs(b.residual)))
+    for k, v in b.normal.items():
+        if hasattr(v, "shape"):
+            assert a.normal[k].shape == v.shape, k
+            assert np.max(np.abs(a.normal[k] - v)) <= 1e-10 * max(np.max(np.abs(v)), 1e-300), k
+    np.testing.assert_allclose(residuals(prob, a.y), prob.residuals(a.y), rtol=0,
+                               atol=1e-10 * np.max(np.abs(b.residual)))
+    np.testing.assert_allclose(simulated_outputs(prob, a.y), prob.simulate(a.y)[0], rtol=1e-12)
+    covariance(prob, a.y, solution=a), discretisation_bias(prob, a)
+
+    other, y1 = problem(0.5)  # 10 segments: the same bucket
+    assert other.segs.count == 10
+    lowered: list[str] = []
+
+    def listen(event: str, secs: float, **kw) -> None:
+        if event.endswith("jaxpr_to_mlir_module_duration"):
+            lowered.append(kw.get("fun_name", "?"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        sol = least_squares(other, y1, max_steps=3)
+        simulated_outputs(other, sol.y), residuals(other, sol.y)
+        covariance(other, sol.y, solution=sol), discretisation_bias(other, sol)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert lowered == [], lowered
+    assert sol.y[1].shape == y1[1].shape and sol.residual.shape == other.residuals(sol.y).shape
+
+
 def _plain_residuals(y, prob):  # the same residuals by another function: the dense route
     return prob.residuals(y)
 

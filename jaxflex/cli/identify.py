@@ -21,7 +21,8 @@ def _substeps(text: str) -> int | str:
     try:
         k = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected a positive integer or 'auto', got {text!r}") from None
     if k < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {k}")
     return k

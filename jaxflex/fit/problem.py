@@ -65,6 +65,9 @@ class Segments(eqx.Module):
     tau (S, L, n) logged torque [N m]; y_meas (S, L, n_out) measured outputs [rad];
     tau_pre (S, W, n) the torque before each start (the first sample repeated before the log
     starts); x0 (S, n_state, n) start states estimated from the data; t0 (S,) start times [s].
+    ``active`` (S,) bool, or None (every segment is data): which slots hold data; the others
+    are inert padding (``Problem.padded``: copies of the last segment whose residuals and
+    continuity defects are zero), so that logs of other lengths share one compiled program.
     """
 
     tau: Array
@@ -72,16 +75,33 @@ class Segments(eqx.Module):
     tau_pre: Array
     x0: Array
     t0: Array
+    active: Array | None = None
 
     @property
     def count(self) -> int:
-        """Number of segments S."""
+        """Number of segment slots S (the data segments and any padding after them)."""
         return int(self.tau.shape[0])
 
     @property
     def length(self) -> int:
         """Samples per segment L."""
         return int(self.tau.shape[1])
+
+
+def segment_slots(count: int) -> int:
+    """The number of segment slots a problem of ``count`` segments is compiled for
+    (``Problem.padded``), so that logs of other lengths share the solver's compiled programs:
+    1 and 2 as they are, then 4 and 8, then m 2^e with m in 5..8 (10, 12, 14, 16, 20, 24,
+    ...). A new compilation costs about a thousand steps of a small problem, so small counts
+    share coarse slots (at most 3 inert segments); from 9 segments on, the padding costs at
+    most a quarter more segment replays (about a tenth on average)."""
+    if count <= 2:
+        return int(count)
+    if count <= 8:
+        return 4 if count <= 4 else 8
+    e = (count - 1).bit_length() - 3        # 8 * 2^(e-1) < count <= 8 * 2^e
+    m = -(-count // (1 << e))               # ceil(count / 2^e), in 5..8
+    return int(m << e)
 
 
 def output_columns(log: Log, kind: ModelKind, outputs: Sequence[str] | None) -> tuple[str, ...]:
@@ -128,8 +148,11 @@ def make_segments(
     q2 = log.q2 if log.q2 is not None else log.q1
     v1 = savgol(q1, dt, 1, window)
     v2 = savgol(q2, dt, 1, window)
-    z0 = np.zeros_like(v1[starts]) if z_of_velocity is None else np.asarray(
-        jax.vmap(z_of_velocity)(jnp.asarray(v1[starts])))
+    if z_of_velocity is None:
+        z0 = np.zeros_like(v1[starts])
+    else:  # evaluated on the bucket's slots (``segment_slots``): no new program per count
+        pick = np.minimum(np.arange(segment_slots(starts.size)), starts.size - 1)
+        z0 = np.asarray(jax.vmap(z_of_velocity)(to_device(v1[starts][pick])))[: starts.size]
     if kind == "rigid":
         x0 = np.stack([q1[starts], v1[starts], z0], axis=1)
     else:
@@ -284,11 +307,17 @@ class Problem(eqx.Module):
         dyn, static = eqx.partition(self, eqx.is_array)
 
         def assemble(prob, out, nxt, y_ref):
+            act = prob.segs.active
             r = prob.w_y * (out[:, :n_y].reshape(prob.segs.y_meas.shape) - y_ref)
+            if act is not None:  # padding slots: no residual (``padded``)
+                r = jnp.where(act[:, None, None], r, 0.0)
             parts = [r.reshape(-1)]
             if free:
                 w_def = jnp.broadcast_to(prob.w_def.reshape(n_state, -1), (n_state, n)).reshape(-1)
-                parts.append(((out[:-1, n_y:] - nxt[1:]) * w_def).reshape(-1))
+                de = (out[:-1, n_y:] - nxt[1:]) * w_def
+                if act is not None:  # no defect into a padding slot
+                    de = jnp.where(act[1:, None], de, 0.0)
+                parts.append(de.reshape(-1))
             return jnp.concatenate(parts)
 
         def guard(r):
@@ -321,15 +350,39 @@ class Problem(eqx.Module):
 
     @property
     def n_out(self) -> int:
-        """Number of output residuals."""
+        """Number of output residuals (the rows of every segment slot)."""
         return int(np.prod(self.segs.y_meas.shape))
+
+    def padded(self, slots: int) -> Problem:
+        """The same problem in ``slots`` >= S segment slots (``segment_slots``; equal counts
+        too, so that every count of a bucket has one program): the S data segments, then
+        copies of the last marked inactive (``Segments.active``), whose output
+        residuals and continuity defects are zero. Its residual is the original's with zero
+        rows inserted after the outputs (``unpad_rows``), so its least-squares solution, cost
+        and normal equations are the original's; the copies keep every replay finite. The
+        arrays are gathered on the host (no eager device program per shape)."""
+        S = self.segs.count
+        if self.segs.active is not None:
+            raise ValueError("fit: the problem is already padded")
+        if slots < S:
+            raise ValueError(f"fit: {slots} slots cannot hold {S} segments")
+        idx = np.minimum(np.arange(slots), S - 1)
+        grow = lambda a: to_device(np.asarray(a)[idx])  # noqa: E731
+        segs = Segments(tau=grow(self.segs.tau), y_meas=grow(self.segs.y_meas),
+                        tau_pre=grow(self.segs.tau_pre), x0=grow(self.segs.x0),
+                        t0=grow(self.segs.t0), active=to_device(np.arange(slots) < S))
+        return eqx.tree_at(lambda p: p.segs, self, segs)
 
     def gap(self, y: Any) -> Array:
         """Normalised RMS output error: sqrt(sum (y_sim - y_meas)^2 / sum (y_meas -
-        y_meas[segment start])^2); 0 is perfect, 1 as bad as predicting no motion."""
+        y_meas[segment start])^2); 0 is perfect, 1 as bad as predicting no motion (padding
+        slots left out)."""
         ys, _ = self.simulate(y)
         m = self.segs.y_meas
-        return jnp.sqrt(jnp.sum((ys - m) ** 2) / jnp.sum((m - m[:, :1]) ** 2))
+        e, ref = (ys - m) ** 2, (m - m[:, :1]) ** 2
+        if self.segs.active is not None:
+            e, ref = (jnp.where(self.segs.active[:, None, None], a, 0.0) for a in (e, ref))
+        return jnp.sqrt(jnp.sum(e) / jnp.sum(ref))
 
 
 def theta_spec(theta: dict[str, Array]) -> tuple[tuple[str, tuple[int, ...]], ...]:

@@ -40,7 +40,8 @@ from jax.flatten_util import ravel_pytree
 from optimistix._solver.gauss_newton import _GaussNewtonState
 
 from jaxflex.tracecache import persistent_jit
-from jaxflex.fit.problem import BLOWN_RESIDUAL, Problem
+from jaxflex.fit.problem import BLOWN_RESIDUAL, Problem, segment_slots
+from jaxflex.validation import to_device
 
 
 @dataclasses.dataclass
@@ -585,11 +586,90 @@ def cost(prob: Problem, y: Any, fn: Callable = problem_residuals) -> float:
     return c if math.isfinite(c) else math.inf
 
 
+#: The normal-equation and Jacobian blocks of "shooting" that hold one entry per segment.
+_SEGMENT_BLOCKS = ("Nxt", "Dx", "U", "gx", "Jt", "Jx", "Jn")
+
+
+@dataclasses.dataclass(frozen=True)
+class Padding:
+    """How a free-start multiple-shooting problem of ``count`` segments sits in ``slots``
+    (``Problem.padded``): ``my`` output residual rows per segment, ``d`` start entries per
+    segment. Moves unknowns, residuals and normal blocks between the two layouts, on the host
+    (numpy gathers, one transfer: no device program per shape)."""
+
+    count: int
+    slots: int
+    my: int
+    d: int
+
+    @classmethod
+    def of(cls, prob: Problem, *values: Any) -> Padding | None:
+        """The padding ``least_squares`` gives ``prob`` (None: it runs as it is): a
+        ``Problem`` with free starts and more than two segments (its ``segment_slots``, equal
+        to its count or not: every count of a bucket runs the one program), not padded
+        already, its arrays and ``values`` concrete (inside a trace a problem runs in its own
+        shape: the layouts are moved on the host)."""
+        if not (isinstance(prob, Problem) and prob.free_starts and prob.segs.active is None):
+            return None
+        if any(isinstance(a, jax.core.Tracer)
+               for a in jax.tree_util.tree_leaves((eqx.filter(prob, eqx.is_array), values))):
+            return None
+        S = prob.segs.count
+        if S <= 2:  # one and two segments have slots of their own
+            return None
+        slots = segment_slots(S)
+        m = prob.segs.y_meas
+        return cls(S, slots, int(m.shape[1] * m.shape[2]), int(np.prod(prob.segs.x0.shape[1:])))
+
+    def unknowns(self, y: Any) -> Any:
+        """(theta, x0s) with x0s grown to the slots (copies of the last start)."""
+        theta, x0s = y
+        idx = np.minimum(np.arange(self.slots), self.count - 1)
+        return theta, to_device(np.asarray(x0s)[idx])
+
+    def unknowns_back(self, y: Any) -> Any:
+        """(theta, x0s) of the data segments."""
+        theta, x0s = y
+        return theta, to_device(np.asarray(x0s)[: self.count])
+
+    def rows_back(self, r: Any) -> Any:
+        """Residual rows of the data segments: their outputs and their S - 1 defects."""
+        r = np.asarray(r)
+        out = self.slots * self.my
+        return to_device(np.concatenate([r[: self.count * self.my],
+                                         r[out: out + (self.count - 1) * self.d]]))
+
+    def rows_in(self, r: Any) -> Any:
+        """Residual-shaped rows of the data segments in the slots' layout (zero rows for the
+        padding's outputs and for the defects into and between padding slots)."""
+        r = np.asarray(r)
+        n_out = self.count * self.my
+        zeros = lambda k: np.zeros(k, r.dtype)  # noqa: E731
+        return to_device(np.concatenate([r[:n_out], zeros((self.slots - self.count) * self.my),
+                                         r[n_out:], zeros((self.slots - self.count) * self.d)]))
+
+    def blocks_in(self, normal: dict[str, Any]) -> dict[str, Any]:
+        """Normal blocks of the data segments in the slots' layout (zero blocks for the
+        padding: a slot no residual sees)."""
+        def grow(v):
+            v = np.asarray(v)
+            return to_device(np.concatenate([v, np.zeros((self.slots - self.count,)
+                                                          + v.shape[1:], v.dtype)]))
+        return {k: (grow(v) if k in _SEGMENT_BLOCKS else v) for k, v in normal.items()}
+
+    def blocks_back(self, normal: dict[str, Any]) -> dict[str, Any]:
+        """The normal blocks of the data segments (per-segment blocks cut to S; a padding
+        slot adds nothing to the others: its rows are zero)."""
+        return {k: (to_device(np.asarray(v)[: self.count]) if k in _SEGMENT_BLOCKS else v)
+                for k, v in normal.items()}
+
+
 def least_squares(
     prob: Any, y0: Any, *, fn: Callable = problem_residuals, rtol: float = 1e-10,
     atol: float = 1e-10, max_steps: int = 200, scaling: str = "identity",
     structure: str = "auto", progress: Callable[[int, float], None] | None = None,
     decrement_tol: float | Callable[[float], float] | None = None, geodesic: float = 0.0,
+    bucket: bool = True,
 ) -> Solution:
     """Levenberg-Marquardt on the residuals ``fn(y, prob)`` from ``y0`` (module docstring).
 
@@ -613,7 +693,11 @@ def least_squares(
     fit itself estimates, so the step that remains is below 0.1 of the standard errors
     ``covariance`` reports). ``geodesic``: > 0 turns on
     geodesic acceleration (``geodesic_step``) with this bound on 2 |a| / |v| (0.75 is the
-    usual choice; 0: plain Levenberg-Marquardt). Raises ``ValueError`` for
+    usual choice; 0: plain Levenberg-Marquardt). ``bucket``: a free-start multiple-shooting
+    ``Problem`` of more than 4 segments is solved in ``segment_slots`` slots (inert padding
+    segments, ``Problem.padded``; the solution, residual and normal equations are cut back to
+    the data), so logs of other lengths share the compiled solver (False: its own shape).
+    Raises ``ValueError`` for
     ``max_steps < 1`` or a negative ``decrement_tol``.
     """
     if max_steps < 1:
@@ -625,6 +709,12 @@ def least_squares(
     if structure == "auto":
         shooting = isinstance(prob, Problem) and prob.free_starts and prob.segs.count > 1
         structure = "shooting" if shooting else "dense"
+    # a shooting problem runs in its bucket of segment slots (``segment_slots``), so that a
+    # log of another length reuses the compiled step; the solution is cut back to the data
+    pad = (Padding.of(prob, y0) if (bucket and structure == "shooting"
+                                    and fn is problem_residuals) else None)
+    if pad is not None:
+        prob, y0 = prob.padded(pad.slots), pad.unknowns(y0)
     solver = _solver(rtol, atol, scaling, structure, geodesic)
     wrapped = _WithAux(fn)
     y = y0
@@ -655,6 +745,12 @@ def least_squares(
     # compilation of the residual for the final cost
     final = cost(prob, y, fn) if c is None else float(c)
     final = final if math.isfinite(final) else math.inf
+    residual = None if c is None else state.f_info.residual
+    normal = None if c is None else state.descent_state.normal
+    if pad is not None:
+        y = pad.unknowns_back(y)
+        residual = None if residual is None else pad.rows_back(residual)
+        normal = None if normal is None else pad.blocks_back(normal)
     if not reason:
         if done and ok:
             reason = "tolerance met"
@@ -664,8 +760,7 @@ def least_squares(
             reason = f"stopped at max_steps = {max_steps} without meeting the tolerance"
     return Solution(y=y, steps=steps, converged=bool(done and ok and not reason.startswith("int")),
                     cost=final, reason=reason, seconds=time.perf_counter() - t0,
-                    residual=None if c is None else state.f_info.residual,
-                    normal=None if c is None else state.descent_state.normal,
+                    residual=residual, normal=normal,
                     decrement=None if dec is None else float(dec))
 
 
@@ -696,7 +791,7 @@ def step_doubling_error(prob: Problem, coarse: jax.Array, fine: jax.Array) -> fl
     """``integration_error`` from replays already made: ``coarse``, ``prob``'s outputs
     (``simulated_outputs``) with its substeps, and ``fine``, with twice as many; inf if
     either is not finite."""
-    d = np.asarray(prob.w_y * (fine - coarse))
+    d = np.asarray(prob.w_y) * (np.asarray(fine) - np.asarray(coarse))  # on the host
     return RICHARDSON * float(np.sqrt(np.mean(d**2))) if np.all(np.isfinite(d)) else math.inf
 
 
@@ -728,16 +823,21 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
                          "(it took no step)")
     y = solution.y
     structure = "shooting" if "Ntt" in solution.normal else "dense"
-    fine = residuals(refined(prob), y)
-    e = RICHARDSON * (fine - solution.residual)
+    fine = np.asarray(residuals(refined(prob), y))
+    e = RICHARDSON * (fine - np.asarray(solution.residual))
     # the output rows of e are RICHARDSON w_y (fine - coarse replay): ``integration_error``
     # without replaying twice more (inf where a replay blew up, as there)
     n_out = prob.n_out
-    blown = (np.any(np.asarray(fine[:n_out]) == BLOWN_RESIDUAL)
-             or np.any(np.asarray(solution.residual[:n_out]) == BLOWN_RESIDUAL))
-    out_err = math.inf if blown else float(np.sqrt(np.mean(np.asarray(e[:n_out]) ** 2)))
-    template = jax.tree_util.tree_map(lambda a: jnp.zeros(jnp.shape(a), jnp.result_type(a)), y)
-    step = np.asarray(_induced_step(solution.normal, e, structure, template))
+    blown = (np.any(fine[:n_out] == BLOWN_RESIDUAL)
+             or np.any(np.asarray(solution.residual)[:n_out] == BLOWN_RESIDUAL))
+    out_err = math.inf if blown else float(np.sqrt(np.mean(e[:n_out] ** 2)))
+    pad = Padding.of(prob, y) if structure == "shooting" else None
+    normal, e_in, y_in = solution.normal, e, y
+    if pad is not None:  # the solve in the slots' layout: compiled once per bucket
+        normal, e_in, y_in = pad.blocks_in(normal), pad.rows_in(e), pad.unknowns(y)
+    template = jax.tree_util.tree_map(
+        lambda a: to_device(np.zeros(np.shape(a), a.dtype)), y_in)
+    step = np.asarray(_induced_step(normal, e_in, structure, template))
     theta = prob.split(y)[0] if hasattr(prob, "split") else y
     k = ravel_pytree(theta)[0].shape[0]
     fitted = np.flatnonzero(prob.space.fitted_flat())
@@ -756,21 +856,46 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
             "stderr_theta": {labels[i]: float(v) for i, v in zip(fitted, se)}}
 
 
-@persistent_jit
 def simulated_outputs(prob: Problem, y: Any) -> jax.Array:
-    """Simulated outputs (S, L, n_out) [rad] of ``prob`` at ``y`` (compiled once per shape)."""
+    """Simulated outputs (S, L, n_out) [rad] of ``prob`` at ``y`` (compiled once per shape;
+    a free-start shooting problem once per bucket of segment slots, ``Padding``)."""
+    pad = Padding.of(prob, y)
+    if pad is None:
+        return _simulated_outputs(prob, y)
+    return to_device(np.asarray(_simulated_outputs(prob.padded(pad.slots),
+                                                   pad.unknowns(y)))[: pad.count])
+
+
+def gap(prob: Problem, y: Any) -> jax.Array:
+    """``prob.gap(y)`` (normalised RMS output error), compiled once per problem shape (a
+    free-start shooting problem once per bucket of segment slots, ``Padding``)."""
+    pad = Padding.of(prob, y)
+    if pad is None:
+        return _gap(prob, y)
+    return _gap(prob.padded(pad.slots), pad.unknowns(y))
+
+
+def residuals(prob: Problem, y: Any) -> jax.Array:
+    """``prob.residuals(y)``, compiled once per problem shape (a free-start shooting problem
+    once per bucket of segment slots, ``Padding``)."""
+    pad = Padding.of(prob, y)
+    if pad is None:
+        return _residuals(prob, y)
+    return pad.rows_back(_residuals(prob.padded(pad.slots), pad.unknowns(y)))
+
+
+@persistent_jit
+def _simulated_outputs(prob: Problem, y: Any) -> jax.Array:
     return prob.simulate(y)[0]
 
 
 @persistent_jit
-def gap(prob: Problem, y: Any) -> jax.Array:
-    """``prob.gap(y)`` (normalised RMS output error), compiled once per problem shape."""
+def _gap(prob: Problem, y: Any) -> jax.Array:
     return prob.gap(y)
 
 
 @persistent_jit
-def residuals(prob: Problem, y: Any) -> jax.Array:
-    """``prob.residuals(y)``, compiled once per problem shape."""
+def _residuals(prob: Problem, y: Any) -> jax.Array:
     return prob.residuals(y)
 
 
@@ -827,8 +952,15 @@ def covariance(
             and prob.segs.count > 1):
         reuse = (solution is not None and solution.y is y and solution.normal is not None
                  and "Ntt" in solution.normal)
-        info = ((solution.residual, _schur_in_theta(solution.normal)) if reuse
-                else _theta_information(prob, y))
+        pad = Padding.of(prob, y)  # the elimination in the slots' layout (once per bucket)
+        if reuse:
+            normal = solution.normal if pad is None else pad.blocks_in(solution.normal)
+            info = (solution.residual, _schur_in_theta(normal))
+        elif pad is None:
+            info = _theta_information(prob, y)
+        else:
+            r, St = _theta_information(prob.padded(pad.slots), pad.unknowns(y))
+            info = (pad.rows_back(r), St)
         return _covariance_shooting(prob, info, theta, inflation, rank_rtol)
     r, Jm = (np.asarray(a) for a in _jacobian(fn, prob, y))
     n_out = int(getattr(prob, "n_out", r.size))

@@ -12,14 +12,16 @@ from collections.abc import Sequence
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.fit import ParamSpace, covariance, get_value, least_squares, savgol
+from jaxflex.fit.problem import segment_slots
 from jaxflex.friction import LuGre
 from jaxflex.logs import Log
 from jaxflex.params import Params
 from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.tracecache import persistent_jit
+from jaxflex.validation import to_device
 
 STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")
 
@@ -34,11 +36,14 @@ class StaticMap:
 
 class StaticMapProblem(eqx.Module):
     """The curve fit of eq. 35 as a problem of the fitting engine: residuals
-    ``F_ss(v; theta) - F`` [N m] over the static-map data, parameters in ``space``."""
+    ``w (F_ss(v; theta) - F)`` [N m] over the static-map data, parameters in ``space``;
+    ``w`` (m,) is 1 for a data point and 0 for padding (``fit_static_map`` pads the points to
+    ``segment_slots`` of their count, so maps of other sizes share the compiled solver)."""
 
     space: ParamSpace
     v: jax.Array
     F: jax.Array
+    w: jax.Array
 
     def split(self, y: dict[str, jax.Array]) -> tuple[dict[str, jax.Array], None]:
         """(theta, no start states)."""
@@ -47,12 +52,12 @@ class StaticMapProblem(eqx.Module):
     def residuals(self, y: dict[str, jax.Array], args: object = None) -> jax.Array:
         """F_ss(v) - F of the friction of ``space.plant(y)`` (eq. 35) [N m]."""
         fr = self.space.plant(y).friction
-        return jax.vmap(lambda vi: fr.steady_state(vi[None])[0])(self.v) - self.F
+        return self.w * (jax.vmap(lambda vi: fr.steady_state(vi[None])[0])(self.v) - self.F)
 
     @property
     def n_out(self) -> int:
-        """Number of residuals."""
-        return int(self.v.shape[0])
+        """Number of data residuals (the padding after them left out)."""
+        return int(np.count_nonzero(np.asarray(self.w)))
 
 
 def fit_static_map(
@@ -62,10 +67,12 @@ def fit_static_map(
     with the fitting engine (its constraints: Fc, vs, sigma2 positive, Fs >= Fc; its solver;
     its covariance). ``init`` holds starting values for the four names. Returns name ->
     (value [N m, rad/s or N m s/rad], standard error)."""
-    v, F = jnp.asarray(data.v, float), jnp.asarray(data.F, float)
+    v, F = np.asarray(data.v, float), np.asarray(data.F, float)
     if v.shape != F.shape or v.ndim != 1 or v.size < 5:
         raise ValueError(f"fit_static_map: need >= 5 (v, F) pairs of equal length, got "
                          f"{v.shape} and {F.shape}")
+    pick = np.minimum(np.arange(segment_slots(v.size)), v.size - 1)  # padding: copies, w 0
+    w = (np.arange(pick.size) < v.size).astype(float)
     missing = [k for k in STATIC_NAMES if k not in init]
     if missing:
         raise ValueError(f"fit_static_map: missing starting value(s) {missing}")
@@ -74,7 +81,8 @@ def fit_static_map(
                   sigma0=1.0, sigma1=0.0, sigma2=max(init["sigma2"], 1e-9))
     holder = FlexibleJointPlant(links=DiagonalInertia(I=1.0), J=1.0, K=1.0, friction=lugre)
     space = ParamSpace.build(holder, STATIC_NAMES)
-    prob = StaticMapProblem(space=space, v=v, F=F)
+    prob = StaticMapProblem(space=space, v=to_device(v[pick]), F=to_device(F[pick]),
+                            w=to_device(w))
     sol = least_squares(prob, space.theta0(), fn=_static_residuals, rtol=rtol, atol=atol,
                         max_steps=500)
     phys = space.physical_values(sol.y)
@@ -86,6 +94,18 @@ def _static_residuals(y: dict[str, jax.Array], prob: StaticMapProblem) -> jax.Ar
     return prob.residuals(y)
 
 
+
+
+@persistent_jit
+def _link_residuals(bare: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
+                    q2: jax.Array, v2: jax.Array, a2: jax.Array, tau: jax.Array) -> jax.Array:
+    """The link line of ``torque_residuals`` of the frictionless plant ``bare`` at every
+    sample (N, n) [N m]: the friction eq. 3 needs to explain the measured motion."""
+    def one(x1, w1, b1, x2, w2, b2, u):
+        x = bare.init_state(q1=x1, dq1=w1, q2=x2, dq2=w2)
+        return bare.torque_residuals(x, b1, b2, u)[0]
+
+    return jax.vmap(one)(q1, v1, a1, q2, v2, a2, tau)
 
 
 def static_map_from_log(
@@ -105,13 +125,12 @@ def static_map_from_log(
     v1, v2 = savgol(q1, dt, 1, window), savgol(q2, dt, 1, window)
     a1, a2 = savgol(q1, dt, 2, window), savgol(q2, dt, 2, window)
     bare = eqx.tree_at(lambda p: p.friction, plant, None, is_leaf=lambda x: x is None)
-
-    def resid(x1, w1, b1, x2, w2, b2, u):
-        x = bare.init_state(q1=x1, dq1=w1, q2=x2, dq2=w2)
-        return bare.torque_residuals(x, b1, b2, u)[0]
-
-    F = -np.asarray(jax.vmap(resid)(*(jnp.asarray(a) for a in (
-        savgol(q1, dt, 0, window), v1, a1, savgol(q2, dt, 0, window), v2, a2, tau))))[:, joint]
+    # on the samples padded to their bucket (``segment_slots``): logs of other lengths share
+    # the one program
+    N = q1.shape[0]
+    pick = np.minimum(np.arange(segment_slots(N)), N - 1)
+    motion = (savgol(q1, dt, 0, window), v1, a1, savgol(q2, dt, 0, window), v2, a2, tau)
+    F = -np.asarray(_link_residuals(bare, *(to_device(a[pick]) for a in motion)))[:N, joint]
     v = v1[:, joint]
     top = float(np.quantile(np.abs(v), 0.99))
     lo = 0.02 * top if min_speed is None else min_speed
