@@ -95,6 +95,7 @@ import scipy.stats
 
 from jaxflex.effects import EFFECTS, AbstractEffect, Gated, acts_on_replay, candidate_effects
 from jaxflex.fit import (
+    Padding,
     ParamSpace,
     Problem,
     covariance,
@@ -395,11 +396,16 @@ def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
     start only: the structured solve takes 2 n_state Jacobian-vector products per step where
     the dense Jacobian took S n_state (measured, 20 held-out segments of a 20 s log: the same
     starts to 2e-15, 37 steps in 0.66 s against 1.96 s)."""
-    sol = least_squares((prob, theta), ({}, x0s), fn=start_residuals, rtol=_RTOL, atol=_ATOL,
+    # in the bucket of segment slots (``jaxflex.fit.Padding``): held-out parts of logs of
+    # other lengths share the compiled step; the stop counts the data's residuals only
+    pad = Padding.of(prob, x0s)
+    run, x_in = (prob, x0s) if pad is None else (prob.padded(pad.slots),
+                                                  pad.unknowns(({}, x0s))[1])
+    sol = least_squares((run, theta), ({}, x_in), fn=start_residuals, rtol=_RTOL, atol=_ATOL,
                         max_steps=max_steps, scaling="marquardt",
                         structure="shooting" if prob.segs.count > 1 else "dense",
                         decrement_tol=relative_stop(prob.n_out))
-    return sol.y[1]
+    return sol.y[1] if pad is None else pad.unknowns_back(sol.y)[1]
 
 
 def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: float = 1.0,

@@ -5,7 +5,9 @@ constraint vocabulary, one solver path (optimistix Levenberg-Marquardt), one cov
 
 - ``ParamSpace``: free parameters and their reparametrisation (``space``);
 - ``Segments``, ``make_segments``, ``Problem``: data and residuals (``problem``);
-- ``least_squares``, ``covariance``, ``cost``: solve and judge (``solve``).
+- ``least_squares``, ``covariance``, ``cost``: solve and judge (``solve``);
+- ``segment_slots``, ``Padding``: the buckets of segment counts a problem is compiled for, so
+  that logs of other lengths reuse the programs.
 """
 
 from jaxflex.fit.problem import (
@@ -17,10 +19,12 @@ from jaxflex.fit.problem import (
     output_columns,
     pack_state,
     savgol,
+    segment_slots,
     unpack_state,
     white_noise_std,
 )
 from jaxflex.fit.solve import (
+    Padding,
     Solution,
     cost,
     covariance,
@@ -46,7 +50,8 @@ from jaxflex.fit.space import (
 )
 
 __all__ = [
-    "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "ParamSpace", "Problem", "Segments", "Solution",
+    "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "Padding", "ParamSpace", "Problem", "Segments",
+    "Solution", "segment_slots",
     "constraint_of", "cost", "covariance", "discretisation_bias", "gap",
     "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",

@@ -14,8 +14,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from jaxflex.fit import ParamSpace, covariance, get_value, least_squares, savgol
-from jaxflex.fit.problem import segment_slots
+from jaxflex.fit import (ParamSpace, covariance, get_value, least_squares, savgol,
+                         segment_slots)
 from jaxflex.friction import LuGre
 from jaxflex.logs import Log
 from jaxflex.params import Params
