@@ -2,6 +2,7 @@
 with measured starts and gated effects, the host-stepped solver (one compilation for problems
 that differ only in data), covariance through the reparametrisation."""
 
+import contextlib
 import dataclasses
 
 import equinox as eqx
@@ -38,6 +39,22 @@ def _fixed_start_problem(plant, log, free, length=150):
     return Problem(space=space, segs=segs, w_y=jnp.asarray(100.0), w_def=jnp.zeros(5),
                    dt=log.dt, kind="flexible", substeps=1, outputs=("q1", "q2"),
                    free_starts=False)
+
+
+@contextlib.contextmanager
+def lowerings():
+    """The names of the programs JAX lowers inside the block (a list, filled as it runs)."""
+    lowered: list[str] = []
+
+    def listen(event: str, secs: float, **kw) -> None:
+        if event.endswith("jaxpr_to_mlir_module_duration"):
+            lowered.append(kw.get("fun_name", "?"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield lowered
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
 
 
 def test_constraint_vocabulary():
@@ -276,19 +293,10 @@ def test_logs_of_other_lengths_share_the_compiled_solver():
 
     other, y1 = problem(0.5)  # 10 segments: the same bucket
     assert other.segs.count == 10
-    lowered: list[str] = []
-
-    def listen(event: str, secs: float, **kw) -> None:
-        if event.endswith("jaxpr_to_mlir_module_duration"):
-            lowered.append(kw.get("fun_name", "?"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with lowerings() as lowered:
         sol = least_squares(other, y1, max_steps=3)
         simulated_outputs(other, sol.y), residuals(other, sol.y)
         covariance(other, sol.y, solution=sol), discretisation_bias(other, sol)
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
     assert lowered == [], lowered
     assert sol.y[1].shape == y1[1].shape and sol.residual.shape == other.residuals(sol.y).shape
 
@@ -477,21 +485,12 @@ def test_host_side_conversions_compile_no_programs():
     space = ParamSpace.build(plant, ("Fc", "Fs", "sigma0"))
     theta = space.theta0()
     space.physical_values(theta)  # its one program, compiled (and kept) before counting
-    lowered: list[str] = []
-
-    def listen(event: str, secs: float, **kw) -> None:
-        if event.endswith("jaxpr_to_mlir_module_duration"):
-            lowered.append(kw.get("fun_name", "?"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with lowerings() as lowered:
         as_param(np.full(3, 0.25)), as_param(7.5), as_param([1.0, 2.0, 4.0])
         make_segments(log, kind="flexible", outputs=("q1", "q2"), length=109)
         space.theta_of({"Fc": 0.3})
         values = space.physical_values(space.theta_of({"Fc": 0.3}))
         space.plant(theta)
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
     assert lowered == [], lowered
     assert values["Fc"][0] == pytest.approx(0.3, rel=1e-12)
     assert isinstance(as_param(7.5), jax.Array) and as_param(7.5).shape == (1,)
