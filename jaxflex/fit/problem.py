@@ -350,17 +350,19 @@ class Problem(eqx.Module):
 
     @property
     def n_out(self) -> int:
-        """Number of output residuals (the rows of every segment slot)."""
+        """Number of output residuals (the rows of every segment slot; ``Padding`` keeps
+        padded problems inside the engine, so a caller's problem counts its data only)."""
         return int(np.prod(self.segs.y_meas.shape))
 
     def padded(self, slots: int) -> Problem:
         """The same problem in ``slots`` >= S segment slots (``segment_slots``; equal counts
         too, so that every count of a bucket has one program): the S data segments, then
-        copies of the last marked inactive (``Segments.active``), whose output
-        residuals and continuity defects are zero. Its residual is the original's with zero
-        rows inserted after the outputs (``unpad_rows``), so its least-squares solution, cost
-        and normal equations are the original's; the copies keep every replay finite. The
-        arrays are gathered on the host (no eager device program per shape)."""
+        copies of the last marked inactive (``Segments.active``), whose output residuals and
+        continuity defects are zero. Its residual is the original's with zero rows inserted
+        (``jaxflex.fit.Padding.rows_back`` takes them out), so its least-squares solution,
+        cost and normal equations are the original's; the copies keep every replay finite.
+        The arrays are gathered on the host (no eager device program per shape). Raises
+        ``ValueError`` for fewer slots than segments or a problem already padded."""
         S = self.segs.count
         if self.segs.active is not None:
             raise ValueError("fit: the problem is already padded")

@@ -694,7 +694,7 @@ def least_squares(
     ``covariance`` reports). ``geodesic``: > 0 turns on
     geodesic acceleration (``geodesic_step``) with this bound on 2 |a| / |v| (0.75 is the
     usual choice; 0: plain Levenberg-Marquardt). ``bucket``: a free-start multiple-shooting
-    ``Problem`` of more than 4 segments is solved in ``segment_slots`` slots (inert padding
+    ``Problem`` of more than 2 segments is solved in ``segment_slots`` slots (inert padding
     segments, ``Problem.padded``; the solution, residual and normal equations are cut back to
     the data), so logs of other lengths share the compiled solver (False: its own shape).
     Raises ``ValueError`` for
