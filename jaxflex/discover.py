@@ -108,6 +108,7 @@ from jaxflex.fit import (
     residuals,
     savgol,
     simulated_outputs,
+    slot_rows,
     white_noise_std,
 )
 from jaxflex.logs import Log
@@ -319,8 +320,9 @@ def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
     q1, q2 = (savgol(q, dt, 0, window)[idx] for q in (q1s, q2s))
     v1, v2 = (savgol(q, dt, 1, window)[idx] for q in (q1s, q2s))
     a1, a2 = (savgol(q, dt, 2, window)[idx] for q in (q1s, q2s))
-    cap, r0, r1 = (np.asarray(a) for a in _bristle_residuals(plant, q1, v1, a1, q2, v2, a2,
-                                                              taus[idx]))
+    pick = slot_rows(len(idx))  # the segment count's bucket: one program per bucket
+    cap, r0, r1 = (np.asarray(a)[: len(idx)] for a in _bristle_residuals(
+        plant, *(to_device(a[pick]) for a in (q1, v1, a1, q2, v2, a2, taus[idx]))))
     frac = -r0 / np.where(r1 != r0, r1 - r0, 1.0)
     return cap * np.clip(frac, -bound, bound)
 
@@ -361,7 +363,6 @@ class CandidateFit:
         return self.theta, self.test_starts
 
 
-@persistent_jit
 def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
                     bound: float = 0.995) -> jax.Array:
     """Start states (S, n_state, 1) with their bounded z entries [rad] (``Problem.bounded_z``)
@@ -370,8 +371,16 @@ def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
     slope); from just inside, a further solve can bring it back when the data want a partial
     load (measured on a clean open-loop log: training gap 0.00089 from the first solve,
     0.00032 after a second solve from the entries brought back, as from the true
-    parameters). Compiled (one program per shape, kept by ``jaxflex.tracecache``): run op by
-    op it cost a dozen small compilations per shape on every run."""
+    parameters). Compiled (one program per bucket of segment counts, ``slot_rows``, kept by
+    ``jaxflex.tracecache``): run op by op it cost a dozen small compilations per shape on
+    every run."""
+    x = np.asarray(x0s)
+    out = _within_capacity(to_device(x[slot_rows(x.shape[0])]), plant, bound)
+    return to_device(np.asarray(out)[: x.shape[0]])
+
+
+@persistent_jit
+def _within_capacity(x0s: jax.Array, plant: FlexibleJointPlant, bound: float) -> jax.Array:
     fr = plant.friction
     cap = bound * fr.g(x0s[:, 1]) / fr.sigma0
     return x0s.at[:, 4].set(jnp.clip(x0s[:, 4], -cap, cap))
@@ -640,8 +649,10 @@ def localise(log: Log, params: Params, window: int = 41) -> Localisation:
     a1, a2 = (savgol(q, dt, 2, window) for q in (q1s, q2s))
     tau = savgol(taus, dt, 0, window)
 
-    r_link, r_rot = (np.asarray(a)[:, 0] for a in
-                     inverse_dynamics(plant, q1, v1, a1, q2, v2, a2, tau))
+    N = q1.shape[0]
+    pick = slot_rows(N)  # the samples padded to their bucket: one program per bucket
+    r_link, r_rot = (np.asarray(a)[:N, 0] for a in inverse_dynamics(
+        plant, *(to_device(a[pick]) for a in (q1, v1, a1, q2, v2, a2, tau))))
     K, I, J = (float(np.ravel(a)[0]) for a in (plant.K, plant.links.I, plant.J))
     d, dd = q2 - q1, v2 - v1
     nf1, nf2 = noise_level(q1s), noise_level(q2s)

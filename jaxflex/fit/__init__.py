@@ -6,7 +6,7 @@ constraint vocabulary, one solver path (optimistix Levenberg-Marquardt), one cov
 - ``ParamSpace``: free parameters and their reparametrisation (``space``);
 - ``Segments``, ``make_segments``, ``Problem``: data and residuals (``problem``);
 - ``least_squares``, ``covariance``, ``cost``: solve and judge (``solve``);
-- ``segment_slots``, ``Padding``: the buckets of segment counts a problem is compiled for, so
+- ``segment_slots``, ``slot_rows``, ``Padding``: the buckets of segment counts a problem is compiled for, so
   that logs of other lengths reuse the programs.
 """
 
@@ -20,6 +20,7 @@ from jaxflex.fit.problem import (
     pack_state,
     savgol,
     segment_slots,
+    slot_rows,
     unpack_state,
     white_noise_std,
 )
@@ -51,7 +52,7 @@ from jaxflex.fit.space import (
 
 __all__ = [
     "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "Padding", "ParamSpace", "Problem", "Segments",
-    "Solution", "segment_slots",
+    "Solution", "segment_slots", "slot_rows",
     "constraint_of", "cost", "covariance", "discretisation_bias", "gap",
     "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",

@@ -104,6 +104,14 @@ def segment_slots(count: int) -> int:
     return int(m << e)
 
 
+def slot_rows(count: int) -> np.ndarray:
+    """Row indices 0..count-1 filling the ``segment_slots(count)`` slots of ``count`` rows,
+    the last repeated: a per-log array indexed with them and cut back to ``count`` rows after
+    a compiled call keeps that call's shape within the bucket (``Problem.padded`` and the
+    host-side helpers that evaluate a JAX function on per-log rows)."""
+    return np.minimum(np.arange(segment_slots(count)), count - 1)
+
+
 def output_columns(log: Log, kind: ModelKind, outputs: Sequence[str] | None) -> tuple[str, ...]:
     """The measured position channels fitted: default ("q1", "q2") for the flexible model when
     the log has q2, else ("q1",); raises ``ValueError`` for a channel the log lacks."""
@@ -150,8 +158,8 @@ def make_segments(
     v2 = savgol(q2, dt, 1, window)
     if z_of_velocity is None:
         z0 = np.zeros_like(v1[starts])
-    else:  # evaluated on the bucket's slots (``segment_slots``): no new program per count
-        pick = np.minimum(np.arange(segment_slots(starts.size)), starts.size - 1)
+    else:  # evaluated on the bucket's slots (``slot_rows``): no new program per count
+        pick = slot_rows(starts.size)
         z0 = np.asarray(jax.vmap(z_of_velocity)(to_device(v1[starts][pick])))[: starts.size]
     if kind == "rigid":
         x0 = np.stack([q1[starts], v1[starts], z0], axis=1)

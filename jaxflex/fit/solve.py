@@ -40,7 +40,7 @@ from jax.flatten_util import ravel_pytree
 from optimistix._solver.gauss_newton import _GaussNewtonState
 
 from jaxflex.tracecache import persistent_jit
-from jaxflex.fit.problem import BLOWN_RESIDUAL, Problem, segment_slots
+from jaxflex.fit.problem import BLOWN_RESIDUAL, Problem, segment_slots, slot_rows
 from jaxflex.validation import to_device
 
 
@@ -624,8 +624,7 @@ class Padding:
     def unknowns(self, y: Any) -> Any:
         """(theta, x0s) with x0s grown to the slots (copies of the last start)."""
         theta, x0s = y
-        idx = np.minimum(np.arange(self.slots), self.count - 1)
-        return theta, to_device(np.asarray(x0s)[idx])
+        return theta, to_device(np.asarray(x0s)[slot_rows(self.count)])
 
     def unknowns_back(self, y: Any) -> Any:
         """(theta, x0s) of the data segments."""

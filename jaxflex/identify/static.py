@@ -14,8 +14,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from jaxflex.fit import (ParamSpace, covariance, get_value, least_squares, savgol,
-                         segment_slots)
+from jaxflex.fit import ParamSpace, covariance, get_value, least_squares, savgol, slot_rows
 from jaxflex.friction import LuGre
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -38,7 +37,8 @@ class StaticMapProblem(eqx.Module):
     """The curve fit of eq. 35 as a problem of the fitting engine: residuals
     ``w (F_ss(v; theta) - F)`` [N m] over the static-map data, parameters in ``space``;
     ``w`` (m,) is 1 for a data point and 0 for padding (``fit_static_map`` pads the points to
-    ``segment_slots`` of their count, so maps of other sizes share the compiled solver)."""
+    the slots of their count, ``slot_rows``, so maps of other sizes share the compiled
+    solver)."""
 
     space: ParamSpace
     v: jax.Array
@@ -71,7 +71,7 @@ def fit_static_map(
     if v.shape != F.shape or v.ndim != 1 or v.size < 5:
         raise ValueError(f"fit_static_map: need >= 5 (v, F) pairs of equal length, got "
                          f"{v.shape} and {F.shape}")
-    pick = np.minimum(np.arange(segment_slots(v.size)), v.size - 1)  # padding: copies, w 0
+    pick = slot_rows(v.size)  # the bucket's slots: padding by copies, weight 0
     w = (np.arange(pick.size) < v.size).astype(float)
     missing = [k for k in STATIC_NAMES if k not in init]
     if missing:
@@ -125,10 +125,10 @@ def static_map_from_log(
     v1, v2 = savgol(q1, dt, 1, window), savgol(q2, dt, 1, window)
     a1, a2 = savgol(q1, dt, 2, window), savgol(q2, dt, 2, window)
     bare = eqx.tree_at(lambda p: p.friction, plant, None, is_leaf=lambda x: x is None)
-    # on the samples padded to their bucket (``segment_slots``): logs of other lengths share
+    # on the samples padded to their bucket (``slot_rows``): logs of other lengths share
     # the one program
     N = q1.shape[0]
-    pick = np.minimum(np.arange(segment_slots(N)), N - 1)
+    pick = slot_rows(N)
     motion = (savgol(q1, dt, 0, window), v1, a1, savgol(q2, dt, 0, window), v2, a2, tau)
     F = -np.asarray(_link_residuals(bare, *(to_device(a[pick]) for a in motion)))[:N, joint]
     v = v1[:, joint]
