@@ -81,6 +81,7 @@ Levenberg-Marquardt steps at 20-35 ms, 260 of them settling the base (``settle``
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -107,8 +108,8 @@ from jaxflex.fit import (
     params_of_plant,
     residuals,
     savgol,
+    on_slot_rows,
     simulated_outputs,
-    slot_rows,
     white_noise_std,
 )
 from jaxflex.logs import Log
@@ -320,9 +321,9 @@ def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
     q1, q2 = (savgol(q, dt, 0, window)[idx] for q in (q1s, q2s))
     v1, v2 = (savgol(q, dt, 1, window)[idx] for q in (q1s, q2s))
     a1, a2 = (savgol(q, dt, 2, window)[idx] for q in (q1s, q2s))
-    pick = slot_rows(len(idx))  # the segment count's bucket: one program per bucket
-    cap, r0, r1 = (np.asarray(a)[: len(idx)] for a in _bristle_residuals(
-        plant, *(to_device(a[pick]) for a in (q1, v1, a1, q2, v2, a2, taus[idx]))))
+    # in the segment count's bucket: one program per bucket
+    cap, r0, r1 = on_slot_rows(functools.partial(_bristle_residuals, plant),
+                               q1, v1, a1, q2, v2, a2, taus[idx])
     frac = -r0 / np.where(r1 != r0, r1 - r0, 1.0)
     return cap * np.clip(frac, -bound, bound)
 
@@ -371,12 +372,10 @@ def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
     slope); from just inside, a further solve can bring it back when the data want a partial
     load (measured on a clean open-loop log: training gap 0.00089 from the first solve,
     0.00032 after a second solve from the entries brought back, as from the true
-    parameters). Compiled (one program per bucket of segment counts, ``slot_rows``, kept by
-    ``jaxflex.tracecache``): run op by op it cost a dozen small compilations per shape on
+    parameters). Compiled (one program per bucket of segment counts, ``on_slot_rows``, kept
+    by ``jaxflex.tracecache``): run op by op it cost a dozen small compilations per shape on
     every run."""
-    x = np.asarray(x0s)
-    out = _within_capacity(to_device(x[slot_rows(x.shape[0])]), plant, bound)
-    return to_device(np.asarray(out)[: x.shape[0]])
+    return to_device(on_slot_rows(lambda x: _within_capacity(x, plant, bound), x0s))
 
 
 @persistent_jit
@@ -483,9 +482,9 @@ def held_out_starts(prob: Problem, theta: dict[str, jax.Array], carried: jax.Arr
     the friction's capacity. Carried starts fitted under other parameters can lie far from
     this model's (measured: a torque offset added to a nominal refit whose Fs had gone to 0.73
     N m, the true 0.15 refitted; the carried starts gave a held-out gap of 0.0025 after 40
-    steps and 0.00035 after 80, the log's estimates 0.00034 after 40). ``max_steps``: twice fit_starts' default, since the solves this
-    replaces each continued the held-out start fit of the one before (the statistical stop
-    ends it sooner where it can)."""
+    steps and 0.00035 after 80, the log's estimates 0.00034 after 40). ``max_steps``: twice
+    fit_starts' default, since the solves this replaces each continued the held-out start fit
+    of the one before (the statistical stop ends it sooner where it can)."""
     plant = prob.space.plant(theta)
     tries = [fit_starts(prob, theta, within_capacity(x, plant), max_steps=max_steps)
              for x in (carried, prob.segs.x0)]
@@ -649,10 +648,9 @@ def localise(log: Log, params: Params, window: int = 41) -> Localisation:
     a1, a2 = (savgol(q, dt, 2, window) for q in (q1s, q2s))
     tau = savgol(taus, dt, 0, window)
 
-    N = q1.shape[0]
-    pick = slot_rows(N)  # the samples padded to their bucket: one program per bucket
-    r_link, r_rot = (np.asarray(a)[:N, 0] for a in inverse_dynamics(
-        plant, *(to_device(a[pick]) for a in (q1, v1, a1, q2, v2, a2, tau))))
+    # on the samples padded to their bucket: one program per bucket
+    r_link, r_rot = (a[:, 0] for a in on_slot_rows(functools.partial(inverse_dynamics, plant),
+                                                   q1, v1, a1, q2, v2, a2, tau))
     K, I, J = (float(np.ravel(a)[0]) for a in (plant.K, plant.links.I, plant.J))
     d, dd = q2 - q1, v2 - v1
     nf1, nf2 = noise_level(q1s), noise_level(q2s)

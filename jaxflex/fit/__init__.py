@@ -6,8 +6,8 @@ constraint vocabulary, one solver path (optimistix Levenberg-Marquardt), one cov
 - ``ParamSpace``: free parameters and their reparametrisation (``space``);
 - ``Segments``, ``make_segments``, ``Problem``: data and residuals (``problem``);
 - ``least_squares``, ``covariance``, ``cost``: solve and judge (``solve``);
-- ``segment_slots``, ``slot_rows``, ``Padding``: the buckets of segment counts a problem is compiled for, so
-  that logs of other lengths reuse the programs.
+- ``segment_slots``, ``slot_rows``, ``on_slot_rows``, ``Padding``: the buckets of segment
+  counts a problem is compiled for, so that logs of other lengths reuse the programs.
 """
 
 from jaxflex.fit.problem import (
@@ -19,6 +19,7 @@ from jaxflex.fit.problem import (
     output_columns,
     pack_state,
     savgol,
+    on_slot_rows,
     segment_slots,
     slot_rows,
     unpack_state,
@@ -52,7 +53,7 @@ from jaxflex.fit.space import (
 
 __all__ = [
     "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "Padding", "ParamSpace", "Problem", "Segments",
-    "Solution", "segment_slots", "slot_rows",
+    "Solution", "on_slot_rows", "segment_slots", "slot_rows",
     "constraint_of", "cost", "covariance", "discretisation_bias", "gap",
     "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",

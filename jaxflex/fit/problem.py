@@ -25,7 +25,7 @@ tangents per segment, vmapped over segments, whatever the number of segments.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -104,12 +104,26 @@ def segment_slots(count: int) -> int:
     return int(m << e)
 
 
-def slot_rows(count: int) -> np.ndarray:
-    """Row indices 0..count-1 filling the ``segment_slots(count)`` slots of ``count`` rows,
-    the last repeated: a per-log array indexed with them and cut back to ``count`` rows after
-    a compiled call keeps that call's shape within the bucket (``Problem.padded`` and the
-    host-side helpers that evaluate a JAX function on per-log rows)."""
-    return np.minimum(np.arange(segment_slots(count)), count - 1)
+def slot_rows(count: int, slots: int | None = None) -> np.ndarray:
+    """Row indices 0..count-1 filling ``slots`` (default ``segment_slots(count)``) slots, the
+    last repeated: a per-log array indexed with them and cut back to ``count`` rows after a
+    compiled call keeps that call's shape within the bucket (``Problem.padded``,
+    ``on_slot_rows``)."""
+    slots = segment_slots(count) if slots is None else slots
+    return np.minimum(np.arange(slots), count - 1)
+
+
+def on_slot_rows(fn: Callable[..., Any], *rows: Any) -> Any:
+    """``fn(*rows)`` for a ``fn`` that works row by row (a vmap over the leading axis, or a
+    compiled program of one): the rows (n each) padded to the slots of n (``slot_rows``) and
+    moved to the device, every output cut back to n rows on the host (numpy), so that logs of
+    other lengths share ``fn``'s program. The one way jaxflex evaluates a JAX function on
+    per-log rows (start z, static-map inverse dynamics, discover's start loads, capacity clip
+    and localisation)."""
+    n = np.shape(rows[0])[0]
+    pick = slot_rows(n)
+    out = fn(*(to_device(np.asarray(a)[pick]) for a in rows))
+    return jax.tree_util.tree_map(lambda o: np.asarray(o)[:n], out)
 
 
 def output_columns(log: Log, kind: ModelKind, outputs: Sequence[str] | None) -> tuple[str, ...]:
@@ -158,9 +172,8 @@ def make_segments(
     v2 = savgol(q2, dt, 1, window)
     if z_of_velocity is None:
         z0 = np.zeros_like(v1[starts])
-    else:  # evaluated on the bucket's slots (``slot_rows``): no new program per count
-        pick = slot_rows(starts.size)
-        z0 = np.asarray(jax.vmap(z_of_velocity)(to_device(v1[starts][pick])))[: starts.size]
+    else:  # on the bucket's slots: no new program per segment count
+        z0 = on_slot_rows(jax.vmap(z_of_velocity), v1[starts])
     if kind == "rigid":
         x0 = np.stack([q1[starts], v1[starts], z0], axis=1)
     else:
@@ -376,7 +389,7 @@ class Problem(eqx.Module):
             raise ValueError("fit: the problem is already padded")
         if slots < S:
             raise ValueError(f"fit: {slots} slots cannot hold {S} segments")
-        idx = np.minimum(np.arange(slots), S - 1)
+        idx = slot_rows(S, slots)
         grow = lambda a: to_device(np.asarray(a)[idx])  # noqa: E731
         segs = Segments(tau=grow(self.segs.tau), y_meas=grow(self.segs.y_meas),
                         tau_pre=grow(self.segs.tau_pre), x0=grow(self.segs.x0),

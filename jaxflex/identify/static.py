@@ -7,6 +7,7 @@ inverse dynamics)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 
@@ -14,7 +15,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from jaxflex.fit import ParamSpace, covariance, get_value, least_squares, savgol, slot_rows
+from jaxflex.fit import (ParamSpace, covariance, get_value, least_squares, on_slot_rows,
+                         savgol, slot_rows)
 from jaxflex.friction import LuGre
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -125,12 +127,9 @@ def static_map_from_log(
     v1, v2 = savgol(q1, dt, 1, window), savgol(q2, dt, 1, window)
     a1, a2 = savgol(q1, dt, 2, window), savgol(q2, dt, 2, window)
     bare = eqx.tree_at(lambda p: p.friction, plant, None, is_leaf=lambda x: x is None)
-    # on the samples padded to their bucket (``slot_rows``): logs of other lengths share
-    # the one program
-    N = q1.shape[0]
-    pick = slot_rows(N)
+    # on the samples padded to their bucket: logs of other lengths share the one program
     motion = (savgol(q1, dt, 0, window), v1, a1, savgol(q2, dt, 0, window), v2, a2, tau)
-    F = -np.asarray(_link_residuals(bare, *(to_device(a[pick]) for a in motion)))[:N, joint]
+    F = -on_slot_rows(functools.partial(_link_residuals, bare), *motion)[:, joint]
     v = v1[:, joint]
     top = float(np.quantile(np.abs(v), 0.99))
     lo = 0.02 * top if min_speed is None else min_speed
