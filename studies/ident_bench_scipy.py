@@ -445,7 +445,7 @@ def bench_length(t_final: float, args: argparse.Namespace) -> dict[str, Any]:
 
     machine_start = benchkit.machine_state()
     t = time.perf_counter()
-    run_jax()  # the first, cold call: compiles the solver (once per substeps level)
+    run_jax()  # the first, cold call: compiles the solver (once; substeps are traced)
     jax_first = time.perf_counter() - t
 
     def cost_of(p: Any, f: np.ndarray) -> float:

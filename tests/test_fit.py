@@ -301,6 +301,45 @@ def test_logs_of_other_lengths_share_the_compiled_solver():
     assert sol.y[1].shape == y1[1].shape and sol.residual.shape == other.residuals(sol.y).shape
 
 
+def test_traced_substeps_equal_compiled_ones_and_share_every_program():
+    """A problem whose substeps are a traced count (``dynamic_substeps``, identify's automatic
+    choice) gives the compiled-in count's numbers (solve, replay, covariance), and a problem
+    with other substeps (the coarse-to-fine refinement) lowers no program at all."""
+    from jax.flatten_util import ravel_pytree
+
+    from jaxflex.fit import discretisation_bias, dynamic_substeps, refined, simulated_outputs
+    from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
+
+    p = paper_params()
+    init = perturb(p, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.3), substeps=4)
+    fixed, y0 = make_problem(log, init, DEFAULT_FREE, segment_length=50, substeps=2)
+    traced, _ = make_problem(log, init, DEFAULT_FREE, segment_length=50,
+                             substeps=dynamic_substeps(2))
+    assert traced.n_substeps == fixed.n_substeps == 2
+    a = least_squares(fixed, y0, max_steps=3)
+    b = least_squares(traced, y0, max_steps=3)
+    fa, fb = (np.asarray(ravel_pytree(s.y)[0]) for s in (a, b))
+    assert a.steps == b.steps
+    assert np.max(np.abs(fa - fb)) <= 1e-10 * np.max(np.abs(fa))
+    assert b.cost == pytest.approx(a.cost, rel=1e-10)
+    covariance(traced, b.y, solution=b), discretisation_bias(traced, b)
+    np.testing.assert_allclose(simulated_outputs(traced, b.y), simulated_outputs(fixed, b.y),
+                               rtol=1e-12, atol=0)
+
+    finer = refined(traced, 4)
+    assert finer.n_substeps == 8 and not isinstance(finer.substeps, int)
+    with lowerings() as lowered:
+        sol = least_squares(finer, b.y, max_steps=2)
+        simulated_outputs(finer, sol.y)
+        covariance(finer, sol.y, solution=sol), discretisation_bias(finer, sol)
+    assert lowered == [], lowered
+    np.testing.assert_allclose(simulated_outputs(finer, sol.y),
+                               simulated_outputs(refined(fixed, 4), sol.y), rtol=1e-12, atol=0)
+    with pytest.raises(ValueError, match="substeps"):
+        dynamic_substeps(0)
+
+
 def _plain_residuals(y, prob):  # the same residuals by another function: the dense route
     return prob.residuals(y)
 

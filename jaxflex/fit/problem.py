@@ -210,6 +210,17 @@ def unpack_state(kind: ModelKind, v: Array, aux: Any = None) -> PlantState:
     return PlantState(q1=q1, dq1=dq1, q2=q2, dq2=dq2, z=z, aux=aux)
 
 
+def dynamic_substeps(n: int) -> Array:
+    """``n`` integrator substeps per sample as a ``Problem.substeps`` that the compiled
+    programs take as an argument (a 0-d int32 array, a traced loop count): problems that
+    differ only in their substeps then share every compiled program. Per substep on a CPU,
+    the loop ran at the speed of the unrolled one (measured on a 3 s log, 6 segments of 500
+    samples: see ``jaxflex.identify.identify``)."""
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise ValueError(f"fit: substeps must be an integer >= 1, got {n!r}")
+    return jnp.asarray(int(n), dtype=jnp.int32)
+
+
 class Problem(eqx.Module):
     """One least-squares problem: parameter space, data segments, model structure, weights.
 
@@ -230,7 +241,10 @@ class Problem(eqx.Module):
     every load with it). ``jac_columns``:
     with a parameter mask, the most fitted theta entries any mask will have; the structured
     Jacobian then takes only that many tangents (the fitted directions) instead of all of
-    theta.
+    theta. ``substeps``: integrator substeps per sample, a Python int (a compiled program per
+    value; up to ``UNROLL_SUBSTEPS`` unrolled) or a 0-d integer array (``dynamic_substeps``:
+    a traced loop count, so that every level of a coarse-to-fine refinement shares one
+    compiled program); ``n_substeps`` reads it as an int on the host.
     """
 
     space: ParamSpace
@@ -239,7 +253,7 @@ class Problem(eqx.Module):
     w_def: Array
     dt: float = eqx.field(static=True)
     kind: str = eqx.field(static=True)
-    substeps: int = eqx.field(static=True)
+    substeps: int | Array
     outputs: tuple[str, ...] = eqx.field(static=True)
     free_starts: bool = eqx.field(static=True, default=True)
     steady_z: bool = eqx.field(static=True, default=False)
@@ -250,8 +264,16 @@ class Problem(eqx.Module):
     def __check_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
             raise ValueError(f"fit: model must be one of {MODEL_KINDS}, got {self.kind!r}")
-        if self.substeps < 1:
-            raise ValueError(f"fit: substeps must be >= 1, got {self.substeps}")
+        if not isinstance(self.substeps, jax.core.Tracer) and not (
+                np.ndim(self.substeps) == 0 and np.issubdtype(np.asarray(self.substeps).dtype,
+                                                               np.integer)
+                and int(self.substeps) >= 1):
+            raise ValueError(f"fit: substeps must be an integer >= 1, got {self.substeps!r}")
+
+    @property
+    def n_substeps(self) -> int:
+        """Integrator substeps per sample as a Python int (host side)."""
+        return int(self.substeps)
 
     def split(self, y: Any) -> tuple[dict[str, Array], Array]:
         """(theta, segment start vectors (S, n_state, n)) of the unknowns ``y``."""
@@ -286,8 +308,9 @@ class Problem(eqx.Module):
         # segments and Jacobian columns run batched: unrolled substeps are faster there, up to
         # UNROLL_SUBSTEPS (past it XLA's compile time and run time on a CPU explode: 8 / 16 /
         # 32 unrolled substeps compiled in 1.6 / 5.2 / 62 s and the last ran 30x slower)
+        static = isinstance(self.substeps, int)
         xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps,
-                           unroll=self.substeps <= UNROLL_SUBSTEPS)
+                           unroll=static and self.substeps <= UNROLL_SUBSTEPS)
 
         def column(o):  # the link output as its encoder reads it (``link_measured``)
             if o == "q1" and reads_link:

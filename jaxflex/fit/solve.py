@@ -40,7 +40,8 @@ from jax.flatten_util import ravel_pytree
 from optimistix._solver.gauss_newton import _GaussNewtonState
 
 from jaxflex.tracecache import persistent_jit
-from jaxflex.fit.problem import BLOWN_RESIDUAL, Problem, segment_slots, slot_rows
+from jaxflex.fit.problem import (BLOWN_RESIDUAL, Problem, dynamic_substeps, segment_slots,
+                                  slot_rows)
 from jaxflex.validation import to_device
 
 
@@ -774,7 +775,9 @@ RICHARDSON = 2.0
 
 def refined(prob: Problem, factor: int = 2) -> Problem:
     """``prob`` with ``factor`` x its integrator substeps (the same data and unknowns)."""
-    return dataclasses.replace(prob, substeps=prob.substeps * int(factor))
+    n = prob.n_substeps * int(factor)
+    return dataclasses.replace(
+        prob, substeps=n if isinstance(prob.substeps, int) else dynamic_substeps(n))
 
 
 def integration_error(prob: Problem, y: Any) -> float:
@@ -850,7 +853,7 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     return {"bias_se": float(np.max(np.abs(shift) / se)) if finite and shift.size
             else (0.0 if finite else math.inf),
             "bias_mahalanobis": maha, "output_error": out_err,
-            "substeps": prob.substeps,
+            "substeps": prob.n_substeps,
             "shift_theta": {labels[i]: float(v) for i, v in zip(fitted, shift)},
             "stderr_theta": {labels[i]: float(v) for i, v in zip(fitted, se)}}
 

@@ -24,6 +24,7 @@ from typing import Any
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from jaxflex.fit import (
     ParamSpace,
@@ -31,6 +32,7 @@ from jaxflex.fit import (
     Solution,
     covariance,
     discretisation_bias,
+    dynamic_substeps,
     get_value,
     least_squares,
     make_segments,
@@ -145,13 +147,17 @@ class IdentResult:
 
 def make_problem(
     log: Log, init: Params, free: Sequence[str] = DEFAULT_FREE, *, model: ModelKind = "flexible",
-    segment_length: int | None = None, substeps: int = 4, outputs: Sequence[str] | None = None,
+    segment_length: int | None = None, substeps: int | Array = 4,
+    outputs: Sequence[str] | None = None,
     output_scale: float | Sequence[float] | None = None, continuity_weight: float = 10.0,
 ) -> tuple[Problem, tuple[dict[str, Any], Any]]:
     """The identification problem of a log and its starting point (module docstring).
 
     ``segment_length`` samples per shooting segment (default: the whole log, single
-    shooting); a tail shorter than one segment is dropped. ``outputs``: measured channels
+    shooting); a tail shorter than one segment is dropped. ``substeps``: integrator substeps
+    per sample, an int (compiled in) or ``jaxflex.fit.dynamic_substeps(n)`` (a traced count:
+    problems of every count share the compiled programs; ``identify``'s automatic choice).
+    ``outputs``: measured channels
     fitted, default ("q1", "q2") for the flexible model when the log has q2, else ("q1",).
     ``output_scale`` [rad]: one value or one per joint; joint j's residuals (its outputs and
     its continuity defects) are divided by its value (default: each joint's encoder-noise level
@@ -166,7 +172,7 @@ def make_problem(
         raise ValueError("identify: the log needs columns tau and q1")
     if log.n != init.n:
         raise ValueError(f"identify: log has {log.n} joint(s), parameters have {init.n}")
-    if substeps < 1:
+    if not int(substeps) >= 1:
         raise ValueError(f"identify: substeps must be >= 1, got {substeps}")
     N = log.N
     L = N if segment_length is None else int(segment_length)
@@ -199,7 +205,8 @@ def make_problem(
     # output columns are (channel, joint): ``outputs`` in order, each with n joints
     w_y = np.tile(1.0 / scale, len(outputs))
     prob = Problem(space=space, segs=segs, w_y=jnp.asarray(w_y),
-                   w_def=jnp.asarray(w_def), dt=dt, kind=model, substeps=substeps,
+                   w_def=jnp.asarray(w_def), dt=dt, kind=model,
+                   substeps=substeps,
                    outputs=outputs, free_starts=True)
     return prob, prob.y0()
 
@@ -271,7 +278,7 @@ def identify(
              if (static_start and model in ("flexible", "link")) else None)
     prob, y0 = make_problem(
         log, init, free, model=model, segment_length=segment_length,
-        substeps=1 if auto else substeps,
+        substeps=dynamic_substeps(1) if auto else substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
     )
     starts = [("user", y0)]
@@ -281,7 +288,6 @@ def identify(
     discretisation: dict[str, Any] = {"mode": "auto" if auto else "given"}
     if auto:
         prob, discretisation["first"] = choose_substeps(prob, starts[0][1])
-        substeps = prob.substeps
     every = int(progress)
     say = None
     if progress:
@@ -375,7 +381,8 @@ def identify(
             break
         fixed_why[worst] = res.why[worst]
         sub, _ = make_problem(log, init, keep, model=model, segment_length=segment_length,
-                              substeps=substeps, outputs=outputs, output_scale=output_scale,
+                              substeps=prob.substeps, outputs=outputs,
+                              output_scale=output_scale,
                               continuity_weight=continuity_weight)
         # from the values fitted so far and from the user's start with the winning schedule
         # (those fitted together with the parameter now fixed may sit far from where the
@@ -429,7 +436,7 @@ def identify(
     r_prob, r_sol, discretisation["checks"] = refine_fit(
         f_prob, f_sol, refine=auto, solve=dict(solve, max_steps=max_steps), attempts=attempts)
     discretisation.update(discretisation["checks"][-1])
-    substeps = r_prob.substeps
+    substeps = r_prob.n_substeps
     if r_prob is not f_prob:
         total += r_sol.steps - f_sol.steps
         again = finish(r_prob, init, r_sol.y, steps=total, converged=_settled(r_sol, good),
@@ -470,9 +477,9 @@ def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
     while True:
         fine = simulated_outputs(refined(prob), y)
         err = step_doubling_error(prob, coarse, fine)
-        errors[prob.substeps] = err
-        if err <= tol or prob.substeps * 2 > most:
-            return prob, {"substeps": prob.substeps, "output_error": errors}
+        errors[prob.n_substeps] = err
+        if err <= tol or prob.n_substeps * 2 > most:
+            return prob, {"substeps": prob.n_substeps, "output_error": errors}
         prob, coarse = refined(prob), fine
 
 
@@ -493,24 +500,25 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
     the generated logs the shift fell 6x from 4 to 16 substeps, not the 16x of a second-order
     scheme (logs made by a 10-substep simulator); on EMPS it fell from 11.6 to 0.0005
     standard errors from 4 to 32.
-    Each refinement costs a compilation of the solver. ``solve``: ``least_squares`` options.
+    With ``make_problem``'s traced substep count (``jaxflex.fit.dynamic_substeps``) every
+    level runs the same compiled solver. ``solve``: ``least_squares`` options.
     Returns the final problem, solution and every check."""
     checks = []
     while True:
         if sol.normal is None:  # no step was taken: nothing to judge
-            checks.append({"substeps": prob.substeps, "bias_se": math.nan,
+            checks.append({"substeps": prob.n_substeps, "bias_se": math.nan,
                            "bias_mahalanobis": math.nan, "output_error": math.nan})
             return prob, sol, checks
         chk = discretisation_bias(prob, sol)
         checks.append(chk)
-        if not refine or not chk["bias_se"] > tol or prob.substeps * 2 > most:
+        if not refine or not chk["bias_se"] > tol or prob.n_substeps * 2 > most:
             return prob, sol, checks
         factor = 2 ** max(1, math.ceil(math.log2(min(chk["bias_se"] / tol, 1e6))))
-        factor = max(2, min(factor, REFINE_MOST, most // prob.substeps))
+        factor = max(2, min(factor, REFINE_MOST, most // prob.n_substeps))
         prob = refined(prob, factor)
         more = least_squares(prob, sol.y, **solve)
         if attempts is not None:
-            attempts.append({"refined_substeps": prob.substeps, "cost": more.cost,
+            attempts.append({"refined_substeps": prob.n_substeps, "cost": more.cost,
                              "steps": more.steps, "reason": more.reason})
         sol = dataclasses.replace(more, steps=sol.steps + more.steps,
                                   seconds=sol.seconds + more.seconds)
