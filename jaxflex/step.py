@@ -38,7 +38,6 @@ All are ``lax.scan`` loops, so forward-mode Jacobians work (docs/spec.md section
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from typing import Literal
 
@@ -175,35 +174,32 @@ def model_step(
     # the loop carries the state as one flat array: a pytree of (n,)-arrays as the carry costs
     # a copy per leaf and a kernel per field each substep on a CPU (issue 17)
     flat, unravel = ravel_pytree(x)
-    # a traced ``substeps`` (an integer array: the fitting engine's problems, one compiled
-    # program for every level of refinement) runs a loop of that many trips; a Python int,
-    # a scan of that length (unrolled on request)
-    loop = (functools.partial(jax.lax.fori_loop, 0, substeps) if not isinstance(substeps, int)
-            else functools.partial(_scan_loop, substeps, unroll))
     if fr is None:
-        flat = loop(lambda i, s: ravel_pytree(rk4(lambda xx: f(xx, tau), unravel(s), hs))[0],
-                    flat)
+        flat = _substeps(substeps, unroll, hs, flat, lambda hz, s: ravel_pytree(
+            rk4(lambda xx: f(xx, tau), unravel(s), hs))[0])
         return unravel(flat)
 
     # Strang splitting with the half-steps of neighbouring substeps merged: z is advanced with
     # the velocity frozen, so the closing half-step of one substep and the opening half-step of
     # the next (same velocity, nothing in between) are one exact step of hs. The z steps are
     # hs/2, hs, ..., hs before each RK4 step and hs/2 after the last.
-    def sub(i, s):
-        hz = jnp.where(i == 0, 0.5 * hs, hs)
-        return ravel_pytree(rk4(mech, z_step(unravel(s), hz), hs))[0]
-
-    flat = loop(sub, flat)
+    flat = _substeps(substeps, unroll, hs, flat,
+                     lambda hz, s: ravel_pytree(rk4(mech, z_step(unravel(s), hz), hs))[0])
     return z_step(unravel(flat), 0.5 * hs)
 
 
-def _scan_loop(length: int, unroll: bool, body: Callable, init: Array) -> Array:
-    """``body(i, x)`` applied for i = 0 .. ``length`` - 1 as a ``lax.scan`` (differentiable
-    in reverse mode; ``unroll``: unrolled)."""
-    def step(x, i):
-        return body(i, x), None
-
-    return jax.lax.scan(step, init, jnp.arange(length), unroll=unroll)[0]
+def _substeps(substeps: int | Array, unroll: bool, hs: float | Array, init: Array,
+              body: Callable[[Array, Array], Array]) -> Array:
+    """``body(hz, x)`` applied ``substeps`` times from ``init``, hz = hs / 2 [s] on the first
+    trip and ``hs`` after. A Python int: a ``lax.scan`` of that length over the hz values
+    (differentiable in reverse mode; ``unroll``: unrolled). A traced count (an integer
+    array: the fitting engine's ``dynamic_substeps``, one compiled program for every level
+    of refinement): a loop of that many trips (forward mode only)."""
+    if isinstance(substeps, int):
+        hz = jnp.full((substeps,), hs).at[0].multiply(0.5)
+        return jax.lax.scan(lambda x, h: (body(h, x), None), init, hz, unroll=unroll)[0]
+    return jax.lax.fori_loop(0, substeps,
+                             lambda i, x: body(jnp.where(i == 0, 0.5 * hs, hs), x), init)
 
 
 def plant_step(
