@@ -10,6 +10,7 @@ count at what one module needs; executables are recompiled (or read from the per
 cache) where a later module needs them again.
 """
 
+import contextlib
 import gc
 
 import jax
@@ -23,3 +24,26 @@ def _release_compiled_executables():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+@contextlib.contextmanager
+def _lowerings():
+    """The names of the programs JAX lowers inside the block (a list, filled as it runs)."""
+    lowered: list[str] = []
+
+    def listen(event: str, secs: float, **kw) -> None:
+        if event.endswith("jaxpr_to_mlir_module_duration"):
+            lowered.append(kw.get("fun_name", "?"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield lowered
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+
+
+@pytest.fixture
+def lowerings():
+    """``with lowerings() as lowered:`` collects the names of the programs lowered inside
+    the block (tests that a call reuses compiled programs)."""
+    return _lowerings

@@ -2,7 +2,6 @@
 with measured starts and gated effects, the host-stepped solver (one compilation for problems
 that differ only in data), covariance through the reparametrisation."""
 
-import contextlib
 import dataclasses
 
 import equinox as eqx
@@ -39,22 +38,6 @@ def _fixed_start_problem(plant, log, free, length=150):
     return Problem(space=space, segs=segs, w_y=jnp.asarray(100.0), w_def=jnp.zeros(5),
                    dt=log.dt, kind="flexible", substeps=1, outputs=("q1", "q2"),
                    free_starts=False)
-
-
-@contextlib.contextmanager
-def lowerings():
-    """The names of the programs JAX lowers inside the block (a list, filled as it runs)."""
-    lowered: list[str] = []
-
-    def listen(event: str, secs: float, **kw) -> None:
-        if event.endswith("jaxpr_to_mlir_module_duration"):
-            lowered.append(kw.get("fun_name", "?"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
-        yield lowered
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
 
 
 def test_constraint_vocabulary():
@@ -256,7 +239,7 @@ def test_segment_slots_hold_every_count_with_little_padding():
     assert len(set(slots)) < 40  # few shapes for 3,000 lengths
 
 
-def test_logs_of_other_lengths_share_the_compiled_solver():
+def test_logs_of_other_lengths_share_the_compiled_solver(lowerings):
     """A multiple-shooting problem is solved in its bucket of segment slots (inert padding
     segments): the same steps, cost, residual and normal equations as in its own shape (to
     1e-10), and a log with another segment count in the same bucket lowers no new solver,
@@ -301,7 +284,7 @@ def test_logs_of_other_lengths_share_the_compiled_solver():
     assert sol.y[1].shape == y1[1].shape and sol.residual.shape == other.residuals(sol.y).shape
 
 
-def test_traced_substeps_equal_compiled_ones_and_share_every_program():
+def test_traced_substeps_equal_compiled_ones_and_share_every_program(lowerings):
     """A problem whose substeps are a traced count (``dynamic_substeps``, identify's automatic
     choice) gives the compiled-in count's numbers (solve, replay, covariance), and a problem
     with other substeps (the coarse-to-fine refinement) lowers no program at all."""
@@ -511,7 +494,7 @@ def test_shooting_jacobian_blocks_give_J_and_J_transpose():
                                atol=1e-12 * np.max(np.abs(JTw)))
 
 
-def test_host_side_conversions_compile_no_programs():
+def test_host_side_conversions_compile_no_programs(lowerings):
     """Building segments, parameters and starts from host data, and reading physical values
     back, lowers no per-shape program (``jnp.asarray`` of a numpy array compiles a copy in
     JAX 0.10, and every new process paid those compilations again: 66 programs on a second

@@ -248,6 +248,23 @@ def _closed_loop_log(t_final, seed=7):
     return g.log, Params.from_dict(g.truth["plant"])
 
 
+def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
+    """identify(substeps="auto") refines coarse to fine (1 -> 8 substeps on this log) with a
+    traced substep count: the refinement lowers no solver of its own; the solver is lowered
+    once per parameter space (the first fit and each refit without an unidentified
+    parameter). Static counts would lower one more per level (checked during development)."""
+    log, truth = _closed_loop_log(1.2)
+    init = perturb(truth, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
+    with lowerings() as lowered, warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        r = identify(log, init, DEFAULT_FREE, segment_length=290, static_start=False,
+                     max_steps=30)
+    levels = [c["substeps"] for c in r.discretisation["checks"]]
+    assert len(set(levels)) >= 2, levels  # the fit was refined at least once
+    spaces = 1 + len({tuple(a["refit_without"]) for a in r.attempts if "refit_without" in a})
+    assert 1 <= lowered.count("jit(_step)") <= spaces, (lowered, spaces)
+
+
 def test_local_minimum_is_reported_unconverged_and_refused_downstream(tmp_path):
     """From a start 50% off without the log's static map, the closed-loop 3 s log lands in a
     local minimum: the result says converged False with the reason, keeps the parameters it
