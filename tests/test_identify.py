@@ -253,12 +253,19 @@ def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
     traced substep count: the refinement lowers no solver of its own; the solver is lowered
     once per parameter space (the first fit and each refit without an unidentified
     parameter). Static counts would lower one more per level (checked during development)."""
+    from jaxflex import tracecache
+
     log, truth = _closed_loop_log(1.2)
     init = perturb(truth, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
-    with lowerings() as lowered, warnings.catch_warnings():
-        warnings.simplefilter("ignore", IdentificationWarning)
-        r = identify(log, init, DEFAULT_FREE, segment_length=290, static_start=False,
-                     max_steps=30)
+    kept = tracecache.folder()  # a command run in this process may have turned it on
+    tracecache.enable(None)  # programs by their own names (kept ones lower as "call")
+    try:
+        with lowerings() as lowered, warnings.catch_warnings():
+            warnings.simplefilter("ignore", IdentificationWarning)
+            r = identify(log, init, DEFAULT_FREE, segment_length=290, static_start=False,
+                         max_steps=30)
+    finally:
+        tracecache.enable(kept)
     levels = [c["substeps"] for c in r.discretisation["checks"]]
     assert len(set(levels)) >= 2, levels  # the fit was refined at least once
     spaces = 1 + len({tuple(a["refit_without"]) for a in r.attempts if "refit_without" in a})
