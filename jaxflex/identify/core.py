@@ -157,8 +157,8 @@ def make_problem(
     shooting); a tail shorter than one segment is dropped. ``substeps``: integrator substeps
     per sample, an int (compiled in) or ``jaxflex.fit.dynamic_substeps(n)`` (a traced count:
     problems of every count share the compiled programs; ``identify``'s automatic choice).
-    ``outputs``: measured channels
-    fitted, default ("q1", "q2") for the flexible model when the log has q2, else ("q1",).
+    ``outputs``: measured channels fitted, default ("q1", "q2") for the flexible model when
+    the log has q2, else ("q1",).
     ``output_scale`` [rad]: one value or one per joint; joint j's residuals (its outputs and
     its continuity defects) are divided by its value (default: each joint's encoder-noise level
     estimated from its own first output channel, at least 1e-6 rad, so that a joint that moves
@@ -205,8 +205,7 @@ def make_problem(
     # output columns are (channel, joint): ``outputs`` in order, each with n joints
     w_y = np.tile(1.0 / scale, len(outputs))
     prob = Problem(space=space, segs=segs, w_y=jnp.asarray(w_y),
-                   w_def=jnp.asarray(w_def), dt=dt, kind=model,
-                   substeps=substeps,
+                   w_def=jnp.asarray(w_def), dt=dt, kind=model, substeps=substeps,
                    outputs=outputs, free_starts=True)
     return prob, prob.y0()
 
