@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 import warnings
 from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -273,13 +275,15 @@ def identify(
     if not auto and not (isinstance(substeps, int) and substeps >= 1):
         raise ValueError(f"identify: substeps must be a positive integer or 'auto', "
                          f"got {substeps!r}")
-    start = (start_from_static_map(log, init, free)
-             if (static_start and model in ("flexible", "link")) else None)
     prob, y0 = make_problem(
         log, init, free, model=model, segment_length=segment_length,
         substeps=dynamic_substeps(1) if auto else substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
     )
+    ahead = CompileAhead(prob, y0, dict(rtol=rtol, atol=atol, decrement_tol=decrement_tol,
+                                        geodesic=geodesic))
+    start = (start_from_static_map(log, init, free)
+             if (static_start and model in ("flexible", "link")) else None)
     starts = [("user", y0)]
     if start:
         th = prob.space.theta_of({**{k: get_value(init, k) for k in prob.space.names}, **start})
@@ -311,6 +315,7 @@ def identify(
         loose = eqx.tree_at(lambda q: q.w_def, problem, problem.w_def * factor)
         return least_squares(loose, y, max_steps=warm_steps, **solve).y
 
+    ahead.wait_solver()
     for origin, y_start in starts:
         for factor in schedules:
             y = warmed(prob, y_start, factor)
@@ -352,6 +357,7 @@ def identify(
                 best, best_factor = sol, schedules[0]
             if _settled(sol, good):
                 break
+    ahead.join()
     res = finish(prob, init, best.y, steps=best.steps, converged=_settled(best, good),
                  wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                  reason=_reason(best, good), noise_cost=good, log=log, solution=best)
@@ -459,6 +465,54 @@ def identify(
         res.warnings.append(msg)
         warnings.warn(msg, IdentificationWarning, stacklevel=2)
     return res
+
+
+class CompileAhead:
+    """The compiled programs of ``prob``'s fit (its solver, covariance and discretisation
+    check), made in a background thread while ``identify`` does the work that comes before
+    them: the static map's own fit and the choice of substeps. On the two cores of the
+    project's machine the two compilations overlap; the solver is the same program at every
+    level of substeps (``dynamic_substeps``) and every warm-start weight, so the one made
+    here serves them all. The thread runs one solver step from ``y0`` and discards it; a
+    failure there is left for the real call to meet and report. ``solve``: the
+    ``least_squares`` options of the real solves that key their program (tolerances,
+    geodesic); ``wait_solver`` before the first solve, ``join`` before the covariance, so
+    that no program is compiled twice at once. The calling thread's float64 mode (thread-
+    local under ``requires_float64``) is the thread's; under ``jax.disable_jit`` nothing is
+    started."""
+
+    def __init__(self, prob: Problem, y0: Any, solve: dict[str, Any]) -> None:
+        self._solver_ready = threading.Event()
+        self._thread = None
+        if jax.config.jax_disable_jit:
+            self._solver_ready.set()
+            return
+        x64 = bool(jax.config.jax_enable_x64)
+        self._thread = threading.Thread(target=self._work, args=(prob, y0, solve, x64),
+                                        name="jaxflex-compile-ahead", daemon=True)
+        self._thread.start()
+
+    def _work(self, prob: Problem, y0: Any, solve: dict[str, Any], x64: bool) -> None:
+        try:
+            with jax.enable_x64(x64):
+                sol = least_squares(prob, y0, max_steps=1, **solve)
+                self._solver_ready.set()
+                if sol.normal is not None:
+                    covariance(prob, sol.y, solution=sol)
+                    discretisation_bias(prob, sol)
+        except Exception:  # noqa: BLE001 - the real call meets it again and reports it
+            pass
+        finally:
+            self._solver_ready.set()
+
+    def wait_solver(self) -> None:
+        """Block until the solver is compiled (or its compilation failed)."""
+        self._solver_ready.wait()
+
+    def join(self) -> None:
+        """Block until every program is compiled."""
+        if self._thread is not None:
+            self._thread.join()
 
 
 def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
