@@ -19,6 +19,7 @@ outputs gets ``--force`` and checks its outputs before computing (``jaxflex.cli.
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib
 import os
 import pkgutil
@@ -157,5 +158,22 @@ def main(argv: list[str] | None = None) -> int:
         warnings.showwarning = old_show
 
 
+def console() -> None:
+    """The ``jaxflex`` command (``python -m jaxflex`` too): ``main`` on ``sys.argv``, then a
+    quick exit once it has returned: the exit handlers run (logging, child processes) and the
+    standard streams are flushed, but the interpreter's own teardown is skipped. That teardown
+    (unloading XLA's compiled programs and every module) took 0.7-0.8 s after each command
+    (measured: ``identify`` on a 3 s log, 14.4 against 13.6 s). Every file a command writes is
+    closed before ``main`` returns. An exception out of ``main`` exits the usual way."""
+    rc = main()
+    run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)
+    if run_exit_handlers is None:  # no such hook in this Python: the usual exit
+        sys.exit(rc)
+    run_exit_handlers()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(rc)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()
