@@ -625,7 +625,7 @@ class Padding:
     def unknowns(self, y: Any) -> Any:
         """(theta, x0s) with x0s grown to the slots (copies of the last start)."""
         theta, x0s = y
-        return theta, to_device(np.asarray(x0s)[slot_rows(self.count)])
+        return theta, to_device(np.asarray(x0s)[slot_rows(self.count, self.slots)])
 
     def unknowns_back(self, y: Any) -> Any:
         """(theta, x0s) of the data segments."""

@@ -280,8 +280,9 @@ def identify(
         substeps=dynamic_substeps(1) if auto else substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
     )
-    ahead = CompileAhead(prob, y0, dict(rtol=rtol, atol=atol, decrement_tol=decrement_tol,
-                                        geodesic=geodesic))
+    # the solver options every solve of this fit shares (they key its compiled program)
+    options = dict(rtol=rtol, atol=atol, decrement_tol=decrement_tol, geodesic=geodesic)
+    ahead = CompileAhead(prob, y0, options)
     start = (start_from_static_map(log, init, free)
              if (static_start and model in ("flexible", "link")) else None)
     starts = [("user", y0)]
@@ -301,8 +302,7 @@ def identify(
     if prob.segs.count == 1:  # one segment: nothing to loosen
         schedules = [None]
     good = accept_cost * noise_cost(log, prob)
-    solve = dict(rtol=rtol, atol=atol, decrement_tol=decrement_tol, geodesic=geodesic,
-                 progress=say)
+    solve = dict(options, progress=say)
     t0 = time.perf_counter()
     best, best_factor = None, None
     attempts = []
