@@ -471,7 +471,10 @@ def main() -> None:
     from jaxflex.sweep.engine import use_lean_xla_cpu
 
     if not args.xla_default:
-        use_lean_xla_cpu()  # before any JAX computation; the hand-written JAX scan gets it too
+        # before any JAX computation; the hand-written JAX scan gets them too. One closed loop
+        # with XLA's small-loop option (SMALL_LOOP_XLA_CPU_FLAGS, opt-in: 59 -> 24 ms), the
+        # batches without it (as jaxflex sweep runs them: slower with it)
+        use_lean_xla_cpu(small_loops=args.part == "single")
     if args.part != "batched32":
         jax.config.update("jax_enable_x64", True)
     out: dict = {"device": str(jax.devices()[0]), "blas_threads": BLAS,

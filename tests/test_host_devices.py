@@ -77,28 +77,70 @@ def test_cli_exposes_every_core_before_jax_starts():
 _LEAN = textwrap.dedent("""
     import os
     import jax.numpy as jnp
+    import sys
     from jaxflex.sweep.engine import use_lean_xla_cpu
-    before = use_lean_xla_cpu()
+    small = sys.argv[1] == "1"
+    before = use_lean_xla_cpu(small_loops=small)
     flags = os.environ.get("XLA_FLAGS", "")
     jnp.ones(1).block_until_ready()  # backends start: the flags must have been accepted
-    after = use_lean_xla_cpu()
+    after = use_lean_xla_cpu(small_loops=small)
     print(before, after, flags)
 """)
 
 
-@pytest.mark.parametrize("user", ["", "--xla_cpu_enable_concurrency_optimized_scheduler=true"])
-def test_lean_xla_flags_are_added_before_jax_starts_and_keep_the_users(user):
+@pytest.mark.parametrize("user,small", [
+    ("", True), ("", False), ("--xla_cpu_enable_concurrency_optimized_scheduler=true", True),
+    ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=5000", True)])
+def test_lean_xla_flags_are_added_before_jax_starts_and_keep_the_users(user, small):
     """``use_lean_xla_cpu`` adds its options before the backends start (XLA accepts them),
-    keeps an option the user set, and changes nothing once JAX has started."""
-    from jaxflex.sweep.engine import LEAN_XLA_CPU_FLAGS
+    the small-loop option only when asked, keeps an option the user set, and changes nothing
+    once JAX has started."""
+    from jaxflex.sweep.engine import LEAN_XLA_CPU_FLAGS, SMALL_LOOP_XLA_CPU_FLAGS
 
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": user}
-    r = subprocess.run([sys.executable, "-c", _LEAN], env=env, capture_output=True, text=True,
-                       timeout=120)
+    r = subprocess.run([sys.executable, "-c", _LEAN, "1" if small else "0"], env=env,
+                       capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     before, after, *flags = r.stdout.split()
     assert (before, after) == ("True", "False")
-    for f in LEAN_XLA_CPU_FLAGS:
+    for f in LEAN_XLA_CPU_FLAGS + SMALL_LOOP_XLA_CPU_FLAGS:
         name = f.split("=")[0]
         kept = [g for g in flags if g.startswith(name)]
-        assert kept == ([user] if user.startswith(name) else [f]), flags
+        ours = [f] if small or f in LEAN_XLA_CPU_FLAGS else []
+        assert kept == ([user] if user.startswith(name) else ours), flags
+
+
+_SMALL_LOOP_RUN = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from jaxflex.sweep.engine import use_lean_xla_cpu
+    use_lean_xla_cpu(small_loops=sys.argv[1] == "1")
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import equinox as eqx
+    from jaxflex.controller import CascadeController
+    from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid
+    from jaxflex.sensing import Sensing
+    from jaxflex.simulate import simulate_sampled
+    plant = paper_plant()
+    ctrl = CascadeController(model=plant, gains=paper_gains(), trajectory=paper_sinusoid())
+    run = eqx.filter_jit(lambda p, c: simulate_sampled(p, c, 1.0,
+                                                       sensing=Sensing(velocity="filtered")))
+    np.save(sys.argv[2], np.asarray(run(plant, ctrl).q1))
+""")
+
+
+def test_small_loop_option_runs_the_same_closed_loop(tmp_path):
+    """The small-loop option (``SMALL_LOOP_XLA_CPU_FLAGS``: a loop as one compiled function)
+    changes XLA's code, not the numbers: the same 1 s closed loop with and without it agrees
+    to rounding."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": ""}
+    q = []
+    for small in ("1", "0"):
+        path = tmp_path / f"q1_{small}.npy"
+        r = subprocess.run([sys.executable, "-c", _SMALL_LOOP_RUN, small, str(path)], env=env,
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+        q.append(np.load(path))
+    assert q[0].shape == q[1].shape and q[0].size > 900
+    assert np.max(np.abs(q[0] - q[1])) <= 1e-12 * np.max(np.abs(q[1]))

@@ -9,7 +9,9 @@ part off), so a second run on the same machine neither traces nor compiles them 
 core to JAX as a host device before JAX starts (``jaxflex.sweep.engine.use_all_cores``; a
 count already set in ``XLA_FLAGS`` is kept; ``--host-devices 1`` turns it off), so batched
 sweeps use all cores, add XLA CPU options for loops of small kernels
-(``jaxflex.sweep.engine.use_lean_xla_cpu``; ``--no-lean-xla`` turns it off), and turn the
+(``jaxflex.sweep.engine.use_lean_xla_cpu``; the commands in ``SMALL_LOOP_COMMANDS`` also
+get its small-loop option; ``--no-lean-xla`` turns them off), and
+turn the
 library's ``ValueError``s (bad logs, bad parameters, bad gains, bad output paths) and OS errors
 into a one-line message and exit code 2 (Ctrl-C: exit 130, no traceback). Every command with
 outputs gets ``--force`` and checks its outputs before computing (``jaxflex.cli.outputs``); its
@@ -63,9 +65,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="CPU cores JAX may use as host devices for batched sweeps "
                              "(default: every core, unless XLA_FLAGS sets a count; 1: one)")
     parser.add_argument("--no-lean-xla", action="store_true",
-                        help="keep XLA's default CPU scheduling (otherwise the options in "
+                        help="keep XLA's default CPU options (otherwise the options in "
                              "jaxflex.sweep.engine.LEAN_XLA_CPU_FLAGS are added to XLA_FLAGS: "
-                             "sequential loops of small kernels run on one thread)")
+                             "sequential loops of small kernels run on one thread; for discover "
+                             "also SMALL_LOOP_XLA_CPU_FLAGS: a loop of small arrays runs as one "
+                             "compiled function)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -119,6 +123,12 @@ def enable_compilation_cache(traces: bool = True) -> Path | None:
     return folder
 
 
+#: Commands that run faster with XLA's small-loop option (``jaxflex.sweep.engine.
+#: SMALL_LOOP_XLA_CPU_FLAGS``, measured there: discover 10-20%; identify on a long log and
+#: batched sweeps were slower with it, so they keep XLA's default).
+SMALL_LOOP_COMMANDS = ("discover",)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxflex`` command; returns the exit status."""
     args = build_parser().parse_args(argv)
@@ -132,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     use_all_cores(args.host_devices)  # before any JAX computation
     if not args.no_lean_xla:
-        use_lean_xla_cpu()
+        use_lean_xla_cpu(small_loops=args.command in SMALL_LOOP_COMMANDS)
 
     jax.config.update("jax_enable_x64", True)
     if not args.no_cache:
