@@ -343,7 +343,7 @@ def test_structured_covariance_equals_dense_covariance():
     np.testing.assert_allclose(fast["rss"], dense["rss"], rtol=1e-12)
 
 
-def test_covariance_from_the_solvers_normal_equations_equals_a_fresh_one():
+def test_covariance_from_the_solvers_normal_equations_equals_a_fresh_one(monkeypatch):
     """``covariance(..., solution=sol)`` reuses the solver's normal equations at its final
     point (no second linearisation): the same standard errors, rank, rss and final cost as
     linearising again at that point."""
@@ -363,6 +363,34 @@ def test_covariance_from_the_solvers_normal_equations_equals_a_fresh_one():
         np.testing.assert_allclose(reused["stderr"][k], fresh["stderr"][k], rtol=1e-8)
     np.testing.assert_allclose(reused["rss"], fresh["rss"], rtol=1e-10)
     np.testing.assert_allclose(sol.cost, cost(prob, sol.y), rtol=1e-10)
+    # a dense fit reuses the Jacobian its solver kept: the same standard errors without
+    # linearising again
+    dsol = least_squares(prob, y0, fn=_plain_residuals, structure="dense", max_steps=3)
+    assert "J" in dsol.normal
+    reused = covariance(prob, dsol.y, fn=_plain_residuals, solution=dsol)
+    fresh = covariance(prob, dsol.y, fn=_plain_residuals)
+    assert reused["rank"] == fresh["rank"]
+    for k in prob.space.names:
+        np.testing.assert_allclose(reused["stderr"][k], fresh["stderr"][k], rtol=1e-10)
+    # the static map's fit takes that route (no second linearisation)
+    import jaxflex.fit.solve as solve_module
+    from jaxflex.identify.static import STATIC_NAMES, StaticMap, fit_static_map
+
+    v = np.concatenate([-np.geomspace(2.0, 0.01, 20), np.geomspace(0.01, 2.0, 20)])
+    lug = p.to_plant().friction
+    F = np.asarray(jax.vmap(lambda vi: lug.steady_state(vi[None])[0])(jnp.asarray(v))).ravel()
+    F = F + 1e-3 * np.random.default_rng(0).standard_normal(v.size)
+    start = {k: 1.2 * float(p.friction[k][0]) for k in STATIC_NAMES}
+    fresh_route = solve_module._jacobian
+    reused = []
+
+    def linearised_again(*a, **k):
+        reused.append(False)
+        return fresh_route(*a, **k)
+
+    monkeypatch.setattr(solve_module, "_jacobian", linearised_again)
+    fit = fit_static_map(StaticMap(v=v, F=F), start)
+    assert reused == [] and all(np.isfinite(se) and se > 0 for _, se in fit.values()), fit
 
 
 def test_zero_residual_optimum_is_reported_converged():

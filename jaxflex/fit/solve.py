@@ -946,8 +946,9 @@ def covariance(
     unconstrained coordinates theta over the flattened names, zero rows for entries not
     fitted: where the posterior of ``jaxflex.robust`` draws, so every draw keeps the
     constraints). ``solution``: the ``least_squares`` result of ``prob`` that ended at ``y``
-    (same object); a multiple-shooting problem then reuses its normal equations (the same
-    numbers, no second linearisation and compilation).
+    (same object): a multiple-shooting problem then reuses its normal equations, any other
+    the Jacobian the dense solver kept (the same numbers, no second linearisation and
+    compilation).
     """
     theta = prob.split(y)[0] if hasattr(prob, "split") else y
     if (fn is problem_residuals and isinstance(prob, Problem) and prob.free_starts
@@ -964,7 +965,12 @@ def covariance(
             r, St = _theta_information(prob.padded(pad.slots), pad.unknowns(y))
             info = (pad.rows_back(r), St)
         return _covariance_shooting(prob, info, theta, inflation, rank_rtol)
-    r, Jm = (np.asarray(a) for a in _jacobian(fn, prob, y))
+    if (solution is not None and solution.y is y and solution.normal is not None
+            and "J" in solution.normal and solution.residual is not None):
+        # the dense solver's own Jacobian at y: no second linearisation and compilation
+        r, Jm = np.asarray(solution.residual), np.asarray(solution.normal["J"])
+    else:
+        r, Jm = (np.asarray(a) for a in _jacobian(fn, prob, y))
     n_out = int(getattr(prob, "n_out", r.size))
     th_flat, th_unravel = ravel_pytree(theta)
     k = th_flat.shape[0]

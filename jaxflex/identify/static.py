@@ -88,7 +88,7 @@ def fit_static_map(
     sol = least_squares(prob, space.theta0(), fn=_static_residuals, rtol=rtol, atol=atol,
                         max_steps=500)
     phys = space.physical_values(sol.y)
-    se = covariance(prob, sol.y)["stderr"]
+    se = covariance(prob, sol.y, solution=sol)["stderr"]
     return {k: (float(phys[k][0]), float(se[k][0])) for k in STATIC_NAMES}
 
 
