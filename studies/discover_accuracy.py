@@ -69,6 +69,9 @@ def main(argv: list[str] | None = None) -> None:
         _write(res["rows"], res["summary"]["confusion_labels"], Path(a.out))
         print(json.dumps(json.loads((Path(a.out) / "results.json").read_text())["summary"], indent=1))
         return
+    from jaxflex.sweep.engine import use_lean_xla_cpu
+
+    use_lean_xla_cpu(small_loops=True)  # as jaxflex discover runs, before any JAX computation
     jax.config.update("jax_enable_x64", True)
     from jaxflex.datagen import generate_log
     from jaxflex.discover import DiscoverConfig, discover
