@@ -324,13 +324,51 @@ class Problem(eqx.Module):
     def simulate(self, y: Any) -> tuple[Array, Array]:
         """Simulated outputs (S, L, n_out) [rad] and segment end states (S, n_state, n)
         (``replay_segments``: the replay traced once for the residual and every other use)."""
+        out, (S, n_state, n) = self._replay_flat(y)
+        n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
+        return (out[:, :n_y].reshape(self.segs.y_meas.shape),
+                out[:, n_y:].reshape(S, n_state, n))
+
+    def replay(self, y: Any) -> dict[str, Array]:
+        """One replay at ``y`` and what is read from it: ``outputs`` (``simulate``'s, (S, L,
+        n_out) [rad]), ``residuals`` (``residuals``' values) and ``gap`` (``gap``), so that one
+        compiled program serves all three (``jaxflex.fit.simulated_outputs``, ``residuals``,
+        ``gap``)."""
+        out, (S, n_state, n) = self._replay_flat(y)
+        n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
+        ys = out[:, :n_y].reshape(self.segs.y_meas.shape)
+        x0s = self.split(y)[1]
+        return {"outputs": ys,
+                "residuals": _guard(self._assemble(out, x0s.reshape(S, n_state * n),
+                                                   self.segs.y_meas, (n_state, n))),
+                "gap": self._gap_of(ys)}
+
+    def _replay_flat(self, y: Any) -> tuple[Array, tuple[int, int, int]]:
         theta, x0s = self.split(y)
         S, n_state, n = x0s.shape
         out = replay_segments(self, ravel_pytree(theta)[0], x0s.reshape(S, n_state * n),
                               theta_spec(theta), (n_state, n))
+        return out, (S, n_state, n)
+
+    def _assemble(self, out: Array, nxt: Array, y_ref: Any, dims: tuple[int, int]) -> Array:
+        """The residual vector from flat segment replays ``out`` (S, outputs + end state) and
+        flat start states ``nxt`` (S, n_state * n; ``dims`` = (n_state, n)): weighted output
+        errors against ``y_ref``, then (free starts) the continuity defects; padding slots
+        give zeros."""
         n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
-        return (out[:, :n_y].reshape(self.segs.y_meas.shape),
-                out[:, n_y:].reshape(S, n_state, n))
+        n_state, n = dims
+        act = self.segs.active
+        r = self.w_y * (out[:, :n_y].reshape(self.segs.y_meas.shape) - y_ref)
+        if act is not None:  # padding slots: no residual (``padded``)
+            r = jnp.where(act[:, None, None], r, 0.0)
+        parts = [r.reshape(-1)]
+        if self.free_starts:
+            w_def = jnp.broadcast_to(self.w_def.reshape(n_state, -1), (n_state, n)).reshape(-1)
+            de = (out[:-1, n_y:] - nxt[1:]) * w_def
+            if act is not None:  # no defect into a padding slot
+                de = jnp.where(act[1:, None], de, 0.0)
+            parts.append(de.reshape(-1))
+        return jnp.concatenate(parts)
 
     def residuals(self, y: Any, args: Any = None) -> Array:
         """Weighted output residuals and (with free starts) continuity defects, flattened.
@@ -345,33 +383,15 @@ class Problem(eqx.Module):
         th_flat, _ = ravel_pytree(theta)
         spec = theta_spec(theta)
         S, n_state, n = x0s.shape
-        n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
         free = self.free_starts
         # The problem's arrays go in as an argument (no closed-over tracers); their tangents
         # are ignored (the data are not differentiated).
         dyn, static = eqx.partition(self, eqx.is_array)
 
-        def assemble(prob, out, nxt, y_ref):
-            act = prob.segs.active
-            r = prob.w_y * (out[:, :n_y].reshape(prob.segs.y_meas.shape) - y_ref)
-            if act is not None:  # padding slots: no residual (``padded``)
-                r = jnp.where(act[:, None, None], r, 0.0)
-            parts = [r.reshape(-1)]
-            if free:
-                w_def = jnp.broadcast_to(prob.w_def.reshape(n_state, -1), (n_state, n)).reshape(-1)
-                de = (out[:-1, n_y:] - nxt[1:]) * w_def
-                if act is not None:  # no defect into a padding slot
-                    de = jnp.where(act[1:, None], de, 0.0)
-                parts.append(de.reshape(-1))
-            return jnp.concatenate(parts)
-
-        def guard(r):
-            return jnp.where(jnp.isfinite(r), r, BLOWN_RESIDUAL)
-
         def primal(th, v0s, d):
             prob = eqx.combine(d, static)
             out = replay_segments(prob, th, v0s, spec, (n_state, n))
-            return guard(assemble(prob, out, v0s, prob.segs.y_meas))
+            return _guard(prob._assemble(out, v0s, prob.segs.y_meas, (n_state, n)))
 
         args_ = (th_flat, x0s.reshape(S, n_state * n), dyn)
         if not self.structured:
@@ -387,8 +407,8 @@ class Problem(eqx.Module):
             dout = jnp.einsum("smc,c->sm", jac_th, basis.T @ dth)
             if free:
                 dout = dout + jnp.einsum("smd,sd->sm", jac_v, dv0s)
-            r = guard(assemble(prob, out, v0s, prob.segs.y_meas))
-            dr = assemble(prob, dout, dv0s, 0.0)
+            r = _guard(prob._assemble(out, v0s, prob.segs.y_meas, (n_state, n)))
+            dr = prob._assemble(dout, dv0s, 0.0, (n_state, n))
             return r, jnp.where(r == BLOWN_RESIDUAL, 0.0, dr)
 
         return res(*args_)
@@ -424,12 +444,19 @@ class Problem(eqx.Module):
         """Normalised RMS output error: sqrt(sum (y_sim - y_meas)^2 / sum (y_meas -
         y_meas[segment start])^2); 0 is perfect, 1 as bad as predicting no motion (padding
         slots left out)."""
-        ys, _ = self.simulate(y)
+        return self._gap_of(self.simulate(y)[0])
+
+    def _gap_of(self, ys: Array) -> Array:
         m = self.segs.y_meas
         e, ref = (ys - m) ** 2, (m - m[:, :1]) ** 2
         if self.segs.active is not None:
             e, ref = (jnp.where(self.segs.active[:, None, None], a, 0.0) for a in (e, ref))
         return jnp.sqrt(jnp.sum(e) / jnp.sum(ref))
+
+
+def _guard(r: Array) -> Array:
+    """A non-finite residual entry becomes ``BLOWN_RESIDUAL``."""
+    return jnp.where(jnp.isfinite(r), r, BLOWN_RESIDUAL)
 
 
 def theta_spec(theta: dict[str, Array]) -> tuple[tuple[str, tuple[int, ...]], ...]:

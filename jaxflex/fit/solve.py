@@ -860,45 +860,38 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
 
 def simulated_outputs(prob: Problem, y: Any) -> jax.Array:
     """Simulated outputs (S, L, n_out) [rad] of ``prob`` at ``y`` (compiled once per shape;
-    a free-start shooting problem once per bucket of segment slots, ``Padding``)."""
+    a free-start shooting problem once per bucket of segment slots, ``Padding``; one program
+    with ``residuals`` and ``gap``, ``Problem.replay``)."""
     pad = Padding.of(prob, y)
     if pad is None:
-        return _simulated_outputs(prob, y)
-    return to_device(np.asarray(_simulated_outputs(prob.padded(pad.slots),
-                                                   pad.unknowns(y)))[: pad.count])
+        return _replay(prob, y)["outputs"]
+    return to_device(np.asarray(_replay(prob.padded(pad.slots),
+                                        pad.unknowns(y))["outputs"])[: pad.count])
 
 
 def gap(prob: Problem, y: Any) -> jax.Array:
     """``prob.gap(y)`` (normalised RMS output error), compiled once per problem shape (a
-    free-start shooting problem once per bucket of segment slots, ``Padding``)."""
+    free-start shooting problem once per bucket of segment slots, ``Padding``; one program
+    with ``simulated_outputs`` and ``residuals``)."""
     pad = Padding.of(prob, y)
     if pad is None:
-        return _gap(prob, y)
-    return _gap(prob.padded(pad.slots), pad.unknowns(y))
+        return _replay(prob, y)["gap"]
+    return _replay(prob.padded(pad.slots), pad.unknowns(y))["gap"]
 
 
 def residuals(prob: Problem, y: Any) -> jax.Array:
     """``prob.residuals(y)``, compiled once per problem shape (a free-start shooting problem
-    once per bucket of segment slots, ``Padding``)."""
+    once per bucket of segment slots, ``Padding``; one program with ``simulated_outputs`` and
+    ``gap``)."""
     pad = Padding.of(prob, y)
     if pad is None:
-        return _residuals(prob, y)
-    return pad.rows_back(_residuals(prob.padded(pad.slots), pad.unknowns(y)))
+        return _replay(prob, y)["residuals"]
+    return pad.rows_back(_replay(prob.padded(pad.slots), pad.unknowns(y))["residuals"])
 
 
 @persistent_jit
-def _simulated_outputs(prob: Problem, y: Any) -> jax.Array:
-    return prob.simulate(y)[0]
-
-
-@persistent_jit
-def _gap(prob: Problem, y: Any) -> jax.Array:
-    return prob.gap(y)
-
-
-@persistent_jit
-def _residuals(prob: Problem, y: Any) -> jax.Array:
-    return prob.residuals(y)
+def _replay(prob: Problem, y: Any) -> dict[str, jax.Array]:
+    return prob.replay(y)
 
 
 @persistent_jit
