@@ -144,3 +144,13 @@ def test_small_loop_option_runs_the_same_closed_loop(tmp_path):
         q.append(np.load(path))
     assert q[0].shape == q[1].shape and q[0].size > 900
     assert np.max(np.abs(q[0] - q[1])) <= 1e-12 * np.max(np.abs(q[1]))
+
+
+def test_small_loop_commands_are_commands():
+    """``jaxflex.cli.SMALL_LOOP_COMMANDS`` names commands the parser knows (a renamed command
+    would silently lose its XLA option), and the batched sweep is not among them."""
+    from jaxflex.cli import SMALL_LOOP_COMMANDS, build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert set(SMALL_LOOP_COMMANDS) <= set(sub.choices), SMALL_LOOP_COMMANDS
+    assert "sweep" not in SMALL_LOOP_COMMANDS
