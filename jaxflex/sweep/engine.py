@@ -97,7 +97,8 @@ LEAN_XLA_CPU_FLAGS: tuple[str, ...] = (
 
 #: XLA CPU option for programs whose time loops carry small arrays: XLA's CPU compiler emits a
 #: ``while`` loop that touches fewer bytes than this threshold (its
-#: ``small_while_loop_byte_threshold``, a backend option; the default is about 1 KiB) as one
+#: ``small_while_loop_byte_threshold``, a backend option; its default hoists none of jaxflex's
+#: loops: one closed loop is hoisted from a threshold of 1e4 bytes, in part at 3e3) as one
 #: compiled function instead of one runtime thunk per kernel, so an iteration no longer pays a
 #: dispatch per kernel and per branch. Measured on the 2-core machine, warm, with and without
 #: it in the same conditions: one 10 s closed loop of the paper plant (``studies/
