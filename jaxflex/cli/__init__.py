@@ -10,10 +10,9 @@ core to JAX as a host device before JAX starts (``jaxflex.sweep.engine.use_all_c
 count already set in ``XLA_FLAGS`` is kept; ``--host-devices 1`` turns it off), so batched
 sweeps use all cores, add XLA CPU options for loops of small kernels
 (``jaxflex.sweep.engine.use_lean_xla_cpu``; the commands in ``SMALL_LOOP_COMMANDS`` also
-get its small-loop option; ``--no-lean-xla`` turns them off), and
-turn the
-library's ``ValueError``s (bad logs, bad parameters, bad gains, bad output paths) and OS errors
-into a one-line message and exit code 2 (Ctrl-C: exit 130, no traceback). Every command with
+get its small-loop option; ``--no-lean-xla`` turns them off), and turn the library's
+``ValueError``s (bad logs, bad parameters, bad gains, bad output paths) and OS errors into a
+one-line message and exit code 2 (Ctrl-C: exit 130, no traceback). Every command with
 outputs gets ``--force`` and checks its outputs before computing (``jaxflex.cli.outputs``); its
 ``--help`` shows the defaults and ends with a worked example (the module's ``EXAMPLE``).
 """

@@ -324,31 +324,32 @@ class Problem(eqx.Module):
     def simulate(self, y: Any) -> tuple[Array, Array]:
         """Simulated outputs (S, L, n_out) [rad] and segment end states (S, n_state, n)
         (``replay_segments``: the replay traced once for the residual and every other use)."""
-        out, (S, n_state, n) = self._replay_flat(y)
+        out, _, (n_state, n) = self._replay_flat(y)
         n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
         return (out[:, :n_y].reshape(self.segs.y_meas.shape),
-                out[:, n_y:].reshape(S, n_state, n))
+                out[:, n_y:].reshape(out.shape[0], n_state, n))
 
     def replay(self, y: Any) -> dict[str, Array]:
         """One replay at ``y`` and what is read from it: ``outputs`` (``simulate``'s, (S, L,
         n_out) [rad]), ``residuals`` (``residuals``' values) and ``gap`` (``gap``), so that one
         compiled program serves all three (``jaxflex.fit.simulated_outputs``, ``residuals``,
         ``gap``)."""
-        out, (S, n_state, n) = self._replay_flat(y)
+        out, v0s, dims = self._replay_flat(y)
         n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
         ys = out[:, :n_y].reshape(self.segs.y_meas.shape)
-        x0s = self.split(y)[1]
         return {"outputs": ys,
-                "residuals": _guard(self._assemble(out, x0s.reshape(S, n_state * n),
-                                                   self.segs.y_meas, (n_state, n))),
+                "residuals": _guard(self._assemble(out, v0s, self.segs.y_meas, dims)),
                 "gap": self._gap_of(ys)}
 
-    def _replay_flat(self, y: Any) -> tuple[Array, tuple[int, int, int]]:
+    def _replay_flat(self, y: Any) -> tuple[Array, Array, tuple[int, int]]:
+        """``replay_segments`` at ``y``: the flat replays (S, outputs + end state), the flat
+        start states (S, n_state * n) and (n_state, n)."""
         theta, x0s = self.split(y)
         S, n_state, n = x0s.shape
-        out = replay_segments(self, ravel_pytree(theta)[0], x0s.reshape(S, n_state * n),
-                              theta_spec(theta), (n_state, n))
-        return out, (S, n_state, n)
+        v0s = x0s.reshape(S, n_state * n)
+        out = replay_segments(self, ravel_pytree(theta)[0], v0s, theta_spec(theta),
+                              (n_state, n))
+        return out, v0s, (n_state, n)
 
     def _assemble(self, out: Array, nxt: Array, y_ref: Any, dims: tuple[int, int]) -> Array:
         """The residual vector from flat segment replays ``out`` (S, outputs + end state) and

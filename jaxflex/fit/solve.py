@@ -862,31 +862,34 @@ def simulated_outputs(prob: Problem, y: Any) -> jax.Array:
     """Simulated outputs (S, L, n_out) [rad] of ``prob`` at ``y`` (compiled once per shape;
     a free-start shooting problem once per bucket of segment slots, ``Padding``; one program
     with ``residuals`` and ``gap``, ``Problem.replay``)."""
-    pad = Padding.of(prob, y)
+    out, pad = _replay_in_slots(prob, y)
     if pad is None:
-        return _replay(prob, y)["outputs"]
-    return to_device(np.asarray(_replay(prob.padded(pad.slots),
-                                        pad.unknowns(y))["outputs"])[: pad.count])
+        return out["outputs"]
+    return to_device(np.asarray(out["outputs"])[: pad.count])
 
 
 def gap(prob: Problem, y: Any) -> jax.Array:
     """``prob.gap(y)`` (normalised RMS output error), compiled once per problem shape (a
     free-start shooting problem once per bucket of segment slots, ``Padding``; one program
     with ``simulated_outputs`` and ``residuals``)."""
-    pad = Padding.of(prob, y)
-    if pad is None:
-        return _replay(prob, y)["gap"]
-    return _replay(prob.padded(pad.slots), pad.unknowns(y))["gap"]
+    return _replay_in_slots(prob, y)[0]["gap"]
 
 
 def residuals(prob: Problem, y: Any) -> jax.Array:
     """``prob.residuals(y)``, compiled once per problem shape (a free-start shooting problem
     once per bucket of segment slots, ``Padding``; one program with ``simulated_outputs`` and
     ``gap``)."""
+    out, pad = _replay_in_slots(prob, y)
+    return out["residuals"] if pad is None else pad.rows_back(out["residuals"])
+
+
+def _replay_in_slots(prob: Problem, y: Any) -> tuple[dict[str, jax.Array], Padding | None]:
+    """``Problem.replay`` of ``prob`` at ``y``, a free-start shooting problem in its bucket of
+    segment slots (the padding then returned with it, else None)."""
     pad = Padding.of(prob, y)
     if pad is None:
-        return _replay(prob, y)["residuals"]
-    return pad.rows_back(_replay(prob.padded(pad.slots), pad.unknowns(y))["residuals"])
+        return _replay(prob, y), None
+    return _replay(prob.padded(pad.slots), pad.unknowns(y)), pad
 
 
 @persistent_jit

@@ -123,9 +123,10 @@ SMALL_LOOP_XLA_CPU_FLAGS: tuple[str, ...] = (
 
 def use_lean_xla_cpu(small_loops: bool = False) -> bool:
     """Add ``LEAN_XLA_CPU_FLAGS`` (and, with ``small_loops``, ``SMALL_LOOP_XLA_CPU_FLAGS``: for
-    single closed loops and ``discover``'s fits; not for long identification logs nor batched
-    sweeps) to ``XLA_FLAGS`` (a flag the user already set is kept as set). Call it before any JAX computation, as ``use_all_cores``; the
-    ``jaxflex`` command does (``--no-lean-xla`` turns it off). Returns False when JAX's
+    single closed loops, ``discover``'s fits and the tuner; not for long identification logs
+    nor batched sweeps) to ``XLA_FLAGS`` (a flag the user already set is kept as set). Call it
+    before any JAX computation, as ``use_all_cores``; the ``jaxflex`` command does
+    (``--no-lean-xla`` turns it off). Returns False when JAX's
     backends have already started (the flags would no longer take effect; nothing is
     changed), else True."""
     if _backends_started():
