@@ -460,6 +460,28 @@ def test_geodesic_acceleration_takes_a_curved_valley_in_fewer_steps():
     assert 3 * geo.steps <= plain.steps, (geo.steps, plain.steps)
 
 
+def test_a_stalled_run_ends_early_and_says_it_did_not_converge():
+    """The progress stop (``stall``): on Rosenbrock's valley, where plain Levenberg-Marquardt
+    creeps, the run ends once ||r||^2 fell by less than the bound over the window, reported
+    not converged with the reason, and the costs it saw confirm the rule; a bound of 0 changes
+    nothing."""
+    y0 = jnp.array([-1.2, 1.0])
+    k = jnp.asarray(1e3)
+    plain = least_squares(k, y0, fn=_rosenbrock, max_steps=2000)
+    costs = []
+    stalled = least_squares(k, y0, fn=_rosenbrock, max_steps=2000, stall=(5, 1e-2),
+                            progress=lambda i, c: costs.append(c))
+    assert not stalled.converged and stalled.reason.startswith("stalled"), stalled.reason
+    assert 5 < stalled.steps < plain.steps, (stalled.steps, plain.steps)
+    assert 2 * (costs[-6] - costs[-1]) < 1e-2
+    assert all(2 * (costs[i - 5] - costs[i]) >= 1e-2 for i in range(5, len(costs) - 1))
+    same = least_squares(k, y0, fn=_rosenbrock, max_steps=2000, stall=(5, 0.0))
+    assert same.steps == plain.steps and same.converged
+    np.testing.assert_array_equal(np.asarray(same.y), np.asarray(plain.y))
+    with pytest.raises(ValueError, match="stall window"):
+        least_squares(k, y0, fn=_rosenbrock, stall=(0, 1.0))
+
+
 def _decay(y, data):  # residuals in units of the noise (sigma = 1)
     t, z = data
     return y[0] * jnp.exp(-y[1] * t) + y[2] - z

@@ -669,7 +669,7 @@ def least_squares(
     atol: float = 1e-10, max_steps: int = 200, scaling: str = "identity",
     structure: str = "auto", progress: Callable[[int, float], None] | None = None,
     decrement_tol: float | Callable[[float], float] | None = None, geodesic: float = 0.0,
-    bucket: bool = True,
+    bucket: bool = True, stall: tuple[int, float | Callable[[float], float]] | None = None,
 ) -> Solution:
     """Levenberg-Marquardt on the residuals ``fn(y, prob)`` from ``y0`` (module docstring).
 
@@ -705,6 +705,8 @@ def least_squares(
     if decrement_tol is not None and not callable(decrement_tol) and not decrement_tol >= 0:
         raise ValueError(f"fit: decrement_tol must be >= 0, a callable or None, "
                          f"got {decrement_tol}")
+    if stall is not None and not (int(stall[0]) >= 1):
+        raise ValueError(f"fit: the stall window must be >= 1 step, got {stall[0]}")
     t0 = time.perf_counter()
     if structure == "auto":
         shooting = isinstance(prob, Problem) and prob.free_starts and prob.segs.count > 1
@@ -720,11 +722,13 @@ def least_squares(
     y = y0
     state = _init(solver, wrapped, y, prob)
     steps, done, ok, reason, c, dec = 0, False, True, "", None, None
+    costs: list[float] = []  # the cost after each step (host side, for ``stall``)
     try:
         while steps < max_steps:
             y, state, done_a, ok_a, c, stalled_a, dec = _step(solver, wrapped, y, state, prob)
             steps += 1
             done, ok, stalled = bool(done_a), bool(ok_a), bool(stalled_a)
+            costs.append(float(c))
             if progress is not None:
                 progress(steps, float(c))
             bound = decrement_tol(float(c)) if callable(decrement_tol) else decrement_tol
@@ -738,6 +742,13 @@ def least_squares(
                           "unknowns without a step that lowers the cost)")
             if done or not ok:
                 break
+            if stall is not None and steps > stall[0]:
+                fell = 2.0 * (costs[-1 - stall[0]] - costs[-1])
+                limit = stall[1](float(c)) if callable(stall[1]) else stall[1]
+                if fell < limit:
+                    reason = (f"stalled: ||r||^2 fell by {fell:.3g} < {limit:.3g} over the last "
+                              f"{stall[0]} steps (not converged)")
+                    break
     except KeyboardInterrupt:
         reason = f"interrupted after {steps} steps"
     y = jax.block_until_ready(y)
