@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> dict:
            "first_empty_cache_no_trace_cache": first_traced,
            "second_same_cache_no_trace_cache": second_traced, "no_cache": nocache,
            "note": "seconds summed from jax.monitoring events in each process (identify "
-                   "compiles partly in a background thread, jaxflex.identify.CompileAhead: "
+                   "compiles partly in a background thread, jaxflex.identify.compile_ahead: "
                    "overlapping compilations add up, so the sum can exceed the wall time); every "
                    "compilation is cached (jax_persistent_cache_min_compile_time_secs 0); "
                    "the traced programs of the fitting engine, simulator and tuner are kept "

@@ -12,6 +12,7 @@ import pytest
 
 from jaxflex.effects import EFFECTS, Gated
 from jaxflex.fit import (
+    CostBound,
     ParamSpace,
     Problem,
     covariance,
@@ -280,6 +281,9 @@ def test_logs_of_other_lengths_share_the_compiled_solver(lowerings):
         sol = least_squares(other, y1, max_steps=3)
         simulated_outputs(other, sol.y), residuals(other, sol.y)
         covariance(other, sol.y, solution=sol), discretisation_bias(other, sol)
+        # the stops are data of the compiled loop: other bounds and windows lower nothing
+        least_squares(other, y1, max_steps=4, decrement_tol=CostBound(1e-3, 1e-9),
+                      stall=(3, CostBound(0.0, 1e-12)))
     assert lowered == [], lowered
     assert sol.y[1].shape == y1[1].shape and sol.residual.shape == other.residuals(sol.y).shape
 
@@ -480,6 +484,32 @@ def test_a_stalled_run_ends_early_and_says_it_did_not_converge():
     np.testing.assert_array_equal(np.asarray(same.y), np.asarray(plain.y))
     with pytest.raises(ValueError, match="stall window"):
         least_squares(k, y0, fn=_rosenbrock, stall=(0, 1.0))
+    with pytest.raises(ValueError, match="stall window"):
+        least_squares(k, y0, fn=_rosenbrock, stall=(65, 1.0))
+
+
+def test_work_made_ahead_runs_in_order_and_a_failure_stops_nothing():
+    """``Ahead`` runs its callables in a background thread under the caller's float64 mode;
+    one that raises is passed over (the real call meets it again), the next still runs, and
+    no thread is left once joined."""
+    import threading
+
+    from jaxflex.fit.ahead import THREAD_NAME, Ahead
+
+    ran = []
+
+    def fails():
+        ran.append("fails")
+        raise FloatingPointError("made ahead")
+
+    def works():
+        ran.append(jnp.asarray(1.0).dtype)
+
+    ahead = Ahead([fails, works])
+    ahead.wait(1)
+    ahead.join()
+    assert ran == ["fails", jnp.dtype("float64")]
+    assert not any(t.name == THREAD_NAME and t.is_alive() for t in threading.enumerate())
 
 
 def _decay(y, data):  # residuals in units of the noise (sigma = 1)
@@ -512,6 +542,12 @@ def test_statistical_stop_ends_within_a_small_fraction_of_a_standard_error():
     assert rel.reason.startswith("statistical stop"), rel.reason
     assert np.all(np.abs(np.asarray(rel.y) / np.array([7.0, 1.0, 7.0]) - np.asarray(full.y))
                   < 0.1 * se)
+    # any other callable is judged on the host, one step a call: the same run
+    bound = relative_stop(t.size - 3)
+    host = least_squares((t, z * 7.0), y0 * jnp.array([7.0, 1.0, 7.0]), fn=_decay,
+                         max_steps=500, decrement_tol=lambda c: bound(c))
+    assert host.steps == rel.steps and host.reason == rel.reason
+    np.testing.assert_allclose(np.asarray(host.y), np.asarray(rel.y), rtol=1e-12)
     with pytest.raises(ValueError, match="decrement_tol"):
         least_squares((t, z), y0, fn=_decay, decrement_tol=-1.0)
 

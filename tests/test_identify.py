@@ -267,14 +267,14 @@ def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
                          max_steps=30)
     finally:
         tracecache.enable(kept)
-    # the programs compiled ahead in a background thread (``CompileAhead``) are all made
+    # the programs compiled ahead in a background thread (``compile_ahead``, ``jaxflex.fit.ahead``) are all made
     # before identify returns: no compilation is left running
     assert not any(t.name == "jaxflex-compile-ahead" and t.is_alive()
                    for t in threading.enumerate())
     levels = [c["substeps"] for c in r.discretisation["checks"]]
     assert len(set(levels)) >= 2, levels  # the fit was refined at least once
     spaces = 1 + len({tuple(a["refit_without"]) for a in r.attempts if "refit_without" in a})
-    assert 1 <= lowered.count("jit(_step)") <= spaces, (lowered, spaces)
+    assert 1 <= lowered.count("jit(_steps)") <= spaces, (lowered, spaces)
 
 
 def test_local_minimum_is_reported_unconverged_and_refused_downstream(tmp_path):

@@ -27,6 +27,7 @@ from jaxflex.fit.problem import (
     white_noise_std,
 )
 from jaxflex.fit.solve import (
+    CostBound,
     Padding,
     Solution,
     cost,
@@ -53,7 +54,7 @@ from jaxflex.fit.space import (
 )
 
 __all__ = [
-    "BLOWN_RESIDUAL", "NOMINAL_CONSTRAINTS", "Padding", "ParamSpace", "Problem", "Segments",
+    "BLOWN_RESIDUAL", "CostBound", "NOMINAL_CONSTRAINTS", "Padding", "ParamSpace", "Problem", "Segments",
     "Solution", "on_slot_rows", "segment_slots", "slot_rows",
     "constraint_of", "cost", "dynamic_substeps", "covariance", "discretisation_bias", "gap",
     "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",

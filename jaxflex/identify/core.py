@@ -16,14 +16,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import threading
 import time
 import warnings
 from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -45,6 +43,7 @@ from jaxflex.fit import (
     simulated_outputs,
     step_doubling_error,
 )
+from jaxflex.fit.ahead import Ahead
 from jaxflex.identify.static import start_from_static_map
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -282,7 +281,7 @@ def identify(
     )
     # the solver options every solve of this fit shares (they key its compiled program)
     options = dict(rtol=rtol, atol=atol, decrement_tol=decrement_tol, geodesic=geodesic)
-    ahead = CompileAhead(prob, y0, options)
+    ahead = compile_ahead(prob, y0, options)
     start = (start_from_static_map(log, init, free)
              if (static_start and model in ("flexible", "link")) else None)
     starts = [("user", y0)]
@@ -315,7 +314,7 @@ def identify(
         loose = eqx.tree_at(lambda q: q.w_def, problem, problem.w_def * factor)
         return least_squares(loose, y, max_steps=warm_steps, **solve).y
 
-    ahead.wait_solver()
+    ahead.wait(0)
     for origin, y_start in starts:
         for factor in schedules:
             y = warmed(prob, y_start, factor)
@@ -467,52 +466,29 @@ def identify(
     return res
 
 
-class CompileAhead:
-    """The compiled programs of ``prob``'s fit (its solver, covariance and discretisation
-    check), made in a background thread while ``identify`` does the work that comes before
-    them: the static map's own fit and the choice of substeps. On the two cores of the
-    project's machine the two compilations overlap; the solver is the same program at every
-    level of substeps (``dynamic_substeps``) and every warm-start weight, so the one made
-    here serves them all. The thread runs one solver step from ``y0`` and discards it; a
-    failure there is left for the real call to meet and report. ``solve``: the
+def compile_ahead(prob: Problem, y0: Any, solve: dict[str, Any]) -> Ahead:
+    """The compiled programs of ``prob``'s fit (its solver, then its covariance and
+    discretisation check), made in a background thread (``jaxflex.fit.ahead``) while
+    ``identify`` does the work that comes before them: the static map's own fit and the
+    choice of substeps. On the two cores of the project's machine the two compilations
+    overlap; the solver is the same program at every level of substeps
+    (``dynamic_substeps``) and every warm-start weight, so the one made here serves them all.
+    The thread runs one solver step from ``y0`` and discards it. ``solve``: the
     ``least_squares`` options of the real solves that key their program (tolerances,
-    geodesic); ``wait_solver`` before the first solve, ``join`` before the covariance, so
-    that no program is compiled twice at once. The calling thread's float64 mode (thread-
-    local under ``requires_float64``) is the thread's; under ``jax.disable_jit`` nothing is
-    started."""
+    geodesic); ``wait(0)`` before the first solve, ``join`` before the covariance, so that no
+    program is compiled twice at once."""
+    made: dict[str, Solution] = {}
 
-    def __init__(self, prob: Problem, y0: Any, solve: dict[str, Any]) -> None:
-        self._solver_ready = threading.Event()
-        self._thread = None
-        if jax.config.jax_disable_jit:
-            self._solver_ready.set()
-            return
-        x64 = bool(jax.config.jax_enable_x64)
-        self._thread = threading.Thread(target=self._work, args=(prob, y0, solve, x64),
-                                        name="jaxflex-compile-ahead", daemon=True)
-        self._thread.start()
+    def solver() -> None:
+        made["solution"] = least_squares(prob, y0, max_steps=1, **solve)
 
-    def _work(self, prob: Problem, y0: Any, solve: dict[str, Any], x64: bool) -> None:
-        try:
-            with jax.enable_x64(x64):
-                sol = least_squares(prob, y0, max_steps=1, **solve)
-                self._solver_ready.set()
-                if sol.normal is not None:
-                    covariance(prob, sol.y, solution=sol)
-                    discretisation_bias(prob, sol)
-        except Exception:  # noqa: BLE001 - the real call meets it again and reports it
-            pass
-        finally:
-            self._solver_ready.set()
+    def checks() -> None:
+        sol = made.get("solution")
+        if sol is not None and sol.normal is not None:
+            covariance(prob, sol.y, solution=sol)
+            discretisation_bias(prob, sol)
 
-    def wait_solver(self) -> None:
-        """Block until the solver is compiled (or its compilation failed)."""
-        self._solver_ready.wait()
-
-    def join(self) -> None:
-        """Block until every program is compiled."""
-        if self._thread is not None:
-            self._thread.join()
+    return Ahead([solver, checks])
 
 
 def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
