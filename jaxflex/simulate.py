@@ -19,9 +19,8 @@ Everything is a pure function of the plant and controller modules, so ``jit``, `
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -34,6 +33,9 @@ from jaxflex.sensing import AbstractSensing, Sensing
 from jaxflex.plant import FlexibleJointPlant, PlantState
 from jaxflex.step import plant_step, plant_step_diffrax
 from jaxflex.trajectory import Taylor
+
+if TYPE_CHECKING:  # diffrax is imported where it is used: importing it takes 0.25 s
+    import diffrax
 
 _tmap = jax.tree_util.tree_map
 #: Reference derivatives the sampled-data loop hands the controller (q2d'' needs the 4th).
@@ -321,6 +323,8 @@ def simulate_continuous(
     """
     if not t_final > 0:
         raise ValueError(f"simulate_continuous: t_final must be > 0 s, got {t_final}")
+    import diffrax
+
     if x0 is None:
         x0 = plant.init_state(q1=controller.trajectory.position(jnp.asarray(0.0)))
     y0 = (x0, jnp.zeros(plant.n, dtype=x0.q1.dtype))

@@ -41,7 +41,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Literal
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -226,6 +225,8 @@ def plant_step_diffrax(
 ) -> PlantState:
     """Advance the plant by ``h`` [s] under constant ``tau`` [N m] with an adaptive stiff
     solver (diffrax Kvaerno5, PID step control); an accurate reference for ``plant_step``."""
+    import diffrax  # here, not at the top: importing it takes 0.25 s of every command's start
+
     term = diffrax.ODETerm(lambda t, y, args: plant.vector_field(y, tau))
     sol = diffrax.diffeqsolve(
         term, diffrax.Kvaerno5(), 0.0, h, h / 10, x,
