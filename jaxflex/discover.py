@@ -162,6 +162,20 @@ def relative_stop(n_res: int, inflation: float = 1.0,
     return CostBound(fraction * inflation * 2.0 / n_res)
 
 
+def progress_stop(n_res: int, inflation: float, max_steps: int,
+                  catch_up: float | None = None) -> CostBound:
+    """The progress stop of a fit (``least_squares(stall=...)``, over STALL_WINDOW steps):
+    STALL chi-square units (``relative_stop``), or, with ``catch_up`` (the residual sum of
+    squares of a fit this one competes with), the larger of that and the share
+    STALL_WINDOW / ``max_steps`` of the distance still to go, (2 cost - catch_up): a solve
+    that gains less cannot reach the other within its steps at its current rate."""
+    bound = relative_stop(n_res, inflation, STALL)
+    if catch_up is None or not math.isfinite(catch_up):
+        return bound
+    share = STALL_WINDOW / max_steps
+    return dataclasses.replace(bound, other=(2.0 * share, -share * catch_up))
+
+
 def fitted_names(name: str) -> tuple[str, ...]:
     """The parameters the fit adjusts for effect ``name``, as ``"<effect>.<param>"``."""
     return tuple(f"{name}.{k}" for k, c in EFFECTS[name].constraints.items() if is_fitted(c))
@@ -435,7 +449,7 @@ def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
 
 def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: float = 1.0,
               starts: tuple[jax.Array, jax.Array] | None = None,
-              held_out: bool = True) -> CandidateFit:
+              held_out: bool = True, catch_up: float | None = None) -> CandidateFit:
     """Refit ``model`` on the training segments with the engine, every segment's start state
     fitted with the parameters; then fit the held-out segments' start states with the
     parameters fixed (``fit_starts``) and take the held-out gap. ``starts``: first guesses of
@@ -443,7 +457,11 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     their start loads brought within the friction's capacity (``within_capacity``).
     Standard errors are inflated by the residual autocorrelation time ``tau_int``
     (samples). ``held_out`` False: the held-out part is left for later (``with_held_out``):
-    the held-out starts are the first guesses and the held-out gap is NaN."""
+    the held-out starts are the first guesses and the held-out gap is NaN. ``catch_up``: the
+    training residual sum of squares of a fit this one competes with (``settle``'s fresh
+    solve): the solve also ends, not converged, once its last STALL_WINDOW steps gained less
+    than that many steps' share of what it still lacks to reach it (at that rate it would
+    not catch up within ``max_steps``)."""
     t0 = time.perf_counter()
     train, test, theta0 = ws.for_model(model)
     plant0 = train.space.plant(theta0)
@@ -452,7 +470,8 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     sol = least_squares(train, (theta0, x_train), rtol=_RTOL, atol=_ATOL,
                         max_steps=max_steps, scaling="marquardt",
                         decrement_tol=relative_stop(train.n_out, tau_int),
-                        stall=(STALL_WINDOW, relative_stop(train.n_out, tau_int, STALL)))
+                        stall=(STALL_WINDOW, progress_stop(train.n_out, tau_int, max_steps,
+                                                           catch_up)))
     theta, x_train = sol.y
     cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
     if held_out:
@@ -576,7 +595,8 @@ def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float =
         # with Fc 0; from the estimates the base itself went from 7.5 to 3.1 in training
         # residual, and the next round's ten candidates had all been significant against it)
         alt = fit_model(ws, fit.model, max_steps=max_steps, tau_int=tau_int,
-                        starts=(ws.train.segs.x0, fit.test_starts), held_out=False)
+                        starts=(ws.train.segs.x0, fit.test_starts), held_out=False,
+                        catch_up=fit.rss)
         if alt.rss < fit.rss * (1.0 - tol):
             return settle(ws, alt, max_steps=max_steps, tau_int=tau_int, rounds=rounds,
                           tol=tol, probe=probe, fresh=False)

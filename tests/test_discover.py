@@ -494,3 +494,18 @@ def test_a_candidate_that_cannot_change_the_replay_is_refused(tmp_path, capsys, 
     assert code == 2
     assert "does not change the motion" in capsys.readouterr().err
     assert not (tmp_path / "o" / "report.json").exists()
+
+
+def test_a_fresh_solve_that_cannot_catch_up_stops():
+    """``progress_stop``: STALL chi-square units of the fit's own residual variance; with a
+    fit to catch up with, also the window's share of the distance still to go, so that a
+    fresh solve far behind and gaining slowly ends (``settle``), and one that is ahead is
+    held only by the chi-square bound."""
+    from jaxflex.discover import STALL, STALL_WINDOW, progress_stop, relative_stop
+
+    n, infl, steps = 1000, 4.0, 60
+    plain = progress_stop(n, infl, steps)
+    assert plain(10.0) == pytest.approx(relative_stop(n, infl, STALL)(10.0))
+    behind = progress_stop(n, infl, steps, catch_up=18.0)  # cost 10: 2 short of 18
+    assert behind(10.0) == pytest.approx(STALL_WINDOW / steps * 2.0)
+    assert behind(8.5) == pytest.approx(plain(8.5))  # ahead: the chi-square bound alone

@@ -479,6 +479,11 @@ def test_a_stalled_run_ends_early_and_says_it_did_not_converge():
     assert 5 < stalled.steps < plain.steps, (stalled.steps, plain.steps)
     assert 2 * (costs[-6] - costs[-1]) < 1e-2
     assert all(2 * (costs[i - 5] - costs[i]) >= 1e-2 for i in range(5, len(costs) - 1))
+    # a bound of two pieces is the larger: either piece alone gives the same run
+    for two in (CostBound(0.0, 1e-2, other=(0.0, 5e-3)), CostBound(0.0, -1.0, other=(0.0, 1e-2))):
+        assert two(3.0) == 1e-2
+        again = least_squares(k, y0, fn=_rosenbrock, max_steps=2000, stall=(5, two))
+        assert again.steps == stalled.steps and again.reason == stalled.reason
     same = least_squares(k, y0, fn=_rosenbrock, max_steps=2000, stall=(5, 0.0))
     assert same.steps == plain.steps and same.converged
     np.testing.assert_array_equal(np.asarray(same.y), np.asarray(plain.y))

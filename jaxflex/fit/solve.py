@@ -562,27 +562,32 @@ def _one_step(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args
 @dataclasses.dataclass(frozen=True)
 class CostBound:
     """A bound ``scale * cost + const`` in units of ||r||^2 as a function of the cost
-    0.5 ||r||^2 (``least_squares``' ``decrement_tol`` and ``stall``): a callable the compiled
-    loop evaluates itself, so that the run takes many steps per call (any other callable is
-    evaluated on the host after every step)."""
+    0.5 ||r||^2 (``least_squares``' ``decrement_tol`` and ``stall``), or the larger of that
+    and ``other`` = (scale, const): a callable the compiled loop evaluates itself, so that the
+    run takes many steps per call (any other callable is evaluated on the host after every
+    step)."""
 
     scale: float
     const: float = 0.0
+    other: tuple[float, float] = (0.0, -math.inf)
 
     def __call__(self, c: float) -> float:
-        return self.scale * c + self.const
+        return max(self.scale * c + self.const, self.other[0] * c + self.other[1])
 
 
-def _device_bound(bound: float | Callable[[float], float] | None) -> tuple[bool, float, float]:
-    """(judged on the host, scale, constant) of a stop's bound for ``_steps`` (off: a constant
-    of -inf)."""
+def _device_bound(bound: float | Callable[[float], float] | None,
+                  ) -> tuple[bool, list[float]]:
+    """(judged on the host, [scale, constant, other scale, other constant]) of a stop's bound
+    for ``_steps`` (off: constants of -inf)."""
+    off = [0.0, -math.inf, 0.0, -math.inf]
     if bound is None:
-        return False, 0.0, -math.inf
+        return False, off
     if isinstance(bound, CostBound):
-        return False, float(bound.scale), float(bound.const)
+        return False, [float(bound.scale), float(bound.const), float(bound.other[0]),
+                       float(bound.other[1])]
     if callable(bound):
-        return True, 0.0, -math.inf
-    return False, 0.0, float(bound)
+        return True, off
+    return False, [0.0, float(bound), 0.0, -math.inf]
 
 
 #: Why ``_steps`` stopped: still running (its step limit), failed (non-finite values or a
@@ -602,13 +607,14 @@ def _steps(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: A
     """Up to ``control[0]`` solver steps in one compiled loop, ending at the first that meets a
     stop (the codes above): the host loop's work without a dispatch and a device-to-host
     round trip per step (measured on discover's 20 s log: 1.7 of a step's 21 ms were the
-    call's dispatch). ``control`` = (limit, decrement bound's scale and constant, progress
-    bound's scale and constant, steps already run, progress window W <= ``_HISTORY``) and
-    ``history`` the costs of the last ``_HISTORY`` + 1 steps (oldest first), carried from call
-    to call: the bounds are ``scale * cost + const`` in units of ||r||^2 (a constant of -inf:
-    off); every window shares the program. Returns (y, state, steps run, stop code, cost,
+    call's dispatch). ``control`` = (limit, decrement bound, progress bound, steps already
+    run, progress window W <= ``_HISTORY``), each bound as ``CostBound``'s two pieces (scale
+    and constant, twice: the larger of ``scale * cost + const`` in units of ||r||^2; a
+    constant of -inf: off), and ``history`` the costs of the last ``_HISTORY`` + 1 steps
+    (oldest first), carried from call to call; every window shares the program. Returns (y, state, steps run, stop code, cost,
     decrement, history, the costs of the steps run (``_CHUNK``, NaN after the last))."""
-    limit, dec_a, dec_b, stall_a, stall_b, before, window = (control[i] for i in range(7))
+    limit, dec_a, dec_b, dec_a2, dec_b2, stall_a, stall_b, stall_a2, stall_b2, before, window = (
+        control[i] for i in range(11))
     back = (_HISTORY - window).astype(jnp.int32)  # where the cost W steps back sits
 
     def cond(carry):
@@ -619,8 +625,10 @@ def _steps(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: A
         y, state, done, ok, c, stalled, dec = _one_step(solver, fn, y, state, args)
         hist = jnp.concatenate([hist[1:], c[None]])
         fell = 2.0 * (jax.lax.dynamic_index_in_dim(hist, back, keepdims=False) - c)
-        stall = (before + k + 1 > window) & (fell < stall_a * c + stall_b)
-        code = jnp.select([~ok, done, dec < dec_a * c + dec_b, stalled, stall],
+        stall = (before + k + 1 > window) & (
+            fell < jnp.maximum(stall_a * c + stall_b, stall_a2 * c + stall_b2))
+        small = dec < jnp.maximum(dec_a * c + dec_b, dec_a2 * c + dec_b2)
+        code = jnp.select([~ok, done, small, stalled, stall],
                           [_FAILED, _TOLERANCE, _DECREMENT, _XTOL, _STALLED],
                           _RUNNING).astype(jnp.int32)
         return (k + 1, y, state, code, c, dec, hist, trace.at[k].set(c))
@@ -800,9 +808,9 @@ def least_squares(
     state = _init(solver, wrapped, y, prob)
     # the stops run on the device (``_steps``) when their bounds are numbers or ``CostBound``s;
     # any other callable is judged here, after every single step
-    dec_on_host, dec_a, dec_b = _device_bound(decrement_tol)
+    dec_on_host, dec_bound = _device_bound(decrement_tol)
     window = int(stall[0]) if stall is not None else 1
-    stall_on_host, st_a, st_b = _device_bound(None if stall is None else stall[1])
+    stall_on_host, stall_bound = _device_bound(None if stall is None else stall[1])
     one_at_a_time = dec_on_host or stall_on_host
     history = to_device(np.full(_HISTORY + 1, np.inf))
     costs: list[float] = []  # after each step (the progress stop of a host-side bound)
@@ -810,7 +818,7 @@ def least_squares(
     try:
         while steps < max_steps and code == _RUNNING:
             limit = 1 if one_at_a_time else min(chunk, max_steps - steps, _CHUNK)
-            control = to_device(np.array([limit, dec_a, dec_b, st_a, st_b, steps, window],
+            control = to_device(np.array([limit, *dec_bound, *stall_bound, steps, window],
                                          float))
             t_call = time.perf_counter()
             y, state, k_a, code_a, c_a, dec_a_, history, trace = _steps(
@@ -833,7 +841,7 @@ def least_squares(
     except KeyboardInterrupt:
         reason = f"interrupted after {steps} steps"
     if not reason and code == _DECREMENT:
-        bound = decrement_tol(c) if dec_on_host else dec_a * c + dec_b
+        bound = decrement_tol(c) if callable(decrement_tol) else decrement_tol
         reason = (f"statistical stop: a full Gauss-Newton step would lower ||r||^2 "
                   f"by {dec:.3g} < {bound:.3g}")
     elif not reason and code == _XTOL:
@@ -842,7 +850,7 @@ def least_squares(
     elif not reason and code == _STALLED:
         past = (costs[-1 - window] if stall_on_host
                 else float(np.asarray(history)[_HISTORY - window]))
-        limit_c = stall[1](c) if stall_on_host else st_a * c + st_b
+        limit_c = stall[1](c) if callable(stall[1]) else stall[1]
         reason = (f"stalled: ||r||^2 fell by {2.0 * (past - c):.3g} < {limit_c:.3g} over the "
                   f"last {window} steps (not converged)")
     done, ok = code in (_TOLERANCE, _DECREMENT, _XTOL), code != _FAILED
