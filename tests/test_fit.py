@@ -493,6 +493,27 @@ def test_a_stalled_run_ends_early_and_says_it_did_not_converge():
         least_squares(k, y0, fn=_rosenbrock, stall=(65, 1.0))
 
 
+def test_an_interrupt_returns_the_point_reached_marked_unconverged():
+    """Ctrl-C (here raised from the progress callback at step 3) ends the run between calls
+    of the compiled loop: not converged, the reason says so, and the steps reported are those
+    the returned point has taken (the call's steps, at least the 3 reported)."""
+    from jaxflex.fit import cost
+
+    seen = []
+
+    def interrupt(i, c):
+        seen.append((i, c))
+        if i == 3:
+            raise KeyboardInterrupt
+
+    k = jnp.asarray(1e3)
+    sol = least_squares(k, jnp.array([-1.2, 1.0]), fn=_rosenbrock, max_steps=2000,
+                        progress=interrupt)
+    assert not sol.converged and sol.reason == f"interrupted after {sol.steps} steps"
+    assert sol.steps >= 3 and [i for i, _ in seen] == [1, 2, 3]
+    assert sol.cost == pytest.approx(cost(k, sol.y, _rosenbrock), rel=1e-12)
+
+
 def test_work_made_ahead_runs_in_order_and_a_failure_stops_nothing():
     """``Ahead`` runs its callables in a background thread under the caller's float64 mode;
     one that raises is passed over (the real call meets it again), the next still runs, and

@@ -611,8 +611,9 @@ def _steps(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: A
     run, progress window W <= ``_HISTORY``), each bound as ``CostBound``'s two pieces (scale
     and constant, twice: the larger of ``scale * cost + const`` in units of ||r||^2; a
     constant of -inf: off), and ``history`` the costs of the last ``_HISTORY`` + 1 steps
-    (oldest first), carried from call to call; every window shares the program. Returns (y, state, steps run, stop code, cost,
-    decrement, history, the costs of the steps run (``_CHUNK``, NaN after the last))."""
+    (oldest first), carried from call to call; every window shares the program. Returns (y,
+    state, steps run, stop code, cost, decrement, history, the costs of the steps run
+    (``_CHUNK``, NaN after the last))."""
     limit, dec_a, dec_b, dec_a2, dec_b2, stall_a, stall_b, stall_a2, stall_b2, before, window = (
         control[i] for i in range(11))
     back = (_HISTORY - window).astype(jnp.int32)  # where the cost W steps back sits
@@ -812,9 +813,8 @@ def least_squares(
     window = int(stall[0]) if stall is not None else 1
     stall_on_host, stall_bound = _device_bound(None if stall is None else stall[1])
     one_at_a_time = dec_on_host or stall_on_host
-    history = to_device(np.full(_HISTORY + 1, np.inf))
-    costs: list[float] = []  # after each step (the progress stop of a host-side bound)
-    steps, code, reason, c, dec, chunk = 0, _RUNNING, "", None, None, _FIRST_CHUNK
+    history = to_device(np.full(_HISTORY + 1, np.inf))  # costs, the last W back included
+    steps, code, c, dec, chunk, interrupted = 0, _RUNNING, None, None, _FIRST_CHUNK, False
     try:
         while steps < max_steps and code == _RUNNING:
             limit = 1 if one_at_a_time else min(chunk, max_steps - steps, _CHUNK)
@@ -824,36 +824,20 @@ def least_squares(
             y, state, k_a, code_a, c_a, dec_a_, history, trace = _steps(
                 solver, wrapped, y, state, prob, control, history)
             k, code, c, dec = int(k_a), int(code_a), float(c_a), float(dec_a_)
-            new = [float(v) for v in np.asarray(trace)[:k]]
-            costs += new
-            for i, ci in enumerate(new):
-                if progress is not None:
-                    progress(steps + i + 1, ci)
-            steps += k
+            steps += k  # before the progress calls: y and state are k steps on already
+            if progress is not None:
+                for i, ci in enumerate(np.asarray(trace)[:k]):
+                    progress(steps - k + i + 1, float(ci))
             # about a second a call: an interrupt is seen between calls
             chunk = int(np.clip(1.0 / max((time.perf_counter() - t_call) / max(k, 1), 1e-6),
                                 1, _CHUNK))
             if code == _RUNNING and dec_on_host and dec < decrement_tol(c):
                 code = _DECREMENT
             if code == _RUNNING and stall_on_host and steps > window and (
-                    2.0 * (costs[-1 - window] - c) < stall[1](c)):
+                    2.0 * (float(np.asarray(history)[_HISTORY - window]) - c) < stall[1](c)):
                 code = _STALLED
     except KeyboardInterrupt:
-        reason = f"interrupted after {steps} steps"
-    if not reason and code == _DECREMENT:
-        bound = decrement_tol(c) if callable(decrement_tol) else decrement_tol
-        reason = (f"statistical stop: a full Gauss-Newton step would lower ||r||^2 "
-                  f"by {dec:.3g} < {bound:.3g}")
-    elif not reason and code == _XTOL:
-        reason = ("tolerance met (the trust region shrank below the tolerance on the "
-                  "unknowns without a step that lowers the cost)")
-    elif not reason and code == _STALLED:
-        past = (costs[-1 - window] if stall_on_host
-                else float(np.asarray(history)[_HISTORY - window]))
-        limit_c = stall[1](c) if callable(stall[1]) else stall[1]
-        reason = (f"stalled: ||r||^2 fell by {2.0 * (past - c):.3g} < {limit_c:.3g} over the "
-                  f"last {window} steps (not converged)")
-    done, ok = code in (_TOLERANCE, _DECREMENT, _XTOL), code != _FAILED
+        interrupted = True
     y = jax.block_until_ready(y)
     # the state's residual is the one at y (that of the last accepted point): no second
     # compilation of the residual for the final cost
@@ -865,14 +849,28 @@ def least_squares(
         y = pad.unknowns_back(y)
         residual = None if residual is None else pad.rows_back(residual)
         normal = None if normal is None else pad.blocks_back(normal)
-    if not reason:
-        if done and ok:
-            reason = "tolerance met"
-        elif not ok:
-            reason = "solver failed (non-finite values or a failed linear solve)"
-        else:
-            reason = f"stopped at max_steps = {max_steps} without meeting the tolerance"
-    return Solution(y=y, steps=steps, converged=bool(done and not reason.startswith("int")),
+    if interrupted:
+        reason = f"interrupted after {steps} steps"
+    elif code == _DECREMENT:
+        bound = decrement_tol(c) if callable(decrement_tol) else decrement_tol
+        reason = (f"statistical stop: a full Gauss-Newton step would lower ||r||^2 "
+                  f"by {dec:.3g} < {bound:.3g}")
+    elif code == _XTOL:
+        reason = ("tolerance met (the trust region shrank below the tolerance on the "
+                  "unknowns without a step that lowers the cost)")
+    elif code == _STALLED:
+        past = float(np.asarray(history)[_HISTORY - window])
+        limit_c = stall[1](c) if callable(stall[1]) else stall[1]
+        reason = (f"stalled: ||r||^2 fell by {2.0 * (past - c):.3g} < {limit_c:.3g} over the "
+                  f"last {window} steps (not converged)")
+    elif code == _TOLERANCE:
+        reason = "tolerance met"
+    elif code == _FAILED:
+        reason = "solver failed (non-finite values or a failed linear solve)"
+    else:
+        reason = f"stopped at max_steps = {max_steps} without meeting the tolerance"
+    converged = code in (_TOLERANCE, _DECREMENT, _XTOL) and not interrupted
+    return Solution(y=y, steps=steps, converged=converged,
                     cost=final, reason=reason, seconds=time.perf_counter() - t0,
                     residual=residual, normal=normal,
                     decrement=None if dec is None else float(dec))
