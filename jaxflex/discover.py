@@ -91,8 +91,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.signal
-import scipy.stats
+import scipy.special
 
 from jaxflex.effects import EFFECTS, AbstractEffect, Gated, acts_on_replay, candidate_effects
 from jaxflex.fit import (
@@ -109,6 +108,7 @@ from jaxflex.fit import (
     params_of_plant,
     residuals,
     savgol,
+    savgol_coeffs,
     on_slot_rows,
     simulated_outputs,
     white_noise_std,
@@ -638,7 +638,7 @@ def paired_p_value(worse: Sequence[float], better: Sequence[float]) -> float:
     if sd == 0.0:
         return 0.0 if float(np.mean(d)) > 0 else 1.0
     t = float(np.mean(d)) / (sd / math.sqrt(d.size))
-    return float(scipy.stats.t.sf(t, d.size - 1))
+    return float(scipy.special.stdtr(d.size - 1, -t))  # Student's t survival at t
 
 
 def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
@@ -692,6 +692,23 @@ def inverse_dynamics(plant: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1
     return jax.vmap(resid)(q1, v1, a1, q2, v2, a2, tau)
 
 
+def welch(x: np.ndarray, dt: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
+    """Welch's power spectral density of ``x`` sampled every ``dt`` [s]: frequencies [Hz] and
+    one-sided density [units^2 / Hz], from periodic-Hann-windowed segments of ``nperseg``
+    samples overlapping by half, each less its mean, averaged (scipy's ``signal.welch``
+    defaults, to which a test holds it; written here because importing ``scipy.signal``
+    costs every command 0.55 s, ``jaxflex.fit.savgol_coeffs``)."""
+    x = np.asarray(x, float)
+    nperseg = min(int(nperseg), x.size)
+    step = nperseg - nperseg // 2
+    segs = np.lib.stride_tricks.sliding_window_view(x, nperseg)[::step]
+    win = 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(nperseg) / nperseg)
+    spec = np.abs(np.fft.rfft((segs - segs.mean(axis=1, keepdims=True)) * win, axis=1)) ** 2
+    spec *= dt / np.sum(win**2)
+    spec[:, 1:nperseg // 2 + (nperseg % 2)] *= 2.0  # one-sided: all but DC (and Nyquist)
+    return np.fft.rfftfreq(nperseg, dt), spec.mean(axis=0)
+
+
 def localise(log: Log, params: Params, window: int = 41) -> Localisation:
     """Inverse-dynamics torque residuals [N m] of the nominal model on the link and rotor sides
     (``FlexibleJointPlant.torque_residuals`` with z at its steady state, so F = F_ss of
@@ -713,13 +730,13 @@ def localise(log: Log, params: Params, window: int = 41) -> Localisation:
     K, I, J = (float(np.ravel(a)[0]) for a in (plant.K, plant.links.I, plant.J))
     d, dd = q2 - q1, v2 - v1
     nf1, nf2 = noise_level(q1s), noise_level(q2s)
-    c2 = scipy.signal.savgol_coeffs(window, 3, deriv=2, delta=dt)
-    c0 = scipy.signal.savgol_coeffs(window, 3, deriv=0)
+    c2 = savgol_coeffs(window, 3, deriv=2, delta=dt)
+    c0 = savgol_coeffs(window, 3, deriv=0)
     g2, g0 = float(np.sqrt(np.sum(c2**2))), float(np.sqrt(np.sum(c0**2)))
     floor_link = math.sqrt((I * g2 * nf1["total_std"]) ** 2 + (K * g0 * nf2["total_std"]) ** 2)
     floor_rot = math.sqrt((J * g2 * nf2["total_std"]) ** 2 + (K * g0 * nf1["total_std"]) ** 2)
-    fr, P1 = scipy.signal.welch(r_link, fs=1.0 / dt, nperseg=min(4096, len(r_link)))
-    _, P2 = scipy.signal.welch(r_rot, fs=1.0 / dt, nperseg=min(4096, len(r_rot)))
+    fr, P1 = welch(r_link, dt, min(4096, len(r_link)))
+    _, P2 = welch(r_rot, dt, min(4096, len(r_rot)))
     w = int(round(1.0 / dt))
     win = [
         (float(log.t[i * w]), float(np.sqrt(np.mean(r_link[i * w:(i + 1) * w] ** 2))),
@@ -854,7 +871,7 @@ def training_evidence(base_rss: float, rss: float, k: int, n_par: int, n_res: in
     dof = max(n_eff * (1.0 - n_par / max(n_res, 1)), 1.0)
     drss = max(base_rss - rss, 0.0)
     F = (drss / k) / (rss / dof) if rss > 0 else math.inf
-    p = float(scipy.stats.f.sf(F, k, dof))
+    p = float(scipy.special.fdtrc(k, dof, F))  # the F distribution's survival at F
     ll = lambda r: n_eff * math.log(max(r, 1e-300) / n_eff)  # noqa: E731
     return {
         "F": float(F), "p_value": p,

@@ -49,8 +49,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.special
 from jaxtyping import Array, Float
-from scipy import stats
 
 from jaxflex.certificate import (
     DEFAULT_EPS,
@@ -192,7 +192,7 @@ def spread_box(spec: SweepSpec, confidence: float = 0.95) -> tuple[ParameterBox,
     how = {k: "nominal" for k in N2_PARAMETERS}
     post_lo, post_hi = (spec.posterior.box(confidence) if spec.posterior is not None
                         else ({}, {}))
-    z = stats.norm.ppf(0.5 + confidence / 2)
+    z = scipy.special.ndtri(0.5 + confidence / 2)
     for c in spec.columns:
         name = c.name.split(".", 1)[1]
         if name not in N2_PARAMETERS or c.name.split(".")[0] not in ("plant", "friction"):

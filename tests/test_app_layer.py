@@ -192,6 +192,23 @@ def test_no_module_outside_cli_and_plots_imports_matplotlib_or_argparse():
     assert not bad
 
 
+def test_commands_start_without_scipy_signal_and_stats():
+    """Importing ``scipy.signal`` (which imports ``scipy.stats``) costs every command 0.55 s of
+    its start on the 2-core machine; the workflows use jaxflex's Savitzky-Golay and Welch and
+    scipy.special's distribution functions instead. Loading every module of the command line
+    and of the workflows a command runs must not bring either in (``validate`` imports
+    scipy.signal's filter only where it filters)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, jaxflex.cli, jaxflex.identify, jaxflex.discover, jaxflex.validate, "
+            "jaxflex.robust, jaxflex.tune, jaxflex.sweep, jaxflex.experiments; "
+            "print(sorted(m for m in ('scipy.signal', 'scipy.stats') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "[]"
+
+
 def test_no_private_name_is_imported_across_modules():
     bad = []
     for rel, tree in _modules().items():

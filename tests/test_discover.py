@@ -240,6 +240,32 @@ def test_delay_and_lag_are_named_when_the_log_tells_them_apart():
     assert rep["gap_after"] <= 0.5 * rep["gap_before"]
 
 
+def test_spectra_and_evidence_equal_scipys():
+    """discover's Welch spectrum and its F- and t-test p-values (written with numpy and
+    scipy.special to keep scipy.signal and scipy.stats out of every command's start) equal
+    scipy.signal.welch and scipy.stats' survival functions."""
+    import scipy.signal
+    import scipy.stats
+
+    from jaxflex.discover import paired_p_value, training_evidence, welch
+
+    rng = np.random.default_rng(1)
+    for n, nperseg in ((20000, 4096), (3001, 1001), (999, 256), (500, 4096)):
+        x = rng.normal(size=n) + np.sin(0.3 * np.arange(n))
+        f_ref, p_ref = scipy.signal.welch(x, fs=1000.0, nperseg=min(nperseg, n))
+        f, p = welch(x, 1e-3, nperseg)
+        np.testing.assert_allclose(f, f_ref, rtol=1e-12)
+        np.testing.assert_allclose(p, p_ref, rtol=1e-9, atol=1e-12 * p_ref.max())
+    ev = training_evidence(10.0, 9.0, 2, 50, 5000, 1200.0)
+    dof = 1200.0 * (1 - 50 / 5000)
+    assert ev["p_value"] == pytest.approx(scipy.stats.f.sf(ev["F"], 2, dof), rel=1e-12)
+    worse, better = 1.0 + rng.random(12), 1.0 + rng.random(12)
+    d = np.log(worse) - np.log(better)
+    t = d.mean() / (d.std(ddof=1) / np.sqrt(d.size))
+    assert paired_p_value(worse, better) == pytest.approx(scipy.stats.t.sf(t, d.size - 1),
+                                                          rel=1e-12)
+
+
 def test_shortlist_fits_the_promising_and_the_rivals_of_the_best():
     """``shortlist``: a candidate is fitted fully when it could be significant (predicted
     p-value below alpha and a lower predicted BIC) and either explains at least ``keep`` of

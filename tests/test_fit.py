@@ -173,6 +173,32 @@ def test_solver_reports_a_capped_run_as_unconverged():
         least_squares(prob, prob.y0(), max_steps=0)
 
 
+@pytest.mark.parametrize("shape", [(1000,), (400, 2), (37, 3)])
+def test_savgol_equals_scipy(shape):
+    """jaxflex's Savitzky-Golay (written out to keep scipy.signal's 0.55 s import out of every
+    command) gives scipy's ``savgol_filter(mode="interp")`` and ``savgol_coeffs`` to 1e-9,
+    inside and on both edges, for smoothing and both derivatives, and a window longer than
+    the samples is cut to their count as before."""
+    import scipy.signal
+
+    from jaxflex.fit import savgol, savgol_coeffs
+
+    rng = np.random.default_rng(0)
+    t = np.arange(shape[0]) * 1e-3
+    x = np.cumsum(rng.normal(size=shape), axis=0) + np.sin(40 * t).reshape(-1, *[1] * (len(shape) - 1))
+    for deriv in (0, 1, 2):
+        for window in (5, 31, 41):
+            w = min(window, shape[0] - (1 - shape[0] % 2))
+            ref = scipy.signal.savgol_filter(x, w, 3, deriv=deriv, delta=1e-3, axis=0,
+                                             mode="interp")
+            assert np.max(np.abs(savgol(x, 1e-3, deriv, window) - ref)) <= 1e-9 * np.max(np.abs(ref))
+        np.testing.assert_allclose(savgol_coeffs(31, 3, deriv, 1e-3),
+                                   scipy.signal.savgol_coeffs(31, 3, deriv, 1e-3, use="dot"),
+                                   rtol=1e-9, atol=1e-12 * 1e3**deriv)
+    with pytest.raises(ValueError, match="odd window"):
+        savgol_coeffs(30, 3)
+
+
 def test_noise_level_finds_quantisation_step():
     t = np.arange(5000) * 1e-3
     step = 2 * np.pi / 2**14

@@ -20,6 +20,7 @@ from jaxflex.fit.problem import (
     output_columns,
     pack_state,
     savgol,
+    savgol_coeffs,
     on_slot_rows,
     segment_slots,
     slot_rows,
@@ -60,5 +61,5 @@ __all__ = [
     "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
     "problem_residuals", "residuals", "simulated_outputs",
-    "relative", "savgol", "set_values", "unpack_state", "white_noise_std",
+    "relative", "savgol", "savgol_coeffs", "set_values", "unpack_state", "white_noise_std",
 ]

@@ -23,9 +23,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.special
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
-from scipy import stats
 
 from jaxflex.fit.space import ParamSpace
 from jaxflex.params import Params
@@ -120,7 +120,7 @@ class Posterior(eqx.Module):
         if not 0 < confidence < 1:
             raise ValueError(f"posterior: confidence must be in (0, 1), got {confidence}")
         k = self.mean.shape[0]
-        half = math.sqrt(stats.chi2.ppf(confidence, k)) * jnp.sqrt(
+        half = math.sqrt(scipy.special.chdtri(k, 1.0 - confidence)) * jnp.sqrt(
             jnp.sum(self.root**2, axis=1))
         lo = self.physical(self.mean - half)
         hi = self.physical(self.mean + half)
