@@ -6,8 +6,11 @@ programs of the fitting engine, simulator and tuner beside it (``jaxflex.traceca
 tracing or lowering of those in a second run). This study runs one command (``--command``:
 ``reproduce`` (a short paper experiment), ``identify`` (a 3 s closed-loop log of
 ``jaxflex.datagen``, seed 7, 20-bit encoder, six LuGre parameters from 50% off) or
-``discover`` (a 20 s log of the same generator with a hidden joint damping, every candidate))
-in fresh processes: with an empty cache folder, again with the same folder (the second run of
+``discover`` (a 20 s log of the same generator with a hidden joint damping, every candidate);
+the other commands on the paper's parameters: ``certify``, ``analyse`` (with ``--floquet``),
+``tune``, ``export --check``, ``validate`` (the identify log against the generator's
+parameters), ``sweep`` (256 plants of ``studies/spreads/sweep_paper_20pct.json``); ``all``:
+each command once, first and second run only) in fresh processes: with an empty cache folder, again with the same folder (the second run of
 a user) and once more; for identify and discover, with the same folder, on a log of another
 length (2.6 s, 18 s: a user's next log, with other shapes); twice with ``--no-trace-cache`` in
 another empty folder (what the kept traces save: there only XLA's executables are reused);
@@ -16,8 +19,8 @@ and with ``--no-cache``. In each process a
 backend) and reading the cache, and counts cache hits; wall time is also recorded. Target
 (issue 17): the second run spends under 2 s compiling.
 
-    python studies/bench_compile_cache.py [--command reproduce|identify|discover] [--small]
-        [--out out/bench_compile_cache]
+    python studies/bench_compile_cache.py [--command reproduce|identify|discover|...|all]
+        [--small] [--out out/bench_compile_cache]
 """
 
 from __future__ import annotations
@@ -59,8 +62,10 @@ _EVENTS = {
 }
 
 
-def run_once(argv: list[str], cache: str | None) -> dict:
-    """One command in a fresh process; returns wall time, compile seconds and cache hits."""
+def run_once(argv: list[str], cache: str | None, ok: tuple[int, ...] = (0,)) -> dict:
+    """One command in a fresh process; returns wall time, compile seconds and cache hits.
+    ``ok``: the exit codes that count as a run (``analyse`` exits 1 when a mode grows, as the
+    paper's observer does at rest)."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     if cache is not None:
         env["JAXFLEX_CACHE_DIR"] = cache
@@ -68,7 +73,7 @@ def run_once(argv: list[str], cache: str | None) -> dict:
     r = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(argv)], env=env,
                        capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    if r.returncode != 0:
+    if r.returncode not in ok:
         raise RuntimeError(r.stderr[-3000:])
     line = [x for x in r.stderr.splitlines() if x.startswith("COMPILE_STATS ")][-1]
     st = json.loads(line[len("COMPILE_STATS "):])
@@ -86,11 +91,15 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/bench_compile_cache")
     ap.add_argument("--small", action="store_true", help="a 1 s experiment (reproduce)")
-    ap.add_argument("--command", choices=("reproduce", "identify", "discover"),
+    ap.add_argument("--command", choices=("reproduce", "identify", "discover", *OTHERS, "all"),
                     default="reproduce")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
+    if a.command == "all":
+        return every_command(out, a.small)
+    if a.command in OTHERS:
+        return every_command(out, a.small, names=(a.command,))
     cmd = _command(a.command, out, a.small)
     with tempfile.TemporaryDirectory() as cache:
         first = run_once(cmd, cache)
@@ -136,6 +145,37 @@ def main(argv: list[str] | None = None) -> dict:
     return res
 
 
+#: The commands measured by ``every_command`` besides reproduce, identify and discover.
+OTHERS = ("certify", "analyse", "tune", "export", "validate", "sweep")
+
+
+def every_command(out: Path, small: bool, names: tuple[str, ...] | None = None) -> dict:
+    """Each command (``names``, default all) in two fresh processes on one empty cache
+    folder: the first run and the second; writes results_all.json (or results_NAME.json for
+    one) and prints one line per command."""
+    names = names or ("reproduce", "identify", "discover", *OTHERS)
+    res = {"cpu_count": os.cpu_count(),
+           "target": "second run under 2 s compiling (trace + lower + XLA, cache reads included)",
+           "commands": {}}
+    for name in names:
+        cmd = _command(name, out, small)
+        ok = (0, 1) if name == "analyse" else (0,)
+        with tempfile.TemporaryDirectory() as cache:
+            first = run_once(cmd, cache, ok)
+            second = run_once(cmd, cache, ok)
+        res["commands"][name] = {"command": "jaxflex " + " ".join(cmd), "first_empty_cache": first,
+                                 "second_same_cache": second}
+        print(f"{name:>10}: first wall {first['wall_s']:.1f} s, compile "
+              f"{first['compile_total_s']:.2f} s; second wall {second['wall_s']:.1f} s, compile "
+              f"{second['compile_total_s']:.2f} s (trace {second['trace_s']:.2f}, lower "
+              f"{second['lower_s']:.2f}, XLA {second['backend_compile_s']:.2f}; cache read "
+              f"{second['cache_read_s']:.2f} s, {second['compilations']} programs); load "
+              f"{second['load_avg'][0]:.2f}", flush=True)
+    tag = "all" if len(names) > 1 else names[0]
+    (out / f"results_{tag}.json").write_text(json.dumps(res, indent=2) + "\n")
+    return res
+
+
 #: The log length [s] of each command's "other length" run (after 3 s / 20 s ones).
 OTHER_LENGTH = {"identify": 2.6, "discover": 18.0}
 
@@ -153,6 +193,30 @@ def _command(name: str, out: Path, small: bool, t_final: float | None = None) ->
     from jaxflex.identify import DEFAULT_FREE, perturb
     from jaxflex.logs import save_log
     from jaxflex.params import Params, save_params
+    from jaxflex.presets import paper_params
+
+    paper = out / "paper.json"
+    if name in ("certify", "tune", "export"):
+        save_params(paper_params(), paper)
+    if name == "certify":
+        return ["certify", "--params", str(paper), "--json"]
+    if name == "analyse":
+        return ["analyse", "--json", "--floquet"]
+    if name == "tune":
+        return ["tune", "--params", str(paper), "--out", str(out / "tuned.json"), "--force"]
+    if name == "export":
+        return ["export", "--params", str(paper), "--out", str(out / "controller.py"),
+                "--check", "--force"]
+    if name == "sweep":
+        spread = Path(__file__).resolve().parent / "spreads" / "sweep_paper_20pct.json"
+        return ["sweep", str(spread), "--out", str(out / "sweep"), "--samples",
+                "64" if small else "256", "--force"]
+    if name == "validate":
+        g = generate_log((), seed=7, t_final=3.0, bits=20, noise_counts=0.5)
+        save_log(g.log, out / "log_validate.csv")
+        save_params(Params.from_dict(g.truth["plant"]), out / "truth.json")
+        return ["validate", str(out / "log_validate.csv"), "--params", str(out / "truth.json"),
+                "--out", str(out / "validate"), "--force"]
 
     if name == "identify":
         t_final = 3.0 if t_final is None else t_final
