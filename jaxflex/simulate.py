@@ -204,8 +204,13 @@ def simulate_sampled(
     quantisation, noise (with ``key``), filtered or Kalman-estimated velocities (the filter's
     state rides in the controller state) and DAC quantisation. A run that
     blows up is flagged in ``metrics.diverged`` and its state frozen, never an exception.
-    ``unroll_substeps``: unroll the plant's substep loop (``jaxflex.step.model_step``): faster
-    under ``vmap`` on a CPU (the sweep engine sets it), slower for a single run; same numbers.
+    ``unroll_substeps``: unroll the plant's substep loop (``jaxflex.step.model_step``); same
+    numbers, another speed: faster under ``vmap`` on a CPU (the sweep engine decides per
+    control law); for one run, slower under XLA's default options (a 10 s loop of the paper
+    plant at 10 substeps: 59 -> 81 ms) but faster under its small-loop option (23.8 -> 22.4 ms,
+    ``jaxflex.sweep.engine.use_lean_xla_cpu(small_loops=True)``; ``studies/bench_simulate.py
+    --part single``), except through a gradient (``jaxflex tune``: 5.1 -> 7.3 s warm, its
+    first run 15.5 -> 30 s), so the default stays rolled.
     Pure and jit/vmap/grad friendly; wrap in ``eqx.filter_jit`` at the call site.
     """
     if substeps < 1:
