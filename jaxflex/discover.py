@@ -891,7 +891,7 @@ def score(base: CandidateFit, cand: CandidateFit, n_eff: float) -> dict[str, flo
 
 
 def screen(ws: Workspace, base: CandidateFit, model: Model, name: str, *, steps: int,
-           tau_int: float, n_eff: float) -> dict[str, Any]:
+           tau_int: float, n_eff: float, start: Any = None) -> tuple[dict[str, Any], Any]:
     """The cheap look at candidate ``name`` (``model``: the base's model with the candidate's
     start added) that decides whether it is fitted fully (``shortlist``): at most ``steps``
     Levenberg-Marquardt steps on the training segments from the base's fitted starts (no
@@ -906,11 +906,13 @@ def screen(ws: Workspace, base: CandidateFit, model: Model, name: str, *, steps:
     rss), the ``training_evidence`` of both against the base (``screen_*`` keys: the fit
     reached; ``predicted_*``: the prediction), the candidate's parameter values and standard
     errors at the point reached (``params``: name -> {value, stderr}), ``steps`` and
-    ``seconds``."""
+    ``seconds``; and, beside the record, the training unknowns reached (``start``: a screen's
+    unknowns to go on from, instead of the base's starts with the candidate's start)."""
     t0 = time.perf_counter()
     train, _, theta0 = ws.for_model(model)
-    x_train = within_capacity(base.starts, train.space.plant(theta0))
-    sol = least_squares(train, (theta0, x_train), rtol=_RTOL, atol=_ATOL, max_steps=steps,
+    if start is None:
+        start = (theta0, within_capacity(base.starts, train.space.plant(theta0)))
+    sol = least_squares(train, start, rtol=_RTOL, atol=_ATOL, max_steps=steps,
                         scaling="marquardt", decrement_tol=relative_stop(train.n_out, tau_int))
     r = np.asarray(sol.residual)[: train.n_out] if sol.residual is not None else None
     rss = float(np.sum(r**2)) if r is not None and np.all(np.isfinite(r)) else math.inf
@@ -930,7 +932,7 @@ def screen(ws: Workspace, base: CandidateFit, model: Model, name: str, *, steps:
                                               "stderr": float(np.ravel(cov["stderr"][p])[0])}
                          for p in fitted_names(name)}
     out["seconds"] = time.perf_counter() - t0
-    return out
+    return out, sol.y
 
 
 def shortlist(screens: dict[str, dict[str, Any]], base_rss: float, *, alpha: float,
@@ -1318,21 +1320,26 @@ def discover(
             # every candidate is screened (a few training steps and the Gauss-Newton
             # decrement, ``screen``); only the shortlist is fitted fully (held-out starts,
             # gap, two first guesses): the full fits were nine tenths of a run's time
+            reached = {}
             for name in remaining:
                 try:
-                    screens[name] = screen(ws, current, models[name], name,
-                                           steps=cfg.screen_steps, tau_int=tau_int, n_eff=n_eff)
+                    screens[name], reached[name] = screen(
+                        ws, current, models[name], name, steps=cfg.screen_steps,
+                        tau_int=tau_int, n_eff=n_eff)
                 except (ValueError, FloatingPointError) as e:
                     screens[name] = {"error": str(e)}
             # a screen whose few steps did not reach the region where its prediction holds
-            # (a lag or backlash started at the typical size) looks again with 4x the steps
+            # (a lag or backlash started at the typical size) looks again, on from where it
+            # got, to 4x the steps in all
             for name in unresolved(screens, current.rss, alpha=cfg.alpha):
                 try:
-                    again = screen(ws, current, models[name], name,
-                                   steps=4 * cfg.screen_steps, tau_int=tau_int, n_eff=n_eff)
+                    again, _ = screen(ws, current, models[name], name,
+                                      steps=3 * cfg.screen_steps, tau_int=tau_int,
+                                      n_eff=n_eff, start=reached[name])
                 except (ValueError, FloatingPointError):
                     continue
                 if "predicted_dAIC" in again:
+                    again["steps"] += screens[name]["steps"]  # in all, along one path
                     screens[name] = again | {"first": screens[name]}
             to_fit = shortlist(screens, current.rss, alpha=cfg.alpha, keep=cfg.screen_keep,
                                decisive=cfg.decisive, least=cfg.screen_least)
