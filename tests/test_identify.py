@@ -267,9 +267,11 @@ def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
                          max_steps=30)
     finally:
         tracecache.enable(kept)
-    # the programs compiled ahead in a background thread (``compile_ahead``, ``jaxflex.fit.ahead``) are all made
-    # before identify returns: no compilation is left running
-    assert not any(t.name == "jaxflex-compile-ahead" and t.is_alive()
+    # the programs compiled ahead in a background thread (``compile_ahead`` on
+    # ``jaxflex.fit.ahead``) are all made before identify returns: no compilation is left running
+    from jaxflex.fit.ahead import THREAD_NAME
+
+    assert not any(t.name == THREAD_NAME and t.is_alive()
                    for t in threading.enumerate())
     levels = [c["substeps"] for c in r.discretisation["checks"]]
     assert len(set(levels)) >= 2, levels  # the fit was refined at least once

@@ -624,11 +624,11 @@ def _steps(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: A
     def body(carry):
         k, y, state, _, _, _, hist, trace = carry
         y, state, done, ok, c, stalled, dec = _one_step(solver, fn, y, state, args)
+        at = lambda a, b, a2, b2: jnp.maximum(a * c + b, a2 * c + b2)  # noqa: E731 - CostBound
         hist = jnp.concatenate([hist[1:], c[None]])
         fell = 2.0 * (jax.lax.dynamic_index_in_dim(hist, back, keepdims=False) - c)
-        stall = (before + k + 1 > window) & (
-            fell < jnp.maximum(stall_a * c + stall_b, stall_a2 * c + stall_b2))
-        small = dec < jnp.maximum(dec_a * c + dec_b, dec_a2 * c + dec_b2)
+        stall = (before + k + 1 > window) & (fell < at(stall_a, stall_b, stall_a2, stall_b2))
+        small = dec < at(dec_a, dec_b, dec_a2, dec_b2)
         code = jnp.select([~ok, done, small, stalled, stall],
                           [_FAILED, _TOLERANCE, _DECREMENT, _XTOL, _STALLED],
                           _RUNNING).astype(jnp.int32)
@@ -640,6 +640,12 @@ def _steps(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: A
              jnp.full((_CHUNK,), jnp.nan, history.dtype))
     k, y, state, code, c, dec, hist, trace = jax.lax.while_loop(cond, body, carry)
     return y, state, k, code, c, dec, hist, trace
+
+
+def _fell(history: jax.Array, window: int, c: float) -> float:
+    """On the host, how much ||r||^2 fell over the last ``window`` steps to the cost ``c``
+    (``_steps``' ``history``: the cost ``window`` steps back)."""
+    return 2.0 * (float(np.asarray(history)[_HISTORY - window]) - c)
 
 
 def gauss_newton_decrement(normal: dict[str, jax.Array], structure: str,
@@ -834,7 +840,7 @@ def least_squares(
             if code == _RUNNING and dec_on_host and dec < decrement_tol(c):
                 code = _DECREMENT
             if code == _RUNNING and stall_on_host and steps > window and (
-                    2.0 * (float(np.asarray(history)[_HISTORY - window]) - c) < stall[1](c)):
+                    _fell(history, window, c) < stall[1](c)):
                 code = _STALLED
     except KeyboardInterrupt:
         interrupted = True
@@ -859,10 +865,9 @@ def least_squares(
         reason = ("tolerance met (the trust region shrank below the tolerance on the "
                   "unknowns without a step that lowers the cost)")
     elif code == _STALLED:
-        past = float(np.asarray(history)[_HISTORY - window])
         limit_c = stall[1](c) if callable(stall[1]) else stall[1]
-        reason = (f"stalled: ||r||^2 fell by {2.0 * (past - c):.3g} < {limit_c:.3g} over the "
-                  f"last {window} steps (not converged)")
+        reason = (f"stalled: ||r||^2 fell by {_fell(history, window, c):.3g} < {limit_c:.3g} "
+                  f"over the last {window} steps (not converged)")
     elif code == _TOLERANCE:
         reason = "tolerance met"
     elif code == _FAILED:
