@@ -305,7 +305,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
         return Problem(space=space, segs=segs, w_y=to_device(1.0 / scale),
                        w_def=to_device(np.zeros(5)), dt=dt, kind="flexible", substeps=substeps,
                        outputs=("q1", "q2"), free_starts=True, bounded_z=True,
-                       jac_columns=columns)
+                       jac_columns=columns, rolled_stages=True)
 
     # no parameter is fitted on the held-out segments (only their starts): no theta tangents
     return Workspace(space=space, train=problem(train_segs, jac_columns),

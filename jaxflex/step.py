@@ -61,8 +61,29 @@ LINK_INPUTS: tuple[str, ...] = ("q2", "dq2", "ddq2")
 _tmap = jax.tree_util.tree_map
 
 
-def rk4(f: Callable, x, h: float | Array):
-    """One classical Runge-Kutta step of x' = f(x) over ``h`` (x any pytree)."""
+def rk4(f: Callable, x, h: float | Array, rolled: bool = False):
+    """One classical Runge-Kutta step of x' = f(x) over ``h`` (x any pytree).
+
+    ``rolled``: the four stages as a loop of four trips (one copy of ``f`` in the compiled
+    program instead of four), with the same operations in the same order: the numbers agree
+    to rounding (XLA fuses them differently: 8e-14 relative on the rotor velocity after
+    2,000 steps of the paper's plant with an actuator lag). For large forward-mode programs
+    under XLA's small-loop option: ``discover``'s Jacobian blocks carry the plant and every
+    candidate effect per stage (``jaxflex.fit.Problem``'s ``rolled_stages``, with the
+    measurements). Elsewhere the stages stay unrolled: XLA fuses across them, and without
+    the small-loop option a loop pays a dispatch per kernel and trip."""
+    if rolled:
+        c = jnp.array([0.0, 0.5, 0.5, 1.0])
+        w = jnp.array([1.0, 2.0, 2.0, 1.0])
+
+        def stage(i, carry):
+            k, acc = carry
+            k = f(_tmap(lambda a, b: a + c[i] * h * b, x, k))
+            return k, _tmap(lambda s, b: s + w[i] * b, acc, k)
+
+        zero = _tmap(jnp.zeros_like, x)
+        _, acc = jax.lax.fori_loop(0, 4, stage, (zero, zero))
+        return _tmap(lambda a, s: a + h / 6.0 * s, x, acc)
     k1 = f(x)
     k2 = f(_tmap(lambda a, b: a + 0.5 * h * b, x, k1))
     k3 = f(_tmap(lambda a, b: a + 0.5 * h * b, x, k2))
@@ -134,7 +155,7 @@ def _vector_field(kind: ModelKind, plant: FlexibleJointPlant) -> Callable:
 
 def model_step(
     kind: ModelKind, plant: FlexibleJointPlant, x: PlantState, tau: Float[Array, " n"],
-    h: float | Array, substeps: int, unroll: bool = False,
+    h: float | Array, substeps: int, unroll: bool = False, rolled: bool = False,
 ) -> PlantState:
     """Advance the chosen model structure by ``h`` [s] under constant torque ``tau`` [N m].
 
@@ -145,7 +166,7 @@ def model_step(
     when it is not (XLA copies its computation into every unrolled substep; the sweep engine
     decides per controller: ``jaxflex.sweep.engine.unrolls_substeps``), about 1.4x slower
     for a single run (measured in one process, issue 17). The numbers are the same either
-    way.
+    way. ``rolled``: the RK4 stages as a loop (``rk4``; the same to rounding).
     """
     f = _vector_field(kind, plant)
     hs = h / substeps
@@ -175,7 +196,7 @@ def model_step(
     flat, unravel = ravel_pytree(x)
     if fr is None:
         flat = _substeps(substeps, unroll, hs, flat, lambda hz, s: ravel_pytree(
-            rk4(lambda xx: f(xx, tau), unravel(s), hs))[0])
+            rk4(lambda xx: f(xx, tau), unravel(s), hs, rolled))[0])
         return unravel(flat)
 
     # Strang splitting with the half-steps of neighbouring substeps merged: z is advanced with
@@ -183,7 +204,7 @@ def model_step(
     # the next (same velocity, nothing in between) are one exact step of hs. The z steps are
     # hs/2, hs, ..., hs before each RK4 step and hs/2 after the last.
     flat = _substeps(substeps, unroll, hs, flat,
-                     lambda hz, s: ravel_pytree(rk4(mech, z_step(unravel(s), hz), hs))[0])
+                     lambda hz, s: ravel_pytree(rk4(mech, z_step(unravel(s), hz), hs, rolled))[0])
     return z_step(unravel(flat), 0.5 * hs)
 
 
@@ -283,20 +304,21 @@ def warm_effects(
 
 def replay(
     kind: ModelKind, plant: FlexibleJointPlant, x0: PlantState, tau: Float[Array, "L n"],
-    dt: float, substeps: int, unroll: bool = False,
+    dt: float, substeps: int, unroll: bool = False, rolled: bool = False,
 ) -> tuple[PlantState, PlantState]:
     """Replay a torque sequence [N m] (held over each sample of ``dt`` s) from ``x0``
     (for the "rotor" and "link" kinds, ``tau`` is the (L, 4, n) or (L, 3, n) input of the
     module docstring).
 
     ``unroll``: unroll each sample's substep loop (``model_step``; faster where the replay runs
-    batched, e.g. segments and Jacobian columns of the fitting engine).
+    batched, e.g. segments and Jacobian columns of the fitting engine); ``rolled``: the RK4
+    stages as a loop (``rk4``).
 
     Returns (states at the L sample instants, before each step; state after the last step).
     """
 
     def body(x, u):
-        return model_step(kind, plant, x, u, dt, substeps, unroll), x
+        return model_step(kind, plant, x, u, dt, substeps, unroll, rolled), x
 
     x_end, xs = jax.lax.scan(body, x0, tau)
     return xs, x_end

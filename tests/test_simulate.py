@@ -70,6 +70,37 @@ def test_split_integrator_converges_to_diffrax_sampled_loop():
     assert errs[0] / errs[1] > 3.0 and errs[1] / errs[2] > 3.0, errs
 
 
+@pytest.mark.parametrize("substeps", [1, 3])
+def test_rolled_rk4_stages_replay_the_same_motion(substeps):
+    """``rolled`` (the RK4 stages as a loop: the fitting engine's Jacobian blocks) replays
+    the same motion as the unrolled stages, to rounding, with a stateful input-path effect
+    (actuator lag) and a spring effect in the plant; and it is a loop: one copy of the vector
+    field in the program, not four."""
+    from jaxflex.effects import EFFECTS
+    from jaxflex.state import PlantState
+    from jaxflex.step import replay
+
+    plant = paper_plant().with_effects(EFFECTS["actuator_lag"].typical(1),
+                                       EFFECTS["joint_damping"].typical(1))
+    aux = tuple(e.aux_init(1) for e in plant.effects)
+    zero = jnp.zeros(1)
+    x0 = PlantState(q1=zero, dq1=zero, q2=zero, dq2=zero, z=zero, aux=aux)
+    tau = 1.5 * jnp.sin(jnp.linspace(0.0, 20.0, 2000))[:, None]
+    run = {r: eqx.filter_jit(lambda t, r=r: replay("flexible", plant, x0, t, 1e-3, substeps,
+                                                   rolled=r)[0]) for r in (False, True)}
+    a, b = (jax.tree_util.tree_leaves(run[r](tau)) for r in (False, True))
+    for u, v in zip(a, b):
+        assert float(jnp.max(jnp.abs(u - v))) <= 1e-12 * max(float(jnp.max(jnp.abs(u))), 1e-3)
+    # the Jacobian's program as the engine builds it (forward mode, substeps unrolled): four
+    # copies of the vector field and its tangent per substep against one
+    jvp = {r: eqx.filter_jit(lambda t, r=r: jax.jvp(
+        lambda u: replay("flexible", plant, x0, u, 1e-3, substeps, unroll=True,
+                         rolled=r)[0].dq2,
+        (t,), (jnp.ones_like(t),))) for r in (False, True)}
+    size = {r: jvp[r].lower(tau).compile().compiled.as_text().count(" = ") for r in jvp}
+    assert size[True] < 0.6 * size[False], size
+
+
 def test_sampled_loop_converges_to_continuous_loop_as_period_shrinks():
     p = paper_plant()
     T = 0.3

@@ -284,6 +284,14 @@ class Problem(eqx.Module):
     value; up to ``UNROLL_SUBSTEPS`` unrolled) or a 0-d integer array (``dynamic_substeps``:
     a traced loop count, so that every level of a coarse-to-fine refinement shares one
     compiled program); ``n_substeps`` reads it as an int on the host.
+    ``rolled_stages``: the Jacobian blocks (``segment_jacobians``) replay with the RK4 stages
+    as a loop (``jaxflex.step.rk4``'s ``rolled``: the same to rounding, one copy of the
+    vector field instead of four per substep). It pays where the model is large and XLA's
+    small-loop option is on (``discover``'s gated universe of candidates: its training solver
+    22,973 -> 15,713 XLA instructions, the first ``jaxflex discover`` on the 20 s bench log
+    37 -> 29-32 s, its second-run compile 2.2-2.5 -> 1.7-1.9 s, the warm run unchanged
+    within noise) and costs where not (``identify``'s solver step on a 20 s log, XLA's
+    default options: 30 -> 46 ms), so it is off by default.
     """
 
     space: ParamSpace
@@ -299,6 +307,7 @@ class Problem(eqx.Module):
     bounded_z: bool = eqx.field(static=True, default=False)
     structured: bool = eqx.field(static=True, default=True)
     jac_columns: int | None = eqx.field(static=True, default=None)
+    rolled_stages: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
@@ -326,7 +335,8 @@ class Problem(eqx.Module):
         theta = self.space.theta0() if theta is None else theta
         return (theta, self.segs.x0) if self.free_starts else theta
 
-    def _segment(self, th: dict[str, Array], v0: Array, tau: Array, tau_pre: Array):
+    def _segment(self, th: dict[str, Array], v0: Array, tau: Array, tau_pre: Array,
+                 rolled: bool = False):
         plant = self.space.plant(th)
         n = plant.n
         aux = tuple(e.aux_init(n) for e in plant.effects) if plant.effects else None
@@ -349,7 +359,7 @@ class Problem(eqx.Module):
         # 32 unrolled substeps compiled in 1.6 / 5.2 / 62 s and the last ran 30x slower)
         static = isinstance(self.substeps, int)
         xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps,
-                           unroll=static and self.substeps <= UNROLL_SUBSTEPS)
+                           unroll=static and self.substeps <= UNROLL_SUBSTEPS, rolled=rolled)
 
         def column(o):  # the link output as its encoder reads it (``link_measured``)
             if o == "q1" and reads_link:
@@ -505,10 +515,11 @@ def theta_spec(theta: dict[str, Array]) -> tuple[tuple[str, tuple[int, ...]], ..
 
 
 def _segment_flat(prob: Problem, spec: tuple, dims: tuple[int, int], th: Array, v0: Array,
-                  tau: Array, tau_pre: Array) -> Array:
-    """One segment's outputs and end state, flattened, from flat coordinates ``th``."""
+                  tau: Array, tau_pre: Array, rolled: bool = False) -> Array:
+    """One segment's outputs and end state, flattened, from flat coordinates ``th``
+    (``rolled``: the integrator's RK4 stages as a loop, ``jaxflex.step.rk4``)."""
     unravel = ravel_pytree({k: jnp.zeros(shape, th.dtype) for k, shape in spec})[1]
-    ys, x_end = prob._segment(unravel(th), v0.reshape(dims), tau, tau_pre)
+    ys, x_end = prob._segment(unravel(th), v0.reshape(dims), tau, tau_pre, rolled)
     return jnp.concatenate([ys.reshape(-1), x_end.reshape(-1)])
 
 
@@ -529,7 +540,8 @@ def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
     tangents for the fitted coordinates (``jac_columns`` of them with a mask, else all) and,
     with free starts, the segment's own n_state * n start entries: (outputs (S, m), d/dtheta
     (S, m, P), d/dstart (S, m, n_state n), basis (k, P): the unit vectors of the P fitted
-    coordinates among the k)."""
+    coordinates among the k). With ``prob.rolled_stages`` the replay inside takes its RK4
+    stages as a loop (``Problem``)."""
     k = th.shape[0]
     n = dims[1]
     if prob.jac_columns is None:
@@ -545,7 +557,8 @@ def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
     def seg_and_jac(v0, tau, tau_pre):
         # one forward pass with P (+ n_state*n) tangents: the fitted theta directions (and
         # the segment's own start state)
-        f = lambda t_, v_: _segment_flat(prob, spec, dims, t_, v_, tau, tau_pre)  # noqa: E731
+        f = lambda t_, v_: _segment_flat(prob, spec, dims, t_, v_, tau, tau_pre,  # noqa: E731
+                                         rolled=prob.rolled_stages)
         d = v0.shape[0]
         t_th = basis.T if not free else jnp.concatenate([basis.T, jnp.zeros((d, k), th.dtype)])
         t_v = jnp.zeros((P, d), v0.dtype) if not free else jnp.concatenate(
