@@ -392,8 +392,7 @@ def main() -> None:
     sizes = (64, 256) if a.small else (1_000, 10_000, 100_000)
     chunk = 32 if a.small else 1000
     res: dict = {"horizon_s": H, "chunk": chunk, "cpu_count": os.cpu_count(),
-                 "load_avg_start": os.getloadavg(), "blas_threads": BLAS,
-                 "gpu": "not measured (no GPU on this machine)"}
+                 "load_avg_start": os.getloadavg(), "blas_threads": BLAS}
 
     if a.profile_only or a.skip_scaling:
         sizes = ()
@@ -412,6 +411,12 @@ def main() -> None:
 
     jax.config.update("jax_enable_x64", True)
     from jaxflex.sweep import parse_spread, run_sweep
+
+    # what this process's JAX sees, not an assumption about the machine
+    gpus = [str(d) for d in jax.devices() if d.platform in ("gpu", "cuda", "rocm")]
+    res["gpu"] = (f"visible ({', '.join(gpus)}) but not timed: this study times CPU devices only"
+                  if gpus else f"not measured: JAX sees no GPU (backend "
+                               f"{jax.default_backend()}, {len(jax.devices())} device(s))")
 
     nb = 2 if a.small else 5
     nn = 8 if a.small else 100
