@@ -1339,7 +1339,8 @@ def discover(
                 except (ValueError, FloatingPointError):
                     continue
                 if "predicted_dAIC" in again:
-                    again["steps"] += screens[name]["steps"]  # in all, along one path
+                    for k in ("steps", "seconds"):  # in all, along one path
+                        again[k] += screens[name][k]
                     screens[name] = again | {"first": screens[name]}
             to_fit = shortlist(screens, current.rss, alpha=cfg.alpha, keep=cfg.screen_keep,
                                decisive=cfg.decisive, least=cfg.screen_least)
