@@ -100,13 +100,13 @@ from jaxflex.fit import (
     ParamSpace,
     Problem,
     covariance,
-    dynamic_substeps,
     gap,
     is_fitted,
     least_squares,
     make_segments,
     noise_level,
     params_of_plant,
+    refined,
     residuals,
     savgol,
     savgol_coeffs,
@@ -1219,11 +1219,11 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
 
 def finer(prob: Problem) -> Problem:
     """``prob`` replayed with 4 x its substeps (``gap_floor``'s synthetic truth), as a traced
-    loop count (``jaxflex.fit.dynamic_substeps``): one copy of the substep in the program
+    loop count (``jaxflex.fit.refined``'s ``traced``): one copy of the substep in the program
     instead of four unrolled ones, for a replay that runs once per run (measured on the 20 s
     bench log: 9,652 -> 3,544 XLA instructions, 2.1 -> 0.9 MB serialised; the second run's
     compiling 1.84-1.88 -> 1.66-1.71 s over 4 pairs, the floor equal to every digit)."""
-    return dataclasses.replace(prob, substeps=dynamic_substeps(prob.n_substeps * 4))
+    return refined(prob, 4, traced=True)
 
 
 def evidence_weights(scores: dict[str, dict[str, Any]], key: str = "dAIC") -> dict[str, float]:

@@ -890,11 +890,14 @@ def least_squares(
 RICHARDSON = 2.0
 
 
-def refined(prob: Problem, factor: int = 2) -> Problem:
-    """``prob`` with ``factor`` x its integrator substeps (the same data and unknowns)."""
+def refined(prob: Problem, factor: int = 2, traced: bool = False) -> Problem:
+    """``prob`` with ``factor`` x its integrator substeps (the same data and unknowns): a
+    Python int if ``prob``'s is one, else a traced count (``dynamic_substeps``); ``traced``:
+    a traced count in any case (a loop in the program instead of unrolled substeps)."""
     n = prob.n_substeps * int(factor)
     return dataclasses.replace(
-        prob, substeps=n if isinstance(prob.substeps, int) else dynamic_substeps(n))
+        prob, substeps=n if isinstance(prob.substeps, int) and not traced
+        else dynamic_substeps(n))
 
 
 def integration_error(prob: Problem, y: Any) -> float:
