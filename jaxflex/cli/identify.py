@@ -28,6 +28,20 @@ def _substeps(text: str) -> int | str:
     return k
 
 
+def _segment(text: str) -> int | str:
+    """``--segment``: a number of samples >= 0 (0: the whole log) or "auto"."""
+    if text == "auto":
+        return text
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a number of samples or 'auto', got {text!r}") from None
+    if k < 0:
+        raise argparse.ArgumentTypeError(f"expected a number of samples >= 0 or 'auto', got {k}")
+    return k
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``identify`` subcommand."""
     p = sub.add_parser(
@@ -50,8 +64,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the measured link motion (subsystem identification, no link model), "
                         "or link: the link subsystem M q1'' + F = K (q2 - q1) driven by the "
                         "measured rotor motion (no motor model: friction on the link side)")
-    p.add_argument("--segment", type=int, default=500,
-                   help="samples per multiple-shooting segment (default 500; 0: whole log)")
+    p.add_argument("--segment", type=_segment, default="auto",
+                   help="samples per multiple-shooting segment (0: whole log), or 'auto' "
+                        "(default): two mechanical time constants of the start model "
+                        "(inertia / sigma2) on a grid of 125 x 2^k samples within 0.1-2 s")
     p.add_argument("--substeps", type=_substeps, default="auto",
                    help="integrator substeps per sample, or 'auto' (default): the fewest whose "
                         "replay error is at most half the log's noise, refined until the "
@@ -77,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     import warnings
     from pathlib import Path
 
-    from jaxflex.identify import IdentificationWarning, identify
+    from jaxflex.identify import IdentificationWarning, choose_segment_length, identify
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params
 
@@ -89,10 +105,15 @@ def run(args: argparse.Namespace) -> int:
     log = log.slice(args.start, args.stop)
     init = load_params(args.params, accept_unconverged=True)  # a start guess
     free = [s.strip() for s in args.free.split(",") if s.strip()]
-    seg = None if args.segment <= 0 else min(args.segment, log.N)
+    if args.segment == "auto":
+        seg, how = choose_segment_length(log, init, args.model)
+        how = (f" (auto: {how['rule'].split(' (')[0]}; time constants "
+               f"{', '.join(f'{t:.3g}' for t in how['time_constants_s'])} s)")
+    else:
+        seg, how = (None if args.segment <= 0 else min(args.segment, log.N)), ""
     say = (lambda s: None) if args.quiet else print
     say(f"[identify] {log.N} samples at {1e3 * log.dt:g} ms, {log.n} joint(s), model "
-        f"{args.model}, free {free}, segments of {seg or log.N} samples")
+        f"{args.model}, free {free}, segments of {seg or log.N} samples{how}")
     say("[identify] compiling and solving (progress every 5 steps) ...")
     # the figure's module (matplotlib, 0.33 s) loads beside the fit, in the seconds a first
     # run waits for its compiled solver; Python's import lock hands it to the import below
@@ -101,7 +122,8 @@ def run(args: argparse.Namespace) -> int:
                      name="jaxflex-import-figures", daemon=True).start()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentificationWarning)
-        res = identify(log, init, free, model=args.model, segment_length=seg,
+        res = identify(log, init, free, model=args.model,
+                       segment_length="auto" if args.segment == "auto" else seg,
                        substeps=args.substeps, max_steps=args.max_steps,
                        progress=False if args.quiet else 5)
     out = Path(args.out)

@@ -27,6 +27,7 @@ from jaxflex.identify.core import (
     OUTPUT_TOL,
     IdentificationWarning,
     IdentResult,
+    choose_segment_length,
     choose_substeps,
     finish,
     identify,
@@ -54,7 +55,7 @@ from jaxflex.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
 
 __all__ = [
     "BIAS_TOL", "DECREMENT_TOL", "DEFAULT_FREE", "GEODESIC", "MAX_SUBSTEPS", "MODEL_KINDS",
-    "OUTPUT_TOL", "choose_substeps", "refine_fit", "STATIC_NAMES", "IdentResult", "IdentificationWarning",
+    "OUTPUT_TOL", "choose_segment_length", "choose_substeps", "refine_fit", "STATIC_NAMES", "IdentResult", "IdentificationWarning",
     "ParamSpace", "Problem", "StaticMap", "TwoStepResult", "covariance", "excitation_torque",
     "finish", "fit_static_map", "get_value", "identify", "make_problem", "noise_cost", "perturb", "replay",
     "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",
