@@ -9,37 +9,33 @@ log columns (e.g. ``t=t,tau=gtau*vir,q1=qm,q2=qm``).
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 EXAMPLE = ("jaxflex identify log.csv --params init.json --out identified.json "
            "--free Fc,Fs,vs,sigma0,sigma1,sigma2")
 
 
-def _substeps(text: str) -> int | str:
-    """``--substeps``: a positive integer or "auto"."""
-    if text == "auto":
-        return text
-    try:
-        k = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a positive integer or 'auto', got {text!r}") from None
-    if k < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {k}")
-    return k
+def _count_or_auto(least: int, what: str) -> Callable[[str], int | str]:
+    """An argparse type: an integer >= ``least`` (``what`` names it in the error) or
+    "auto"."""
+    def parse(text: str) -> int | str:
+        if text == "auto":
+            return text
+        try:
+            k = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what} or 'auto', got {text!r}") from None
+        if k < least:
+            raise argparse.ArgumentTypeError(f"expected {what} or 'auto', got {k}")
+        return k
+
+    return parse
 
 
-def _segment(text: str) -> int | str:
-    """``--segment``: a number of samples >= 0 (0: the whole log) or "auto"."""
-    if text == "auto":
-        return text
-    try:
-        k = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a number of samples or 'auto', got {text!r}") from None
-    if k < 0:
-        raise argparse.ArgumentTypeError(f"expected a number of samples >= 0 or 'auto', got {k}")
-    return k
+#: ``--substeps``: a positive integer or "auto"; ``--segment``: samples >= 0 (0: the whole
+#: log) or "auto".
+_substeps = _count_or_auto(1, "a positive integer")
+_segment = _count_or_auto(0, "a number of samples >= 0")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
