@@ -240,7 +240,7 @@ def _risk_and_grad(theta, leak, batch, settings):
     def per_plant(gains, p, c, s, k):
         m = simulate_sampled(p, _with_gains(c, gains), t_final, substeps=substeps,
                              sensing=StraightThrough(s), key=k if noisy else None,
-                             save=False).metrics
+                             save=False, unroll_substeps=False).metrics  # under a gradient
         cost = jnp.mean(m.rms_error**2) + tw * jnp.mean(m.tau_rms**2)
         bad = m.diverged | ~jnp.isfinite(cost)
         return jnp.where(bad, lost, cost), bad, jnp.max(m.rms_error)
@@ -272,7 +272,7 @@ def _max_speed(gains, batch, t_final, substeps, noisy):
 
     def one(p, c, s, k):
         r = simulate_sampled(p, _with_gains(c, gains), t_final, substeps=substeps, sensing=s,
-                             key=k if noisy else None)
+                             key=k if noisy else None, unroll_substeps=False)  # batched
         return jnp.where(r.metrics.diverged, jnp.inf, jnp.max(jnp.abs(r.dq1)))
 
     return jax.vmap(one)(plant, ctrl, sensing, keys)

@@ -195,7 +195,7 @@ def simulate_sampled(
     key: PRNGKeyArray | None = None,
     save: bool = True,
     integrator: Literal["split", "diffrax"] = "split",
-    unroll_substeps: bool = False,
+    unroll_substeps: bool | int = 2,
 ) -> SimResult:
     """Sampled-data closed loop for ``t_final`` seconds at the controller period ``dt``.
 
@@ -204,13 +204,18 @@ def simulate_sampled(
     quantisation, noise (with ``key``), filtered or Kalman-estimated velocities (the filter's
     state rides in the controller state) and DAC quantisation. A run that
     blows up is flagged in ``metrics.diverged`` and its state frozen, never an exception.
-    ``unroll_substeps``: unroll the plant's substep loop (``jaxflex.step.model_step``); same
-    numbers, another speed: faster under ``vmap`` on a CPU (the sweep engine decides per
-    control law); for one run, slower under XLA's default options (a 10 s loop of the paper
-    plant at 10 substeps: 59 -> 81 ms) but faster under its small-loop option (23.8 -> 22.4 ms,
-    ``jaxflex.sweep.engine.use_lean_xla_cpu(small_loops=True)``; ``studies/bench_simulate.py
-    --part single``), except through a gradient (``jaxflex tune``: 5.1 -> 7.3 s warm, its
-    first run 15.5 -> 30 s), so the default stays rolled.
+    ``unroll_substeps``: the plant's substep loop (``jaxflex.step.model_step``): True
+    unrolled, False rolled, an int k: k substeps per trip of the loop (default 2); same
+    numbers, another speed. Unrolled is faster under ``vmap`` on a CPU (the sweep engine
+    decides per control law); for one run slower under XLA's default options (a 10 s loop of
+    the paper plant at 10 substeps: 59 -> 81 ms) but faster under its small-loop option
+    (``jaxflex.sweep.engine.use_lean_xla_cpu(small_loops=True)``), except through a gradient
+    (``jaxflex tune``: 5.1 -> 7.3 s warm, its first run 15.5 -> 30 s). Two substeps per trip
+    take most of that gain for one run at a smaller program (``studies/bench_simulate.py
+    --part single``, 7 paired rounds: 22.9 ms against 23.5 ms for the hand-written JAX scan,
+    rolled 24.3 against 23.4 ms; first call 0.98 s, rolled 0.77 s, unrolled 1.2-1.6 s); through
+    a gradient pass False (``jaxflex.tune`` and ``jaxflex.robust`` do: two per trip made
+    ``jaxflex tune`` 10% slower warm).
     Pure and jit/vmap/grad friendly; wrap in ``eqx.filter_jit`` at the call site.
     """
     if substeps < 1:

@@ -155,13 +155,14 @@ def _vector_field(kind: ModelKind, plant: FlexibleJointPlant) -> Callable:
 
 def model_step(
     kind: ModelKind, plant: FlexibleJointPlant, x: PlantState, tau: Float[Array, " n"],
-    h: float | Array, substeps: int, unroll: bool = False, rolled: bool = False,
+    h: float | Array, substeps: int, unroll: bool | int = False, rolled: bool = False,
 ) -> PlantState:
     """Advance the chosen model structure by ``h`` [s] under constant torque ``tau`` [N m].
 
     Strang splitting per substep: exact z half-step (velocity frozen), RK4 on the rest with z
     frozen, exact z half-step; the half-steps that meet between substeps are taken as one
-    step. Without friction this is plain RK4. ``unroll``: unroll the substep loop; on a CPU
+    step. Without friction this is plain RK4. ``unroll``: unroll the substep loop (an int k:
+    k substeps per trip of the loop, a static count only); on a CPU
     10-20% faster under ``vmap`` (batched sweeps) when ``tau`` is cheap to compute, slower
     when it is not (XLA copies its computation into every unrolled substep; the sweep engine
     decides per controller: ``jaxflex.sweep.engine.unrolls_substeps``), about 1.4x slower
@@ -208,11 +209,11 @@ def model_step(
     return z_step(unravel(flat), 0.5 * hs)
 
 
-def _substeps(substeps: int | Array, unroll: bool, hs: float | Array, init: Array,
+def _substeps(substeps: int | Array, unroll: bool | int, hs: float | Array, init: Array,
               body: Callable[[Array, Array], Array]) -> Array:
     """``body(hz, x)`` applied ``substeps`` times from ``init``, hz = hs / 2 [s] on the first
     trip and ``hs`` after. A Python int: a ``lax.scan`` of that length over the hz values
-    (differentiable in reverse mode; ``unroll``: unrolled). A traced count (an integer
+    (differentiable in reverse mode; ``unroll``: unrolled, or k per trip). A traced count (an integer
     array: the fitting engine's ``dynamic_substeps``, one compiled program for every level
     of refinement): a loop of that many trips (forward mode only)."""
     if isinstance(substeps, int):
@@ -224,7 +225,7 @@ def _substeps(substeps: int | Array, unroll: bool, hs: float | Array, init: Arra
 
 def plant_step(
     plant: FlexibleJointPlant, x: PlantState, tau: Float[Array, " n"], h: float | Array,
-    substeps: int, unroll: bool = False,
+    substeps: int, unroll: bool | int = False,
 ) -> PlantState:
     """Advance the flexible plant (eq. 3-5) by ``h`` [s] under constant torque ``tau`` [N m]
     (the Strang-split step of the module docstring, ``substeps`` substeps; ``unroll`` as in
