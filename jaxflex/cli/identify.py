@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from jaxflex.identify import IdentificationWarning, choose_segment_length, identify
+    from jaxflex.identify.core import SEGMENT_TIME_CONSTANTS
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params
 
@@ -102,9 +103,9 @@ def run(args: argparse.Namespace) -> int:
     init = load_params(args.params, accept_unconverged=True)  # a start guess
     free = [s.strip() for s in args.free.split(",") if s.strip()]
     if args.segment == "auto":
-        seg, how = choose_segment_length(log, init, args.model)
-        how = (f" (auto: {how['rule'].split(' (')[0]}; time constants "
-               f"{', '.join(f'{t:.3g}' for t in how['time_constants_s'])} s)")
+        seg, rec = choose_segment_length(log, init, args.model)
+        how = (f" (auto: {SEGMENT_TIME_CONSTANTS:g} x the smallest time constant of "
+               f"{', '.join(f'{t:.3g}' for t in rec['time_constants_s'])} s)")
     else:
         seg, how = (None if args.segment <= 0 else min(args.segment, log.N)), ""
     say = (lambda s: None) if args.quiet else print

@@ -404,7 +404,6 @@ def identify(
     # 20 N the log shows (force error 19% instead of 5%). vs, its relative standard error
     # 1e14%, is the one to fix.
     first, fixed_why, cur, y_cur, total = res, {}, prob, best.y, best.steps
-    cur_cost = best.cost
     final = (prob, best, None)  # the problem, solution and fixed names behind ``res``
     for _ in range(len(prob.space.names)):
         own = [k for k in res.unidentifiable if k in cur.space.names
@@ -454,7 +453,7 @@ def identify(
                      wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                      reason=_reason(sol, good), noise_cost=good, log=log,
                      unidentified=dict(fixed_why), solution=sol)
-        cur, y_cur, cur_cost = sub, sol.y, sol.cost
+        cur, y_cur = sub, sol.y
         final = (sub, sol, dict(fixed_why))
     if fixed_why and cur is not prob:
         # the parameters were judged unidentifiable at the first fit's point, which may be a
@@ -467,7 +466,7 @@ def identify(
         total += full.steps
         attempts.append({"released": list(fixed_why), "start": "refit", "cost": full.cost,
                          "steps": full.steps, "reason": full.reason})
-        if full.cost < cur_cost:
+        if full.cost < final[1].cost:  # the last refit's cost
             again = finish(prob, init, full.y, steps=total, converged=_settled(full, good),
                            wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                            reason=_reason(full, good), noise_cost=good, log=log,
@@ -553,9 +552,9 @@ def choose_segment_length(log: Log, init: Params, model: ModelKind = "flexible",
     the longest), put on the grid SEGMENT_GRID x 2^k samples (nearest in ratio) and at most
     the log (None: one segment, single shooting). On the paper's plant 50% off (tau 0.28 s)
     it gives 500 samples at 1 kHz, on EMPS from the study's start (60 kg, 100 N s/m) 1000;
-    there the fit (2 substeps) with 250 / 500 / 1000 / 2000 samples gave closed-loop force errors of
-    4.6-6.0% (DATA_EMPS), and on generated logs the answer does not depend on the length
-    (the continuity defects join the segments). Returns (length, record) with the record for
+    there the fit (2 substeps) with 250 / 500 / 1000 / 2000 samples gave closed-loop force
+    errors of 4.6-6.0% (DATA_EMPS), and on generated logs the answer does not depend on the
+    length (the continuity defects join the segments). Returns (length, record) with the record for
     the result file: mode, samples, seconds, the time constants and the rule."""
     if model not in MODEL_KINDS:
         raise ValueError(f"identify: model must be one of {MODEL_KINDS}, got {model!r}")
