@@ -196,6 +196,7 @@ def simulate_sampled(
     save: bool = True,
     integrator: Literal["split", "diffrax"] = "split",
     unroll_substeps: bool | int = 2,
+    unroll: int = 1,
 ) -> SimResult:
     """Sampled-data closed loop for ``t_final`` seconds at the controller period ``dt``.
 
@@ -215,11 +216,15 @@ def simulate_sampled(
     --part single``, 7 paired rounds: 22.9 ms against 23.5 ms for the hand-written JAX scan,
     rolled 24.3 against 23.4 ms; first call 0.98 s, rolled 0.77 s, unrolled 1.2-1.6 s); through
     a gradient pass False (``jaxflex.tune`` and ``jaxflex.robust`` do: two per trip made
-    ``jaxflex tune`` 10% slower warm).
+    ``jaxflex tune`` 10% slower warm). ``unroll``: samples per trip of the time loop
+    (``lax.scan``'s ``unroll``); same numbers. More than one pays on a GPU, where each trip
+    of a loop costs a round trip to the host (``jaxflex.sweep.engine.loop_unrolls``).
     Pure and jit/vmap/grad friendly; wrap in ``eqx.filter_jit`` at the call site.
     """
     if substeps < 1:
         raise ValueError(f"simulate_sampled: substeps must be >= 1, got {substeps}")
+    if unroll < 1:
+        raise ValueError(f"simulate_sampled: unroll must be >= 1, got {unroll}")
     if not t_final > 0:
         raise ValueError(f"simulate_sampled: t_final must be > 0 s, got {t_final}")
     if integrator not in ("split", "diffrax"):
@@ -289,7 +294,8 @@ def simulate_sampled(
         return (x_new, c_new, m_new, reference(t_next)), rec
 
     ts_next = jnp.arange(1, N + 1) * dt
-    (_, _, m, _), rec = jax.lax.scan(body, (x0, c0, m0, reference(ts[0])), (ts, ts_next, n1, n2))
+    (_, _, m, _), rec = jax.lax.scan(body, (x0, c0, m0, reference(ts[0])), (ts, ts_next, n1, n2),
+                                     unroll=unroll)
     if not save:
         return SimResult(metrics=m)
     xs, zh, tau, F, F_hat, e, q1m, q2m, v1, v2 = rec

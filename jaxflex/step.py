@@ -165,7 +165,7 @@ def model_step(
     k substeps per trip of the loop, a static count only); on a CPU
     10-20% faster under ``vmap`` (batched sweeps) when ``tau`` is cheap to compute, slower
     when it is not (XLA copies its computation into every unrolled substep; the sweep engine
-    decides per controller: ``jaxflex.sweep.engine.unrolls_substeps``), about 1.4x slower
+    decides per controller: ``jaxflex.sweep.engine.loop_unrolls``), about 1.4x slower
     for a single run (measured in one process, issue 17). The numbers are the same either
     way. ``rolled``: the RK4 stages as a loop (``rk4``; the same to rounding).
     """

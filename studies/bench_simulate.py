@@ -395,7 +395,7 @@ def _batched(out: dict, B: int, t_final: float, configs: list[tuple[str, int, st
     from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
     from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid
     from jaxflex.simulate import simulate_sampled
-    from jaxflex.sweep.engine import unrolls_substeps
+    from jaxflex.sweep.engine import loop_unrolls
 
     rng = np.random.default_rng(0)
     scale = rng.uniform(0.8, 1.2, size=(B, 4))
@@ -416,8 +416,9 @@ def _batched(out: dict, B: int, t_final: float, configs: list[tuple[str, int, st
                                       J=nominal.J, K=nominal.K, friction=lug)
             c = CascadeController(model=nominal, gains=gains, trajectory=traj,
                                   q2d_method=method)
+            sub_unroll, unroll = loop_unrolls(c)
             return simulate_sampled(true, c, t_final, substeps=substeps, save=False,
-                                    unroll_substeps=unrolls_substeps(c)).metrics.rms_error[0]
+                                    unroll_substeps=sub_unroll, unroll=unroll).metrics.rms_error[0]
 
         f = eqx.filter_jit(jax.vmap(one))
         t0 = time.perf_counter()

@@ -30,7 +30,28 @@ reference (the first 100 samples at 100 substeps), then controller steps/s on on
 host device pinned to one core), one device (free to use every core) and two host devices, in
 alternating rounds (best and median).
 
-    python studies/bench_sweep.py [--small] [--out out/bench_sweep]
+GPU (``--gpu``; issue 17): the target's spread on an NVIDIA GPU in float64 and float32 beside
+the same machine's CPU (every core as a host device), accuracy first (``gpu``'s docstring);
+on a machine without a GPU it writes ``gpu.json`` saying so. Measured 2026-11-26 on one H100
+80GB (JAX 0.11.2; its host: 16 cores), 1000 x 10 s, float64 at 3 substeps (RMS metric within
+2.4e-6 of 100 substeps; GPU and CPU agree to 3e-14), controller steps/s, best of 3 after
+compilation (median within 1%):
+
+- the CPU's layout (substeps rolled, one sample per trip of the time loop): 1.29e7, under the
+  16-core CPU's 3.07e7; 1e4 samples 1.17e8 (CPU 5.7e7), 1e5 7.7e8 (float32 8.4e8). On a GPU
+  every trip of a loop waits for the host to read its condition: the loop, not the
+  arithmetic, sets the pace (1 substep: 4.9e7, 2: 1.7e7);
+- substeps unrolled (``jaxflex.sweep.engine.loop_unrolls`` on a GPU, the default since):
+  4.24e7 (3.3x), 1e5 samples 2.08e9 (2.7x); first chunk (compilation) 7.5 s as before;
+- samples per trip of the time loop (``GPU_SCAN_UNROLL``) 2 / 4 / 8: 5.8e7 / 6.8e7 / 7.2e7,
+  compilation 9.6 / 13.5 / 21 s; at 8: 1e4 samples 6.9e8 (float32 1.25e9; the 16-core CPU 4.0-5.7e7),
+  1e5 samples 2.65-2.78e9 (float32 6.2-6.3e9), 1000 samples float32 1.09e8 (float32's RMS
+  metric within 1.3-4.0e-5 of the reference: above 1e-5, so float32 misses the stated
+  accuracy). Compilation outweighs the gain on a first run below ~1e7 samples, so the
+  default stays at one sample per trip (the persistent compilation cache of the command
+  line removes it from later runs: set ``GPU_SCAN_UNROLL`` before the first sweep).
+
+    python studies/bench_sweep.py [--small] [--gpu] [--out out/bench_sweep]
 """
 
 from __future__ import annotations
@@ -64,8 +85,11 @@ SPREAD = {
 
 
 def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str, float32: bool,
-           keep: bool) -> dict:
-    """One sweep in this (fresh) process; returns throughput and peak memory."""
+           keep: bool, repeats: int = 1, unrolls: list | None = None) -> dict:
+    """One sweep in this (fresh) process, timed ``repeats`` times after a warm-up chunk;
+    returns throughput (best run; the median too) and peak memory. ``unrolls``
+    ``[unroll_substeps, unroll]`` forces the batched loop's layout (the engine's
+    ``loop_unrolls`` otherwise), for the comparison of layouts."""
     import jax
 
     from jaxflex.sweep.engine import use_lean_xla_cpu
@@ -73,21 +97,30 @@ def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str,
     if not XLA_DEFAULT:
         use_lean_xla_cpu()  # as the jaxflex command does, before any JAX computation
     jax.config.update("jax_enable_x64", True)
-    from jaxflex.sweep import parse_spread, run_sweep
+    from jaxflex.sweep import engine, parse_spread, run_sweep
 
+    if unrolls is not None:
+        engine.loop_unrolls = lambda controller: tuple(unrolls)
     spec = parse_spread({**SPREAD, "t_final": t_final, "substeps": substeps,
                          "controller": {**SPREAD["controller"], "q2d_method": method}})
     # warm-up: one chunk compiles the chunk function (cached per spec in this process)
     warm = run_sweep(spec, samples=min(chunk, samples), chunk_size=chunk, keep_samples=False,
                      progress=False, float32=float32)
-    res = run_sweep(spec, samples=samples, chunk_size=chunk, keep_samples=keep, progress=False,
-                    float32=float32)
+    walls = []
+    for _ in range(repeats):
+        res = run_sweep(spec, samples=samples, chunk_size=chunk, keep_samples=keep,
+                        progress=False, float32=float32)
+        walls.append(res.timing["wall_s"])
     tm = res.timing
     out = {
         "samples": samples, "t_final": t_final, "chunk": chunk, "substeps": substeps,
         "q2d_method": method, "float32": float32, "keep_samples": keep,
-        "first_chunk_s": warm.timing["wall_s"], "wall_s": tm["wall_s"],
-        "steps_per_s": tm["controller_steps"] / tm["wall_s"],
+        "first_chunk_s": warm.timing["wall_s"], "wall_s": min(walls), "walls_s": walls,
+        "steps_per_s": tm["controller_steps"] / min(walls),
+        "steps_per_s_median": tm["controller_steps"] / statistics.median(walls),
+        "backend": jax.default_backend(), "device_kind": jax.devices()[0].device_kind,
+        "loop_unrolls": list(engine.loop_unrolls(
+            engine.build_models(spec, engine.sample_parameters(spec, 0)[0])[1])),
         # the machine is shared: CPU time of this process says what it would do on its own
         # (an upper bound; a busy co-tenant slows caches too)
         "steps_per_cpu_s": tm["controller_steps"] / tm["cpu_s"],
@@ -103,20 +136,23 @@ def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str,
     return out
 
 
-def run_worker(devices: int = 1, cores: int | None = None, **kw) -> dict:
+def run_worker(devices: int = 1, cores: int | None = None, platform: str = "cpu",
+               timeout: float | None = None, **kw) -> dict:
     """``worker`` in a fresh Python process (so ru_maxrss is this sweep's own peak) with
     ``devices`` host devices (the sweep shards each chunk over them), pinned to the first
-    ``cores`` CPU cores if given (XLA's own threads included)."""
+    ``cores`` CPU cores if given (XLA's own threads included), on JAX platform ``platform``
+    (``"cpu"``, or ``"cuda"`` for an NVIDIA GPU), stopped after ``timeout`` seconds."""
     cmd = [sys.executable, __file__, "--worker", json.dumps(kw)] + (
         ["--xla-default"] if XLA_DEFAULT else [])
     flags = os.environ.get("XLA_FLAGS", "").split()
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+    env = {**os.environ, "JAX_PLATFORMS": platform,
            "XLA_FLAGS": " ".join(flags + [f"--xla_force_host_platform_device_count={devices}"])}
     pin = None
     if cores is not None:
         allowed = sorted(os.sched_getaffinity(0))[:cores]
         pin = lambda: os.sched_setaffinity(0, allowed)  # noqa: E731
-    r = subprocess.run(cmd, capture_output=True, text=True, env=env, preexec_fn=pin)
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, preexec_fn=pin,
+                       timeout=timeout)
     if r.returncode != 0:
         raise RuntimeError(r.stderr[-3000:])
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -241,7 +277,7 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
     from jaxflex.simulate import simulate_sampled
     from jaxflex.step import plant_step
     from jaxflex.sweep import build_models, parse_spread, sample_parameters
-    from jaxflex.sweep.engine import unrolls_substeps
+    from jaxflex.sweep.engine import loop_unrolls
 
     spec = parse_spread({**SPREAD, "t_final": t_final, "substeps": substeps})
     N = round(t_final / spec.dt)
@@ -257,8 +293,9 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
 
     @eqx.filter_vmap
     def full(p, c, s):
+        sub_unroll, unroll = loop_unrolls(c)
         return simulate_sampled(p, c, t_final, substeps=substeps, sensing=s, save=False,
-                                unroll_substeps=unrolls_substeps(c)).metrics.sum_e2
+                                unroll_substeps=sub_unroll, unroll=unroll).metrics.sum_e2
 
     @eqx.filter_vmap
     def plant_only(p, c):
@@ -356,6 +393,119 @@ def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
     return res
 
 
+def gpu(out: Path, small: bool = False, tol: float = 1e-5, platform: str = "cuda",
+        budget_s: float = 300.0) -> dict:
+    """Sweep throughput on a GPU (issue 17), float64 and float32, beside this machine's CPU.
+
+    Every run is a fresh process on JAX platform ``platform``, timed three times after a
+    warm-up chunk that compiles (its time is ``first_chunk_s``). Accuracy first: a fine
+    reference (the first ``n_ref`` samples at 100 substeps, float64, on this machine's CPU with
+    every core as a host device), then the target's spread (``samples`` x ``T`` s) on the
+    GPU in float64 at 1, 2, 3, 5, 10 substeps until the per-sample RMS-error metric is within
+    ``tol`` (relative) of the reference; float32 at the same substeps (its error stated); the
+    same sweep on this machine's CPU (every core) for a same-machine ratio and a check that
+    both devices compute the same numbers; then larger batches on the GPU (one chunk each).
+    Runs are skipped (and say so) once ``budget_s`` seconds have passed. Writes
+    ``out/gpu.json`` after every run, so a run cut short keeps what it measured."""
+    import numpy as np
+
+    out.mkdir(parents=True, exist_ok=True)
+    samples, T, n_ref = (64, 0.5, 16) if small else (1000, 10.0, 100)
+    big = (256,) if small else (10_000, 100_000)
+    ncpu = len(os.sched_getaffinity(0))
+    t_start = time.perf_counter()
+    res: dict = {"platform": platform, "samples": samples, "t_final": T, "tolerance_rel": tol,
+                 "reference": {"samples": n_ref, "substeps": 100, "float32": False,
+                               "device": f"cpu ({ncpu} host devices)"},
+                 "cpu_count": ncpu, "load_avg_start": os.getloadavg(), "blas_threads": BLAS,
+                 "runs": {}}
+    path = out / "gpu.json"
+
+    def save():
+        res["elapsed_s"] = time.perf_counter() - t_start
+        path.write_text(json.dumps(res, indent=2) + "\n")
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"}
+    probe = subprocess.run(
+        [sys.executable, "-c", "import jax; d = jax.devices(); print(d[0].platform, '|', "
+         "d[0].device_kind, '|', len(d), '|', jax.__version__)"],
+        capture_output=True, text=True, env=env if platform != "cpu" else os.environ)
+    seen = probe.stdout.strip().split(" | ")
+    wanted = ("gpu", "cuda") if platform == "cuda" else (platform,)
+    if probe.returncode != 0 or seen[0] not in wanted:
+        res["measured"] = False
+        res["reason"] = (f"JAX sees no {platform} device here (its devices: {probe.stdout.strip()}"
+                         f"{probe.stderr.strip()[-200:]})")
+        save()
+        print(f"[bench] gpu: not measured: {res['reason']}")
+        return res
+    res["device"] = probe.stdout.strip()
+    res["measured"] = True
+    print(f"[bench] gpu: {res['device']}; reference on the CPU ({ncpu} host devices) ...")
+    kw = dict(t_final=T, method="model", keep=True)
+    ref_run = run_worker(devices=ncpu, samples=n_ref, chunk=n_ref, substeps=100, float32=False,
+                         timeout=300, **kw)
+    ref = np.asarray(ref_run.pop("_rms"))
+    res["runs"]["reference"] = ref_run
+    save()
+
+    def err(rms):
+        return float(np.max(np.abs(np.asarray(rms[:n_ref]) - ref) / ref))
+
+    def timed(name, **k):
+        if time.perf_counter() - t_start > budget_s:
+            res["runs"][name] = {"skipped": f"time budget of {budget_s:.0f} s spent"}
+            save()
+            return None
+        r = run_worker(timeout=300, **k)
+        rms = r.pop("_rms", None)
+        if rms is not None:
+            r["rms_rel_err_vs_reference"] = err(rms)
+        res["runs"][name] = r
+        save()
+        print(f"  {name}: {r['steps_per_s']:.3g} steps/s best ({r['steps_per_s_median']:.3g} median "
+              f"of {len(r['walls_s'])}), compile+first chunk {r['first_chunk_s']:.1f} s"
+              + (f", RMS within {r['rms_rel_err_vs_reference']:.1e} of the reference" if rms is not None else ""))
+        return r, rms
+
+    chosen = None
+    for sub in (1, 2, 3, 5, 10):
+        got = timed(f"gpu_f64_{samples}_sub{sub}", platform=platform, samples=samples,
+                    chunk=samples, substeps=sub, float32=False, repeats=3, **kw)
+        if got is None:
+            break
+        if got[0]["rms_rel_err_vs_reference"] <= tol:
+            chosen, rms64 = sub, np.asarray(got[1])
+            break
+    res["substeps"] = chosen
+    if chosen is None:
+        res["note"] = f"no substep count of 1-10 reached {tol:g} (or the budget ran out)"
+        save()
+        return res
+    f32 = timed(f"gpu_f32_{samples}_sub{chosen}", platform=platform, samples=samples,
+                chunk=samples, substeps=chosen, float32=True, repeats=3, **kw)
+    cpu = timed(f"cpu_f64_{samples}_sub{chosen}", platform="cpu", devices=ncpu, samples=samples,
+                chunk=samples, substeps=chosen, float32=False, repeats=3, **kw)
+    g64 = res["runs"][f"gpu_f64_{samples}_sub{chosen}"]
+    if f32 is not None:
+        res["float32_rms_rel_diff_vs_float64_max"] = float(
+            np.max(np.abs(np.asarray(f32[1]) - rms64) / rms64))
+    if cpu is not None:
+        res["gpu_vs_cpu_rms_rel_diff_max"] = float(np.max(np.abs(np.asarray(cpu[1]) - rms64) / rms64))
+        res["ratio_gpu_f64_over_cpu_f64_best"] = g64["steps_per_s"] / cpu[0]["steps_per_s"]
+    kw["keep"] = False
+    for n in big:
+        for single in (False, True):
+            timed(f"gpu_{'f32' if single else 'f64'}_{n}_sub{chosen}", platform=platform,
+                  samples=n, chunk=n, substeps=chosen, float32=single, repeats=3, **kw)
+    timed(f"cpu_f64_{big[0]}_sub{chosen}", platform="cpu", devices=ncpu, samples=big[0],
+          chunk=big[0], substeps=chosen, float32=False, repeats=3, **kw)
+    res["load_avg_end"] = os.getloadavg()
+    save()
+    print(f"[bench] wrote {path}")
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/bench_sweep")
@@ -368,6 +518,9 @@ def main() -> None:
     ap.add_argument("--profile-only", action="store_true", help="skip scaling and baseline")
     ap.add_argument("--target", action="store_true",
                     help="only the issue-17 target: 1000 x 10 s at a stated accuracy, one core vs two devices")
+    ap.add_argument("--gpu", action="store_true",
+                    help="only the GPU throughput (float64, float32) beside this machine's CPU")
+    ap.add_argument("--gpu-platform", default="cuda", help=argparse.SUPPRESS)
     ap.add_argument("--xla-default", action="store_true",
                     help="workers keep XLA's default CPU options (else jaxflex's lean flags)")
     a = ap.parse_args()
@@ -378,6 +531,9 @@ def main() -> None:
         return
     if a.target:
         target(Path(a.out), small=a.small)
+        return
+    if a.gpu:
+        gpu(Path(a.out), small=a.small, platform=a.gpu_platform)
         return
     if a.components:
         Path(a.out).mkdir(parents=True, exist_ok=True)

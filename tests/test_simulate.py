@@ -161,7 +161,20 @@ def test_divergence_is_flagged_not_raised():
     assert np.all(np.isfinite(np.asarray(r.q1)))
 
 
-@pytest.mark.parametrize("bad", [dict(substeps=0), dict(t_final=-1.0)])
+@pytest.mark.parametrize("layout", [dict(unroll=4), dict(unroll=3, unroll_substeps=True)])
+def test_samples_per_trip_of_the_time_loop_change_no_number(layout):
+    """``unroll`` (samples per trip of the time loop; the sweep engine's GPU layout) runs the
+    same loop: the trajectory and metrics equal the default layout's to rounding, including a
+    remainder of samples (1001 samples, 3 or 4 per trip)."""
+    p, c = paper_plant(), _ctrl()
+    run = lambda **kw: eqx.filter_jit(lambda p, c: simulate_sampled(p, c, 1.001, substeps=3, **kw))(p, c)
+    a, b = run(), run(**layout)
+    np.testing.assert_allclose(np.asarray(b.q1), np.asarray(a.q1), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(b.tau), np.asarray(a.tau), rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(float(b.metrics.rms_error[0]), float(a.metrics.rms_error[0]), rtol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [dict(substeps=0), dict(t_final=-1.0), dict(unroll=0)])
 def test_simulate_bad_arguments(bad):
     kw = dict(t_final=1.0) | bad
     with pytest.raises(ValueError):

@@ -1,6 +1,7 @@
 """Monte Carlo sweeps (issue 5): spread validation, vmap against a loop, divergence as data,
 chunk/shard/process invariance, summaries (quantiles, SRC, Spearman), CLI and figures."""
 
+import dataclasses
 import json
 import os
 import socket
@@ -370,6 +371,31 @@ def _bench_sweep(tmp_path, *args: str, result: str = "results.json") -> dict:
 def test_benchmark_runs_at_small_size(tmp_path):
     res = _bench_sweep(tmp_path, "--skip-profile")
     assert len(res["scaling"]) == 2 and res["ratio"]["speedup_vs_solve_ivp"] > 1
+
+
+def test_batched_loop_layout_follows_the_backend():
+    """On a CPU the engine rolls the substeps for the jvp-tower laws and unrolls them for
+    filtered derivatives, one sample per trip of the time loop; on a GPU it unrolls them
+    (``loop_unrolls``; the GPU numbers are in ``studies/bench_sweep.py --gpu``)."""
+    from jaxflex.sweep.engine import GPU_SCAN_UNROLL, loop_unrolls
+
+    spec = parse_spread({"nominal": "paper", "t_final": 0.1, "samples": 2})
+    ctrl = build_models(spec, sample_parameters(spec, jnp.uint32(0))[0])[1]
+    on_gpu = jax.default_backend() != "cpu"
+    for method in ("model", "reference", "filtered"):
+        c = dataclasses.replace(ctrl, q2d_method=method)
+        assert loop_unrolls(c) == ((True, GPU_SCAN_UNROLL) if on_gpu else (method == "filtered", 1))
+
+
+@pytest.mark.slow
+def test_benchmark_gpu_part_says_when_there_is_no_gpu(tmp_path):
+    """``--gpu`` times the sweep on a GPU; on a machine without one it writes that it did
+    not measure, and why, instead of a number."""
+    res = _bench_sweep(tmp_path, "--gpu", result="gpu.json")
+    if any(d.platform != "cpu" for d in jax.devices()):
+        assert res["measured"] and res["substeps"] is not None
+    else:
+        assert res["measured"] is False and "no cuda device" in res["reason"]
 
 
 @pytest.mark.slow

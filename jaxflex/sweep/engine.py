@@ -268,16 +268,32 @@ def sample_models(spec: SweepSpec, index: jax.Array) -> tuple[
     return theta, plant, ctrl, sensing, k_noise, fs_raised
 
 
-def unrolls_substeps(controller: CascadeController) -> bool:
-    """Whether a batched (vmapped) closed loop with ``controller`` unrolls the plant's substep
-    loop (``simulate_sampled(unroll_substeps=...)``). Unrolled substeps fuse across substeps,
-    but XLA:CPU then copies the control law into every substep kernel that reads the torque;
-    the rolled loop takes the law once. The law is cheap with filtered q2d derivatives and a
-    jvp tower with "model"/"reference" (1000 x 10 s, float64, two host devices, controller
-    steps/s, unrolled against rolled: "model" 0.94e7 vs 1.2e7 at 3 substeps, 3.4e6 vs 4.7e6
-    at 10; "filtered" 1.7e7 vs 1.46e7 at 3, 6.4e6 vs 5.5e6 at 10). The same numbers either
-    way, to the last bit."""
-    return controller.q2d_method == "filtered"
+#: samples per trip of a batched closed loop's time loop on a GPU (``loop_unrolls``). One H100,
+#: 1000 x 10 s at 3 substeps, float64, controller steps/s (compilation): 1 per trip 4.24e7
+#: (7.5 s), 2: 5.8e7 (9.6 s), 4: 6.8e7 (13.5 s), 8: 7.2e7 (21 s); 1e5 samples 2.08e9 at 1,
+#: 2.78e9 at 8. Below ~1e7 samples the compilation outweighs the gain on a first run, hence 1;
+#: set it before the first sweep of a process to trade compilation for throughput.
+GPU_SCAN_UNROLL = 1
+
+
+def loop_unrolls(controller: CascadeController) -> tuple[bool, int]:
+    """How a batched (vmapped) closed loop with ``controller`` lays out its loops:
+    ``(unroll_substeps, unroll)`` for ``simulate_sampled``, decided by JAX's default backend.
+
+    On a CPU: the substep loop unrolled for "filtered" q2d derivatives, rolled for "model"
+    and "reference", one sample per trip of the time loop. Unrolled substeps fuse across
+    substeps, but XLA:CPU then copies the control law into every substep kernel that reads
+    the torque; the rolled loop takes the law once. The law is cheap with filtered q2d
+    derivatives and a jvp tower with "model"/"reference" (1000 x 10 s, float64, two host
+    devices, controller steps/s, unrolled against rolled: "model" 0.94e7 vs 1.2e7 at 3
+    substeps, 3.4e6 vs 4.7e6 at 10; "filtered" 1.7e7 vs 1.46e7 at 3, 6.4e6 vs 5.5e6 at 10).
+
+    On a GPU every trip of a loop waits for the host to read the loop's condition, so the
+    substeps are unrolled and ``GPU_SCAN_UNROLL`` samples run per trip of the time loop
+    (``studies/bench_sweep.py --gpu``). The same numbers either way, to rounding."""
+    if jax.default_backend() != "cpu":
+        return True, GPU_SCAN_UNROLL
+    return controller.q2d_method == "filtered", 1
 
 
 def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
@@ -290,7 +306,7 @@ def simulate_sample(spec: SweepSpec, index: jax.Array) -> dict[str, jax.Array]:
     r = simulate_sampled(
         plant, ctrl, spec.t_final, substeps=spec.substeps, sensing=sensing,
         key=k_noise if is_noisy(spec) else None, save=True,
-        unroll_substeps=unrolls_substeps(ctrl),
+        **dict(zip(("unroll_substeps", "unroll"), loop_unrolls(ctrl))),
     )
     # only metrics and e1 are used below: jit's dead-code elimination drops the other
     # saved trajectories, so save=True costs one (N, n) array per sample of the chunk.
