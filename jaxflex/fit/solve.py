@@ -938,8 +938,9 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     ``bias_mahalanobis`` (sqrt of shift^T Cov^-1 shift over the fitted entries: the bound for
     any combination of them), ``output_error`` (``integration_error``, weighted RMS),
     ``substeps``, and per fitted theta entry ("name[j]") the predicted ``shift_theta`` (exact
-    replay minus this fit, engine coordinates) and ``stderr_theta``. Raises ``ValueError``
-    for a solution without normal equations."""
+    replay minus this fit, engine coordinates) and ``stderr_theta`` (segment-robust,
+    ``segment_robust_covariance``, where the log has the segments for it). Raises
+    ``ValueError`` for a solution without normal equations."""
     if solution.normal is None or solution.residual is None:
         raise ValueError("discretisation_bias: the solution carries no normal equations "
                          "(it took no step)")
@@ -964,7 +965,9 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     k = ravel_pytree(theta)[0].shape[0]
     fitted = np.flatnonzero(prob.space.fitted_flat())
     shift = -step[:k][fitted]  # the Gauss-Newton step solves (J^T J) d = -J^T e
-    cov = covariance(prob, y, solution=solution)["cov_theta"][np.ix_(fitted, fitted)]
+    robust = segment_robust_covariance(prob, solution)
+    cov = (robust if robust is not None else covariance(prob, y, solution=solution))[
+        "cov_theta"][np.ix_(fitted, fitted)]
     se = np.sqrt(np.maximum(np.diag(cov), 1e-300))
     finite = bool(np.all(np.isfinite(shift)))
     maha = (float(np.sqrt(max(float(shift @ np.linalg.pinv(cov) @ shift), 0.0)))
@@ -1110,6 +1113,52 @@ def covariance(
     return _covariance_report(prob, theta, cov_cols[:n_fit, :n_fit], null, rank=rank, n_free=p,
                               singular_values=sv.tolist(), s2=s2, rss=rss,
                               defects_ss=float(np.sum(r[n_out:] ** 2)), n_res=n_out)
+
+
+def segment_robust_covariance(prob: Problem, solution: Solution) -> dict[str, Any] | None:
+    """Covariance of the fitted parameters that holds when the residuals are correlated in
+    time (a model's mismatch on a real log; quantisation of a slow encoder): the sandwich
+    H^-1 (sum_s g_s g_s^T) H^-1 with the segments as independent clusters (cluster-robust,
+    with the small-sample factor S / (S - 1)), g_s = J_s^T r_s the gradient of segment s's
+    output residuals. Each H^-1 g_s is the Gauss-Newton step that segment's residuals induce
+    (``_induced_step`` on the solution's own normal equations: no new Jacobian, one compiled
+    solve per bucket of segment slots), so the start states' elimination is included. About
+    the white-residual covariance (``covariance``) when the noise is white; larger by the
+    residuals' correlation time where they are not.
+
+    ``solution``: the ``least_squares`` result of ``prob``. Returns None when it carries no
+    normal equations or the log has fewer than (fitted parameters + 2) segments (too few
+    clusters to estimate a covariance from); else ``covariance``'s ``stderr``, ``cov_theta``
+    and ``cov_phys``, with ``clusters`` (the segment count)."""
+    if solution.normal is None or solution.residual is None or not isinstance(prob, Problem):
+        return None
+    fitted = np.flatnonzero(prob.space.fitted_flat())
+    S = prob.segs.count
+    if S < fitted.size + 2:
+        return None
+    y = solution.y
+    structure = "shooting" if "Ntt" in solution.normal else "dense"
+    pad = Padding.of(prob, y) if structure == "shooting" else None
+    normal, y_in = solution.normal, y
+    if pad is not None:  # the solve in the slots' layout: compiled once per bucket
+        normal, y_in = pad.blocks_in(normal), pad.unknowns(y)
+    template = jax.tree_util.tree_map(
+        lambda a: to_device(np.zeros(np.shape(a), a.dtype)), y_in)
+    theta = prob.split(y)[0]
+    k = ravel_pytree(theta)[0].shape[0]
+    r = np.asarray(solution.residual)
+    rows = prob.n_out // S  # output rows are (segment, sample, column) ordered
+    steps = []
+    for seg in range(S):
+        w = np.zeros_like(r)
+        w[seg * rows:(seg + 1) * rows] = r[seg * rows:(seg + 1) * rows]
+        w = pad.rows_in(w) if pad is not None else w
+        steps.append(np.asarray(_induced_step(normal, to_device(w), structure, template))[:k][fitted])
+    D = np.asarray(steps)
+    cov_fit = S / (S - 1) * D.T @ D
+    rep = _covariance_report(prob, theta, cov_fit, np.zeros((fitted.size, 0)))
+    return {"stderr": rep["stderr"], "cov_theta": rep["cov_theta"],
+            "cov_phys": rep["cov_phys"], "clusters": S}
 
 
 def _covariance_report(prob: Any, theta: Any, cov_fit: np.ndarray, null: np.ndarray,

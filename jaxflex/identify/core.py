@@ -39,6 +39,7 @@ from jaxflex.fit import (
     noise_level,
     output_columns,
     refined,
+    segment_robust_covariance,
     set_values,
     simulated_outputs,
     step_doubling_error,
@@ -89,7 +90,10 @@ class IdentResult:
     """Outcome of ``identify``.
 
     params: identified ``Params`` (standard errors under ``extra["stderr"]``);
-    stderr, rel_stderr: dict name -> list per joint (physical units; relative = stderr/|value|);
+    stderr, rel_stderr: dict name -> list per joint (physical units; relative = stderr/|value|),
+    segment-robust (``jaxflex.fit.segment_robust_covariance``: they hold for residuals
+    correlated in time, a model's mismatch on a real log) where the log has the segments for
+    it, as is the posterior in the file (``identification.stderr_kind`` says which);
     cost: final 0.5 sum r^2 (output and continuity residuals, in the weighted units);
     rms: RMS output residual [rad]; rank, n_free: numerical rank of the Jacobian over all
     unknowns and their number; singular_values of the column-scaled Jacobian; unidentifiable:
@@ -129,6 +133,9 @@ class IdentResult:
     why: dict[str, str] = dataclasses.field(default_factory=dict)
     discretisation: dict[str, Any] = dataclasses.field(default_factory=dict)
     segments: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: relative standard errors of white residuals (the information in the data), on which
+    #: identifiability is judged and the least determined parameter chosen
+    information_rel_stderr: dict[str, list[float]] = dataclasses.field(default_factory=dict)
 
     def table(self) -> str:
         """A short text table: name, value, standard error, relative standard error (or
@@ -147,6 +154,10 @@ class IdentResult:
         rows.append(f"RMS output residual {self.rms:.3g}; cost {self.cost:.4g} (noise explains "
                     f"<= {self.noise_cost:.4g}); Jacobian rank {self.rank}/{self.n_free}; "
                     f"{self.steps} steps; converged: {self.converged} ({self.reason})")
+        kind = self.params.extra.get("identification", {}).get("stderr_kind")
+        if kind:
+            rows.append(f"standard errors: {kind}; identifiability judged on the "
+                        "white-residual information")
         d = self.discretisation
         if d.get("substeps"):
             rows.append(f"integrator: {d['substeps']} substeps per sample ({d['mode']}); it moves "
@@ -412,7 +423,7 @@ def identify(
             break
         worst = max(own, key=lambda k: (k != "Fs" or len(own) == 1,  # fixing Fs caps Fc
                                         "null direction" not in res.why.get(k, ""),
-                                        max(res.rel_stderr.get(k, [0.0]))))
+                                        max(res.information_rel_stderr.get(k, [0.0]))))
         keep = [k for k in cur.space.names if k != worst]
         if not keep:
             break
@@ -692,8 +703,14 @@ def finish(
     theta, _ = prob.split(y)
     phys = prob.space.physical_values(theta)
     cov = covariance(prob, y, solution=solution)
-    se = {k: cov["stderr"][k].tolist() for k in phys}
-    rel = {k: (np.asarray(se[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist() for k in phys}
+    # identifiability is judged on the information in the data (white residuals); the
+    # standard errors reported and the posterior hold for correlated residuals too
+    robust = (segment_robust_covariance(prob, solution)
+              if solution is not None and solution.y is y else None)
+    shown = cov if robust is None else robust
+    se = {k: shown["stderr"][k].tolist() for k in phys}
+    rel = {k: (np.asarray(cov["stderr"][k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist()
+           for k in phys}
     msgs, bad = [], list(cov["null_names"])
     why = {k: "numerically null direction of the Jacobian (the data cannot separate it)"
            for k in bad}
@@ -748,7 +765,12 @@ def finish(
         "reason": reason or ("cost explained by noise" if converged else "not converged"),
         "unidentifiable": bad, "parameters": marks,
     }
-    out.extra["identification"]["covariance"] = posterior_record(prob, theta, cov, bad)
+    out.extra["identification"]["stderr_kind"] = (
+        f"segment-robust ({robust['clusters']} segments as clusters)" if robust is not None
+        else "white residuals")
+    out.extra["identification"]["covariance"] = posterior_record(prob, theta, shown, bad)
+    information = rel
+    rel = {k: (np.asarray(se[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist() for k in phys}
     for k in fixed:
         se[k] = [math.nan] * len(get_value(init, k))
         rel[k] = [math.inf] * len(get_value(init, k))
@@ -757,6 +779,7 @@ def finish(
         n_free=cov["n_free"], singular_values=cov["singular_values"], unidentifiable=bad,
         warnings=msgs, steps=steps, converged=converged, wall_s=wall_s, problem=prob,
         solution=y, reason=out.extra["identification"]["reason"], noise_cost=noise_cost, why=why,
+        information_rel_stderr=information,
     )
     return res
 
