@@ -541,6 +541,11 @@ def closed_loop_residuals(theta: dict, data: ClosedLoopFit) -> jax.Array:
                             (data.tau[k:] - tau_sim[k:]) * data.w[1]])
 
 
+#: ``closed_loop_fit``'s standard errors: consecutive blocks of the log taken as independent
+#: clusters (EMPS: 20 blocks of 1.2 s; its closed-loop errors are correlated over ~0.4 s)
+ROBUST_BLOCKS: int = 20
+
+
 def closed_loop_fit(
     params: Params, log: Log, free: list[str], *, kind: str = "rigid",
     disturbance: np.ndarray | None = None, substeps: int = 2, drop: int = 49,
@@ -562,12 +567,14 @@ def closed_loop_fit(
     engine's step cap and termination tolerances (``jaxflex.fit.least_squares``).
 
     Returns a dict: ``params`` (the refined ``Params``), ``stderr`` (name -> physical
-    standard error, from the engine's covariance; the residuals are autocorrelated, so read
-    them as lower bounds), ``converged``, ``steps``, ``cost_start``, ``cost`` (0.5 ||r||^2,
+    standard error: cluster-robust over ``ROBUST_BLOCKS`` consecutive blocks of the log,
+    ``jaxflex.fit.cluster_robust_covariance``, since a closed loop's errors are correlated
+    over hundreds of samples; the white-residual ones where there are too few blocks for the
+    parameters), ``stderr_kind`` (which), ``converged``, ``steps``, ``cost_start``, ``cost`` (0.5 ||r||^2,
     weighted), ``reason``. Raises ``ValueError`` when the parameters declare no controller,
     the log has no reference, or ``free`` names an unknown parameter.
     """
-    from jaxflex.fit import covariance, least_squares, set_values
+    from jaxflex.fit import cluster_robust_covariance, covariance, least_squares, set_values
 
     _need_x64("closed_loop_fit")
     ctrl = loop_controller(params)
@@ -595,10 +602,17 @@ def closed_loop_fit(
     data = eqx.tree_at(lambda x: x.w, data, jnp.asarray([1.0 / norms[0], 1.0 / norms[1]]))
     sol = least_squares(data, space.theta0(), fn=closed_loop_residuals, max_steps=max_steps,
                         rtol=rtol, atol=atol, scaling="marquardt")
-    cov = covariance(data, sol.y, fn=closed_loop_residuals)
+    n = len(r0) // 2  # position rows, then torque rows, one per sample
+    edges = np.linspace(0, n, ROBUST_BLOCKS + 1).astype(int)
+    cov = cluster_robust_covariance(
+        data, sol, [np.r_[a:b, n + a:n + b] for a, b in zip(edges[:-1], edges[1:])])
+    kind_se = f"block-robust ({ROBUST_BLOCKS} blocks of the log as clusters)"
+    if cov is None:
+        cov, kind_se = covariance(data, sol.y, fn=closed_loop_residuals, solution=sol), "white residuals"
     phys = space.physical_values(sol.y)
     return {"params": set_values(params, phys),
             "stderr": {k: np.asarray(v).tolist() for k, v in cov["stderr"].items()},
+            "stderr_kind": kind_se,
             "converged": bool(sol.converged), "steps": int(sol.steps),
             "cost_start": 1.0, "cost": float(sol.cost), "reason": sol.reason}
 

@@ -132,7 +132,8 @@ def main(argv: list[str] | None = None) -> dict:
              "Fc": p.friction["Fc"][0], "Fs": p.friction["Fs"][0], "vs": p.friction["vs"][0],
              "offset": -p.effects["torque_offset"]["offset"][0]}
     details = {"identified": ident, "stderr_multiple_shooting": res.stderr,
-               "stderr_closed_loop": refine["stderr"], "published": PUBLISHED,
+               "stderr_closed_loop": refine["stderr"], "stderr_closed_loop_kind": refine["stderr_kind"],
+               "published": PUBLISHED,
                "identify_wall_s": wall, "steps": res.steps, "converged": res.converged,
                "closed_loop_refinement": {"chosen_start": chosen, **{
                    name: {k: rf[k] for k in ("converged", "steps", "cost_start", "cost",

@@ -98,6 +98,10 @@ def test_closed_loop_fit_recovers_a_known_rigid_axis_and_refuses_what_it_cannot_
     assert p.plant["I"][0] == pytest.approx(truth.plant["I"][0], rel=1e-3)
     assert p.friction["sigma2"][0] == pytest.approx(200.0, rel=1e-3)
     assert p.friction["Fc"][0] == pytest.approx(20.0, rel=1e-3)
+    # standard errors with the log's consecutive blocks as clusters (closed-loop errors are
+    # correlated in time), finite for every fitted name
+    assert res["stderr_kind"].startswith("block-robust")
+    assert all(np.all(np.isfinite(v)) and np.all(np.asarray(v) >= 0) for v in res["stderr"].values())
     with pytest.raises(ValueError, match="declare no controller"):
         closed_loop_fit(Params.from_dict({k: v for k, v in start.to_dict().items()
                                           if k != "loop_controller"}), log, ["I"])

@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -1118,23 +1118,41 @@ def covariance(
 def segment_robust_covariance(prob: Problem, solution: Solution) -> dict[str, Any] | None:
     """Covariance of the fitted parameters that holds when the residuals are correlated in
     time (a model's mismatch on a real log; quantisation of a slow encoder): the sandwich
-    H^-1 (sum_s g_s g_s^T) H^-1 with the segments as independent clusters (cluster-robust,
-    with the small-sample factor S / (S - 1)), g_s = J_s^T r_s the gradient of segment s's
-    output residuals. Each H^-1 g_s is the Gauss-Newton step that segment's residuals induce
-    (``_induced_step`` on the solution's own normal equations: no new Jacobian, one compiled
-    solve per bucket of segment slots), so the start states' elimination is included. About
-    the white-residual covariance (``covariance``) when the noise is white; larger by the
-    residuals' correlation time where they are not.
+    with the multiple-shooting segments as independent clusters (``cluster_robust_covariance``
+    over each segment's output rows). About the white-residual covariance (``covariance``)
+    when the noise is white; larger by the residuals' correlation time where they are not.
 
     ``solution``: the ``least_squares`` result of ``prob``. Returns None when it carries no
-    normal equations or the log has fewer than (fitted parameters + 2) segments (too few
-    clusters to estimate a covariance from); else ``covariance``'s ``stderr``, ``cov_theta``
-    and ``cov_phys``, with ``clusters`` (the segment count)."""
-    if solution.normal is None or solution.residual is None or not isinstance(prob, Problem):
+    normal equations or the log has fewer than (fitted parameters + 2) segments; else
+    ``cluster_robust_covariance``'s dict."""
+    if not isinstance(prob, Problem):
+        return None
+    S = prob.segs.count
+    rows = prob.n_out // S  # output rows are (segment, sample, column) ordered
+    return cluster_robust_covariance(
+        prob, solution, [np.arange(s * rows, (s + 1) * rows) for s in range(S)])
+
+
+def cluster_robust_covariance(prob: Any, solution: Solution,
+                              clusters: Sequence[np.ndarray]) -> dict[str, Any] | None:
+    """Cluster-robust (sandwich) covariance of the fitted parameters: H^-1 (sum_c g_c g_c^T)
+    H^-1 x C / (C - 1), g_c = J_c^T r_c the gradient of the residual rows of cluster c (index
+    arrays into ``solution.residual``, in ``prob``'s layout; the clusters independent of each
+    other, the rows within one correlated in any way). Each H^-1 g_c is the Gauss-Newton step
+    that cluster's residuals induce (``_induced_step`` on the solution's own normal
+    equations: no new Jacobian, one compiled solve; with multiple shooting the start states'
+    elimination is included, in the slots' layout).
+
+    ``prob``: a ``Problem`` or any fit with a ``space`` whose unknowns are theta alone (as for
+    ``covariance``); ``solution``: its ``least_squares`` result. Returns None when the
+    solution carries no normal equations or there are fewer than (fitted parameters + 2)
+    clusters (too few to estimate a covariance from); else ``covariance``'s ``stderr``,
+    ``cov_theta`` and ``cov_phys``, with ``clusters`` (their count)."""
+    if solution.normal is None or solution.residual is None:
         return None
     fitted = np.flatnonzero(prob.space.fitted_flat())
-    S = prob.segs.count
-    if S < fitted.size + 2:
+    C = len(clusters)
+    if C < fitted.size + 2:
         return None
     y = solution.y
     structure = "shooting" if "Ntt" in solution.normal else "dense"
@@ -1144,21 +1162,19 @@ def segment_robust_covariance(prob: Problem, solution: Solution) -> dict[str, An
         normal, y_in = pad.blocks_in(normal), pad.unknowns(y)
     template = jax.tree_util.tree_map(
         lambda a: to_device(np.zeros(np.shape(a), a.dtype)), y_in)
-    theta = prob.split(y)[0]
+    theta = prob.split(y)[0] if hasattr(prob, "split") else y
     k = ravel_pytree(theta)[0].shape[0]
     r = np.asarray(solution.residual)
-    rows = prob.n_out // S  # output rows are (segment, sample, column) ordered
     steps = []
-    for seg in range(S):
+    for rows in clusters:
         w = np.zeros_like(r)
-        w[seg * rows:(seg + 1) * rows] = r[seg * rows:(seg + 1) * rows]
+        w[rows] = r[rows]
         w = pad.rows_in(w) if pad is not None else w
         steps.append(np.asarray(_induced_step(normal, to_device(w), structure, template))[:k][fitted])
     D = np.asarray(steps)
-    cov_fit = S / (S - 1) * D.T @ D
-    rep = _covariance_report(prob, theta, cov_fit, np.zeros((fitted.size, 0)))
+    rep = _covariance_report(prob, theta, C / (C - 1) * D.T @ D, np.zeros((fitted.size, 0)))
     return {"stderr": rep["stderr"], "cov_theta": rep["cov_theta"],
-            "cov_phys": rep["cov_phys"], "clusters": S}
+            "cov_phys": rep["cov_phys"], "clusters": C}
 
 
 def _covariance_report(prob: Any, theta: Any, cov_fit: np.ndarray, null: np.ndarray,
