@@ -1145,8 +1145,8 @@ def cluster_robust_covariance(prob: Any, solution: Solution,
 
     ``prob``: a ``Problem`` or any fit with a ``space`` whose unknowns are theta alone (as for
     ``covariance``); ``solution``: its ``least_squares`` result. Returns None when the
-    solution carries no normal equations or there are fewer than (fitted parameters + 2)
-    clusters (too few to estimate a covariance from); else ``covariance``'s ``stderr``,
+    solution carries no normal equations, there are fewer than (fitted parameters + 2)
+    clusters (too few to estimate a covariance from) or a step is not finite; else ``covariance``'s ``stderr``,
     ``cov_theta`` and ``cov_phys``, with ``clusters`` (their count)."""
     if solution.normal is None or solution.residual is None:
         return None
@@ -1172,6 +1172,8 @@ def cluster_robust_covariance(prob: Any, solution: Solution,
         w = pad.rows_in(w) if pad is not None else w
         steps.append(np.asarray(_induced_step(normal, to_device(w), structure, template))[:k][fitted])
     D = np.asarray(steps)
+    if not np.all(np.isfinite(D)):  # a blown replay or a failed solve: nothing to estimate
+        return None
     rep = _covariance_report(prob, theta, C / (C - 1) * D.T @ D, np.zeros((fitted.size, 0)))
     return {"stderr": rep["stderr"], "cov_theta": rep["cov_theta"],
             "cov_phys": rep["cov_phys"], "clusters": C}
