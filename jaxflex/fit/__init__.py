@@ -59,7 +59,8 @@ from jaxflex.fit.space import (
 __all__ = [
     "BLOWN_RESIDUAL", "CostBound", "NOMINAL_CONSTRAINTS", "Padding", "ParamSpace", "Problem",
     "Segments", "Solution", "on_slot_rows", "segment_slots", "slot_rows",
-    "constraint_of", "cost", "dynamic_substeps", "covariance", "cluster_robust_covariance", "segment_robust_covariance", "discretisation_bias", "gap",
+    "constraint_of", "cost", "dynamic_substeps", "covariance", "cluster_robust_covariance",
+    "segment_robust_covariance", "discretisation_bias", "gap",
     "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
     "problem_residuals", "residuals", "simulated_outputs",

@@ -1146,8 +1146,9 @@ def cluster_robust_covariance(prob: Any, solution: Solution,
     ``prob``: a ``Problem`` or any fit with a ``space`` whose unknowns are theta alone (as for
     ``covariance``); ``solution``: its ``least_squares`` result. Returns None when the
     solution carries no normal equations, there are fewer than (fitted parameters + 2)
-    clusters (too few to estimate a covariance from) or a step is not finite; else ``covariance``'s ``stderr``,
-    ``cov_theta`` and ``cov_phys``, with ``clusters`` (their count)."""
+    clusters (too few to estimate a covariance from) or a step is not finite; else
+    ``covariance``'s ``stderr``, ``cov_theta`` and ``cov_phys``, with ``clusters`` (their
+    count)."""
     if solution.normal is None or solution.residual is None:
         return None
     fitted = np.flatnonzero(prob.space.fitted_flat())

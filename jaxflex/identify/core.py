@@ -709,15 +709,16 @@ def finish(
               if solution is not None and solution.y is y else None)
     shown = cov if robust is None else robust
     se = {k: shown["stderr"][k].tolist() for k in phys}
-    rel = {k: (np.asarray(cov["stderr"][k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist()
-           for k in phys}
+    information = {k: (np.asarray(cov["stderr"][k]) / np.maximum(np.abs(phys[k]), 1e-300))
+                   .tolist() for k in phys}
     msgs, bad = [], list(cov["null_names"])
     why = {k: "numerically null direction of the Jacobian (the data cannot separate it)"
            for k in bad}
     for k in phys:
-        if max(rel[k]) > rel_stderr_limit and k not in bad:
+        if max(information[k]) > rel_stderr_limit and k not in bad:
             bad.append(k)
-            why[k] = f"relative standard error {100 * max(rel[k]):.3g}% > {100 * rel_stderr_limit:g}%"
+            why[k] = (f"relative standard error {100 * max(information[k]):.3g}% > "
+                      f"{100 * rel_stderr_limit:g}% (white residuals)")
     if log is not None and log.tau is not None:
         top = float(np.max(np.abs(log.tau)))
         for k in ("Fs", "Fc"):
@@ -769,7 +770,6 @@ def finish(
         f"segment-robust ({robust['clusters']} segments as clusters)" if robust is not None
         else "white residuals")
     out.extra["identification"]["covariance"] = posterior_record(prob, theta, shown, bad)
-    information = rel
     rel = {k: (np.asarray(se[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist() for k in phys}
     for k in fixed:
         se[k] = [math.nan] * len(get_value(init, k))
