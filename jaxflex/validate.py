@@ -570,8 +570,8 @@ def closed_loop_fit(
     standard error: cluster-robust over ``ROBUST_BLOCKS`` consecutive blocks of the log,
     ``jaxflex.fit.cluster_robust_covariance``, since a closed loop's errors are correlated
     over hundreds of samples; the white-residual ones where there are too few blocks for the
-    parameters), ``stderr_kind`` (which), ``converged``, ``steps``, ``cost_start``, ``cost`` (0.5 ||r||^2,
-    weighted), ``reason``. Raises ``ValueError`` when the parameters declare no controller,
+    parameters), ``stderr_kind`` (which), ``converged``, ``steps``, ``cost_start``, ``cost``
+    (0.5 ||r||^2, weighted), ``reason``. Raises ``ValueError`` when the parameters declare no controller,
     the log has no reference, or ``free`` names an unknown parameter.
     """
     from jaxflex.fit import cluster_robust_covariance, covariance, least_squares, set_values
@@ -602,13 +602,14 @@ def closed_loop_fit(
     data = eqx.tree_at(lambda x: x.w, data, jnp.asarray([1.0 / norms[0], 1.0 / norms[1]]))
     sol = least_squares(data, space.theta0(), fn=closed_loop_residuals, max_steps=max_steps,
                         rtol=rtol, atol=atol, scaling="marquardt")
-    n = len(r0) // 2  # position rows, then torque rows, one per sample
-    edges = np.linspace(0, n, ROBUST_BLOCKS + 1).astype(int)
+    # m position rows, then m torque rows, one per sample: a block takes both at its samples
+    edges = np.linspace(0, m, ROBUST_BLOCKS + 1).astype(int)
     cov = cluster_robust_covariance(
-        data, sol, [np.r_[a:b, n + a:n + b] for a, b in zip(edges[:-1], edges[1:])])
+        data, sol, [np.r_[a:b, m + a:m + b] for a, b in zip(edges[:-1], edges[1:])])
     kind_se = f"block-robust ({ROBUST_BLOCKS} blocks of the log as clusters)"
     if cov is None:
-        cov, kind_se = covariance(data, sol.y, fn=closed_loop_residuals, solution=sol), "white residuals"
+        cov = covariance(data, sol.y, fn=closed_loop_residuals, solution=sol)
+        kind_se = "white residuals"
     phys = space.physical_values(sol.y)
     return {"params": set_values(params, phys),
             "stderr": {k: np.asarray(v).tolist() for k, v in cov["stderr"].items()},

@@ -308,9 +308,7 @@ def identify(
                              f"'auto', got {segment_length!r}")
         segment_length, segments = choose_segment_length(log, init, model)
     else:
-        segments = {"mode": "given", "samples": segment_length or log.N,
-                    "seconds": (segment_length or log.N) * log.dt,
-                    "segments": log.N // (segment_length or log.N)}
+        segments = {"mode": "given", **_segments_of(log, segment_length)}
     prob, y0 = make_problem(
         log, init, free, model=model, segment_length=segment_length,
         substeps=dynamic_substeps(1) if auto else substeps,
@@ -590,9 +588,15 @@ def choose_segment_length(log: Log, init: Params, model: ModelKind = "flexible",
               "rule": f"{SEGMENT_TIME_CONSTANTS:g} x the smallest time constant (inertia / "
                       f"sigma2 of the start model), within [{SEGMENT_MIN_S:g}, "
                       f"{SEGMENT_MAX_S:g}] s, on the grid {SEGMENT_GRID} x 2^k samples"}
-    if L >= log.N:
-        return None, {**record, "samples": log.N, "seconds": log.N * log.dt, "segments": 1}
-    return L, {**record, "samples": L, "seconds": L * log.dt, "segments": log.N // L}
+    length = None if L >= log.N else L
+    return length, {**record, **_segments_of(log, length)}
+
+
+def _segments_of(log: Log, length: int | None) -> dict[str, Any]:
+    """The record of ``log``'s multiple-shooting segments of ``length`` samples (None: one
+    segment, the whole log): samples, seconds, segments."""
+    L = length or log.N
+    return {"samples": L, "seconds": L * log.dt, "segments": log.N // L}
 
 
 def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
