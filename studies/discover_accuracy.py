@@ -138,10 +138,17 @@ def main(argv: list[str] | None = None) -> None:
         row = {
             "true": true, "found": found, "effects": rep["effects"], "tied": rep.get("tied", []),
             "round_ties": slots, "truth_in_ties": truth_in_ties,
+            # ties the pooled evidence left that each encoder's own evidence settled
+            "ties_broken": [sorted(r["tie_break"]["candidates"]) for r in rep["rounds"]
+                            if "tie_break" in r and len(r["tied"]) == 1],
             **kw,
             "unexplained": rep["unexplained"],
             "gap_before": rep["gap_before"], "gap_after": rep["gap_after"],
             "gap_floor": rep["gap_floor"], "truth": g.truth["effects"],
+            # the nominal refit's held-out gap within the workflow's own limit of the floor:
+            # the hidden effect did not show on this log above its noise
+            "below_limit_before": bool(rep["gap_before"] <= cfg.unexplained_factor
+                                       * rep["floor"]["floor"] + 3.0 * rep["floor"]["floor_sd"]),
             "fitted": rep["effect_params"], "seed": a.seed + i,
             "gen_seconds": tg, "discover_seconds": rep["seconds"],
             "scores": {k: {kk: v[kk] for kk in ("gap_test", "gain", "p_value", "dBIC", "significant")}
@@ -172,6 +179,10 @@ def _write(rows: list[dict], labels: list[str], out: Path) -> None:
         "accuracy_ties_holding_truth": float(np.mean(
             [r["found"] == r["true"] or r.get("truth_in_ties", False) for r in rows]))
         if rows else None,
+        # hidden effects whose nominal gap was already within the limit of the floor (the log
+        # did not show them above its noise; scored as missed in accuracy_all)
+        "hidden_below_limit": [{"true": r["true"], "found": r["found"], "seed": r["seed"]}
+                               for r in eff if r.get("below_limit_before")],
         "by_loop": {lp: float(np.mean([r["found"] == r["true"] for r in rows if r.get("loop") == lp]))
                     for lp in sorted({r.get("loop") for r in rows if r.get("loop")})},
         "median_discover_seconds": float(np.median([r["discover_seconds"] for r in rows])),
