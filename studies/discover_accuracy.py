@@ -15,6 +15,11 @@ A round whose winner the data cannot tell apart from another candidate (``tied``
 that tie, never as the pick: a single effect as ``indistinguishable``, the slot of a pair as
 ``(a|b)``; both are wrong in ``accuracy_all``. ``accuracy_ties_holding_truth`` also counts as
 right a tie that holds the hidden effect (every hidden effect named or in its slot's tie).
+Each row records the ties that the per-output evidence settled (``ties_broken``, from the
+rounds' ``tie_break``) and whether the nominal refit's held-out gap was already within the
+workflow's own limit of the floor (``below_limit_before``: the hidden effect did not show
+above the log's noise); the summary lists those cases (``hidden_below_limit``), still scored
+as missed.
 Writes ``results.json`` (updated after every case) and ``confusion.png`` to ``--out``.
 """
 

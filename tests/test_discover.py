@@ -325,8 +325,9 @@ def test_a_tie_is_broken_by_the_encoder_that_tells_the_rivals_apart():
     per-output likelihood, the better one wins whatever the order, and the rival is out
     when its held-out segments are worse one by one. Equal on q2 too, or a held-out advantage
     from one segment only, and they stay tied. The effective count of q2 is the count over the
-    larger of the two autocorrelation times."""
-    from jaxflex.discover import tie_by_output
+    larger of the two autocorrelation times. A tie that stays keeps the round's own pick as
+    its representative (``representative``)."""
+    from jaxflex.discover import representative, tie_by_output
 
     rng = np.random.default_rng(0)
     mse = 1.0 + 0.1 * rng.random((12, 2))
@@ -354,6 +355,10 @@ def test_a_tie_is_broken_by_the_encoder_that_tells_the_rivals_apart():
     slow = ev(1.2e-5, mse * [1.0, 1.5]) | {"tau": [1.0, 500.0]}
     assert tie_by_output({"time_delay": better, "actuator_lag": slow})[1] == [
         "actuator_lag", "time_delay"]
+    # the round carries the per-output winner only when it told the others apart
+    assert representative("actuator_lag", "time_delay", ["time_delay"]) == "time_delay"
+    assert representative("actuator_lag", "time_delay",
+                          ["actuator_lag", "time_delay"]) == "actuator_lag"
 
 
 def test_fitted_starts_bring_a_correct_model_to_the_noise():
