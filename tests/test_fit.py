@@ -91,6 +91,26 @@ def test_a_capped_stribeck_excess_stays_below_its_cap_and_the_default_is_exp():
     assert float(past["Fs"][0]) < 0.1 + 2.0
 
 
+def test_a_positive_parameter_driven_far_down_stays_positive():
+    """A coordinate u of a positive parameter far below any data's reach (a flat direction
+    the solver ran along: KUKA axis 2 B drove Fc to exactly 0 and discover stopped on
+    "Fc must be > 0") maps to exp(LOG_TINY) > 0, not to an underflowed 0, and the parameter
+    file of that point builds a plant; above LOG_TINY the map is exp, bit for bit."""
+    from jaxflex.fit import params_of_plant
+    from jaxflex.fit.space import LOG_TINY
+
+    space = ParamSpace.build(paper_params().to_plant(), ("Fc", "Fs", "K"))
+    th = {"Fc": jnp.asarray([-800.0]), "Fs": jnp.asarray([-2.0]), "K": jnp.asarray([-5000.0])}
+    ph = space.physical(th)
+    assert float(ph["Fc"][0]) == float(np.exp(LOG_TINY)) > 0.0
+    assert float(ph["K"][0]) == float(np.exp(LOG_TINY))
+    params_of_plant(space.plant(th), paper_params()).to_plant()  # no "must be > 0"
+    assert float(space.physical(th | {"Fc": jnp.asarray([-3.0])})["Fc"][0]) == float(np.exp(-3.0))
+    # Fc free under a fixed Fs (Fc = Fs sigmoid(u)) stays positive too
+    frac = ParamSpace.build(paper_params().to_plant(), ("Fc",))
+    assert float(frac.physical({"Fc": jnp.asarray([-800.0])})["Fc"][0]) > 0.0
+
+
 def test_gap_is_zero_for_exact_replay_and_one_for_standing_still():
     p = paper_params()
     log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.6), substeps=2)

@@ -5,7 +5,8 @@ A free parameter is named as in the parameter file (docs/spec.md section 7): pla
 effect's parameter as ``"<effect>.<param>"`` (e.g. ``"torque_offset.offset"``). Each name
 covers all n joints. Every parameter has a constraint, a string of this vocabulary:
 
-    "positive"      p = exp(u)                    (I, J, K, Fc, vs, sigma0..2; effect sizes)
+    "positive"      p = exp(u)                    (I, J, K, Fc, vs, sigma0..2; effect sizes;
+                                                   u floored at LOG_TINY: p >= 1e-300)
     "nonnegative"   p = exp(u)                    (a value of exactly 0 is floored at 1e-12)
     "positive>=m"   p = m + exp(u)                (a lower bound, e.g. a time constant that a
                                                    fixed-step integrator needs above 1.5 ms)
@@ -48,6 +49,12 @@ from jaxflex.tracecache import persistent_jit
 from jaxflex.validation import to_device
 
 _FLOOR = 1e-12
+
+#: The lowest coordinate of a positive parameter (p = exp(u) >= 1e-300): below it exp
+#: underflows to 0 in float64 and the plant refuses the parameter (measured: KUKA axis 2 B,
+#: discover's nominal refit drove Fc through a flat direction to exactly 0, and the run
+#: stopped on "Fc must be > 0"). Below it the coordinate has no slope and stays.
+LOG_TINY = -690.0
 
 #: Constraint of each nominal parameter (Fs: "ordered" with respect to Fc).
 NOMINAL_CONSTRAINTS: dict[str, str] = {
@@ -242,7 +249,7 @@ class ParamSpace(eqx.Module):
         for name, (kind, a, b) in zip(self.names, self.transforms):
             t = jnp.where(self.mask[name], theta[name], self.fixed[name])
             if kind == "exp":
-                out[name] = jnp.exp(t)
+                out[name] = jnp.exp(jnp.maximum(t, LOG_TINY))
             elif kind == "lower":
                 out[name] = a + jnp.exp(t)
             elif kind == "bounded":
@@ -254,7 +261,7 @@ class ParamSpace(eqx.Module):
                 soft = jax.nn.softplus(t - jnp.log(self.excess_cap))
                 out[name] = out.get("Fc", fr.Fc) + jnp.exp(t - soft)
             elif kind == "frac":
-                out[name] = fr.Fs * jax.nn.sigmoid(t)
+                out[name] = fr.Fs * jax.nn.sigmoid(jnp.maximum(t, LOG_TINY))
             else:
                 out[name] = t
         return out
