@@ -1564,7 +1564,7 @@ def discover(
                 decisive=cfg.decisive, tie_alpha=cfg.tie_alpha)
             winner = representative(winner, best, rounds[-1]["tied"])
             rounds[-1]["winner"] = winner
-            say(f"tie broken by output: {winner}, still tied {rounds[-1]['tied']}")
+            say(f"tie judged output by output: {winner}, still tied {rounds[-1]['tied']}")
         # polish the winner so that the next round's candidates are compared with a converged
         # base, not with one that merely had fewer iterations; an effect that does not lower
         # the held-out gap after this refit is dropped

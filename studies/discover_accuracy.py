@@ -46,6 +46,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--hidden", default=None,
                     help="comma-separated effects to hide (all candidates are still tried)")
     ap.add_argument("--seed", type=int, default=100)
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="multiplies the hidden effects' magnitudes (MODERATE x scale; 0.5: "
+                         "nearer detectability)")
     ap.add_argument("--grown", action="store_true",
                     help="the generator beyond the workflow's assumptions: loops cycle through "
                          "cascade, PD on the rotor angle and open-loop torque, excitations "
@@ -117,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
         if eff == ("outside",):
             eff, kw["disturbance"] = (), "friction_bump"
         try:
-            g = generate_log(eff, seed=a.seed + i, t_final=a.t_final, **kw)
+            g = generate_log(eff, seed=a.seed + i, t_final=a.t_final, scale=a.scale, **kw)
         except RuntimeError as e:  # an open-loop run that ran away: a generator failure
             print(f"[{i + 1}/{len(cases)}] generator: {e}", flush=True)
             continue
