@@ -234,7 +234,8 @@ class Workspace(eqx.Module):
         act = model.active
         effs = []
         for name in self.universe:
-            e = act.get(name) or model.starts.get(name) or EFFECTS[name].typical(1)
+            e = (act.get(name) or model.starts.get(name)
+                 or typical_effect(name, self.train.dt / self.train.substeps))
             effs.append(Gated(e, _gate(name in act)))
         base = model.params.to_plant(with_effects=False).with_effects(*effs)
         space = eqx.tree_at(lambda s: s.base, self.space, base)
@@ -274,9 +275,13 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     # the most entries a model fits: the nominal ones and the largest max_effects + 1 effects
     sizes = sorted((fitted_count(n) for n in universe), reverse=True)
     jac_columns = len(NOMINAL_FIT) + sum(sizes[: max_effects + 1])
-    effs = [Gated(EFFECTS[n].typical(1), to_device(0.0)) for n in universe]
+    h = dt / substeps
+    effs = [Gated(typical_effect(n, h), to_device(0.0)) for n in universe]
     base = nominal.to_plant(with_effects=False).with_effects(*effs)
     space = ParamSpace.build(base, NOMINAL_FIT + tuple(k for n in universe for k in fitted_names(n)))
+    for k in STEP_BOUNDED:
+        if k in space.names:  # time constants the replay's step keeps stable (STEP_FLOOR)
+            space = space.with_lower_bound(k, STEP_FLOOR * h)
     top = float(np.max(np.abs(np.asarray(log.tau))))
     if not (math.isfinite(top) and top > 0):
         raise ValueError(f"discover: the log's torque column has largest |tau| = {top}: "
@@ -844,13 +849,34 @@ def _grid_fits(q: np.ndarray, r: np.ndarray, Q: np.ndarray, grid: np.ndarray,
     return tuple(np.concatenate([o[i] for o in out]) for i in range(3))  # type: ignore[return-value]
 
 
-def _start_effect(name: str, model: Model, series: dict[str, np.ndarray]) -> AbstractEffect:
+#: Time constants [s] whose lower bound scales with the replay's integration step h = dt /
+#: substeps: T >= STEP_FLOOR h. RK4 keeps the delay's Pade poles (-3 +- j sqrt(3)) / T stable
+#: for T > 1.22 h and the lag's -1 / T for T > 0.36 h. The classes' own bound, 1.5 ms, is
+#: this at 1 ms samples; at the KUKA KR300's 4 ms the delay's typical start (3 ms) replayed
+#: unstably and every screen of it read a blown residual (predicted dAIC +61194 on axis 2 B).
+STEP_BOUNDED: tuple[str, ...] = ("actuator_lag.T", "time_delay.T")
+STEP_FLOOR: float = 1.5
+
+
+def typical_effect(name: str, h: float) -> AbstractEffect:
+    """``EFFECTS[name].typical(1)``, a time constant in ``STEP_BOUNDED`` raised to at least
+    twice its bound at the integration step ``h`` [s] (a start on the bound has a dead
+    coordinate): unchanged at 1 ms, 12 ms at 4 ms."""
+    e = EFFECTS[name].typical(1)
+    if f"{name}.T" in STEP_BOUNDED:
+        e = type(e)(T=np.maximum(np.asarray(e.T), 2.0 * STEP_FLOOR * h))
+    return e
+
+
+def _start_effect(name: str, model: Model, series: dict[str, np.ndarray],
+                  h: float) -> AbstractEffect:
     """First guess of candidate ``name`` added to ``model``: a cogging from the residual's
     spectrum (``_cogging_start``, with the Stribeck term at the model's vs), else the typical
-    instance (a backlash with the model's stiffness)."""
+    instance at the integration step ``h`` [s] (``typical_effect``; a backlash with the
+    model's stiffness)."""
     if name in ("cogging", "motor_cogging"):
         return _cogging_start(series, name, vs=float(np.ravel(model.params.friction["vs"])[0]))
-    e = EFFECTS[name].typical(1)
+    e = typical_effect(name, h)
     if name == "backlash":
         e = EFFECTS[name](b=e.b, K=model.params.plant["K"], w=e.w)
     return e
@@ -1452,13 +1478,14 @@ def discover(
     rebased = 0  # rounds repeated on a base that a dropped winner improved
     open_ties: list[tuple[int, dict[str, Any], dict[str, AbstractEffect]]] = []
     S, L = ws.train.segs.count, ws.train.segs.length
+    h = ws.train.dt / ws.train.substeps  # the replay's integration step [s]
     while len(added) < cfg.max_effects:
         tau_int = autocorrelation_time(ws, current)
         n_eff = current.n_res / tau_int
         series = loc_current.series
         scores, fits, failed, screens = {}, {}, {}, {}
         remaining = [name for name in cands if name not in added]
-        starts = {name: _start_effect(name, current.model, series) for name in remaining}
+        starts = {name: _start_effect(name, current.model, series, h) for name in remaining}
         models = {name: Model(current.model.params, list(current.model.effects) + [starts[name]])
                   for name in remaining}
         to_fit = remaining

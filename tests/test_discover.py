@@ -361,6 +361,31 @@ def test_a_tie_is_broken_by_the_encoder_that_tells_the_rivals_apart():
                           ["actuator_lag", "time_delay"]) == "actuator_lag"
 
 
+def test_time_constants_start_and_stay_where_the_replay_step_is_stable():
+    """``typical_effect``: at 1 ms samples (one substep) the lag and the delay start at their
+    classes' 3 ms; at the KUKA KR300's 4 ms at 12 ms, twice the bound STEP_FLOOR x h, since
+    the delay's Pade poles (-3 +- j sqrt 3) / T need T > 1.22 h under RK4 (at 3 ms and 4 ms
+    steps the replay blew up). The workspace raises the fitted bound to STEP_FLOOR x h."""
+    from jaxflex.discover import STEP_FLOOR, typical_effect, workspace
+    from jaxflex.effects import EFFECTS
+
+    for name in ("actuator_lag", "time_delay"):
+        assert float(typical_effect(name, 1e-3).T[0]) == pytest.approx(3e-3)
+        assert float(typical_effect(name, 4e-3).T[0]) == pytest.approx(2 * STEP_FLOOR * 4e-3)
+    assert float(typical_effect("torque_offset", 4e-3).offset[0]) == float(
+        EFFECTS["torque_offset"].typical(1).offset[0])
+    g = generate_log((), seed=1, t_final=2.0)
+    coarse = Log.from_arrays(t=g.log.t[::4], tau=g.log.tau[::4], q1=g.log.q1[::4],
+                             q2=g.log.q2[::4])
+    nominal = paper_params()
+    nominal.effects = {}
+    ws = workspace(coarse, nominal, ("actuator_lag", "time_delay"), segment=0.2,
+                   train_frac=0.6, substeps=1, max_effects=1)
+    for k in ("actuator_lag.T", "time_delay.T"):
+        kind, a, _ = ws.space.transforms[ws.space.names.index(k)]
+        assert (kind, a) == ("lower", pytest.approx(STEP_FLOOR * 4e-3))
+
+
 def test_fitted_starts_bring_a_correct_model_to_the_noise():
     """The true model replayed from start states estimated from the log (angles,
     Savitzky-Golay velocities, z at its steady state) misses the link angle by several times

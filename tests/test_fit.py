@@ -111,6 +111,25 @@ def test_a_positive_parameter_driven_far_down_stays_positive():
     assert float(frac.physical({"Fc": jnp.asarray([-800.0])})["Fc"][0]) > 0.0
 
 
+def test_a_lower_bound_can_be_raised_for_a_coarser_step():
+    """``ParamSpace.with_lower_bound``: a "positive>=m" time constant's bound is raised (never
+    lowered), values above it round-trip, the map stays above it for any coordinate; a
+    parameter without a lower bound, or not in the space, is refused by name."""
+    plant = paper_params().to_plant().with_effects(
+        EFFECTS["actuator_lag"](T=np.array([0.012])))
+    space = ParamSpace.build(plant, ("K", "actuator_lag.T"))
+    raised = space.with_lower_bound("actuator_lag.T", 6e-3)
+    assert raised.with_lower_bound("actuator_lag.T", 1e-3).transforms == raised.transforms
+    th = raised.theta_of({"actuator_lag.T": 0.012})
+    assert float(raised.physical(th)["actuator_lag.T"][0]) == pytest.approx(0.012, rel=1e-12)
+    low = raised.physical(th | {"actuator_lag.T": jnp.asarray([-50.0])})
+    assert 6e-3 <= float(low["actuator_lag.T"][0]) < 6e-3 * (1 + 1e-12)
+    with pytest.raises(ValueError, match="no lower bound"):
+        space.with_lower_bound("K", 1.0)
+    with pytest.raises(ValueError, match="not a parameter"):
+        space.with_lower_bound("time_delay.T", 1.0)
+
+
 def test_gap_is_zero_for_exact_replay_and_one_for_standing_still():
     p = paper_params()
     log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.6), substeps=2)

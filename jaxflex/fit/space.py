@@ -29,6 +29,7 @@ compiled solver (the discrepancy workflow's candidates).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -219,6 +220,20 @@ class ParamSpace(eqx.Module):
             mask={k: to_device(True) for k in names},
             fixed={k: to_device(np.zeros(n)) for k in names},
         )
+
+    def with_lower_bound(self, name: str, m: float) -> ParamSpace:
+        """The same space with the lower bound of ``name`` (a "positive>=m" parameter, p = a +
+        exp(u)) raised to at least ``m`` (its unit): e.g. a time constant that a fixed-step
+        integrator of a coarser step keeps stable only above a larger bound."""
+        if name not in self.names:
+            raise ValueError(f"fit: {name!r} is not a parameter of this space ({self.names})")
+        i = self.names.index(name)
+        kind, a, b = self.transforms[i]
+        if kind != "lower":
+            raise ValueError(f"fit: {name!r} has no lower bound to raise (transform {kind!r})")
+        transforms = list(self.transforms)
+        transforms[i] = (kind, max(a, float(m)), b)
+        return dataclasses.replace(self, transforms=tuple(transforms))
 
     def with_mask(self, fitted: Sequence[str], theta_fixed: dict[str, Array]) -> ParamSpace:
         """The same space fitting only ``fitted``; the others stay at ``theta_fixed``."""
