@@ -859,12 +859,13 @@ STEP_FLOOR: float = 1.5
 
 
 def typical_effect(name: str, h: float) -> AbstractEffect:
-    """``EFFECTS[name].typical(1)``, a time constant in ``STEP_BOUNDED`` raised to at least
-    twice its bound at the integration step ``h`` [s] (a start on the bound has a dead
-    coordinate): unchanged at 1 ms, 12 ms at 4 ms."""
+    """``EFFECTS[name].typical(1)``, a time constant in ``STEP_BOUNDED`` at twice its bound at
+    the integration step ``h`` [s] (a start on the bound has a dead coordinate; a start far
+    above a short delay does not reach it in a screen's few steps): 3 ms at 1 ms samples
+    (the classes' own start), 12 ms at 4 ms, 1.5 ms at 1 ms with 2 substeps."""
     e = EFFECTS[name].typical(1)
     if f"{name}.T" in STEP_BOUNDED:
-        e = type(e)(T=np.maximum(np.asarray(e.T), 2.0 * STEP_FLOOR * h))
+        e = type(e)(T=np.full_like(np.asarray(e.T), 2.0 * STEP_FLOOR * h))
     return e
 
 

@@ -33,6 +33,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--min-gain", type=float, default=0.15,
                    help="minimal relative held-out gap reduction to accept an effect")
     p.add_argument("--max-effects", type=int, default=3, help="most effects to add (3)")
+    p.add_argument("--substeps", type=int, default=1,
+                   help="RK4 steps per sample in every replay (1); the lag's and the delay's "
+                        "time constants are fitted from 1.5 x the step dt / substeps up, so a "
+                        "delay shorter than 1.5 samples needs 2 or more (longer runs)")
     p.add_argument("--no-plots", action="store_true", help="skip figures")
     p.set_defaults(func=run)
 
@@ -53,12 +57,15 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--train-frac must be in [0.1, 0.9], got {args.train_frac}")
     if args.segment <= 0:
         raise ValueError(f"--segment must be > 0 s, got {args.segment}")
+    if not 1 <= args.substeps <= 16:
+        raise ValueError(f"--substeps must be an integer in [1, 16], got {args.substeps}")
     log = load_log(args.log, parse_mapping(args.map))
     nominal = load_params(args.params) if args.params else paper_params()
     cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
     cfg = DiscoverConfig(
         segment=args.segment, train_frac=args.train_frac, max_steps=args.max_steps,
         alpha=args.alpha, min_gain=args.min_gain, max_effects=args.max_effects, candidates=cands,
+        substeps=args.substeps,
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

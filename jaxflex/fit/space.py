@@ -223,8 +223,8 @@ class ParamSpace(eqx.Module):
 
     def with_lower_bound(self, name: str, m: float) -> ParamSpace:
         """The same space with the lower bound of ``name`` (a "positive>=m" parameter, p = a +
-        exp(u)) raised to at least ``m`` (its unit): e.g. a time constant that a fixed-step
-        integrator of a coarser step keeps stable only above a larger bound."""
+        exp(u)) set to ``m`` (its unit): e.g. a time constant that a fixed-step integrator
+        keeps stable above a bound proportional to its step, not the class's fixed one."""
         if name not in self.names:
             raise ValueError(f"fit: {name!r} is not a parameter of this space ({self.names})")
         i = self.names.index(name)
@@ -232,7 +232,7 @@ class ParamSpace(eqx.Module):
         if kind != "lower":
             raise ValueError(f"fit: {name!r} has no lower bound to raise (transform {kind!r})")
         transforms = list(self.transforms)
-        transforms[i] = (kind, max(a, float(m)), b)
+        transforms[i] = (kind, float(m), b)
         return dataclasses.replace(self, transforms=tuple(transforms))
 
     def with_mask(self, fitted: Sequence[str], theta_fixed: dict[str, Array]) -> ParamSpace:
