@@ -408,3 +408,11 @@ def test_identify_substeps_must_be_a_positive_integer_or_auto(tmp_path, capsys, 
     err = capsys.readouterr().err
     assert e.value.code == 2 and "--substeps" in err and "positive integer or 'auto'" in err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_discover_substeps_out_of_range_is_refused_before_reading(tmp_path, capsys):
+    """``jaxflex discover --substeps 0`` (or 100) names the option and its range before the
+    log is read (log.csv does not exist)."""
+    for bad in ("0", "100"):
+        _refused(capsys, ["discover", "log.csv", "--out", str(tmp_path / "o"), "--substeps", bad],
+                 "--substeps", "[1, 16]")
