@@ -228,14 +228,18 @@ class Workspace(eqx.Module):
     test: Problem
     universe: tuple[str, ...] = eqx.field(static=True)
 
+    @property
+    def step(self) -> float:
+        """The replay's integration step [s]: the sample period over the substeps."""
+        return self.train.dt / self.train.substeps
+
     def for_model(self, model: Model) -> tuple[Problem, Problem, dict[str, jax.Array]]:
         """Training and held-out problems of ``model`` (gates and mask set) and its start
         coordinates."""
         act = model.active
         effs = []
         for name in self.universe:
-            e = (act.get(name) or model.starts.get(name)
-                 or typical_effect(name, self.train.dt / self.train.substeps))
+            e = act.get(name) or model.starts.get(name) or typical_effect(name, self.step)
             effs.append(Gated(e, _gate(name in act)))
         base = model.params.to_plant(with_effects=False).with_effects(*effs)
         space = eqx.tree_at(lambda s: s.base, self.space, base)
@@ -623,12 +627,18 @@ def without_effect(ws: Workspace, fit: CandidateFit, name: str, *, max_steps: in
                      starts=(fit.starts, fit.test_starts), held_out=False)
 
 
+def held_out_mse(ws: Workspace, fit: CandidateFit) -> np.ndarray:
+    """Mean squared error [rad^2] of a fitted model's replay per held-out segment and output
+    (S, C): (q1, q2)."""
+    y_meas = np.asarray(ws.test.segs.y_meas)  # the held-out measurements, any model
+    return np.mean((held_out_traces(ws, fit) - y_meas) ** 2, axis=1)
+
+
 def segment_errors(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     """RMS error [rad] of a fitted model's replay per held-out segment (S,), q1 and q2
     together: the held-out evidence, segment by segment, for comparing two models on the
     same segments (``paired_p_value``)."""
-    y_meas = np.asarray(ws.test.segs.y_meas)  # the held-out measurements, any model
-    return np.sqrt(np.mean((held_out_traces(ws, fit) - y_meas) ** 2, axis=(1, 2)))
+    return np.sqrt(np.mean(held_out_mse(ws, fit), axis=1))
 
 
 def paired_p_value(worse: Sequence[float], better: Sequence[float]) -> float:
@@ -924,11 +934,10 @@ def output_evidence(ws: Workspace, fit: CandidateFit) -> dict[str, Any]:
     autocorrelation time ``tau`` [samples] and sample count ``count`` per output, and the
     held-out mean squared error ``held_out_mse`` [rad^2] per segment and output (S, C)."""
     r = output_residuals(ws, fit)
-    e = held_out_traces(ws, fit) - np.asarray(ws.test.segs.y_meas)
     return {"rss": [float(np.sum(r[..., c] ** 2)) for c in range(r.shape[-1])],
             "tau": [effective_count(r[..., c]) for c in range(r.shape[-1])],
             "count": int(r.shape[0] * r.shape[1]),
-            "held_out_mse": np.mean(e**2, axis=1)}
+            "held_out_mse": held_out_mse(ws, fit)}
 
 
 def break_tie(ws: Workspace, fits: dict[str, CandidateFit], names: Sequence[str], *,
@@ -1232,9 +1241,10 @@ class DiscoverResult:
     missing that the library does not describe; the localisation says where to look);
     tied: the first round's candidates that the data cannot tell apart (``tied``; one name,
     the effect, when the answer is decided; empty when none was added);
-    effects: all added, in order (in a tie the model carries one representative, the tied
-    candidate ``break_tie`` ranks first, so that later rounds have a base; a tie is judged
-    again on the final model, ``revisit_tie``, and the representative may change); gap_before,
+    effects: all added, in order (in a tie the model carries one representative so that
+    later rounds have a base: the held-out gap's pick while it stays tied, ``representative``;
+    a tie is judged again on the final model, ``revisit_tie``, and the representative may
+    change); gap_before,
     gap_after, gap_floor: held-out gaps of the refit nominal and the final model, and the gap
     a correct model reaches on this log (``gap_floor``'s bootstrap; ``floor`` holds its
     details); unexplained: the final gap is above ``unexplained_factor`` x floor + 3
@@ -1479,14 +1489,13 @@ def discover(
     rebased = 0  # rounds repeated on a base that a dropped winner improved
     open_ties: list[tuple[int, dict[str, Any], dict[str, AbstractEffect]]] = []
     S, L = ws.train.segs.count, ws.train.segs.length
-    h = ws.train.dt / ws.train.substeps  # the replay's integration step [s]
     while len(added) < cfg.max_effects:
         tau_int = autocorrelation_time(ws, current)
         n_eff = current.n_res / tau_int
         series = loc_current.series
         scores, fits, failed, screens = {}, {}, {}, {}
         remaining = [name for name in cands if name not in added]
-        starts = {name: _start_effect(name, current.model, series, h) for name in remaining}
+        starts = {name: _start_effect(name, current.model, series, ws.step) for name in remaining}
         models = {name: Model(current.model.params, list(current.model.effects) + [starts[name]])
                   for name in remaining}
         to_fit = remaining

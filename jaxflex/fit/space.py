@@ -230,7 +230,7 @@ class ParamSpace(eqx.Module):
         i = self.names.index(name)
         kind, a, b = self.transforms[i]
         if kind != "lower":
-            raise ValueError(f"fit: {name!r} has no lower bound to raise (transform {kind!r})")
+            raise ValueError(f"fit: {name!r} has no lower bound to set (transform {kind!r})")
         transforms = list(self.transforms)
         transforms[i] = (kind, float(m), b)
         return dataclasses.replace(self, transforms=tuple(transforms))

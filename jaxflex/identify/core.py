@@ -592,6 +592,12 @@ def choose_segment_length(log: Log, init: Params, model: ModelKind = "flexible",
     return length, {**record, **_segments_of(log, length)}
 
 
+def _relative(stderr: dict[str, Any], phys: dict[str, Any]) -> dict[str, list[float]]:
+    """Relative standard errors stderr / |value| per name (lists per joint)."""
+    return {k: (np.asarray(stderr[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist()
+            for k in phys}
+
+
 def _segments_of(log: Log, length: int | None) -> dict[str, Any]:
     """The record of ``log``'s multiple-shooting segments of ``length`` samples (None: one
     segment, the whole log): samples, seconds, segments."""
@@ -713,8 +719,7 @@ def finish(
               if solution is not None and solution.y is y else None)
     shown = cov if robust is None else robust
     se = {k: shown["stderr"][k].tolist() for k in phys}
-    information = {k: (np.asarray(cov["stderr"][k]) / np.maximum(np.abs(phys[k]), 1e-300))
-                   .tolist() for k in phys}
+    information = _relative(cov["stderr"], phys)
     msgs, bad = [], list(cov["null_names"])
     why = {k: "numerically null direction of the Jacobian (the data cannot separate it)"
            for k in bad}
@@ -774,7 +779,7 @@ def finish(
         f"segment-robust ({robust['clusters']} segments as clusters)" if robust is not None
         else "white residuals")
     out.extra["identification"]["covariance"] = posterior_record(prob, theta, shown, bad)
-    rel = {k: (np.asarray(se[k]) / np.maximum(np.abs(phys[k]), 1e-300)).tolist() for k in phys}
+    rel = _relative(se, phys)
     for k in fixed:
         se[k] = [math.nan] * len(get_value(init, k))
         rel[k] = [math.inf] * len(get_value(init, k))
