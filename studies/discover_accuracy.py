@@ -20,6 +20,12 @@ rounds' ``tie_break``) and whether the nominal refit's held-out gap was already 
 workflow's own limit of the floor (``below_limit_before``: the hidden effect did not show
 above the log's noise); the summary lists those cases (``hidden_below_limit``), still scored
 as missed.
+With ``--simulator mujoco`` the logs come from a rig that MuJoCo simulates
+(``studies/mujoco_rig``: not jaxflex's plant, controller, excitation, sensing nor effect
+implementations; an industrial drive's P/PI cascade on the motor encoder following
+point-to-point moves or a chirp, or open-loop torque pulses or a chirp; disturbances outside
+the library: a vibration of the base, a stiffness that ripples with the link angle); the
+cases are those of ``--grown``.
 Writes ``results.json`` (updated after every case) and ``confusion.png`` to ``--out``.
 """
 
@@ -55,6 +61,9 @@ def main(argv: list[str] | None = None) -> None:
                          "through multisine and multisine with a slow swing; adds --outside "
                          "cases with a disturbance outside the library (truth 'unexplained') "
                          "and --pairs cases with two effects (right when both are named)")
+    ap.add_argument("--simulator", choices=("jaxflex", "mujoco"), default="jaxflex",
+                    help="who simulates the logs: jaxflex's own generator, or a MuJoCo rig "
+                         "(studies/mujoco_rig; implies --grown's cases)")
     ap.add_argument("--outside", type=int, default=2)
     ap.add_argument("--pairs", type=int, default=2)
     ap.add_argument("--small", action="store_true", help="tiny run (for a slow test)")
@@ -65,6 +74,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="re-apply the current selection rule to the saved candidate scores of "
                          "--out/results.json (first round) and rewrite the summary")
     a = ap.parse_args(argv)
+    a.grown = a.grown or a.simulator == "mujoco"
     if a.rescore:
         from jaxflex.discover import select
 
@@ -81,7 +91,6 @@ def main(argv: list[str] | None = None) -> None:
 
     use_lean_xla_cpu(small_loops=True)  # as jaxflex discover runs, before any JAX computation
     jax.config.update("jax_enable_x64", True)
-    from jaxflex.datagen import generate_log
     from jaxflex.discover import DiscoverConfig, discover
     from jaxflex.effects import candidate_effects
 
@@ -98,7 +107,10 @@ def main(argv: list[str] | None = None) -> None:
         cases += [()] if k < a.clean else []
     labels = sorted(set(names) | set(hidden)) + ["none"]
     rows = []
-    from jaxflex.datagen import EXCITATIONS, LOOPS
+    if a.simulator == "mujoco":
+        from mujoco_rig import DISTURBANCES, EXCITATIONS, LOOPS, simulate_rig as generate_log
+    else:
+        from jaxflex.datagen import EXCITATIONS, LOOPS, generate_log
 
     variants: list[dict] = [{} for _ in cases]
     if a.grown:
@@ -109,6 +121,7 @@ def main(argv: list[str] | None = None) -> None:
             cases.append(pair)
         variants = [{"loop": LOOPS[i % len(LOOPS)], "excitation": EXCITATIONS[(i // len(LOOPS)) % 2]}
                     for i in range(len(cases))]
+        outside = DISTURBANCES if a.simulator == "mujoco" else ("friction_bump",)
         labels = labels + ["unexplained"]
     max_eff = max(a.max_effects, 2) if a.grown else a.max_effects
     cfg = DiscoverConfig(max_effects=max_eff, candidates=names if a.effects else None)
@@ -118,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
         t0 = time.perf_counter()
         kw = dict(variants[i])
         if eff == ("outside",):
-            eff, kw["disturbance"] = (), "friction_bump"
+            eff, kw["disturbance"] = (), outside[i % len(outside)]
         try:
             g = generate_log(eff, seed=a.seed + i, t_final=a.t_final, scale=a.scale, **kw)
         except RuntimeError as e:  # an open-loop run that ran away: a generator failure
@@ -162,6 +175,8 @@ def main(argv: list[str] | None = None) -> None:
             "scores": {k: {kk: v[kk] for kk in ("gap_test", "gain", "p_value", "dBIC", "significant")}
                        for k, v in rep["candidate_scores"].items()},
         }
+        if a.simulator == "mujoco":
+            row["simulator"] = g.truth["simulator"]
         rows.append(row)
         print(f"[{i + 1}/{len(cases)}] true {row['true']:20s} found {row['found']:20s} gap "
               f"{row['gap_before']:.4f}->{row['gap_after']:.4f} ({rep['seconds']:.0f} s)", flush=True)
