@@ -834,19 +834,20 @@ def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
     coarse = np.arange(lowest, 400.0 if rotor else 80.0, 0.5)
     # an angle that travels less than min_periods periods of the finest ripple searched (a
     # link hanging under gravity in a MuJoCo rig's open-loop log: 0.1 rad) has no grid to
-    # search: the typical start
-    expl, a_s, a_c = _grid_fits(q, r, Q, coarse, 0.5) if coarse.size else (-np.ones(1),) * 3
+    # search; a grid that explains nothing has no ripple: the typical start either way
+    if not coarse.size:
+        return EFFECTS[name].typical(1)
+    expl, a_s, a_c = _grid_fits(q, r, Q, coarse, 0.5)
     j = int(np.argmax(expl))
-    N, s_, c_ = float(coarse[j]) if coarse.size else 0.0, a_s[j], a_c[j]
-    if expl[j] > 0:
-        fine = N + np.arange(-0.5, 0.51, 0.02)
-        e, fs, fc = _grid_fits(q, r, Q, fine, 0.02)
-        k = int(np.argmax(e))
-        if e[k] > expl[j]:
-            N, s_, c_ = float(fine[k]), fs[k], fc[k]
-        A, phi = max(math.hypot(s_, c_), 1e-3), math.atan2(c_, s_)
-    else:
-        N, A, phi = (60.0 if rotor else 25.0), 0.01, 0.0
+    if not expl[j] > 0:
+        return EFFECTS[name].typical(1)
+    N, s_, c_ = float(coarse[j]), a_s[j], a_c[j]
+    fine = N + np.arange(-0.5, 0.51, 0.02)
+    e, fs, fc = _grid_fits(q, r, Q, fine, 0.02)
+    k = int(np.argmax(e))
+    if e[k] > expl[j]:
+        N, s_, c_ = float(fine[k]), fs[k], fc[k]
+    A, phi = max(math.hypot(s_, c_), 1e-3), math.atan2(c_, s_)
     # the residual equals the missing torque A sin(N q + phi); both residuals carry it with
     # its own sign (torque_residuals)
     return EFFECTS[name](A=np.full(1, A), N=np.full(1, N), phi=np.full(1, phi))

@@ -43,19 +43,15 @@ import math
 from typing import Any
 
 import numpy as np
+from scipy.signal import lfilter
 
-from jaxflex.datagen import MODERATE
+from jaxflex.datagen import draw_effect
 from jaxflex.logs import Log
 from jaxflex.presets import paper_params
 
 LOOPS: tuple[str, ...] = ("drive", "open_loop")
 EXCITATIONS: tuple[str, ...] = ("moves", "chirp")
 DISTURBANCES: tuple[str, ...] = ("vibration", "stiffness_ripple")
-#: The effects this rig can hide (jaxflex's library names, docs/spec.md section 8).
-EFFECT_NAMES: tuple[str, ...] = tuple(MODERATE)
-_SIGNED = {("asymmetric_friction", "dF"), ("torque_offset", "offset"), ("encoder_skew", "offset")}
-
-
 @dataclasses.dataclass
 class RigLog:
     """A log of the MuJoCo rig (``jaxflex.logs.Log``) and its truth: hidden effects with
@@ -64,32 +60,6 @@ class RigLog:
     log: Log
     effects: list[str]
     truth: dict[str, Any]
-
-
-def draw_effects(effects: tuple[str, ...], rng: np.random.Generator, scale: float
-                 ) -> dict[str, dict[str, float]]:
-    """Magnitudes of the hidden effects: uniform in ``jaxflex.datagen.MODERATE`` x ``scale``
-    (the same "moderate" sizes as jaxflex's generator), signs drawn where signed; cogging
-    periods and phases, gravity's hanging angle [rad]."""
-    out: dict[str, dict[str, float]] = {}
-    for name in effects:
-        if name not in MODERATE:
-            raise ValueError(f"unknown effect {name!r}; the rig knows {sorted(MODERATE)}")
-        kw = {}
-        for p, (lo, hi) in MODERATE[name].items():
-            v = scale * rng.uniform(lo, hi)
-            if (name, p) in _SIGNED:
-                v *= rng.choice([-1.0, 1.0])
-            kw[p] = float(v)
-        if name == "cogging":
-            kw |= {"N": float(rng.choice([20.0, 30.0, 45.0])), "phi": rng.uniform(-math.pi, math.pi)}
-        if name == "motor_cogging":
-            kw |= {"N": float(rng.choice([60.0, 90.0, 150.0])),
-                   "phi": rng.uniform(-math.pi, math.pi)}
-        if name == "gravity":
-            kw["q0"] = rng.uniform(-0.2, 0.2)
-        out[name] = kw
-    return out
 
 
 def rig_xml(plant: dict[str, float], fr: dict[str, float], eff: dict[str, dict[str, float]],
@@ -195,12 +165,7 @@ def _pulses(rng: np.random.Generator, t: np.ndarray, level: float) -> np.ndarray
         t0 += w + rng.uniform(0.05, 0.3)
         sign = -sign
     a = math.exp(-(t[1] - t[0]) / 0.01)
-    out = np.empty_like(u)
-    acc = 0.0
-    for i, x in enumerate(u):
-        acc = a * acc + (1 - a) * x
-        out[i] = acc
-    return out
+    return lfilter([1.0 - a], [1.0, -a], u)
 
 
 def simulate_rig(
@@ -242,7 +207,10 @@ def simulate_rig(
     for k in ("Fc", "Fs", "sigma2"):
         fr[k] *= math.exp(mismatch * rng.standard_normal())
     fr["Fs"] = max(fr["Fs"], 1.05 * fr["Fc"])
-    eff = draw_effects(tuple(effects), rng, scale)
+    # the magnitudes of jaxflex's generator (``MODERATE`` x scale, the same draws)
+    eff = {name: draw_effect(name, rng, scale) for name in effects}
+    if "backlash" in eff:
+        eff["backlash"]["K"] = plant["K"]
     dist: dict[str, float] = {}
     if disturbance == "vibration":  # the base shakes: a torque at one frequency on the link
         dist = {"A": rng.uniform(0.02, 0.04), "f": rng.uniform(5.0, 12.0),
