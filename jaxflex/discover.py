@@ -43,8 +43,10 @@ Workflow (``discover``), for one joint:
    count is divided by their integrated autocorrelation time). A candidate is significant when
    the F-test p-value is below ``alpha``, its BIC is lower and it lowers the held-out gap by at
    least ``min_gain``. Among significant candidates within ``parsimony`` of the lowest held-out
-   gap, the one with the fewest parameters is added (``select``), and the search repeats until
-   nothing is significant; an effect whose polished refit does not lower the held-out gap is
+   gap, the one with the fewest parameters is added (``select``); when significant rivals come
+   within ``contest`` (3x) of its held-out gap, they and it are polished first (``settle``)
+   and the pick is made again (``contest``: a fit of a few dozen steps can stop several times
+   above its optimum); the search repeats until nothing is significant; an effect whose polished refit does not lower the held-out gap is
    dropped, and so is one that is no longer significant at its polished optimum against the
    base refitted from there without it (``without_effect``; a candidate's fit can lift the
    shared parameters out of a local minimum of the base and then let the effect go): the
@@ -77,6 +79,14 @@ whose third round repeats the second on the base a dropped gravity improved, 34-
 (three paired runs against 40-43 s before settle's probe; the machine's own spread is about
 10%), of which about 3 s compilation (kept traces, ``jaxflex.tracecache``), ~970
 Levenberg-Marquardt steps at 20-35 ms, 260 of them settling the base (``settle``).
+
+Independent fits run side by side on the cores (``jaxflex.fit.ahead.side_by_side``): the
+candidates' screens, starts and full fits, the polish of a contest or a tie, the fresh
+solve of ``settle`` beside its confirming solves, the two held-out start fits and the
+floor's draws. On the bench's 20 s log (warm caches, ``jaxflex discover`` from start to exit,
+farm-bench, 5 paired runs on 2 cores): 0.80 x the serial version's wall time (median 13.8
+s against 16.2 s, ranges 12.3-14.0 and 15.8-18.8 s); from empty caches 34.8 s against 42.6 s.
+The answers do not depend on the number of workers.
 """
 
 from __future__ import annotations
@@ -85,7 +95,7 @@ import dataclasses
 import functools
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -115,7 +125,7 @@ from jaxflex.fit import (
     simulated_outputs,
     white_noise_std,
 )
-from jaxflex.fit.ahead import Ahead
+from jaxflex.fit.ahead import Ahead, all_side_by_side, side_by_side
 from jaxflex.logs import Log
 from jaxflex.params import Params
 from jaxflex.plant import FlexibleJointPlant
@@ -534,8 +544,9 @@ def held_out_starts(prob: Problem, theta: dict[str, jax.Array], carried: jax.Arr
     fit_starts' default, since the solves this replaces each continued the held-out start fit
     of the one before (the statistical stop ends it sooner where it can)."""
     plant = prob.space.plant(theta)
-    tries = [fit_starts(prob, theta, within_capacity(x, plant), max_steps=max_steps)
-             for x in (carried, prob.segs.x0)]
+    tries = all_side_by_side(lambda first: fit_starts(prob, theta, within_capacity(first, plant),
+                                                      max_steps=max_steps),
+                             (carried, prob.segs.x0))
     y = np.asarray(prob.segs.y_meas)
     err = np.stack([np.sum((np.asarray(simulated_outputs(prob, (theta, x))) - y) ** 2,
                            axis=(1, 2)) for x in tries])
@@ -580,37 +591,53 @@ def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float =
     steps (default a quarter of ``max_steps``) and goes on to the full solve only when those
     already lower the residual by more than ``tol`` (measured on the bench's 20 s log: the
     four confirming solves ran 47-60 steps each and lowered the residual by at most 1.3e-4
-    relative, a fifth of what they cost)."""
+    relative, a fifth of what they cost). With ``fresh``, a solve from the log's start
+    estimates (below) runs beside the confirming ones; the better is kept."""
     probe = max(1, max_steps // 4) if probe is None else probe
-    for i in range(rounds):
+
+    def solve(fit: CandidateFit, steps: int, starts: tuple[jax.Array, jax.Array],
+              catch_up: float | None = None) -> CandidateFit:
         # the held-out part only for the fit kept (one held-out start fit, not one a solve)
-        nxt = fit_model(ws, fit.model, max_steps=max_steps if i == 0 else probe,
-                        tau_int=tau_int, starts=(fit.starts, fit.test_starts), held_out=False)
-        if i > 0 and nxt.steps >= probe and nxt.rss < fit.rss * (1.0 - tol):
-            # the probe still gains: the full confirming solve, on from where it got
-            more = fit_model(ws, nxt.model, max_steps=max_steps, tau_int=tau_int,
-                             starts=(nxt.starts, nxt.test_starts), held_out=False)
-            nxt = dataclasses.replace(more, steps=nxt.steps + more.steps,
-                                      seconds=nxt.seconds + more.seconds) \
-                if more.rss < nxt.rss else nxt
-        better = nxt.rss < fit.rss
-        done = not nxt.rss < fit.rss * (1.0 - tol)
-        fit = nxt if better else fit
-        if done:
-            break
-    if fresh:
-        # the base gets the second first guess every candidate gets (``discover``): the
-        # log's start estimates instead of its own fitted starts, which can hold the shared
-        # parameters in a valley a candidate's fit from the estimates leaves (measured: a
-        # hardening spring polished from a nominal refit whose Fs rode its bound, 2.0 N m,
-        # with Fc 0; from the estimates the base itself went from 7.5 to 3.1 in training
-        # residual, and the next round's ten candidates had all been significant against it)
-        alt = fit_model(ws, fit.model, max_steps=max_steps, tau_int=tau_int,
-                        starts=(ws.train.segs.x0, fit.test_starts), held_out=False,
-                        catch_up=fit.rss)
-        if alt.rss < fit.rss * (1.0 - tol):
-            return settle(ws, alt, max_steps=max_steps, tau_int=tau_int, rounds=rounds,
-                          tol=tol, probe=probe, fresh=False)
+        return fit_model(ws, fit.model, max_steps=steps, tau_int=tau_int, starts=starts,
+                         held_out=False, catch_up=catch_up)
+
+    def confirmed(fit: CandidateFit) -> CandidateFit:
+        for _ in range(1, rounds):
+            nxt = solve(fit, probe, (fit.starts, fit.test_starts))
+            if nxt.steps >= probe and nxt.rss < fit.rss * (1.0 - tol):
+                # the probe still gains: the full confirming solve, on from where it got
+                more = solve(nxt, max_steps, (nxt.starts, nxt.test_starts))
+                nxt = dataclasses.replace(more, steps=nxt.steps + more.steps,
+                                          seconds=nxt.seconds + more.seconds) \
+                    if more.rss < nxt.rss else nxt
+            done = not nxt.rss < fit.rss * (1.0 - tol)
+            fit = nxt if nxt.rss < fit.rss else fit
+            if done:
+                break
+        return fit
+
+    first = solve(fit, max_steps, (fit.starts, fit.test_starts))
+    settled = not first.rss < fit.rss * (1.0 - tol)
+    fit = first if first.rss < fit.rss else fit
+    if not fresh:
+        return with_held_out(ws, fit if settled else confirmed(fit))
+    # the base gets the second first guess every candidate gets (``discover``): the log's
+    # start estimates instead of its own fitted starts, which can hold the shared parameters
+    # in a valley a candidate's fit from the estimates leaves (measured: a hardening spring
+    # polished from a nominal refit whose Fs rode its bound, 2.0 N m, with Fc 0; from the
+    # estimates the base itself went from 7.5 to 3.1 in training residual, and the next
+    # round's ten candidates had all been significant against it). It starts from the first
+    # solve and runs on the other core beside the confirming solves (``side_by_side``).
+    base = fit
+    tasks = [lambda: solve(base, max_steps, (ws.train.segs.x0, base.test_starts),
+                           catch_up=base.rss)]
+    if not settled:
+        tasks.append(lambda: confirmed(base))
+    alt, *confirming = all_side_by_side(lambda task: task(), tasks)
+    fit = confirming[0] if confirming else base
+    if alt.rss < fit.rss * (1.0 - tol):
+        return settle(ws, alt, max_steps=max_steps, tau_int=tau_int, rounds=rounds,
+                      tol=tol, probe=probe, fresh=False)
     return with_held_out(ws, fit)
 
 
@@ -996,13 +1023,40 @@ def output_evidence(ws: Workspace, fit: CandidateFit) -> dict[str, Any]:
             "held_out_mse": held_out_mse(ws, fit)}
 
 
+def settle_side_by_side(ws: Workspace, fits: dict[str, CandidateFit], names: Sequence[str],
+                        *, max_steps: int, tau_int: float) -> dict[str, CandidateFit]:
+    """``settle`` of the fits ``names`` of ``fits``, side by side (``side_by_side``)."""
+    return dict(zip(names, all_side_by_side(
+        lambda k: settle(ws, fits[k], max_steps=max_steps, tau_int=tau_int), names)))
+
+
+def contest(scores: dict[str, dict[str, Any]], winner: str | None,
+            factor: float) -> list[str]:
+    """The candidates a round's pick could turn on (sorted; empty when there is no rival):
+    ``winner`` and every significant rival whose held-out gap is within ``factor`` of the
+    winner's (those with a lower gap that ``select`` passed over for fewer parameters
+    included). Their full fits stop after a few dozen steps, far from their optimum where the
+    residual is flat, so their gaps can be several times what each reaches (measured on the
+    grown study's log of an asymmetric friction behind a PD loop, seed 101: its 30-step fit
+    gave 0.0034 and 0.0015 from two nominal refits 3e-3 apart in training gap, a gravity
+    0.0013 and 0.0023, the polished asymmetric friction 0.0005): the pick between them is
+    made once each is polished (``settle``)."""
+    if winner is None or factor <= 1.0:
+        return []
+    w = scores[winner]["gap_test"]
+    rivals = [k for k, s in scores.items() if s["significant"] and k != winner
+              and s["gap_test"] <= factor * w]
+    return sorted([winner, *rivals]) if rivals else []
+
+
 def break_tie(ws: Workspace, fits: dict[str, CandidateFit], names: Sequence[str], *,
               max_steps: int, tau_int: float, decisive: float = 10.0,
-              tie_alpha: float = 0.05) -> tuple[str, list[str], dict[str, Any],
-                                                dict[str, CandidateFit]]:
+              tie_alpha: float = 0.05, settled: Collection[str] = (),
+              ) -> tuple[str, list[str], dict[str, Any], dict[str, CandidateFit]]:
     """Tell apart candidates ``names`` that ``tied`` could not, with the evidence of each
     encoder at its own noise level. Returns (winner, still tied (sorted, winner included),
-    a record per candidate, the polished fits).
+    a record per candidate, the polished fits). ``settled``: names whose fits are polished
+    already (``contest``).
 
     Why: the fits and ``tied`` weigh q1 and q2 alike, in rad, so the pooled residual is
     the link encoder's, and the pooled count is divided by the larger autocorrelation time
@@ -1023,7 +1077,9 @@ def break_tie(ws: Workspace, fits: dict[str, CandidateFit], names: Sequence[str]
     errors, each output scaled by the winner's held-out mean square error) gives p at most
     ``tie_alpha``. The fits minimise the pooled residual, not this likelihood: each
     candidate is judged at its own least-squares optimum."""
-    polished = {k: settle(ws, fits[k], max_steps=max_steps, tau_int=tau_int) for k in names}
+    polished = {k: fits[k] for k in names if k in settled}
+    polished |= settle_side_by_side(ws, fits, [k for k in names if k not in settled],
+                                    max_steps=max_steps, tau_int=tau_int)
     ev = {k: output_evidence(ws, f) for k, f in polished.items()}
     winner, still, record = tie_by_output(ev, decisive, tie_alpha)
     for k, f in polished.items():
@@ -1162,6 +1218,49 @@ def screen(ws: Workspace, base: CandidateFit, model: Model, name: str, *, steps:
     return out, sol.y
 
 
+def _fit_error(error: Exception) -> Exception:
+    """``error`` when it is a candidate's own failure (a ``ValueError`` or
+    ``FloatingPointError`` of its fit: reported, the other candidates go on); anything else
+    (a bug, an interrupt) is raised."""
+    if isinstance(error, (ValueError, FloatingPointError)):
+        return error
+    raise error
+
+
+def fit_candidate(ws: Workspace, base: CandidateFit, model: Model, cfg: DiscoverConfig,
+                  tau_int: float, n_eff: float,
+                  ) -> tuple[CandidateFit | None, dict[str, Any] | None, str]:
+    """The full fit of one candidate (``model``: ``base``'s model with the candidate's start
+    added) with its ``score`` against ``base`` and whether it is significant (F-test p below
+    ``cfg.alpha``, lower BIC, held-out gain at least ``cfg.min_gain``): (fit, score, "") or
+    (None, None, why every fit failed).
+
+    Two first guesses of the start states, both from training data only: the base's fitted
+    starts (close for most candidates), and, when that fit is not significant, the log's
+    start estimates; the fit with the lower training residual is kept. Each alone leaves some
+    candidates in a local minimum: the base's starts have absorbed what the base misses (a
+    hardening spring stayed at its first guess), the estimates put some segments in another
+    friction regime (an asymmetric friction stopped at 80% of its size)."""
+    f, s, why = None, None, ""
+    for first in ((base.starts, base.test_starts), None):
+        try:
+            g = fit_model(ws, model, max_steps=cfg.max_steps, tau_int=tau_int, starts=first)
+        except Exception as e:  # noqa: BLE001 - a candidate's own failure is reported
+            why = str(_fit_error(e))
+            continue
+        if not (math.isfinite(g.gap_test) and math.isfinite(g.rss)):
+            why = f"non-finite held-out gap {g.gap_test} or residual {g.rss}"
+            continue
+        if f is None or g.rss < f.rss:
+            f = g
+            s = score(base, f, n_eff)
+            s["significant"] = bool(s["p_value"] < cfg.alpha and s["dBIC"] < 0
+                                    and s["gain"] >= cfg.min_gain)
+        if s["significant"]:
+            break
+    return (f, s, "") if f is not None else (None, None, why)
+
+
 def shortlist(screens: dict[str, dict[str, Any]], base_rss: float, *, alpha: float,
               keep: float, decisive: float, least: int) -> list[str]:
     """The screened candidates (``screen``) to fit fully, best predicted Akaike difference
@@ -1267,7 +1366,9 @@ class DiscoverConfig:
     equally sized candidates are not told apart (``tied``); and the screen of each round
     (``screen``, ``shortlist``): LM steps per candidate (0: no screen, every candidate is
     fitted fully), the share of the best predicted drop a candidate must explain to be
-    fitted, and how many of the best predicted are fitted in any case."""
+    fitted, and how many of the best predicted are fitted in any case; the factor of the
+    winner's held-out gap within which significant rivals are polished before the pick
+    (``contest``; at most 1: never)."""
 
     segment: float = 0.3
     train_frac: float = 0.7
@@ -1284,6 +1385,7 @@ class DiscoverConfig:
     screen_steps: int = 3
     screen_keep: float = 0.5
     screen_least: int = 1
+    contest: float = 3.0
 
 
 @dataclasses.dataclass
@@ -1432,15 +1534,18 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
     y_true = np.asarray(simulated_outputs(fine, fit.y_test))  # (S, L, 2)
     x_true = within_capacity(fit.test_starts, test.space.plant(th))
     rng = np.random.default_rng(seed)
-    gaps = []
+    synthetic = []
     for _ in range(draws):
         y = y_true + rng.normal(size=y_true.shape) * np.asarray(sig)
         for k, st in enumerate(steps):
             if st > 0:
                 y[..., k] = np.round(y[..., k] / st) * st
-        rep = eqx.tree_at(lambda p: p.segs.y_meas, test, to_device(y))
-        x0 = fit_starts(rep, th, x_true)
-        gaps.append(float(gap(rep, (th, x0))))
+        synthetic.append(eqx.tree_at(lambda p: p.segs.y_meas, test, to_device(y)))
+
+    def draw_gap(rep: Problem) -> float:
+        return float(gap(rep, (th, fit_starts(rep, th, x_true))))
+
+    gaps = all_side_by_side(draw_gap, synthetic)  # the draws side by side
     return {"floor": float(np.mean(gaps)), "floor_sd": float(np.std(gaps)), "noise_std": sig,
             "step": steps, "segments": int(test.segs.count), "draws": draws}
 
@@ -1522,8 +1627,10 @@ def discover(
     ahead = made_ahead(ws, nominal)
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2, held_out=False)
     # the base every candidate is compared with must not keep a load that the first solve's
-    # long early steps pushed past the capacity (``settle``)
-    current = settle(ws, current, max_steps=cfg.max_steps * 2)
+    # long early steps pushed past the capacity (``settle``); its stops in the units of the
+    # rounds' tests, the residual's autocorrelation time at the first solve
+    current = settle(ws, current, max_steps=cfg.max_steps * 2,
+                     tau_int=autocorrelation_time(ws, current))
     if not (math.isfinite(current.gap_test) and math.isfinite(current.rss)):
         raise ValueError(
             "discover: the nominal model's replay of this log is not finite (held-out gap "
@@ -1551,7 +1658,8 @@ def discover(
         series = loc_current.series
         scores, fits, failed, screens = {}, {}, {}, {}
         remaining = [name for name in cands if name not in added]
-        starts = {name: _start_effect(name, current.model, series, ws.step) for name in remaining}
+        starts = dict(zip(remaining, all_side_by_side(
+            lambda name: _start_effect(name, current.model, series, ws.step), remaining)))
         models = {name: Model(current.model.params, list(current.model.effects) + [starts[name]])
                   for name in remaining}
         to_fit = remaining
@@ -1559,24 +1667,28 @@ def discover(
             # every candidate is screened (a few training steps and the Gauss-Newton
             # decrement, ``screen``); only the shortlist is fitted fully (held-out starts,
             # gap, two first guesses): the full fits were nine tenths of a run's time
+            # (the candidates side by side on the cores: ``side_by_side``)
             reached = {}
-            for name in remaining:
-                try:
-                    screens[name], reached[name] = screen(
-                        ws, current, models[name], name, steps=cfg.screen_steps,
-                        tau_int=tau_int, n_eff=n_eff)
-                except (ValueError, FloatingPointError) as e:
-                    screens[name] = {"error": str(e)}
+            looks = side_by_side(lambda name: screen(
+                ws, current, models[name], name, steps=cfg.screen_steps, tau_int=tau_int,
+                n_eff=n_eff), remaining)
+            for name, (look, error) in zip(remaining, looks):
+                if error is not None:
+                    screens[name] = {"error": str(_fit_error(error))}
+                else:
+                    screens[name], reached[name] = look
             # a screen whose few steps did not reach the region where its prediction holds
             # (a lag or backlash started at the typical size) looks again, on from where it
             # got, to 4x the steps in all
-            for name in unresolved(screens, current.rss, alpha=cfg.alpha):
-                try:
-                    again, _ = screen(ws, current, models[name], name,
-                                      steps=3 * cfg.screen_steps, tau_int=tau_int,
-                                      n_eff=n_eff, start=reached[name])
-                except (ValueError, FloatingPointError):
+            again_names = unresolved(screens, current.rss, alpha=cfg.alpha)
+            agains = side_by_side(lambda name: screen(
+                ws, current, models[name], name, steps=3 * cfg.screen_steps, tau_int=tau_int,
+                n_eff=n_eff, start=reached[name]), again_names)
+            for name, (look, error) in zip(again_names, agains):
+                if error is not None:
+                    _fit_error(error)
                     continue
+                again = look[0]
                 if "predicted_dAIC" in again:
                     for k in ("steps", "seconds"):  # in all, along one path
                         again[k] += screens[name][k]
@@ -1592,38 +1704,16 @@ def discover(
                         f"({screens[name]['seconds']:.1f} s)")
                 elif name not in to_fit:
                     failed[name] = f"screen failed: {screens[name].get('error', 'non-finite')}"
-        for name in to_fit:
-            m = models[name]
-            # Two first guesses of the start states, both from training data only: the
-            # current model's fitted starts (close for most candidates), and, when that fit is
-            # not significant, the log's start estimates; the fit with the lower training
-            # residual is kept. Each alone leaves some candidates in a local minimum: the
-            # current starts have absorbed what the current model misses (a hardening spring
-            # stayed at its first guess), the estimates put some segments in another
-            # friction regime (an asymmetric friction stopped at 80% of its size).
-            f, s = None, None
-            for first in ((current.starts, current.test_starts), None):
-                try:
-                    g = fit_model(ws, m, max_steps=cfg.max_steps, tau_int=tau_int,
-                                  starts=first)
-                except (ValueError, FloatingPointError) as e:
-                    failed[name] = str(e)
-                    continue
-                if not (math.isfinite(g.gap_test) and math.isfinite(g.rss)):
-                    failed[name] = f"non-finite held-out gap {g.gap_test} or residual {g.rss}"
-                    continue
-                if f is None or g.rss < f.rss:
-                    f = g
-                    s = score(current, f, n_eff)
-                    s["significant"] = bool(
-                        s["p_value"] < cfg.alpha and s["dBIC"] < 0
-                        and s["gain"] >= cfg.min_gain)
-                if s["significant"]:
-                    break
+        fulls = side_by_side(lambda name: fit_candidate(ws, current, models[name], cfg,
+                                                        tau_int, n_eff), to_fit)
+        for name, (full, error) in zip(to_fit, fulls):
+            if error is not None:
+                raise error
+            f, s, why = full
             if f is None:
-                say(f"  {name}: fit failed ({failed[name]})")
+                failed[name] = why
+                say(f"  {name}: fit failed ({why})")
                 continue
-            failed.pop(name, None)
             s["seconds"] = f.seconds
             s["steps"] = f.steps
             s["converged"] = bool(f.converged)
@@ -1637,7 +1727,28 @@ def discover(
         if not scores and failed:
             raise ValueError(f"discover: every candidate fit failed: {failed}")
         winner = select(scores, cfg.parsimony)
+        close = contest(scores, winner, cfg.contest)
+        polished_fits = settle_side_by_side(ws, fits, close, max_steps=cfg.max_steps * 2,
+                                            tau_int=tau_int)
+        for k, f in polished_fits.items():
+            was = scores[k]
+            s = score(current, f, n_eff)
+            s["significant"] = bool(s["p_value"] < cfg.alpha and s["dBIC"] < 0
+                                    and s["gain"] >= cfg.min_gain)
+            s |= {"seconds": was["seconds"] + f.seconds, "steps": was["steps"] + f.steps,
+                  "converged": bool(f.converged), "segment_errors": segment_errors(ws, f).tolist(),
+                  "screened_out": False, "polished": {"gap_test": was["gap_test"],
+                                                      "p_value": was["p_value"],
+                                                      "dBIC": was["dBIC"]}}
+            if "screen" in was:
+                s["screen"] = was["screen"]
+            scores[k], fits[k] = s, f
+        if close:
+            winner = select(scores, cfg.parsimony)
+            gaps = ", ".join(f"{k} {scores[k]['gap_test']:.4f}" for k in close)
+            say(f"  close, polished: {gaps}; picked {winner or 'none'}")
         rounds.append({"base_gap_test": current.gap_test, "tau_int": tau_int, "n_eff": n_eff,
+                       "contest": close,
                        "scores": scores, "failed": failed, "winner": winner or "none",
                        "screened_out": sorted(k for k, v in scores.items()
                                               if v.get("screened_out")),
@@ -1649,12 +1760,12 @@ def discover(
                        "evidence_bic": evidence_weights(scores, "dBIC")})
         if winner is None:
             break
-        polished_tied: dict[str, CandidateFit] = {}
         if len(rounds[-1]["tied"]) > 1:
             # the pooled evidence could not tell them apart: each encoder at its own noise
             best, rounds[-1]["tied"], rounds[-1]["tie_break"], polished_tied = break_tie(
                 ws, fits, rounds[-1]["tied"], max_steps=cfg.max_steps * 2, tau_int=tau_int,
-                decisive=cfg.decisive, tie_alpha=cfg.tie_alpha)
+                decisive=cfg.decisive, tie_alpha=cfg.tie_alpha, settled=polished_fits)
+            polished_fits |= polished_tied
             winner = representative(winner, best, rounds[-1]["tied"])
             rounds[-1]["winner"] = winner
             say(f"tie judged output by output: {winner}, still tied {rounds[-1]['tied']}")
@@ -1662,7 +1773,7 @@ def discover(
         # base, not with one that merely had fewer iterations; an effect that does not lower
         # the held-out gap after this refit is dropped
         # (standard errors inflated by the same residual autocorrelation time as the round's)
-        polished = (polished_tied[winner] if winner in polished_tied else
+        polished = (polished_fits[winner] if winner in polished_fits else
                     settle(ws, fits[winner], max_steps=cfg.max_steps * 2, tau_int=tau_int))
         if not polished.gap_test < current.gap_test:
             rounds[-1]["winner"] = "none"

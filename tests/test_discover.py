@@ -689,3 +689,21 @@ def test_a_fresh_solve_that_cannot_catch_up_stops():
     behind = progress_stop(n, infl, steps, catch_up=18.0)  # cost 10: 2 short of 18
     assert behind(10.0) == pytest.approx(STALL_WINDOW / steps * 2.0)
     assert behind(8.5) == pytest.approx(plain(8.5))  # ahead: the chi-square bound alone
+
+
+def test_contest_names_the_close_rivals_to_polish():
+    """``contest``: the winner and the significant rivals within the factor of its held-out
+    gap (a lower gap passed over for fewer parameters included); none without a rival, an
+    insignificant one never, a factor of at most 1 turns it off."""
+    from jaxflex.discover import contest
+
+    scores = {"gravity": {"gap_test": 0.0013, "significant": True},
+              "asymmetric_friction": {"gap_test": 0.0034, "significant": True},
+              "cogging": {"gap_test": 0.0012, "significant": True},
+              "torque_offset": {"gap_test": 0.0014, "significant": False},
+              "backlash": {"gap_test": 0.0100, "significant": True}}
+    assert contest(scores, "gravity", 3.0) == ["asymmetric_friction", "cogging", "gravity"]
+    assert contest(scores, "gravity", 2.0) == ["cogging", "gravity"]
+    assert contest(scores, "backlash", 1.0) == []
+    assert contest({"gravity": scores["gravity"]}, "gravity", 3.0) == []
+    assert contest(scores, None, 3.0) == []

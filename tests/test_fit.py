@@ -604,6 +604,36 @@ def test_work_made_ahead_runs_in_order_and_a_failure_stops_nothing():
     assert not any(t.name == THREAD_NAME and t.is_alive() for t in threading.enumerate())
 
 
+def test_side_by_side_keeps_order_float64_and_failures():
+    """``side_by_side`` runs calls in worker threads under the caller's float64 mode: results
+    in the items' order, the same with one worker as with two, a raised exception handed
+    back beside the others' results, and no worker left once it returns; ``all_side_by_side``
+    raises it."""
+    import threading
+
+    from jaxflex.fit.ahead import POOL_NAME, all_side_by_side, side_by_side
+
+    def work(k):
+        if k == 2:
+            raise FloatingPointError("item 2")
+        x = jnp.arange(4.0) * k
+        return float(jnp.sum(jnp.sin(x))), x.dtype
+
+    items = [0, 1, 2, 3, 4]
+    two = side_by_side(work, items, workers=2)
+    one = side_by_side(work, items, workers=1)
+    assert [r for r, _ in two] == [r for r, _ in one]
+    assert isinstance(two[2][1], FloatingPointError) and two[2][0] is None
+    assert all(e is None and r[1] == jnp.dtype("float64") for i, (r, e) in enumerate(two)
+               if i != 2)
+    assert two[3][0][0] == pytest.approx(float(np.sum(np.sin(np.arange(4.0) * 3))), rel=1e-15)
+    assert not any(t.name.startswith(POOL_NAME) and t.is_alive()
+                   for t in threading.enumerate())
+    assert all_side_by_side(work, [0, 1]) == [r for r, _ in one[:2]]
+    with pytest.raises(FloatingPointError, match="item 2"):
+        all_side_by_side(work, items)
+
+
 def _decay(y, data):  # residuals in units of the noise (sigma = 1)
     t, z = data
     return y[0] * jnp.exp(-y[1] * t) + y[2] - z
