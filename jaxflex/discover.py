@@ -81,12 +81,12 @@ whose third round repeats the second on the base a dropped gravity improved, 34-
 Levenberg-Marquardt steps at 20-35 ms, 260 of them settling the base (``settle``).
 
 Independent fits run side by side on the cores (``jaxflex.fit.ahead.side_by_side``): the
-candidates' screens, starts and full fits, the polish of a contest or a tie, the fresh
-solve of ``settle`` beside its confirming solves, the two held-out start fits and the
-floor's draws. On the bench's 20 s log (warm caches, ``jaxflex discover`` from start to exit,
-farm-bench, 5 paired runs on 2 cores): 0.80 x the serial version's wall time (median 13.8
-s against 16.2 s, ranges 12.3-14.0 and 15.8-18.8 s); from empty caches 34.8 s against 42.6 s.
-The answers do not depend on the number of workers.
+candidates' starts, screens and full fits, the polish of a contest or a tie, the two held-out
+start fits and the floor's draws. On the bench's 20 s log (warm caches, ``jaxflex discover``
+from start to exit, farm-bench, 5 paired runs on 2 cores, twice): 0.87 and 0.91 x the serial
+version's wall time (medians 15.0 s against 17.6 s and 18.4 s against 21.2 s: the machine's
+own speed drifted by a fifth between the two). The answers do not depend on the number of
+workers.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ Work side by side (``side_by_side``): independent calls whose results are all ne
 candidates' screens and full fits of ``discover``, its held-out start fits from two first
 guesses, the floor's draws) run in worker threads, one compiled loop on each core. Measured
 on the bench's 20 s discover log (``studies/bench_compile_cache.py --command discover``,
-warm caches, paired runs against the serial version): 0.80 x the wall time.
+warm caches, paired runs against the serial version): 0.87-0.91 x the wall time.
 """
 
 from __future__ import annotations
