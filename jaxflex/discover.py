@@ -1224,6 +1224,28 @@ def _fit_error(error: Exception) -> Exception:
     raise error
 
 
+def candidate_score(base: CandidateFit, fit: CandidateFit, n_eff: float,
+                    cfg: DiscoverConfig) -> dict[str, Any]:
+    """``score`` of ``fit`` against ``base`` and whether it is significant: F-test p below
+    ``cfg.alpha``, a lower BIC and a held-out gain of at least ``cfg.min_gain``."""
+    s = score(base, fit, n_eff)
+    s["significant"] = bool(s["p_value"] < cfg.alpha and s["dBIC"] < 0
+                            and s["gain"] >= cfg.min_gain)
+    return s
+
+
+def fit_record(ws: Workspace, s: dict[str, Any], fit: CandidateFit,
+               screen: dict[str, Any] | None) -> dict[str, Any]:
+    """A round's score entry of a fully fitted candidate: its ``candidate_score`` ``s`` with
+    the fit's seconds, steps and convergence, its per-segment held-out errors
+    (``segment_errors``), not screened out, and its ``screen`` record when it had one."""
+    s = s | {"seconds": fit.seconds, "steps": fit.steps, "converged": bool(fit.converged),
+             "segment_errors": segment_errors(ws, fit).tolist(), "screened_out": False}
+    if screen is not None:
+        s["screen"] = screen
+    return s
+
+
 def fit_candidate(ws: Workspace, base: CandidateFit, model: Model, cfg: DiscoverConfig,
                   tau_int: float, n_eff: float,
                   ) -> tuple[CandidateFit | None, dict[str, Any] | None, str]:
@@ -1250,9 +1272,7 @@ def fit_candidate(ws: Workspace, base: CandidateFit, model: Model, cfg: Discover
             continue
         if f is None or g.rss < f.rss:
             f = g
-            s = score(base, f, n_eff)
-            s["significant"] = bool(s["p_value"] < cfg.alpha and s["dBIC"] < 0
-                                    and s["gain"] >= cfg.min_gain)
+            s = candidate_score(base, f, n_eff, cfg)
         if s["significant"]:
             break
     return (f, s, "") if f is not None else (None, None, why)
@@ -1702,23 +1722,14 @@ def discover(
                         f"({screens[name]['seconds']:.1f} s)")
                 elif name not in to_fit:
                     failed[name] = f"screen failed: {screens[name].get('error', 'non-finite')}"
-        fulls = side_by_side(lambda name: fit_candidate(ws, current, models[name], cfg,
-                                                        tau_int, n_eff), to_fit)
-        for name, (full, error) in zip(to_fit, fulls):
-            if error is not None:
-                raise error
-            f, s, why = full
+        fulls = all_side_by_side(lambda name: fit_candidate(ws, current, models[name], cfg,
+                                                            tau_int, n_eff), to_fit)
+        for name, (f, s, why) in zip(to_fit, fulls):
             if f is None:
                 failed[name] = why
                 say(f"  {name}: fit failed ({why})")
                 continue
-            s["seconds"] = f.seconds
-            s["steps"] = f.steps
-            s["converged"] = bool(f.converged)
-            s["segment_errors"] = segment_errors(ws, f).tolist()
-            s["screened_out"] = False
-            if name in screens:
-                s["screen"] = screens[name]
+            s = fit_record(ws, s, f, screens.get(name))
             scores[name], fits[name] = s, f
             say(f"  {name:20s} gap {f.gap_test:.4f} gain {s['gain']:+.3f} p {s['p_value']:.2e} "
                 f"dBIC {s['dBIC']:+.1f} {'*' if s['significant'] else ''} ({f.seconds:.1f} s)")
@@ -1730,16 +1741,10 @@ def discover(
                                             tau_int=tau_int)
         for k, f in polished_fits.items():
             was = scores[k]
-            s = score(current, f, n_eff)
-            s["significant"] = bool(s["p_value"] < cfg.alpha and s["dBIC"] < 0
-                                    and s["gain"] >= cfg.min_gain)
-            s |= {"seconds": was["seconds"] + f.seconds, "steps": was["steps"] + f.steps,
-                  "converged": bool(f.converged), "segment_errors": segment_errors(ws, f).tolist(),
-                  "screened_out": False, "polished": {"gap_test": was["gap_test"],
-                                                      "p_value": was["p_value"],
-                                                      "dBIC": was["dBIC"]}}
-            if "screen" in was:
-                s["screen"] = was["screen"]
+            s = fit_record(ws, candidate_score(current, f, n_eff, cfg), f, was.get("screen"))
+            s["seconds"] += was["seconds"]
+            s["steps"] += was["steps"]
+            s["polished"] = {key: was[key] for key in ("gap_test", "p_value", "dBIC")}
             scores[k], fits[k] = s, f
         if close:
             winner = select(scores, cfg.parsimony)
