@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> None:
         # each added effect with the candidates its round could not tell apart from it
         slots = [r["tied"] if len(r["tied"]) > 1 else [r["winner"]]
                  for r in rep["rounds"] if r["winner"] != "none"]
-        if len(eff) > 1 and slots:
+        if len(eff) > 1 and slots and found != "unexplained":
             found = "+".join(sorted(s[0] if len(s) == 1 else "(" + "|".join(s) + ")"
                                     for s in slots[:2]))
         truth_in_ties = (bool(eff) and not kw.get("disturbance")

@@ -106,6 +106,10 @@ def run(args: argparse.Namespace) -> int:
               f"the effect library does not describe (residual mostly on the {where} side; see "
               "report.json 'localisation' for the velocity, position, frequency and time "
               "signatures)")
+        if rep["effect"] == "unexplained" and rep["effects"]:
+            print(f"partial: the effects added ({', '.join(rep['effects'])}) close "
+                  f"{100 * rep['explained_fraction']:.0f}% of the held-out gap's excess over the "
+                  f"floor, less than {100 * cfg.explained_min:.0f}%: they are not the answer")
     print(f"wrote {out / 'report.json'} and {out / 'params.json'}")
     return 0
 
