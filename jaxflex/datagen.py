@@ -34,7 +34,7 @@ from jaxflex.sensing import Sensing
 from jaxflex.simulate import simulate_sampled
 from jaxflex.plant import FlexibleJointPlant, PlantState
 from jaxflex.trajectory import Multisine, Trajectory
-from jaxflex.validation import as_param
+from jaxflex.validation import as_param, requires_float64
 
 #: Moderate magnitude ranges per effect (uniform draws; a sign is drawn for signed ones).
 MODERATE: dict[str, dict[str, tuple[float, float]]] = {
@@ -162,6 +162,7 @@ def draw_effect(name: str, rng: np.random.Generator, scale: float = 1.0) -> dict
     return kw
 
 
+@requires_float64
 def generate_log(
     effects: tuple[str, ...] | list[str] = (),
     seed: int = 0,
@@ -187,6 +188,9 @@ def generate_log(
     excitation (``EXCITATIONS``) and disturbance (``DISTURBANCES`` or None): the experiment
     beyond the workflow's own assumptions (open loop: a torque multisine of RMS 0.15 N m
     about the breakaway level instead of a reference; the log's q1d is then zero).
+    Computed in float64 whatever the global JAX setting (``requires_float64``): in float32
+    the simulated time is no longer uniformly sampled past 16 s (its spacing is then 2e-6 s,
+    2e-3 of a 1 ms sample) and the log is refused.
     """
     if loop not in LOOPS:
         raise ValueError(f"generate_log: loop must be one of {LOOPS}, got {loop!r}")

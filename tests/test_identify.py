@@ -747,3 +747,18 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
     v = validate(r.params, log, kind="rigid", substeps=2,
                  disturbance=emps_record("DATA_EMPS").pulses)
     assert v["closed_loop"]["torque_pct"] < 6.0
+
+
+def test_generate_log_is_float64_under_a_float32_setting():
+    """``generate_log`` runs in float64 whatever the global setting (``requires_float64``): in
+    float32 a 17 s log's simulated time was no longer uniform (spacing 2e-6 s past 16 s, 2e-3
+    of a sample) and ``Log.from_arrays`` refused it; the arrays are float64 and the same as
+    the ones made under the float64 setting."""
+    from jaxflex.datagen import generate_log
+
+    with jax.enable_x64(False):
+        g32 = generate_log((), seed=3, t_final=17.0)
+    g64 = generate_log((), seed=3, t_final=17.0)
+    assert g32.log.t.dtype == np.float64 and g32.log.q1.dtype == np.float64
+    np.testing.assert_array_equal(g32.log.t, g64.log.t)
+    np.testing.assert_array_equal(g32.log.q1, g64.log.q1)
