@@ -13,7 +13,9 @@ outside the effect library (truth "unexplained") and with two effects (right whe
 named) are added; accuracy is reported over all cases and per loop.
 A round whose winner the data cannot tell apart from another candidate (``tied``) is scored as
 that tie, never as the pick: a single effect as ``indistinguishable``, the slot of a pair as
-``(a|b)``; both are wrong in ``accuracy_all``. ``accuracy_ties_holding_truth`` also counts as
+``(a|b)``; both are wrong in ``accuracy_all``. An answer ``unexplained`` with effects added
+(a partial explanation, ``jaxflex.discover.final_answer``) is scored ``unexplained``, for a
+pair too. ``accuracy_ties_holding_truth`` also counts as
 right a tie that holds the hidden effect (every hidden effect named or in its slot's tie).
 Each row records the ties that the per-output evidence settled (``ties_broken``, from the
 rounds' ``tie_break``) and whether the nominal refit's held-out gap was already within the
