@@ -46,12 +46,13 @@ Workflow (``discover``), for one joint:
    gap, the one with the fewest parameters is added (``select``); when significant rivals come
    within ``contest`` (3x) of its held-out gap, they and it are polished first (``settle``)
    and the pick is made again (``contest``: a fit of a few dozen steps can stop several times
-   above its optimum); the search repeats until nothing is significant; an effect whose polished refit does not lower the held-out gap is
-   dropped, and so is one that is no longer significant at its polished optimum against the
-   base refitted from there without it (``without_effect``; a candidate's fit can lift the
-   shared parameters out of a local minimum of the base and then let the effect go): the
-   better base is kept and the round repeated once on it (``MAX_REBASE``). Every round
-   records the Akaike and Schwarz weights of "none" and each candidate.
+   above its optimum); the search repeats until nothing is significant; an effect whose
+   polished refit does not lower the held-out gap is dropped, and so is one that is no
+   longer significant at its polished optimum against the base refitted from there without
+   it (``without_effect``; a candidate's fit can lift the shared parameters out of a local
+   minimum of the base and then let the effect go): the better base is kept and the round
+   repeated once on it (``MAX_REBASE``). Every round records the Akaike and Schwarz weights
+   of "none" and each candidate.
 6. Gap floor (``gap_floor``): the held-out gap a correct model reaches on this log, by a
    parametric bootstrap through the workflow's own held-out steps (noise, quantisation,
    fitted starts, replay). The answer is the first effect added, or ``indistinguishable`` when

@@ -32,9 +32,10 @@ backlash ``q_back``), and a trustworthy one recurs on the other recordings of it
 (``first_effects``).
 
 Writes ``DIR/results.json``: ``{"axis1": {"nominal": {...}, "A": {"effect", "effects",
-"gap_before", "gap_after", "gap_floor", "unexplained", "explained_fraction", "tied", "effect_params", "evidence",
-"failed", "seconds", "rule_holds"}, "B": {...}, "C": {...}, "first_effects": {...}}, ...}`` (a log
-discover refuses, e.g. one its refitted nominal replays worse than no motion, gets
+"gap_before", "gap_after", "gap_floor", "unexplained", "explained_fraction", "tied",
+"effect_params", "evidence", "failed", "seconds", "rule_holds"}, "B": {...}, "C": {...},
+"first_effects": {...}}, ...}`` (a log discover refuses, e.g. one its refitted nominal
+replays worse than no motion, gets
 ``{"refused": message, "rule_holds": null}``), each
 case's full report under ``DIR/axis<i>_<T>/report.json``, and ``DIR/gaps.png``.
 
