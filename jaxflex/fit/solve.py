@@ -70,9 +70,12 @@ class Solution:
 
 
 class _WithAux(eqx.Module):
-    """A residual function ``fn(y, args)`` in optimistix's form ``(residual, aux)``."""
+    """A residual function ``fn(y, args)`` in optimistix's form ``(residual, aux)``;
+    ``blocks(y, args)``, where given, the residual and its Jacobian blocks
+    (``problem_residual_blocks``), which the solver then takes instead of linearising ``fn``."""
 
     fn: Callable
+    blocks: Callable | None = None
 
     def __call__(self, y: Any, args: Any) -> tuple[jax.Array, None]:
         return self.fn(y, args), None
@@ -81,6 +84,12 @@ class _WithAux(eqx.Module):
 def problem_residuals(y: Any, prob: Problem) -> jax.Array:
     """``prob.residuals(y)``: the residual function of every ``Problem``."""
     return prob.residuals(y)
+
+
+def problem_residual_blocks(y: Any, prob: Problem) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """``prob.residual_blocks(y)``: the residual of a free-start multiple-shooting ``Problem``
+    and its Jacobian blocks."""
+    return prob.residual_blocks(y)
 
 
 class _ScaledDescentState(eqx.Module):
@@ -139,7 +148,11 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
 
     def query(self, y: Any, f_info: Any, state: _ScaledDescentState) -> _ScaledDescentState:
         if self.structure == "shooting":
-            blk = shooting_blocks(f_info.jac, f_info.residual)
+            # the residual's own Jacobian blocks where it has them (``residual_blocks``),
+            # else probed from its linear operator
+            blk = (shooting_normal(f_info.jac.blocks, f_info.residual)
+                   if isinstance(f_info.jac, BlockJacobian)
+                   else shooting_blocks(f_info.jac, f_info.residual))
             normal = {k: blk[k] for k in state.normal}
         else:
             normal = dense_normal_equations(f_info.jac, f_info.residual)
@@ -268,16 +281,29 @@ def shooting_blocks(jac: Any, r: jax.Array) -> dict[str, Any]:
     """The blocks of the (undamped) normal equations J^T J, J^T r of a free-start
     multiple-shooting problem (see ``shooting_newton_step``): ``Ntt`` (k, k), ``Nxt``
     (S, d, k), ``Dx`` (S, d, d) diagonal and ``U`` (S, d, d) upper blocks of the start-state
-    part, ``gt`` (k,), ``gx`` (S, d), and ``unravel`` / ``x_shape`` to rebuild the unknowns.
-    Costs k + 2 d Jacobian-vector products, linear in the log length."""
+    part, ``gt`` (k,), ``gx`` (S, d), the Jacobian blocks, and ``unravel`` / ``x_shape`` to
+    rebuild the unknowns, from the Jacobian's linear operator ``jac`` (k + 2 d
+    Jacobian-vector products, linear in the log length: ``shooting_jacobian``; a
+    ``Problem``'s own blocks need none, ``Problem.residual_blocks`` and ``shooting_normal``)."""
+    th_struct, x_struct = jac.in_structure()
+    zeros_th = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), th_struct)
+    return {**shooting_normal(shooting_jacobian(jac, r.shape[0]), r),
+            "unravel": ravel_pytree(zeros_th)[1], "x_shape": x_struct.shape}
+
+
+def shooting_jacobian(jac: Any, m: int) -> dict[str, jax.Array]:
+    """The Jacobian blocks ``Jt``, ``Jx``, ``Jn`` (``shooting_tmv``) of a free-start
+    multiple-shooting residual of ``m`` rows from its linear operator ``jac``, by k + 2 d
+    Jacobian-vector products: theta's unit vectors, then the start-state ones switched on in
+    every other segment, so that a segment's own block and its coupling to the next start
+    separate."""
     th_struct, x_struct = jac.in_structure()
     S = x_struct.shape[0]
     d = int(np.prod(x_struct.shape[1:]))
     zeros_th = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), th_struct)
     flat0, unravel = ravel_pytree(zeros_th)
     k = flat0.shape[0]
-    dt = r.dtype
-    m = r.shape[0]
+    dt = flat0.dtype
     my = (m - (S - 1) * d) // S
 
     def mv(v_th, v_x):
@@ -292,6 +318,16 @@ def shooting_blocks(jac: Any, r: jax.Array) -> dict[str, Any]:
     Xo = jnp.moveaxis(rows(on(~even)(jnp.eye(d, dtype=dt))), 0, -1)
     A = jnp.where(even[:, :, None], Xe, Xo)          # own block of segment s
     C = jnp.where(even[:, :, None], Xo, Xe)[:, my:]  # its defect rows w.r.t. x_{s+1}: (S, d, d)
+    return {"Jt": G, "Jx": A, "Jn": C}
+
+
+def shooting_normal(blocks: dict[str, jax.Array], r: jax.Array) -> dict[str, jax.Array]:
+    """The normal-equation blocks (``shooting_blocks``, without ``unravel`` / ``x_shape``)
+    from the Jacobian blocks ``Jt``, ``Jx``, ``Jn`` and the residual ``r``; the Jacobian
+    blocks are kept beside them."""
+    G, A, C = blocks["Jt"], blocks["Jx"], blocks["Jn"]
+    d = C.shape[1]
+    my = G.shape[1] - d
     Gd = G[:, my:]                                   # theta part of the defect rows (S, d, k)
     Ad = A[:, my:]
     T = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
@@ -299,10 +335,9 @@ def shooting_blocks(jac: Any, r: jax.Array) -> dict[str, Any]:
     Dx = jnp.einsum("smd,sme->sde", A, A) + _previous(T(C) @ C)
     U = T(Ad) @ C                                    # N(x_s, x_{s+1}); zero for the last
     Nxt = T(A) @ G + _previous(T(C) @ Gd)            # (S, d, k)
-    blocks = {"Jt": G, "Jx": A, "Jn": C}
     gt, gx = shooting_tmv(blocks, r)
-    return {"Ntt": Ntt, "Nxt": Nxt, "Dx": Dx, "U": U, "gt": gt, "gx": gx, **blocks,
-            "unravel": unravel, "x_shape": x_struct.shape}
+    return {"Ntt": Ntt, "Nxt": Nxt, "Dx": Dx, "U": U, "gt": gt, "gx": gx,
+            "Jt": G, "Jx": A, "Jn": C}
 
 
 def _previous(a: jax.Array) -> jax.Array:
@@ -444,10 +479,17 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
         desc_dyn, desc_static = eqx.partition(state.descent_state, eqx.is_array)
 
         def accepted(_):
-            f_new, lin, aux_new = jax.linearize(lambda u: fn(u, args), state.y_eval,
-                                                has_aux=True)
-            lin_op = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: state.y_eval), tags)
-            info = optx.FunctionInfo.ResidualJac(f_new, lin_op)
+            if getattr(fn, "blocks", None) is not None and jac_static.structure == "shooting":
+                # the residual's Jacobian blocks as it computes them: no linearisation
+                f_new, blocks = fn.blocks(state.y_eval, args)
+                aux_new = None
+                info = optx.FunctionInfo.ResidualJac(f_new, BlockJacobian(blocks, "shooting"))
+            else:
+                f_new, lin, aux_new = jax.linearize(lambda u: fn(u, args), state.y_eval,
+                                                    has_aux=True)
+                lin_op = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: state.y_eval),
+                                                   tags)
+                info = optx.FunctionInfo.ResidualJac(f_new, lin_op)
             desc = self.descent.query(state.y_eval, info, state.descent_state)
             # the state keeps the descent's blocks, not the linearised function
             jac = BlockJacobian({k: desc.normal[k] for k in jac_static.blocks},
@@ -810,7 +852,8 @@ def least_squares(
     if pad is not None:
         prob, y0 = prob.padded(pad.slots), pad.unknowns(y0)
     solver = _solver(rtol, atol, scaling, structure, geodesic)
-    wrapped = _WithAux(fn)
+    own_blocks = structure == "shooting" and fn is problem_residuals
+    wrapped = _WithAux(fn, problem_residual_blocks if own_blocks else None)
     y = y0
     state = _init(solver, wrapped, y, prob)
     # the stops run on the device (``_steps``) when their bounds are numbers or ``CostBound``s;
@@ -1023,9 +1066,8 @@ def _replay(prob: Problem, y: Any) -> dict[str, jax.Array]:
 @persistent_jit
 def _theta_information(prob: Problem, y: Any):
     """Residual and the Schur complement of the normal matrix in theta (starts eliminated)."""
-    r, lin = jax.linearize(prob.residuals, y)
-    jac = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: y))
-    blk = shooting_blocks(jac, r)
+    r, blocks = prob.residual_blocks(y)
+    blk = shooting_normal(blocks, r)
     return r, _schur_in_theta({k: blk[k] for k in ("Ntt", "Nxt", "Dx", "U", "gt", "gx")})
 
 
