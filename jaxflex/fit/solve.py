@@ -303,7 +303,7 @@ def shooting_jacobian(jac: Any, m: int) -> dict[str, jax.Array]:
     zeros_th = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), th_struct)
     flat0, unravel = ravel_pytree(zeros_th)
     k = flat0.shape[0]
-    dt = flat0.dtype
+    dt = x_struct.dtype  # theta may be empty (start-only fits): its ravel has no dtype
     my = (m - (S - 1) * d) // S
 
     def mv(v_th, v_x):
