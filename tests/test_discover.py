@@ -387,6 +387,36 @@ def test_time_constants_start_and_stay_where_the_replay_step_is_stable():
         assert (kind, a) == ("lower", pytest.approx(STEP_FLOOR * 4e-3))
 
 
+def test_a_pinned_static_friction_is_released_to_the_nominal():
+    """``released``: a fit whose Fs - Fc sits at the cap of the largest logged torque, or
+    whose Fc sits at zero, gets its Coulomb and static friction back at the workspace's
+    nominal values (no solve moves a coordinate that has no slope); any other fit, None."""
+    from jaxflex.discover import CandidateFit, Model, released, workspace
+    from jaxflex.params import Params
+
+    g = generate_log((), seed=4, t_final=4.0)
+    true = Params.from_dict(g.truth["plant"])
+    ws = workspace(g.log, true, ("torque_offset",), segment=0.3, train_frac=0.5, substeps=1,
+                   max_effects=1)
+    cap = float(np.ravel(ws.space.excess_cap)[0])
+    fc0, fs0 = (float(true.friction[k][0]) for k in ("Fc", "Fs"))
+
+    def fit_with(fc, fs):
+        from jaxflex.fit.space import set_values
+
+        m = Model(set_values(true, {"Fc": fc, "Fs": fs}), [])
+        return CandidateFit(model=m, theta={}, starts=None, test_starts=None,
+                            values={"Fc": fc, "Fs": fs}, stderr={}, rss=1.0, n_res=1, n_par=1,
+                            gap_train=0.0, gap_test=0.0, steps=1, converged=True, seconds=0.0)
+
+    assert released(ws, fit_with(2.0 * fc0, 2.0 * fs0)) is None
+    for fc, fs in ((1e-3, 1e-3 + 0.995 * cap), (1e-12, 2.0 * fs0)):
+        model = released(ws, fit_with(fc, fs))
+        assert model is not None, (fc, fs)
+        assert np.allclose([model.params.friction["Fc"][0], model.params.friction["Fs"][0]],
+                           [fc0, fs0])
+
+
 def test_fitted_starts_bring_a_correct_model_to_the_noise():
     """The true model replayed from start states estimated from the log (angles,
     Savitzky-Golay velocities, z at its steady state) misses the link angle by several times
