@@ -1596,6 +1596,13 @@ def final_answer(added: Sequence[str], tied: Sequence[str], unexplained: bool,
     return "unexplained" if unexplained else "none"
 
 
+def unexplained_limit(floor: dict[str, float], factor: float) -> float:
+    """The held-out gap above which a model leaves something unexplained on its log: ``factor``
+    times the noise floor plus three of the floor's standard deviations (``gap_floor``'s
+    ``floor`` and ``floor_sd``; ``DiscoverConfig.unexplained_factor``)."""
+    return factor * floor["floor"] + 3.0 * floor["floor_sd"]
+
+
 def explained_fraction(before: float, after: float, floor: float) -> float:
     """The share of the held-out gap's excess over the floor that a model closes: (before -
     after) / (before - floor), clipped to [0, 1] (gaps: ``Problem.gap``, dimensionless; 0
@@ -1926,7 +1933,7 @@ def discover(
     fl = gap_floor(log, ws, current)
     # "unexplained": the final gap stays significantly above what noise, start errors and
     # integration cost a correct model on this log, and no candidate closed it
-    limit = cfg.unexplained_factor * fl["floor"] + 3.0 * fl["floor_sd"]
+    limit = unexplained_limit(fl, cfg.unexplained_factor)
     unexplained = bool(current.gap_test > limit)
     explained = explained_fraction(first_fit.gap_test, current.gap_test, fl["floor"])
     # the round that added the first effect (a round whose winner was dropped comes before it)

@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
 
     use_lean_xla_cpu(small_loops=True)  # as jaxflex discover runs, before any JAX computation
     jax.config.update("jax_enable_x64", True)
-    from jaxflex.discover import DiscoverConfig, discover
+    from jaxflex.discover import DiscoverConfig, discover, unexplained_limit
     from jaxflex.effects import candidate_effects
 
     names = a.effects.split(",") if a.effects else candidate_effects()
@@ -170,8 +170,8 @@ def main(argv: list[str] | None = None) -> None:
             "gap_floor": rep["gap_floor"], "truth": g.truth["effects"],
             # the nominal refit's held-out gap within the workflow's own limit of the floor:
             # the hidden effect did not show on this log above its noise
-            "below_limit_before": bool(rep["gap_before"] <= cfg.unexplained_factor
-                                       * rep["floor"]["floor"] + 3.0 * rep["floor"]["floor_sd"]),
+            "below_limit_before": bool(rep["gap_before"] <= unexplained_limit(
+                rep["floor"], cfg.unexplained_factor)),
             "fitted": rep["effect_params"], "seed": a.seed + i,
             "gen_seconds": tg, "discover_seconds": rep["seconds"],
             "scores": {k: {kk: v[kk] for kk in ("gap_test", "gain", "p_value", "dBIC", "significant")}
