@@ -164,6 +164,17 @@ def on_slot_rows(fn: Callable[..., Any], *rows: Any) -> Any:
     return jax.tree_util.tree_map(lambda o: np.asarray(o)[:n], out)
 
 
+def segment_rows(v: Array, S: int, d: int) -> Array:
+    """Residual rows (..., m) of a free-start multiple-shooting problem regrouped per segment,
+    (..., S, my + d): segment s's outputs, then its continuity defect (zero for the last)."""
+    lead = v.shape[:-1]
+    my = (v.shape[-1] - (S - 1) * d) // S
+    out = v[..., : S * my].reshape(*lead, S, my)
+    de = v[..., S * my:].reshape(*lead, S - 1, d)
+    de = jnp.concatenate([de, jnp.zeros((*lead, 1, d), v.dtype)], axis=-2)
+    return jnp.concatenate([out, de], axis=-1)
+
+
 def output_columns(log: Log, kind: ModelKind, outputs: Sequence[str] | None) -> tuple[str, ...]:
     """The measured position channels fitted: default ("q1", "q2") for the flexible model when
     the log has q2, else ("q1",); raises ``ValueError`` for a channel the log lacks."""
@@ -483,20 +494,12 @@ class Problem(eqx.Module):
         th = ravel_pytree(theta)[0]
         out, jac_th, jac_v, basis = segment_jacobians(self, th, v0s, theta_spec(theta), dims)
         r = _guard(self._assemble(out, v0s, self.segs.y_meas, dims))
-        n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
-        w_y = jnp.broadcast_to(self.w_y, self.segs.y_meas.shape).reshape(S, n_y)
-        w_def = jnp.broadcast_to(self.w_def.reshape(n_state, -1), dims).reshape(-1)
-        # the weight of every segment row: outputs, then the defect (none out of the last
-        # segment, none into a padding slot, none out of one)
-        act = (jnp.ones(S, bool) if self.segs.active is None else self.segs.active)
-        into = jnp.concatenate([act[1:], jnp.zeros(1, bool)])
-        w_rows = jnp.concatenate([jnp.where(act[:, None], w_y, 0.0),
-                                  jnp.where(into[:, None], w_def, 0.0)], axis=1)
-        my = n_y
-        de = r[S * my:].reshape(S - 1, d)
-        rows = jnp.concatenate([r[:S * my].reshape(S, my),
-                                jnp.concatenate([de, jnp.zeros((1, d), r.dtype)])], axis=1)
-        w_rows = jnp.where(rows == BLOWN_RESIDUAL, 0.0, w_rows)
+        # the weight of every row, in the per-segment layout (``segment_rows``): the
+        # residual's own weights and masks, read off ``_assemble`` at unit outputs
+        w_rows = segment_rows(self._assemble(jnp.ones_like(out), jnp.zeros_like(v0s), 0.0,
+                                             dims), S, d)
+        w_rows = jnp.where(segment_rows(r, S, d) == BLOWN_RESIDUAL, 0.0, w_rows)
+        my = w_rows.shape[1] - d
         Jt = w_rows[:, :, None] * (jac_th @ basis.T)
         Jx = w_rows[:, :, None] * jac_v
         Jn = -w_rows[:, my:, None] * jnp.eye(d, dtype=r.dtype)

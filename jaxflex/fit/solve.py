@@ -43,8 +43,8 @@ from jax.flatten_util import ravel_pytree
 from optimistix._solver.gauss_newton import _GaussNewtonState
 
 from jaxflex.tracecache import persistent_jit
-from jaxflex.fit.problem import (BLOWN_RESIDUAL, Problem, dynamic_substeps, segment_slots,
-                                  slot_rows)
+from jaxflex.fit.problem import (BLOWN_RESIDUAL, Problem, dynamic_substeps, segment_rows,
+                                  segment_slots, slot_rows)
 from jaxflex.validation import to_device
 
 
@@ -281,14 +281,11 @@ def shooting_blocks(jac: Any, r: jax.Array) -> dict[str, Any]:
     """The blocks of the (undamped) normal equations J^T J, J^T r of a free-start
     multiple-shooting problem (see ``shooting_newton_step``): ``Ntt`` (k, k), ``Nxt``
     (S, d, k), ``Dx`` (S, d, d) diagonal and ``U`` (S, d, d) upper blocks of the start-state
-    part, ``gt`` (k,), ``gx`` (S, d), the Jacobian blocks, and ``unravel`` / ``x_shape`` to
-    rebuild the unknowns, from the Jacobian's linear operator ``jac`` (k + 2 d
+    part, ``gt`` (k,), ``gx`` (S, d), and the Jacobian blocks, from the Jacobian's linear
+    operator ``jac`` (k + 2 d
     Jacobian-vector products, linear in the log length: ``shooting_jacobian``; a
     ``Problem``'s own blocks need none, ``Problem.residual_blocks`` and ``shooting_normal``)."""
-    th_struct, x_struct = jac.in_structure()
-    zeros_th = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), th_struct)
-    return {**shooting_normal(shooting_jacobian(jac, r.shape[0]), r),
-            "unravel": ravel_pytree(zeros_th)[1], "x_shape": x_struct.shape}
+    return shooting_normal(shooting_jacobian(jac, r.shape[0]), r)
 
 
 def shooting_jacobian(jac: Any, m: int) -> dict[str, jax.Array]:
@@ -322,9 +319,8 @@ def shooting_jacobian(jac: Any, m: int) -> dict[str, jax.Array]:
 
 
 def shooting_normal(blocks: dict[str, jax.Array], r: jax.Array) -> dict[str, jax.Array]:
-    """The normal-equation blocks (``shooting_blocks``, without ``unravel`` / ``x_shape``)
-    from the Jacobian blocks ``Jt``, ``Jx``, ``Jn`` and the residual ``r``; the Jacobian
-    blocks are kept beside them."""
+    """The normal-equation blocks (``shooting_blocks``) from the Jacobian blocks ``Jt``,
+    ``Jx``, ``Jn`` and the residual ``r``; the Jacobian blocks are kept beside them."""
     G, A, C = blocks["Jt"], blocks["Jx"], blocks["Jn"]
     d = C.shape[1]
     my = G.shape[1] - d
@@ -343,17 +339,6 @@ def shooting_normal(blocks: dict[str, jax.Array], r: jax.Array) -> dict[str, jax
 def _previous(a: jax.Array) -> jax.Array:
     """Along the leading (segment) axis, the value of segment s - 1 (zero for the first)."""
     return jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]])
-
-
-def segment_rows(v: jax.Array, S: int, d: int) -> jax.Array:
-    """Residual rows (..., m) of a free-start multiple-shooting problem regrouped per segment,
-    (..., S, my + d): segment s's outputs, then its continuity defect (zero for the last)."""
-    lead = v.shape[:-1]
-    my = (v.shape[-1] - (S - 1) * d) // S
-    out = v[..., : S * my].reshape(*lead, S, my)
-    de = v[..., S * my:].reshape(*lead, S - 1, d)
-    de = jnp.concatenate([de, jnp.zeros((*lead, 1, d), v.dtype)], axis=-2)
-    return jnp.concatenate([out, de], axis=-1)
 
 
 def shooting_tmv(blocks: dict[str, jax.Array], w: jax.Array) -> tuple[jax.Array, jax.Array]:
