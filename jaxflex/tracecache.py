@@ -227,22 +227,41 @@ def _rebuild(program: _Program, flat: list) -> Any:
     return eqx.combine(dyn, program.out_static)
 
 
-def persistent_jit(fun: Callable) -> Callable:
+#: XLA options of a program compiled for compile speed (``persistent_jit(...,
+#: fast_compile=True)``): XLA CPU's older LLVM emitters instead of its fusion emitters, which
+#: compile every fused kernel as a module of its own (about 15 ms each; a solver loop holds
+#: 200). Measured on the 2-core machine: the static map's solver loop and the programs a fit
+#: runs once (replay, covariance, discretisation check, constraint maps) compile about twice
+#: as fast, and run slower (``identify``'s solver loop on a 20 s log: 4.4 -> 6.9 s warm,
+#: which is why the loops where a fit spends its time keep XLA's defaults).
+FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
+
+
+def persistent_jit(fun: Callable | None = None, *, fast_compile: bool = False) -> Callable:
     """``eqx.filter_jit(fun)`` whose traced programs are kept across processes once ``enable``
-    was called (module docstring); ``fun`` should be a module-level function of jaxflex."""
+    was called (module docstring); ``fun`` should be a module-level function of jaxflex.
+    ``fast_compile``: for a program a run calls a few times, whose compilation costs more
+    than its runs: its kept program is compiled with ``FAST_COMPILE_OPTIONS`` (a decorator
+    ``@persistent_jit(fast_compile=True)``; the trace is the same as without, and is shared;
+    without the trace cache, plain ``eqx.filter_jit`` with XLA's defaults serves it)."""
+    if fun is None:
+        return functools.partial(persistent_jit, fast_compile=fast_compile)
+    options = FAST_COMPILE_OPTIONS if fast_compile else None
     plain = eqx.filter_jit(fun)
     programs: dict[str, _Program | None] = {}
     keys: dict[Any, str | None] = {}  # call signature -> key (None: not keyable), this process
     _TABLES.extend((programs, keys))
     name = f"{fun.__module__}.{fun.__qualname__}"
 
-    @functools.wraps(fun)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
+    def kept(args: tuple, kwargs: dict) -> tuple[_Program, list] | None:
+        """The kept program of this call (loaded or traced now) and the call's leaves, or
+        None when plain jit serves it (cache off, inside a trace, not keyable, not
+        exportable)."""
         if _folder is None or jax.config.jax_disable_jit:
-            return plain(*args, **kwargs)
+            return None
         leaves, treedef = jax.tree_util.tree_flatten((args, dict(sorted(kwargs.items()))))
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
-            return plain(*args, **kwargs)  # inside a trace, where plain jit inlines
+            return None  # inside a trace, where plain jit inlines
         # weak types are dropped at the boundary: the exported program's outputs come back
         # strongly typed, and a weak leaf would key (and trace) a second program
         leaves = [jax.lax.convert_element_type(x, x.dtype)
@@ -250,16 +269,31 @@ def persistent_jit(fun: Callable) -> Callable:
         call = jax.tree_util.tree_unflatten(treedef, leaves)
         key = _key(name, call, treedef, leaves, keys)
         if key is None:
-            return plain(*args, **kwargs)
+            return None
         if key not in programs:
-            programs[key] = _load(key) or _trace_and_store(fun, call, key)
+            programs[key] = _load(key, options) or _trace_and_store(fun, call, key, options)
         program = programs[key]
-        if program is None:
+        return None if program is None else (program, leaves)
+
+    @functools.wraps(fun)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        found = kept(args, kwargs)
+        if found is None:
             return plain(*args, **kwargs)
+        program, leaves = found
         return _rebuild(program, program.call(*_committed([x for x in leaves
                                                             if eqx.is_array(x)])))
 
+    def prepare(*args: Any, **kwargs: Any) -> bool:
+        """Trace and keep (or load) the program of ``wrapper(*args, **kwargs)`` without
+        compiling or running it: the part of a first call that holds Python's interpreter
+        lock, done here so that another thread can then compile and run the call while this
+        one goes on (``jaxflex.fit.trace_solver``). True when a kept program now serves the
+        call; False when plain jit would (nothing done)."""
+        return kept(args, kwargs) is not None
+
     wrapper.plain = plain  # type: ignore[attr-defined]
+    wrapper.prepare = prepare  # type: ignore[attr-defined]
     return wrapper
 
 
@@ -354,24 +388,27 @@ def _path(key: str) -> Path:
     return _folder / f"{key}{_SUFFIX}"
 
 
-def _load(key: str) -> _Program | None:
-    """The program stored under ``key``, or None (absent or unreadable)."""
+def _load(key: str, options: dict[str, Any] | None = None) -> _Program | None:
+    """The program stored under ``key``, or None (absent or unreadable); ``options``: XLA's
+    compile options for it (None: the defaults)."""
     path = _path(key)
     if not path.exists():
         return None
     try:
         blob = pickle.loads(path.read_bytes())
         exported = jax.export.deserialize(bytearray(blob["program"]))
-        return _Program(call=jax.jit(exported.call), out_index=blob["out_index"],
-                        out_static=blob["out_static"])
+        return _Program(call=jax.jit(exported.call, compiler_options=options),
+                        out_index=blob["out_index"], out_static=blob["out_static"])
     except Exception:  # a stale or damaged file: trace again and overwrite it
         return None
 
 
-def _trace_and_store(fun: Callable, call: tuple[tuple, dict], key: str) -> _Program | None:
+def _trace_and_store(fun: Callable, call: tuple[tuple, dict], key: str,
+                     options: dict[str, Any] | None = None) -> _Program | None:
     """Trace ``fun(*args, **kwargs)`` (``call``: the pair) as a flat function of the array
-    leaves, export it, store it under ``key`` (atomically) and return it; None if the
-    program cannot be exported or its output's static part cannot be stored."""
+    leaves, export it, store it under ``key`` (atomically) and return it, to be compiled
+    with XLA's ``options`` (None: the defaults); None if the program cannot be exported or
+    its output's static part cannot be stored."""
     dyn, static = eqx.partition(call, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(dyn)
     kept: dict[str, Any] = {}
@@ -400,5 +437,5 @@ def _trace_and_store(fun: Callable, call: tuple[tuple, dict], key: str) -> _Prog
         os.replace(f.name, path)
     except OSError:
         pass  # a read-only or full folder: the program still serves this process
-    return _Program(call=jax.jit(exported.call), out_index=kept["index"],
-                    out_static=kept["static"])
+    return _Program(call=jax.jit(exported.call, compiler_options=options),
+                    out_index=kept["index"], out_static=kept["static"])

@@ -669,7 +669,7 @@ def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int
     L = min(log.N, length or max(20, int(round(0.5 / log.dt))))
     outputs = output_columns(log, kind, None)
     segs = make_segments(log, kind=kind, outputs=outputs, length=L,
-                         z_of_velocity=plant.friction.z_steady if plant.friction else None)
+                         friction=plant.friction)
     space = ParamSpace.build(plant, ["J"])  # evaluated at the base values: nothing is fitted
     n_state = segs.x0.shape[1]
     prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),

@@ -209,6 +209,22 @@ def test_commands_start_without_scipy_signal_and_stats():
     assert out == "[]"
 
 
+def test_identify_starts_without_scipy_special():
+    """``scipy.special`` (0.2 s of a start: it imports numpy.f2py) is imported where its
+    distribution functions are used (discover, the robust tuner, a posterior's box), not by
+    the modules ``jaxflex identify`` loads before its fit (a first run compiles its solver
+    behind that start)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, jaxflex.cli, jaxflex.cli.identify, jaxflex.identify, "
+            "jaxflex.sweep.engine, jaxflex.plots.identify; "
+            "print('scipy.special' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "False"
+
+
 def test_no_private_name_is_imported_across_modules():
     bad = []
     for rel, tree in _modules().items():

@@ -318,7 +318,7 @@ def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
     levels = [c["substeps"] for c in r.discretisation["checks"]]
     assert len(set(levels)) >= 2, levels  # the fit was refined at least once
     spaces = 1 + len({tuple(a["refit_without"]) for a in r.attempts if "refit_without" in a})
-    assert 1 <= lowered.count("jit(_steps)") <= spaces, (lowered, spaces)
+    assert 1 <= lowered.count("jit(_steps_loop)") <= spaces, (lowered, spaces)
 
 
 def test_a_local_minimum_is_rescued_by_the_identifiability_refits():

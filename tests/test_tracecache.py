@@ -18,9 +18,14 @@ from jaxflex import tracecache
 from jaxflex.fit import least_squares
 # the compiled program itself (``jaxflex.fit.residuals`` moves a problem into its bucket of
 # segment slots around it)
-from jaxflex.fit.solve import _replay
+from jaxflex.fit.solve import _replay as _fast_replay
 from jaxflex.identify import DEFAULT_FREE, excitation_torque, make_problem, perturb, synthetic_log
 from jaxflex.presets import paper_params
+
+# the engine's replay is compiled for compile speed (``fast_compile``: another code generator,
+# the same numbers to rounding); kept with XLA's defaults, as plain jit compiles it, a kept
+# program must give exactly plain jit's numbers. Both share one kept trace (one name).
+_replay = tracecache.persistent_jit(_fast_replay.__wrapped__)
 
 
 def residuals(prob, y):
@@ -34,10 +39,17 @@ pytest.importorskip("flatbuffers")  # jax.export's serialisation
 
 
 def _problem(substeps: int = 1):
-    p = paper_params()
-    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.3), substeps=1)
-    init = perturb(p, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
-    return make_problem(log, init, DEFAULT_FREE, segment_length=100, substeps=substeps)
+    """A small identification problem, made with the cache off (its start states' program
+    is not among the files the tests count)."""
+    folder = tracecache.folder()
+    tracecache.enable(None)
+    try:
+        p = paper_params()
+        log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.3), substeps=1)
+        init = perturb(p, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
+        return make_problem(log, init, DEFAULT_FREE, segment_length=100, substeps=substeps)
+    finally:
+        tracecache.enable(folder)
 
 
 @pytest.fixture
@@ -126,12 +138,11 @@ def test_inside_another_trace_and_damaged_files(kept):
     assert not any(kept.iterdir())
     np.testing.assert_allclose(np.asarray(out), np.asarray(residuals.plain(prob, y0)))
     # a damaged file is ignored and written again
-    residuals(prob, y0)
+    first = np.asarray(residuals(prob, y0))
     (path,) = kept.iterdir()
     path.write_bytes(b"not a program")
     tracecache.forget()
-    np.testing.assert_array_equal(np.asarray(residuals(prob, y0)),
-                                  np.asarray(residuals.plain(prob, y0)))
+    np.testing.assert_array_equal(np.asarray(residuals(prob, y0)), first)
     assert path.read_bytes() != b"not a program"
 
 
@@ -221,3 +232,20 @@ def test_the_configuration_digest_sees_every_flag_change():
     finally:
         jax.config.update("jax_debug_nans", old)
     assert tracecache._config_digest() == before
+
+
+def test_fast_compile_programs_share_the_trace_and_reach_xla_with_their_options(
+        kept, monkeypatch):
+    """``persistent_jit(fast_compile=True)`` (the engine's run-once programs): the same trace
+    file as the default variant, the same numbers to rounding, and its options are the ones
+    XLA compiles with (an unknown option makes the compilation fail, naming it)."""
+    prob, y0 = _problem()
+    fast = np.asarray(_fast_replay(prob, y0)["residuals"])
+    default = np.asarray(residuals(prob, y0))
+    assert len(list(kept.iterdir())) == 1  # one trace serves both variants
+    np.testing.assert_allclose(fast, default, rtol=1e-12,
+                               atol=1e-12 * float(np.max(np.abs(default))))
+    monkeypatch.setattr(tracecache, "FAST_COMPILE_OPTIONS", {"xla_no_such_option": True})
+    wrong = tracecache.persistent_jit(_fast_replay.__wrapped__, fast_compile=True)
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        wrong(prob, y0)

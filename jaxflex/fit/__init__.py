@@ -44,6 +44,7 @@ from jaxflex.fit.solve import (
     problem_residuals,
     residuals,
     simulated_outputs,
+    trace_solver,
 )
 from jaxflex.fit.space import (
     NOMINAL_CONSTRAINTS,
@@ -63,6 +64,6 @@ __all__ = [
     "segment_robust_covariance", "discretisation_bias", "gap",
     "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
-    "problem_residuals", "residuals", "simulated_outputs",
+    "problem_residuals", "residuals", "simulated_outputs", "trace_solver",
     "relative", "savgol", "savgol_coeffs", "set_values", "unpack_state", "white_noise_std",
 ]

@@ -23,7 +23,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.special
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
@@ -119,6 +118,8 @@ class Posterior(eqx.Module):
         exp(u), with Fc's, so the box's corners map to the physical box's corners)."""
         if not 0 < confidence < 1:
             raise ValueError(f"posterior: confidence must be in (0, 1), got {confidence}")
+        import scipy.special  # here: 0.2 s of every command's start (identify's too)
+
         k = self.mean.shape[0]
         half = math.sqrt(scipy.special.chdtri(k, 1.0 - confidence)) * jnp.sqrt(
             jnp.sum(self.root**2, axis=1))

@@ -37,6 +37,7 @@ from jaxtyping import Array
 
 from jaxflex.effects import link_input, link_measurement
 from jaxflex.fit.space import ParamSpace
+from jaxflex.friction import LuGre
 from jaxflex.logs import Log
 from jaxflex.state import PlantState
 from jaxflex.step import MODEL_KINDS, ModelKind, replay, warm_effects
@@ -164,6 +165,14 @@ def on_slot_rows(fn: Callable[..., Any], *rows: Any) -> Any:
     return jax.tree_util.tree_map(lambda o: np.asarray(o)[:n], out)
 
 
+@persistent_jit(fast_compile=True)
+def _steady_z(friction: LuGre, v: Array) -> Array:
+    """``friction.z_steady`` row by row, (rows, n) [rad] from velocities (rows, n) [rad/s],
+    as one program (evaluated op by op, its ten operations compiled one by one took 0.6 s
+    of a first ``jaxflex identify``)."""
+    return jax.vmap(friction.z_steady)(v)
+
+
 def segment_rows(v: Array, S: int, d: int) -> Array:
     """Residual rows (..., m) of a free-start multiple-shooting problem regrouped per segment,
     (..., S, my + d): segment s's outputs, then its continuity defect (zero for the last)."""
@@ -194,7 +203,7 @@ def output_columns(log: Log, kind: ModelKind, outputs: Sequence[str] | None) -> 
 def make_segments(
     log: Log, *, kind: ModelKind = "flexible", outputs: Sequence[str] = ("q1", "q2"),
     start: int = 0, stop: int | None = None, length: int | None = None, warmup: int = 30,
-    window: int = 31, z_of_velocity: Any = None,
+    window: int = 31, friction: LuGre | None = None,
 ) -> Segments:
     """Non-overlapping segments of ``length`` samples within samples [start, stop) of a log
     (a tail shorter than one segment is dropped; ``length`` None: one segment). For the
@@ -203,7 +212,8 @@ def make_segments(
     measured rotor angle, velocity and acceleration (``jaxflex.step.LINK_INPUTS``).
 
     Start states: angles from the log, velocities by Savitzky-Golay differentiation over
-    ``window`` samples, z from ``z_of_velocity`` (e.g. ``LuGre.z_steady``; zeros if None).
+    ``window`` samples, z the steady bristle deflection of ``friction`` at that velocity
+    (``LuGre.z_steady``; zeros if None).
     """
     if log.tau is None or log.q1 is None:
         raise ValueError("fit: the log needs columns tau and q1")
@@ -219,10 +229,10 @@ def make_segments(
     q2 = log.q2 if log.q2 is not None else log.q1
     v1 = savgol(q1, dt, 1, window)
     v2 = savgol(q2, dt, 1, window)
-    if z_of_velocity is None:
+    if friction is None:
         z0 = np.zeros_like(v1[starts])
-    else:  # on the bucket's slots: no new program per segment count
-        z0 = on_slot_rows(jax.vmap(z_of_velocity), v1[starts])
+    else:  # one compiled program on the bucket's slots: none per segment count
+        z0 = on_slot_rows(lambda v: _steady_z(friction, v), v1[starts])
     if kind == "rigid":
         x0 = np.stack([q1[starts], v1[starts], z0], axis=1)
     else:

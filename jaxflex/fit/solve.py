@@ -563,7 +563,7 @@ def _solver(rtol: float, atol: float, scaling: str, structure: str,
                                                                 structure=structure))
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _init(solver: LevenbergMarquardt, fn: _WithAux, y: Any, args: Any):
     f_struct = jax.eval_shape(lambda: fn(y, args)[0])
     return solver.init(fn, y, args, {}, f_struct, None, frozenset())
@@ -628,9 +628,8 @@ _CHUNK, _FIRST_CHUNK = 32, 8
 _HISTORY = 64
 
 
-@persistent_jit
-def _steps(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: Any,
-           control: jax.Array, history: jax.Array):
+def _steps_loop(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: Any,
+                control: jax.Array, history: jax.Array):
     """Up to ``control[0]`` solver steps in one compiled loop, ending at the first that meets a
     stop (the codes above): the host loop's work without a dispatch and a device-to-host
     round trip per step (measured on discover's 20 s log: 1.7 of a step's 21 ms were the
@@ -669,6 +668,13 @@ def _steps(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, args: A
     return y, state, k, code, c, dec, hist, trace
 
 
+#: ``_steps_loop`` compiled for run speed (XLA's defaults), and for compile speed
+#: (``least_squares(small=True)``: a small fit run once, e.g. the static map's four
+#: parameters; ``jaxflex.tracecache.FAST_COMPILE_OPTIONS``). Both share one trace.
+_steps = persistent_jit(_steps_loop)
+_steps_small = persistent_jit(_steps_loop, fast_compile=True)
+
+
 def _fell(history: jax.Array, window: int, c: float) -> float:
     """On the host, how much ||r||^2 fell over the last ``window`` steps to the cost ``c``
     (``_steps``' ``history``: the cost ``window`` steps back)."""
@@ -692,7 +698,7 @@ def gauss_newton_decrement(normal: dict[str, jax.Array], structure: str,
     return jnp.dot(g, dy)
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _cost(fn: Callable, y: Any, args: Any) -> jax.Array:
     r = fn(y, args)
     return 0.5 * jnp.sum(r**2)
@@ -788,6 +794,7 @@ def least_squares(
     structure: str = "auto", progress: Callable[[int, float], None] | None = None,
     decrement_tol: float | Callable[[float], float] | None = None, geodesic: float = 0.0,
     bucket: bool = True, stall: tuple[int, float | Callable[[float], float]] | None = None,
+    small: bool = False,
 ) -> Solution:
     """Levenberg-Marquardt on the residuals ``fn(y, prob)`` from ``y0`` (module docstring).
 
@@ -816,6 +823,9 @@ def least_squares(
     ``Problem`` of more than 2 segments is solved in ``segment_slots`` slots (inert padding
     segments, ``Problem.padded``; the solution, residual and normal equations are cut back to
     the data), so logs of other lengths share the compiled solver (False: its own shape).
+    ``small``: a small fit that a run makes once or twice (a handful of unknowns, a cheap
+    residual): its loop is compiled for compile speed, not run speed
+    (``jaxflex.tracecache.FAST_COMPILE_OPTIONS``; the static map's fit: 1.2 -> 0.5 s of XLA).
     Raises ``ValueError`` for
     ``max_steps < 1`` or a negative ``decrement_tol``.
     """
@@ -827,19 +837,8 @@ def least_squares(
     if stall is not None and not 1 <= int(stall[0]) <= _HISTORY:
         raise ValueError(f"fit: the stall window must be 1 to {_HISTORY} steps, got {stall[0]}")
     t0 = time.perf_counter()
-    if structure == "auto":
-        shooting = isinstance(prob, Problem) and prob.free_starts and prob.segs.count > 1
-        structure = "shooting" if shooting else "dense"
-    # a shooting problem runs in its bucket of segment slots (``segment_slots``), so that a
-    # log of another length reuses the compiled step; the solution is cut back to the data
-    pad = (Padding.of(prob, y0) if (bucket and structure == "shooting"
-                                    and fn is problem_residuals) else None)
-    if pad is not None:
-        prob, y0 = prob.padded(pad.slots), pad.unknowns(y0)
-    solver = _solver(rtol, atol, scaling, structure, geodesic)
-    own_blocks = structure == "shooting" and fn is problem_residuals
-    wrapped = _WithAux(fn, problem_residual_blocks if own_blocks else None)
-    y = y0
+    prob, y, pad, solver, wrapped = _setup(prob, y0, fn, rtol, atol, scaling, structure,
+                                           geodesic, bucket)
     state = _init(solver, wrapped, y, prob)
     # the stops run on the device (``_steps``) when their bounds are numbers or ``CostBound``s;
     # any other callable is judged here, after every single step
@@ -847,7 +846,8 @@ def least_squares(
     window = int(stall[0]) if stall is not None else 1
     stall_on_host, stall_bound = _device_bound(None if stall is None else stall[1])
     one_at_a_time = dec_on_host or stall_on_host
-    history = to_device(np.full(_HISTORY + 1, np.inf))  # costs, the last W back included
+    history = _empty_history()  # costs, the last W back included
+    loop = _steps_small if small else _steps
     steps, code, c, dec, chunk, interrupted = 0, _RUNNING, None, None, _FIRST_CHUNK, False
     try:
         while steps < max_steps and code == _RUNNING:
@@ -855,7 +855,7 @@ def least_squares(
             control = to_device(np.array([limit, *dec_bound, *stall_bound, steps, window],
                                          float))
             t_call = time.perf_counter()
-            y, state, k_a, code_a, c_a, dec_a_, history, trace = _steps(
+            y, state, k_a, code_a, c_a, dec_a_, history, trace = loop(
                 solver, wrapped, y, state, prob, control, history)
             k, code, c, dec = int(k_a), int(code_a), float(c_a), float(dec_a_)
             steps += k  # before the progress calls: y and state are k steps on already
@@ -909,6 +909,52 @@ def least_squares(
                     decrement=None if dec is None else float(dec))
 
 
+def _setup(prob: Any, y0: Any, fn: Callable, rtol: float, atol: float, scaling: str,
+           structure: str, geodesic: float, bucket: bool,
+           ) -> tuple[Any, Any, Padding | None, LevenbergMarquardt, _WithAux]:
+    """``least_squares``' problem, start, padding, solver and residual function as its
+    compiled loop sees them (arguments as there)."""
+    if structure == "auto":
+        shooting = isinstance(prob, Problem) and prob.free_starts and prob.segs.count > 1
+        structure = "shooting" if shooting else "dense"
+    # a shooting problem runs in its bucket of segment slots (``segment_slots``), so that a
+    # log of another length reuses the compiled step; the solution is cut back to the data
+    pad = (Padding.of(prob, y0) if (bucket and structure == "shooting"
+                                    and fn is problem_residuals) else None)
+    if pad is not None:
+        prob, y0 = prob.padded(pad.slots), pad.unknowns(y0)
+    solver = _solver(rtol, atol, scaling, structure, geodesic)
+    own_blocks = structure == "shooting" and fn is problem_residuals
+    return prob, y0, pad, solver, _WithAux(fn, problem_residual_blocks if own_blocks else None)
+
+
+def _empty_history() -> jax.Array:
+    """``_steps``' cost history before the first step (no cost yet: inf)."""
+    return to_device(np.full(_HISTORY + 1, np.inf))
+
+
+def trace_solver(
+    prob: Any, y0: Any, *, fn: Callable = problem_residuals, rtol: float = 1e-10,
+    atol: float = 1e-10, scaling: str = "identity", structure: str = "auto",
+    geodesic: float = 0.0, bucket: bool = True, **loop_options: Any,
+) -> bool:
+    """Trace and keep (``jaxflex.tracecache``) the compiled loop that ``least_squares(prob,
+    y0, ...)`` with the same options will run, without compiling it or taking a step: the
+    part of a first solve that holds Python's interpreter lock. A caller that then hands the
+    solve to a background thread (``jaxflex.identify.compile_ahead``) lets it compile on one
+    core while this thread works on the other, instead of both tracing by turns. Runs the
+    solver's small start program (``_init``). ``loop_options``: ``least_squares``' other
+    options (``max_steps``, ``decrement_tol``, ``stall``, ``progress``), which do not change
+    the program and are ignored. Returns True when a kept program now serves the solve, False
+    when the trace cache is off (nothing is traced)."""
+    del loop_options
+    prob, y, _, solver, wrapped = _setup(prob, y0, fn, rtol, atol, scaling, structure,
+                                         geodesic, bucket)
+    state = _init(solver, wrapped, y, prob)
+    control = to_device(np.zeros(11))  # (limit, 4 + 4 bounds, steps run, window): values only
+    return _steps.prepare(solver, wrapped, y, state, prob, control, _empty_history())
+
+
 #: Error bound factor of a step-doubling estimate: the error of the coarse replay is at most
 #: RICHARDSON x (coarse - fine) for a scheme of order >= 1 (e_h = C h^p gives
 #: e_h = (y_h - y_h/2) / (1 - 2^-p): 2 for p = 1, 4/3 for p = 2). The Strang-split step is
@@ -945,7 +991,7 @@ def step_doubling_error(prob: Problem, coarse: jax.Array, fine: jax.Array) -> fl
     return RICHARDSON * float(np.sqrt(np.mean(d**2))) if np.all(np.isfinite(d)) else math.inf
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _induced_step(normal: dict[str, Any], dr: jax.Array, structure: str, template: Any):
     """The undamped Gauss-Newton step (J^T J)^-1 J^T dr at the point whose normal equations are
     ``normal`` (``with_gradient``, ``undamped_solve``), flattened."""
@@ -1043,12 +1089,12 @@ def _replay_in_slots(prob: Problem, y: Any) -> tuple[dict[str, jax.Array], Paddi
     return _replay(prob.padded(pad.slots), pad.unknowns(y)), pad
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _replay(prob: Problem, y: Any) -> dict[str, jax.Array]:
     return prob.replay(y)
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _theta_information(prob: Problem, y: Any):
     """Residual and the Schur complement of the normal matrix in theta (starts eliminated)."""
     r, blocks = prob.residual_blocks(y)
@@ -1056,7 +1102,7 @@ def _theta_information(prob: Problem, y: Any):
     return r, _schur_in_theta({k: blk[k] for k in ("Ntt", "Nxt", "Dx", "U", "gt", "gx")})
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _schur_in_theta(blk: dict[str, jax.Array]) -> jax.Array:
     """The Schur complement in theta of the shooting normal blocks (starts eliminated)."""
     Dx = blk["Dx"]
@@ -1067,7 +1113,7 @@ def _schur_in_theta(blk: dict[str, jax.Array]) -> jax.Array:
     return _arrow_solve(blk["Ntt"], blk["Nxt"], Dx, blk["U"], blk["gt"], blk["gx"], None, None)
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _jacobian(fn: Callable, prob: Any, y: Any):
     flat, unravel = ravel_pytree(y)
     return fn(y, prob), jax.jacfwd(lambda f: fn(unravel(f), prob))(flat)

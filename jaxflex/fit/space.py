@@ -349,7 +349,7 @@ class ParamSpace(eqx.Module):
                                for k in sorted(self.names)]).astype(bool)
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _physical_on_host(space: ParamSpace, theta: dict[str, Array]) -> tuple[dict[str, Array],
                                                                             Array]:
     """``space.physical(theta)`` and its Jacobian over the flattened names, compiled once."""

@@ -43,6 +43,7 @@ from jaxflex.fit import (
     set_values,
     simulated_outputs,
     step_doubling_error,
+    trace_solver,
 )
 from jaxflex.fit.ahead import Ahead
 from jaxflex.identify.static import start_from_static_map
@@ -216,7 +217,7 @@ def make_problem(
         raise ValueError(f"identify: output_scale must be positive, got {output_scale}")
     scale = np.maximum(scale, 1e-6)
     segs = make_segments(log, kind=model, outputs=outputs, length=L,
-                         z_of_velocity=plant.friction.z_steady if plant.friction else None)
+                         friction=plant.friction)
     dt = log.dt
     if model == "rigid":
         w_def = np.array([1.0, L * dt / 2, 1.0])
@@ -529,6 +530,10 @@ def compile_ahead(prob: Problem, y0: Any, solve: dict[str, Any]) -> Ahead:
     geodesic); ``wait(0)`` before the first solve, ``join`` before the covariance, so that no
     program is compiled twice at once."""
     made: dict[str, Solution] = {}
+    # the solver's trace holds the interpreter: made here, alone, before the thread starts
+    # (traced by turns with the static map's fit, it finished 0.6 s later and its
+    # compilation with it)
+    trace_solver(prob, y0, **solve)
 
     def solver() -> None:
         made["solution"] = least_squares(prob, y0, max_steps=1, **solve)

@@ -86,7 +86,7 @@ def fit_static_map(
     prob = StaticMapProblem(space=space, v=to_device(v[pick]), F=to_device(F[pick]),
                             w=to_device(w))
     sol = least_squares(prob, space.theta0(), fn=_static_residuals, rtol=rtol, atol=atol,
-                        max_steps=500)
+                        max_steps=500, small=True)
     phys = space.physical_values(sol.y)
     se = covariance(prob, sol.y, solution=sol)["stderr"]
     return {k: (float(phys[k][0]), float(se[k][0])) for k in STATIC_NAMES}
@@ -98,7 +98,7 @@ def _static_residuals(y: dict[str, jax.Array], prob: StaticMapProblem) -> jax.Ar
 
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _link_residuals(bare: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
                     q2: jax.Array, v2: jax.Array, a2: jax.Array, tau: jax.Array) -> jax.Array:
     """The link line of ``torque_residuals`` of the frictionless plant ``bare`` at every
