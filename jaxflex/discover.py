@@ -340,7 +340,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
                      universe=universe)
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _bristle_residuals(plant: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
                        q2: jax.Array, v2: jax.Array, a2: jax.Array,
                        u: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -435,7 +435,7 @@ def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
     return to_device(on_slot_rows(lambda x: _within_capacity(x, plant, bound), x0s))
 
 
-@persistent_jit
+@persistent_jit(fast_compile=True)
 def _within_capacity(x0s: jax.Array, plant: FlexibleJointPlant, bound: float) -> jax.Array:
     fr = plant.friction
     cap = bound * fr.g(x0s[:, 1]) / fr.sigma0
