@@ -192,21 +192,28 @@ def test_no_module_outside_cli_and_plots_imports_matplotlib_or_argparse():
     assert not bad
 
 
+def _loaded_by(modules: str, watched: tuple[str, ...]) -> list[str]:
+    """The modules of ``watched`` that importing ``modules`` (comma-separated) in a fresh
+    interpreter brings in."""
+    import subprocess
+    import sys
+
+    code = (f"import sys, {modules}; "
+            f"print(','.join(m for m in {watched!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    return [m for m in out.split(",") if m]
+
+
 def test_commands_start_without_scipy_signal_and_stats():
     """Importing ``scipy.signal`` (which imports ``scipy.stats``) costs every command 0.55 s of
     its start on the 2-core machine; the workflows use jaxflex's Savitzky-Golay and Welch and
     scipy.special's distribution functions instead. Loading every module of the command line
     and of the workflows a command runs must not bring either in (``validate`` imports
     scipy.signal's filter only where it filters)."""
-    import subprocess
-    import sys
-
-    code = ("import sys, jaxflex.cli, jaxflex.identify, jaxflex.discover, jaxflex.validate, "
-            "jaxflex.robust, jaxflex.tune, jaxflex.sweep, jaxflex.experiments; "
-            "print(sorted(m for m in ('scipy.signal', 'scipy.stats') if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True).stdout.strip()
-    assert out == "[]"
+    assert _loaded_by("jaxflex.cli, jaxflex.identify, jaxflex.discover, jaxflex.validate, "
+                      "jaxflex.robust, jaxflex.tune, jaxflex.sweep, jaxflex.experiments",
+                      ("scipy.signal", "scipy.stats")) == []
 
 
 def test_identify_starts_without_scipy_special():
@@ -214,15 +221,8 @@ def test_identify_starts_without_scipy_special():
     distribution functions are used (discover, the robust tuner, a posterior's box), not by
     the modules ``jaxflex identify`` loads before its fit (a first run compiles its solver
     behind that start)."""
-    import subprocess
-    import sys
-
-    code = ("import sys, jaxflex.cli, jaxflex.cli.identify, jaxflex.identify, "
-            "jaxflex.sweep.engine, jaxflex.plots.identify; "
-            "print('scipy.special' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True).stdout.strip()
-    assert out == "False"
+    assert _loaded_by("jaxflex.cli, jaxflex.cli.identify, jaxflex.identify, "
+                      "jaxflex.sweep.engine, jaxflex.plots.identify", ("scipy.special",)) == []
 
 
 def test_no_private_name_is_imported_across_modules():
