@@ -229,8 +229,8 @@ def _rebuild(program: _Program, flat: list) -> Any:
 
 #: XLA options of a program compiled for compile speed (``persistent_jit(...,
 #: fast_compile=True)``): XLA CPU's older LLVM emitters instead of its fusion emitters, which
-#: compile every fused kernel as a module of its own (about 15 ms each; a solver loop holds
-#: 200). Measured on the 2-core machine: the static map's solver loop and the programs a fit
+#: compile every fused kernel as a module of its own (8-20 ms each; identify's solver loop
+#: holds about 225). Measured on the 2-core machine: the static map's solver loop and the programs a fit
 #: runs once (replay, covariance, discretisation check, constraint maps) compile about twice
 #: as fast, and run slower (``identify``'s solver loop on a 20 s log: 4.4 -> 6.9 s warm,
 #: which is why the loops where a fit spends its time keep XLA's defaults).

@@ -249,3 +249,20 @@ def test_fast_compile_programs_share_the_trace_and_reach_xla_with_their_options(
     wrong = tracecache.persistent_jit(_fast_replay.__wrapped__, fast_compile=True)
     with pytest.raises(Exception, match="xla_no_such_option"):
         wrong(prob, y0)
+
+
+def test_trace_solver_keeps_the_program_least_squares_then_runs(kept, monkeypatch):
+    """``fit.trace_solver`` (identify traces its solver before a thread compiles it) keeps the
+    very program the same ``least_squares`` call then runs: nothing is traced again."""
+    from jaxflex.fit import trace_solver
+
+    prob, y0 = _problem()
+    options = dict(rtol=1e-10, atol=1e-10, geodesic=0.3, decrement_tol=1e-2)
+    assert trace_solver(prob, y0, **options)
+
+    def no_tracing(*a, **k):
+        raise AssertionError("least_squares traced a program trace_solver had not kept")
+
+    monkeypatch.setattr(tracecache, "_trace_and_store", no_tracing)
+    sol = least_squares(prob, y0, max_steps=3, **options)
+    assert sol.steps >= 1

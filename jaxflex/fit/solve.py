@@ -825,7 +825,8 @@ def least_squares(
     the data), so logs of other lengths share the compiled solver (False: its own shape).
     ``small``: a small fit that a run makes once or twice (a handful of unknowns, a cheap
     residual): its loop is compiled for compile speed, not run speed
-    (``jaxflex.tracecache.FAST_COMPILE_OPTIONS``; the static map's fit: 1.2 -> 0.5 s of XLA).
+    (``jaxflex.tracecache.FAST_COMPILE_OPTIONS``; the static map's fit, compiled beside
+    identify's solver: 1.0-1.4 -> 0.6 s of XLA).
     Raises ``ValueError`` for
     ``max_steps < 1`` or a negative ``decrement_tol``.
     """
@@ -852,8 +853,7 @@ def least_squares(
     try:
         while steps < max_steps and code == _RUNNING:
             limit = 1 if one_at_a_time else min(chunk, max_steps - steps, _CHUNK)
-            control = to_device(np.array([limit, *dec_bound, *stall_bound, steps, window],
-                                         float))
+            control = _control(limit, dec_bound, stall_bound, steps, window)
             t_call = time.perf_counter()
             y, state, k_a, code_a, c_a, dec_a_, history, trace = loop(
                 solver, wrapped, y, state, prob, control, history)
@@ -928,6 +928,13 @@ def _setup(prob: Any, y0: Any, fn: Callable, rtol: float, atol: float, scaling: 
     return prob, y0, pad, solver, _WithAux(fn, problem_residual_blocks if own_blocks else None)
 
 
+def _control(limit: int, dec_bound: list[float], stall_bound: list[float], steps: int,
+             window: int) -> jax.Array:
+    """``_steps``' control vector: (limit, the decrement's and the progress stop's bounds as
+    ``_device_bound`` gives them, steps already run, progress window)."""
+    return to_device(np.array([limit, *dec_bound, *stall_bound, steps, window], float))
+
+
 def _empty_history() -> jax.Array:
     """``_steps``' cost history before the first step (no cost yet: inf)."""
     return to_device(np.full(_HISTORY + 1, np.inf))
@@ -951,8 +958,9 @@ def trace_solver(
     prob, y, _, solver, wrapped = _setup(prob, y0, fn, rtol, atol, scaling, structure,
                                          geodesic, bucket)
     state = _init(solver, wrapped, y, prob)
-    control = to_device(np.zeros(11))  # (limit, 4 + 4 bounds, steps run, window): values only
-    return _steps.prepare(solver, wrapped, y, state, prob, control, _empty_history())
+    off = _device_bound(None)[1]  # the control's values do not shape the program
+    return _steps.prepare(solver, wrapped, y, state, prob, _control(1, off, off, 0, 1),
+                          _empty_history())
 
 
 #: Error bound factor of a step-doubling estimate: the error of the coarse replay is at most
