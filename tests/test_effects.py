@@ -248,3 +248,51 @@ def test_gated_states_are_warmed_only_when_their_effect_is_on(on):
     if "actuator_lag" in on:  # warmed: the lag state follows the torque history
         assert not np.allclose(np.asarray(xg.aux[0]), np.asarray(tau_pre[0]))
         np.testing.assert_allclose(np.asarray(xg.aux[0]), np.asarray(xp.aux[0]), rtol=1e-14)
+
+
+def test_encoder_scale_maps_invert_and_a_rotor_fit_recovers_it():
+    """``encoder_scale``: its input map (kind "rotor") and output map (replays) are exact
+    inverses; a value outside the calibration bound is refused by name; and the engine's
+    torque-domain rotor fit recovers a planted scale (and K) from the motion a rotor with
+    that link-encoder scale needs, where a fit without it cannot."""
+    from jaxflex.fit import ParamSpace, least_squares
+    from jaxflex.validate import predicted_torque
+
+    e = EFFECTS["encoder_scale"](scale=4e-4)
+    assert not e.candidate and "encoder_scale" in EFFECTS
+    q1, v1 = jnp.array([0.7]), jnp.array([0.3])
+    qr, vr = link_input((e,), q1, v1, jnp.array([0.0]))
+    np.testing.assert_allclose(np.asarray(link_measurement((e,), qr, vr)), np.asarray(q1),
+                               rtol=1e-15)
+    with pytest.raises(ValueError, match="encoder_scale: parameter scale"):
+        EFFECTS["encoder_scale"](scale=0.05)
+
+    t = np.arange(2000) * 4e-3
+    q1 = 0.4 * np.sin(0.9 * t) + 0.2 * np.sin(2.3 * t)  # link angle [rad]
+    d1, dd1 = np.gradient(q1, t), np.gradient(np.gradient(q1, t), t)
+    defl = 1e-4 * np.sin(1.7 * t) + 5e-5 * np.cos(3.1 * t)  # spring deflection [rad]
+    q2 = q1 + defl
+    d2 = np.gradient(q2, t)
+    dd2 = np.gradient(d2, t)
+    fr = {"Fc": 1.0, "Fs": 1.0, "vs": 0.1, "sigma0": 1e5, "sigma1": 0.0, "sigma2": 0.0}
+    truth = Params.from_dict({"plant": {"I": 1.0, "J": 600.0, "K": 4e6}, "friction": fr,
+                              "effects": {"encoder_scale": {"scale": [5e-4]}}})
+    motion = {"q1": q1 / (1 + 5e-4), "d1": d1 / (1 + 5e-4), "dd1": dd1 / (1 + 5e-4),
+              "q2": q2, "d2": d2, "dd2": dd2, "tau": np.zeros_like(q1)}
+    motion = {k: jnp.asarray(v).reshape(-1, 1) for k, v in motion.items()}
+    motion["tau"] = predicted_torque(truth.to_plant(), "rotor", motion)
+
+    def fitted(free, scale0):
+        start = Params.from_dict({"plant": {"I": 1.0, "J": 600.0, "K": 2e6}, "friction": fr,
+                                  "effects": {"encoder_scale": {"scale": [scale0]}}})
+        space = ParamSpace.build(start.to_plant(), free)
+        res = lambda th, m: (predicted_torque(space.plant(th), "rotor", m) - m["tau"]).ravel()
+        sol = least_squares(motion, space.theta0(), fn=res, max_steps=200)
+        return sol, {k: float(np.asarray(v)[0]) for k, v in space.physical(sol.y).items()}
+
+    sol, p = fitted(["K", "encoder_scale.scale"], 0.0)
+    assert sol.converged
+    assert p["K"] == pytest.approx(4e6, rel=1e-6) and p["encoder_scale.scale"] == pytest.approx(
+        5e-4, rel=1e-6)
+    sol0, p0 = fitted(["K"], 0.0)  # without the scale the same data give another K
+    assert abs(p0["K"] / 4e6 - 1) > 0.05, p0
