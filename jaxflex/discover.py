@@ -273,7 +273,8 @@ class Workspace(eqx.Module):
 def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: float,
               train_frac: float, substeps: int, max_effects: int) -> Workspace:
     """Cut ``log`` into training and held-out segments [s] and build the gated universal
-    space (Jacobians over the most entries a model with ``max_effects`` + 1 effects fits).
+    space (Jacobians over the most entries a model with ``max_effects`` effects fits: the
+    last round fits the ``max_effects`` - 1 added and one candidate).
     The space bounds the Stribeck excess Fs - Fc by the largest logged torque |tau| [N m]
     (``ParamSpace.excess_cap``): a static friction the actuator could never have broken is
     not physical (identify marks one as unidentified), and a nominal refit that misses an
@@ -292,9 +293,10 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
                 f"{L} samples ({segment} s); use a longer log or a shorter --segment"
             )
     universe = tuple(sorted(universe))
-    # the most entries a model fits: the nominal ones and the largest max_effects + 1 effects
+    # the most entries a model fits: the nominal ones and the largest max_effects effects
+    # (``discover`` adds at most max_effects; a tie's rivals are swapped in, not added)
     sizes = sorted((fitted_count(n) for n in universe), reverse=True)
-    jac_columns = len(NOMINAL_FIT) + sum(sizes[: max_effects + 1])
+    jac_columns = len(NOMINAL_FIT) + sum(sizes[:max_effects])
     h = dt / substeps
     effs = [Gated(typical_effect(n, h), to_device(0.0)) for n in universe]
     base = nominal.to_plant(with_effects=False).with_effects(*effs)
