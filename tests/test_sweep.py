@@ -404,3 +404,31 @@ def test_benchmark_target_runs_at_small_size(tmp_path):
     assert res["accuracy"][str(res["substeps"])] <= res["tolerance_rel"]
     assert set(res["best_steps_per_s"]) == {"one_core", "one_device", "two_devices"}
     assert res["rms_max_rel_diff_between_setups"] < 1e-12  # the devices change no number
+
+
+def test_an_interrupt_during_a_gc_callback_stops_between_chunks_without_a_traceback():
+    """A signal that arrives while a garbage-collector callback runs (JAX registers one) must
+    not raise there: Python would print "Exception ignored" with a traceback and drop it. The
+    handler then only asks the sweep to stop at the next chunk; elsewhere it raises."""
+    import gc
+    import signal
+    import sys
+
+    from jaxflex.sweep.engine import _deferred_interrupts
+
+    with _deferred_interrupts() as state:
+        handler = signal.getsignal(signal.SIGINT)
+
+        def callback(phase, info):
+            handler(signal.SIGINT, sys._getframe())
+
+        gc.callbacks.append(callback)
+        try:
+            callback("start", {})  # as the collector would call it: no exception
+        finally:
+            gc.callbacks.remove(callback)
+        assert state["stop"]
+        state["stop"] = False
+        with pytest.raises(KeyboardInterrupt):
+            handler(signal.SIGINT, sys._getframe())
+        assert state["stop"]

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
 import json
 import math
 import os
@@ -366,11 +367,26 @@ class SweepCheckpoint:
     acc: Accumulator
 
 
+def _swallowed(frame: Any) -> bool:
+    """Whether an exception raised in ``frame`` would be swallowed by Python: the frame or one
+    it was called from is a garbage-collector callback (``gc.callbacks``, e.g. JAX's
+    ``_xla_gc_callback``) or a ``__del__``, where CPython prints "Exception ignored in ..."
+    with a traceback and goes on."""
+    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in codes or frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
 @contextlib.contextmanager
 def _deferred_interrupts():
     """SIGINT/SIGTERM raise ``KeyboardInterrupt`` except inside ``state["critical"]``
     sections (folding a chunk in, checkpointing), where they only set ``state["stop"]``, so
-    an interrupt never leaves a half-added chunk."""
+    an interrupt never leaves a half-added chunk; likewise where Python would swallow the
+    exception (``_swallowed``: a signal that arrived during a garbage-collector callback
+    printed a traceback there, and the sweep stopped at the next chunk all the same)."""
     state = {"stop": False, "critical": False}
     if threading.current_thread() is not threading.main_thread():
         yield state
@@ -378,7 +394,7 @@ def _deferred_interrupts():
 
     def handler(signum, frame):
         state["stop"] = True
-        if not state["critical"]:
+        if not state["critical"] and not _swallowed(frame):
             raise KeyboardInterrupt
 
     old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
