@@ -685,23 +685,26 @@ class EncoderScale(AbstractEffect):
     KUKA KR300 axis 1, trajectory A (``studies/kuka_flexible.py``): the deflection left once
     the spring torque of the datasheet rotor inertia is taken out grows with q1 by about
     5e-4 rad/rad over 0-0.8 rad, which no spring, skew or offset reproduces. ``scale``
-    [rad/rad]: fitted within |scale| < 0.01 (a larger value is not an encoder's calibration
-    error; the bound keeps a fit in which K runs to 0 from turning ``K scale q1`` into a free
-    torque term). Not
-    a discrepancy candidate by default (``candidate``): on one log it takes any deflection
-    that grows with the angle, so it is named only where a log's two encoders are compared.
+    [rad/rad]: fitted within |scale| < ``LIMIT`` (a larger value is not an encoder's
+    calibration error; the bound keeps a fit in which K runs to 0 from turning ``K scale q1``
+    into a free torque term). Not a discrepancy candidate by default (``candidate``): on one
+    log it takes any deflection that grows with the angle, so it is named only where a log's
+    two encoders are compared.
     """
 
+    #: The largest |scale| [rad/rad]: the fitted range and the check.
+    LIMIT: ClassVar[float] = 0.01
     name: ClassVar[str] = "encoder_scale"
     where: ClassVar[str] = "link encoder reading"
-    constraints: ClassVar[dict[str, str]] = {"scale": "bounded:-0.01,0.01"}
+    constraints: ClassVar[dict[str, str]] = {"scale": f"bounded:{-LIMIT},{LIMIT}"}
     candidate: ClassVar[bool] = False
     scale: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
     def __check_init__(self) -> None:
-        if is_concrete(self.scale) and not np.all(np.abs(np.asarray(self.scale)) <= 0.01):
-            raise ValueError(f"encoder_scale: parameter scale must be finite with |scale| <= 0.01 "
-                             f"(a calibration error), got {np.asarray(self.scale).tolist()}")
+        if is_concrete(self.scale) and not np.all(np.abs(np.asarray(self.scale)) <= self.LIMIT):
+            raise ValueError(f"encoder_scale: parameter scale must be finite with |scale| <= "
+                             f"{self.LIMIT} (a calibration error), got "
+                             f"{np.asarray(self.scale).tolist()}")
 
     @classmethod
     def typical(cls, n: int) -> EncoderScale:

@@ -943,24 +943,26 @@ def _empty_history() -> jax.Array:
 def trace_solver(
     prob: Any, y0: Any, *, fn: Callable = problem_residuals, rtol: float = 1e-10,
     atol: float = 1e-10, scaling: str = "identity", structure: str = "auto",
-    geodesic: float = 0.0, bucket: bool = True, **loop_options: Any,
+    geodesic: float = 0.0, bucket: bool = True, small: bool = False, **loop_options: Any,
 ) -> bool:
     """Trace and keep (``jaxflex.tracecache``) the compiled loop that ``least_squares(prob,
     y0, ...)`` with the same options will run, without compiling it or taking a step: the
     part of a first solve that holds Python's interpreter lock. A caller that then hands the
     solve to a background thread (``jaxflex.identify.compile_ahead``) lets it compile on one
     core while this thread works on the other, instead of both tracing by turns. Runs the
-    solver's small start program (``_init``). ``loop_options``: ``least_squares``' other
-    options (``max_steps``, ``decrement_tol``, ``stall``, ``progress``), which do not change
-    the program and are ignored. Returns True when a kept program now serves the solve, False
+    solver's small start program (``_init``). ``small``: as ``least_squares``' (which of its
+    two compiled loops). ``loop_options``: ``least_squares``' other options (``max_steps``,
+    ``decrement_tol``, ``stall``, ``progress``), which do not change the program and are
+    ignored. Returns True when a kept program now serves the solve, False
     when the trace cache is off (nothing is traced)."""
     del loop_options
     prob, y, _, solver, wrapped = _setup(prob, y0, fn, rtol, atol, scaling, structure,
                                          geodesic, bucket)
     state = _init(solver, wrapped, y, prob)
     off = _device_bound(None)[1]  # the control's values do not shape the program
-    return _steps.prepare(solver, wrapped, y, state, prob, _control(1, off, off, 0, 1),
-                          _empty_history())
+    loop = _steps_small if small else _steps
+    return loop.prepare(solver, wrapped, y, state, prob, _control(1, off, off, 0, 1),
+                        _empty_history())
 
 
 #: Error bound factor of a step-doubling estimate: the error of the coarse replay is at most
