@@ -128,6 +128,7 @@ from jaxflex.fit import (
     savgol_coeffs,
     on_slot_rows,
     simulated_outputs,
+    trace_solver,
     white_noise_std,
 )
 from jaxflex.fit.ahead import Ahead, all_side_by_side, side_by_side
@@ -476,6 +477,32 @@ def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
     return sol.y[1] if pad is None else pad.unknowns_back(sol.y)[1]
 
 
+#: The solver options of every training fit (``fit_model``, ``trace_fit``).
+_FIT_SOLVER: dict[str, Any] = dict(rtol=_RTOL, atol=_ATOL, scaling="marquardt")
+
+
+def _fit_start(ws: Workspace, model: Model, starts: tuple[jax.Array, jax.Array] | None,
+               ) -> tuple[Problem, Problem, dict[str, jax.Array], jax.Array, jax.Array]:
+    """``fit_model``'s training and held-out problems of ``model``, its start coordinates and
+    the first guesses of the training and held-out start states (``starts``, default the
+    workspace's estimates), brought within the friction's capacity."""
+    train, test, theta0 = ws.for_model(model)
+    plant0 = train.space.plant(theta0)
+    x_train, x_test = (within_capacity(x, plant0) for x in
+                       (starts if starts is not None else (train.segs.x0, test.segs.x0)))
+    return train, test, theta0, x_train, x_test
+
+
+def trace_fit(ws: Workspace, model: Model) -> bool:
+    """Trace and keep the compiled loop of ``fit_model(ws, model)`` without compiling it
+    (``jaxflex.fit.trace_solver``): done alone on the calling thread before the background
+    work starts (``made_ahead``), both traces hold Python's interpreter lock, and traced side
+    by side each takes twice as long. Every model of the workspace shares the loop. True when
+    a kept program now serves the fits (False: the trace cache is off)."""
+    train, _, theta0, x_train, _ = _fit_start(ws, model, None)
+    return trace_solver(train, (theta0, x_train), **_FIT_SOLVER)
+
+
 def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: float = 1.0,
               starts: tuple[jax.Array, jax.Array] | None = None,
               held_out: bool = True, catch_up: float | None = None) -> CandidateFit:
@@ -492,15 +519,11 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     than that many steps' share of what it still lacks to reach it (at that rate it would
     not catch up within ``max_steps``)."""
     t0 = time.perf_counter()
-    train, test, theta0 = ws.for_model(model)
-    plant0 = train.space.plant(theta0)
-    x_train, x_test = (within_capacity(x, plant0) for x in
-                       (starts if starts is not None else (train.segs.x0, test.segs.x0)))
-    sol = least_squares(train, (theta0, x_train), rtol=_RTOL, atol=_ATOL,
-                        max_steps=max_steps, scaling="marquardt",
+    train, test, theta0, x_train, x_test = _fit_start(ws, model, starts)
+    sol = least_squares(train, (theta0, x_train), max_steps=max_steps,
                         decrement_tol=relative_stop(train.n_out, tau_int),
                         stall=(STALL_WINDOW, progress_stop(train.n_out, tau_int, max_steps,
-                                                           catch_up)))
+                                                           catch_up)), **_FIT_SOLVER)
     theta, x_train = sol.y
     cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
     if held_out:
@@ -964,22 +987,28 @@ def _grid_fits(q: np.ndarray, r: np.ndarray, Q: np.ndarray, grid: np.ndarray,
     the orthonormal ``Q`` (r is cleared already): (explained ||X c||^2, -1 where the fit cannot
     be solved; a_s; a_c)."""
     turn = np.exp(1j * step * q)
-    dot = lambda a, b: np.einsum("ij,ij->j", a, b)  # noqa: E731 - column by column
+    n = q.size
     out = []
     for k in range(0, grid.size, 64):  # 64 frequencies at a time, each a 2-column fit
         Ns = grid[k:k + 64]
-        # exp(i N q) for the chunk's evenly spaced N by repeated turns (3x faster than a
-        # sine and a cosine each; the same fits to 1e-14)
-        E = np.empty((q.size, Ns.size), complex)
-        E[:, 0] = np.exp(1j * Ns[0] * q)
+        # E = exp(i N q), a row per N of the chunk, by repeated turns (3x faster than a sine
+        # and a cosine each); its real part is the cosine column C, its imaginary part S
+        E = np.empty((Ns.size, n), complex)
+        E[0] = np.exp(1j * Ns[0] * q)
         for j in range(1, Ns.size):
-            np.multiply(E[:, j - 1], turn, out=E[:, j])
-        S, C = np.ascontiguousarray(E.imag), np.ascontiguousarray(E.real)
+            np.multiply(E[j - 1], turn, out=E[j])
         # the Gram entries of the columns cleared of the nuisance span, without clearing
-        # them: ||P x||^2 = ||x||^2 - ||Q^T x||^2 (Q orthonormal)
-        QS, QC = Q.T @ S, Q.T @ C
-        ss, sc, cc = dot(S, S) - dot(QS, QS), dot(S, C) - dot(QS, QC), dot(C, C) - dot(QC, QC)
-        bs, bc = S.T @ r, C.T @ r
+        # them: ||P x||^2 = ||x||^2 - ||Q^T x||^2 (Q orthonormal), the plain ones from the
+        # double angle (sum sin^2 = (n - Re z2) / 2, sum sin cos = Im z2 / 2, z2 = sum E^2):
+        # complex products instead of a sine and a cosine block each (2.6x faster on the
+        # bench's log, the same fits to 1e-14)
+        z2 = np.einsum("ji,ji->j", E, E)
+        W = E @ Q  # Q^T C + i Q^T S, (m, p)
+        ss = 0.5 * (n - z2.real) - np.einsum("ij,ij->i", W.imag, W.imag)
+        cc = 0.5 * (n + z2.real) - np.einsum("ij,ij->i", W.real, W.real)
+        sc = 0.5 * z2.imag - np.einsum("ij,ij->i", W.imag, W.real)
+        b = E @ r  # C^T r + i S^T r
+        bs, bc = b.imag, b.real
         det = ss * cc - sc * sc
         ok = det > 1e-12 * np.maximum(ss * cc, 1e-300)  # a fit that can be solved
         det = np.where(ok, det, 1.0)
@@ -1733,6 +1762,7 @@ def discover(
     nominal.effects = {}
     ws = workspace(log, nominal, cands, segment=cfg.segment, train_frac=cfg.train_frac,
                    substeps=cfg.substeps, max_effects=cfg.max_effects)
+    trace_fit(ws, Model(nominal, []))
     ahead = made_ahead(ws, nominal)
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2, held_out=False)
     # the base every candidate is compared with must not keep a load that the first solve's
