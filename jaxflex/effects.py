@@ -505,7 +505,10 @@ class Gated(AbstractEffect):
         return self.inner.aux_steady(tau)
 
     def aux_rhs(self, aux: Any, tau: Array, x: PlantState):
-        return self.inner.aux_rhs(aux, tau, x)
+        # gated off, the state stays where it started (``warm_effects`` leaves it at
+        # equilibrium too): the applied torque of an effect off does not read it
+        return self._switched(lambda: self.inner.aux_rhs(aux, tau, x),
+                              lambda: jax.tree_util.tree_map(jnp.zeros_like, aux))
 
     def params(self) -> dict[str, list[float]]:
         return self.inner.params()

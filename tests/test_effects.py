@@ -248,6 +248,11 @@ def test_gated_states_are_warmed_only_when_their_effect_is_on(on):
     if "actuator_lag" in on:  # warmed: the lag state follows the torque history
         assert not np.allclose(np.asarray(xg.aux[0]), np.asarray(tau_pre[0]))
         np.testing.assert_allclose(np.asarray(xg.aux[0]), np.asarray(xp.aux[0]), rtol=1e-14)
+    # a state whose effect is gated off stays where it started through the replay (its
+    # derivative is not computed, ``Gated.aux_rhs``); one on moves
+    for k, name in ((0, "actuator_lag"), (2, "time_delay")):
+        moved = np.ptp(np.asarray(traj_g.aux[k]), axis=0)
+        assert (np.all(moved == 0.0)) == (name not in on), (name, moved)
 
 
 def test_encoder_scale_maps_invert_and_a_rotor_fit_recovers_it():
