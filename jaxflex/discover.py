@@ -477,7 +477,8 @@ def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
     return sol.y[1] if pad is None else pad.unknowns_back(sol.y)[1]
 
 
-#: The solver options of every training fit (``fit_model``, ``trace_fit``).
+#: The solver options of every training fit (``fit_model``, ``screen``, ``trace_fit``: one
+#: compiled loop for all).
 _FIT_SOLVER: dict[str, Any] = dict(rtol=_RTOL, atol=_ATOL, scaling="marquardt")
 
 
@@ -495,10 +496,11 @@ def _fit_start(ws: Workspace, model: Model, starts: tuple[jax.Array, jax.Array] 
 
 def trace_fit(ws: Workspace, model: Model) -> bool:
     """Trace and keep the compiled loop of ``fit_model(ws, model)`` without compiling it
-    (``jaxflex.fit.trace_solver``): done alone on the calling thread before the background
-    work starts (``made_ahead``), both traces hold Python's interpreter lock, and traced side
-    by side each takes twice as long. Every model of the workspace shares the loop. True when
-    a kept program now serves the fits (False: the trace cache is off)."""
+    (``jaxflex.fit.trace_solver``). ``discover`` calls it before the background work starts
+    (``made_ahead``): tracing holds Python's interpreter lock, so traces made side by side
+    each take about twice as long (first run on the bench's 20 s log, three pairs: median
+    29.6 -> 28.3 s). Every model of the workspace shares the loop. True when a kept program
+    now serves the fits (False: the trace cache is off)."""
     train, _, theta0, x_train, _ = _fit_start(ws, model, None)
     return trace_solver(train, (theta0, x_train), **_FIT_SOLVER)
 
@@ -668,8 +670,8 @@ def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float =
     # stands in for what it misses (measured on the bench's 20 s log: the nominal base had
     # Fc at zero, and the solve from the nominal friction came back to the same training
     # residual, 0.6 s later). Side by side with the solve from the estimates, on the core
-    # the settle leaves idle (used only when that one does not lower the residual, as if
-    # solved after it: the same result, 0.3 s sooner on the bench's log)
+    # the settle leaves idle, and used only when that one does not lower the residual: the
+    # result of solving it after that one (the bench's 20 s log leaves no friction pinned)
     free = released(ws, fit) if fit.model.effects else None
     tries = [(fit, (ws.train.segs.x0, fit.test_starts))]
     if free is not None:
