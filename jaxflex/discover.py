@@ -154,6 +154,9 @@ TELLING: dict[str, str] = {
 
 #: Solver tolerances of the candidate fits (relative and absolute change of unknowns/cost).
 _RTOL, _ATOL = 1e-7, 1e-10
+#: The solver options of every fit (``fit_model``, ``screen`` and ``trace_fit`` share one
+#: compiled loop; ``fit_starts``, the held-out start fits, has its own).
+_FIT_SOLVER: dict[str, Any] = dict(rtol=_RTOL, atol=_ATOL, scaling="marquardt")
 #: Statistical stop of every fit (``relative_stop``): the step that remains is below
 #: sqrt(DECREMENT) of the standard errors the fit reports.
 DECREMENT = 0.01
@@ -469,17 +472,12 @@ def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
     pad = Padding.of(prob, x0s)
     run, x_in = (prob, x0s) if pad is None else (prob.padded(pad.slots),
                                                   pad.unknowns(({}, x0s))[1])
-    sol = least_squares((run, theta), ({}, x_in), fn=start_residuals, rtol=_RTOL, atol=_ATOL,
-                        max_steps=max_steps, scaling="marquardt",
+    sol = least_squares((run, theta), ({}, x_in), fn=start_residuals, max_steps=max_steps,
                         structure="shooting" if prob.segs.count > 1 else "dense",
                         decrement_tol=relative_stop(prob.n_out),
-                        stall=(STALL_WINDOW, relative_stop(prob.n_out, fraction=STALL)))
+                        stall=(STALL_WINDOW, relative_stop(prob.n_out, fraction=STALL)),
+                        **_FIT_SOLVER)
     return sol.y[1] if pad is None else pad.unknowns_back(sol.y)[1]
-
-
-#: The solver options of every training fit (``fit_model``, ``screen``, ``trace_fit``: one
-#: compiled loop for all).
-_FIT_SOLVER: dict[str, Any] = dict(rtol=_RTOL, atol=_ATOL, scaling="marquardt")
 
 
 def _fit_start(ws: Workspace, model: Model, starts: tuple[jax.Array, jax.Array] | None,
