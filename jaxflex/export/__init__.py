@@ -25,12 +25,24 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.export.codegen import generate_source
+from jaxflex.export.codegen import Traced, generate_source, trace
+from jaxflex.export.program import (
+    REFERENCE_ROWS,
+    ExportError,
+    SampledController,
+    check_exportable,
+    describe,
+    parity_sensing,
+    rig_controller,
+    sampled_controller,
+)
 from jaxflex.export.translate import UnsupportedPrimitive
 
 __all__ = [
-    "ParityResult", "UnsupportedPrimitive", "build_controller", "check_parity",
-    "export_controller", "parity_ok", "generate_source", "load_module", "parity_sensing",
+    "REFERENCE_ROWS", "ExportError", "ParityResult", "SampledController", "Traced",
+    "UnsupportedPrimitive", "build_controller", "check_exportable", "check_parity",
+    "describe", "export_controller", "generate_source", "load_module", "parity_ok",
+    "parity_sensing", "rig_controller", "sampled_controller", "trace",
 ]
 
 
@@ -133,25 +145,21 @@ def export_controller(controller: Any, path: str | os.PathLike, description: str
     return src
 
 
-def parity_sensing():
-    """Sensing of the parity run: the rig's 16-bit encoders (``jaxflex.presets.rig_sensing``),
-    velocities estimated by the controller, no DAC (torques are compared before it)."""
-    from jaxflex.presets import rig_sensing
-
-    return rig_sensing(dac_bits=0)
-
-
 @dataclass
 class ParityResult:
     """Exported vs JAX torques over one closed-loop run.
 
-    ``max_abs_diff`` [N m]: largest |tau_export - tau_jax| against the jitted closed loop.
-    At the ``worst`` samples (largest differences) the JAX step is also evaluated op by op
-    (``jax.disable_jit``) from the JAX controller's state: ``eager_diff`` is the largest
-    |exported - JAX op by op| there (the export's own error) and ``jit_floor`` the largest
-    |JAX op by op - JAX jitted| (what XLA's compilation -- fusion, its own exp/expm1 -- changes,
-    amplified by the law's sensitivity). Also the torque series (N, n), the measured angles fed
-    to both, and the run's RMS tracking error [rad].
+    ``max_abs_diff`` [N m]: largest |tau_export - tau_jax| of the commanded torques, against
+    the jitted closed loop (``tau_jax``: its torques, or where the sensing has a DAC, the
+    commands of the jitted controller replayed on the loop's angles, which the DAC turns
+    into the loop's torques). ``applied_diff`` [N m]: largest difference of the torques
+    after the DAC against the loop's. At the ``worst`` samples (largest differences) the
+    JAX step is also evaluated op by op (``jax.disable_jit``) from the JAX controller's
+    state: ``eager_diff`` is the largest |exported - JAX op by op| there (the export's own
+    error) and ``jit_floor`` the largest |JAX op by op - JAX jitted| (what XLA's compilation
+    -- fusion, its own exp/expm1 -- changes, amplified by the law's sensitivity). Also the
+    torque series (N, n), the measured angles fed to both, the run's RMS tracking error
+    [rad] and what was run (``config``).
     """
 
     max_abs_diff: float
@@ -163,67 +171,107 @@ class ParityResult:
     q1_meas: np.ndarray
     q2_meas: np.ndarray
     rms_error: float
+    applied_diff: float = 0.0
+    config: str = ""
 
     def __str__(self) -> str:
-        return (f"parity over {self.tau_jax.shape[0]} samples: largest |tau_export - tau_jax| = "
-                f"{self.max_abs_diff:.3e} N m; at the {self.worst.size} worst samples exported vs "
-                f"JAX op-by-op {self.eager_diff:.3e} N m, JAX op-by-op vs JAX jit "
+        return (f"parity over {self.tau_jax.shape[0]} samples ({self.config}): largest "
+                f"|tau_export - tau_jax| = {self.max_abs_diff:.3e} N m (after the DAC "
+                f"{self.applied_diff:.3e} N m); at the {self.worst.size} worst samples "
+                f"exported vs JAX op-by-op {self.eager_diff:.3e} N m, JAX op-by-op vs JAX jit "
                 f"{self.jit_floor:.3e} N m (tau range {np.min(self.tau_jax):.3f} .. "
                 f"{np.max(self.tau_jax):.3f} N m; RMS tracking error {self.rms_error:.3e} rad)")
 
 
 def check_parity(
-    controller: Any, module: types.ModuleType | None = None, *, t_final: float = 10.0,
+    controller: Any, module: Any = None, *, t_final: float = 10.0,
     plant: Any = None, sensing: Any = None, seed: int = 0, n_worst: int = 10,
+    reference: bool = False,
 ) -> ParityResult:
-    """Closed loop in JAX (``simulate_sampled``, ``plant`` defaults to the controller's model),
-    then the exported controller (``module``, generated if None) on the recorded measured
-    angles; returns the largest torque difference (before any DAC, docs/spec.md: 1e-12 in float64)
-    and, at the ``n_worst`` worst samples, the comparison with JAX evaluated op by op."""
+    """Run the closed loop in JAX, then the exported controller on its sensed angles.
+
+    **Arguments:**
+
+    - ``controller``: a ``SampledController`` (run under its own sensing) or a
+      ``CascadeController`` (run under ``sensing``, default ``parity_sensing``).
+    - ``module``: the exported controller (a Python module from ``load_module``, or a C
+      library from ``jaxflex.export.native.load_c``); None: the Python export, generated.
+    - ``t_final`` [s]: length of the run; ``plant``: the true plant (default the
+      controller's model); ``seed``: the encoders' noise; ``n_worst``: samples evaluated op
+      by op.
+    - ``reference``: give the exported controller the reference at each sample (its
+      ``ref`` input: q1d and four derivatives, as the loop hands them to the JAX controller)
+      instead of letting it evaluate the recorded one.
+
+    **Returns:**
+
+    A ``ParityResult`` (docs/spec.md: 1e-12 N m in float64).
+
+    **Raises:**
+
+    ``ValueError`` when a ``SampledController`` is given a ``sensing`` (its own is run);
+    ``ExportError`` for a configuration the export cannot run.
+    """
     import equinox as eqx
     import jax
 
-    from jaxflex.simulate import simulate_sampled
+    from jaxflex.simulate import REFERENCE_ORDER, simulate_sampled
 
+    if isinstance(controller, SampledController) and sensing is not None:
+        raise ValueError("check_parity: a SampledController runs under its own sensing; build "
+                         "it for another one with rig_controller(..., sensing=...)")
     with jax.enable_x64(True):
+        sc = sampled_controller(controller, sensing)
         if module is None:
-            module = load_module(generate_source(controller))
-        plant = controller.model if plant is None else plant
-        sensing = parity_sensing() if sensing is None else sensing
-        if sensing.dac_bits:
-            raise ValueError("check_parity: use a sensing without DAC (torques are compared before it)")
+            module = load_module(generate_source(sc))
+        plant = sc.controller.model if plant is None else plant
         sim = eqx.filter_jit(
             lambda p, c, s, k: simulate_sampled(p, c, t_final, sensing=s, key=k)
         )
-        r = sim(plant, controller, sensing, jax.random.PRNGKey(seed))
-        tau_jax = np.asarray(r.tau)
+        r = sim(plant, sc.controller, sc.sensing, jax.random.PRNGKey(seed))
         q1m, q2m, ts = np.asarray(r.q1_meas), np.asarray(r.q2_meas), np.asarray(r.t)
         rms = float(np.sqrt(np.mean(np.asarray(r.e1) ** 2)))
-        states, _ = _replay(controller, ts, q1m, q2m)
+        refs = np.asarray(jax.jit(jax.vmap(
+            lambda t: sc.controller.trajectory.derivatives(t, order=REFERENCE_ORDER)))(ts))
+        states, tau_cmd = _replay(sc, ts, q1m, q2m, refs if reference else None)
+        tau_loop = np.asarray(r.tau)
+        tau_jax = tau_loop if not sc.sensing.dac_bits else tau_cmd
     ctrl = module.Controller()
     ctrl.reset()
     n = tau_jax.shape[1]
     tau_np = np.empty_like(tau_jax)
     for k in range(ts.shape[0]):
+        ref = refs[k] if reference else None
         if n == 1:
-            tau_np[k, 0] = ctrl.step(float(ts[k]), float(q1m[k, 0]), float(q2m[k, 0]))
+            tau_np[k, 0] = ctrl.step(float(ts[k]), float(q1m[k, 0]), float(q2m[k, 0]), ref=ref)
         else:
-            tau_np[k] = ctrl.step(ts[k], q1m[k], q2m[k])
+            tau_np[k] = ctrl.step(ts[k], q1m[k], q2m[k], ref=ref)
+    with jax.enable_x64(True):
+        applied = np.asarray(sc.sensing.dac(jax.numpy.asarray(tau_np)))
     per = np.max(np.abs(tau_np - tau_jax), axis=1)
-    diff = float(np.max(per)) if np.all(np.isfinite(tau_jax)) else math.inf
+    finite = np.all(np.isfinite(tau_jax))
+    diff = float(np.max(per)) if finite else math.inf
+    applied_diff = float(np.max(np.abs(applied - tau_loop))) if finite else math.inf
     worst = np.argsort(per)[::-1][:n_worst]
     eager_diff = floor = 0.0
     with jax.enable_x64(True), jax.disable_jit():
-        st_def = jax.tree_util.tree_structure(controller.init(0.0, q1m[0], q2m[0]))
+        st_def = jax.tree_util.tree_structure(sc.init(0.0, q1m[0], q2m[0]))
         for k in worst:
             st = jax.tree_util.tree_unflatten(st_def, [np.asarray(x[k]) for x in states])
-            _, out = controller.step(st, ts[k], q1m[k], q2m[k])
-            tau_e = np.asarray(out.tau)
             S = tuple(float(v) for x in states for v in np.ravel(x[k]))
-            _, tau_x = ctrl._step(S, float(ts[k]), *map(float, q1m[k]), *map(float, q2m[k]))
+            qs = [*map(float, q1m[k]), *map(float, q2m[k])]
+            if reference:
+                _, out = sc.with_reference(refs[k], ts[k]).step(st, ts[k], q1m[k], q2m[k])
+                _, tau_x = ctrl._step_ref(S, float(ts[k]), *qs, *map(float, refs[k].ravel()))
+            else:
+                _, out = sc.step(st, ts[k], q1m[k], q2m[k])
+                _, tau_x = ctrl._step(S, float(ts[k]), *qs)
+            tau_e = np.asarray(out.tau)
             eager_diff = max(eager_diff, float(np.max(np.abs(np.asarray(tau_x) - tau_e))))
             floor = max(floor, float(np.max(np.abs(tau_e - tau_jax[k]))))
-    return ParityResult(diff, eager_diff, floor, worst, tau_jax, tau_np, q1m, q2m, rms)
+    config = describe(sc) + (", reference given at each sample" if reference else "")
+    return ParityResult(diff, eager_diff, floor, worst, tau_jax, tau_np, q1m, q2m, rms,
+                        applied_diff, config)
 
 
 def parity_ok(result: ParityResult, tol: float = 1e-12, floor_factor: float = 4.0) -> bool:
@@ -234,23 +282,28 @@ def parity_ok(result: ParityResult, tol: float = 1e-12, floor_factor: float = 4.
     return bool(d <= tol or (result.eager_diff <= tol and d <= floor_factor * result.jit_floor))
 
 
-def _replay(controller: Any, ts: np.ndarray, q1m: np.ndarray, q2m: np.ndarray):
-    """The JAX controller alone (init + step in a ``lax.scan``) on recorded angles: the state
-    leaves before each sample and the torques."""
+def _replay(sc: SampledController, ts: np.ndarray, q1m: np.ndarray, q2m: np.ndarray,
+            refs: np.ndarray | None = None):
+    """The JAX controller alone (init + step in a ``lax.scan``) on recorded angles (and, if
+    given, the reference at each sample): the state leaves before each sample and the
+    commanded torques."""
     import equinox as eqx
     import jax
 
     @eqx.filter_jit
-    def go(c, ts, q1m, q2m):
-        st0 = c.init(ts[0], q1m[0], q2m[0])
+    def go(c, ts, q1m, q2m, refs):
+        at = (lambda t, R: c) if refs is None else (lambda t, R: c.with_reference(R, t))
+        st0 = at(ts[0], None if refs is None else refs[0]).init(ts[0], q1m[0], q2m[0])
 
         def body(st, inp):
-            new, out = c.step(st, *inp)
+            t, q1, q2, R = inp
+            new, out = at(t, R).step(st, t, q1, q2)
             return new, (jax.tree_util.tree_leaves(st), out.tau)
 
-        return jax.lax.scan(body, st0, (ts, q1m, q2m))[1]
+        rs = ts if refs is None else refs  # a placeholder when no reference is given
+        return jax.lax.scan(body, st0, (ts, q1m, q2m, rs))[1]
 
-    states, taus = go(controller, ts, q1m, q2m)
+    states, taus = go(sc, ts, q1m, q2m, refs)
     return [np.asarray(x) for x in states], np.asarray(taus)
 
 
