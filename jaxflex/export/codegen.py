@@ -1,11 +1,14 @@
-"""Write the standalone controller module from traced ``CascadeController`` functions.
+"""Trace the controller once and write the standalone Python module from its programs.
 
-Three functions of the controller are traced with ``jax.make_jaxpr`` for fixed shapes (n
-joints): ``init`` (filter and observer state at the first sample), ``step`` (one sample:
-velocity estimation, observer, q2d derivatives, cascade law, saturation) and the reference
-``trajectory.position``. Every array leaf of the controller (model, LuGre, gains, reference,
-filter constants, torque limit) is a jaxpr *input*, so the generated module can be rebuilt
-with other values; the traced values are written into it as defaults.
+``trace`` runs ``jax.make_jaxpr`` on the functions of a ``SampledController`` for fixed
+shapes (n joints): ``init`` (filters, Kalman filter and observer state at the first
+sample), ``step`` (one sample: velocity source, observer, q2d derivatives, cascade law,
+saturation), their variants with the reference given (``init_ref``, ``step_ref``) and the
+recorded reference (``reference``, ``reference_derivatives``). Every array leaf of the
+controller (model, LuGre, gains, reference, filter constants, Kalman gains, torque limit) is
+a jaxpr *input*. ``generate_source`` translates the programs into Python, where the leaves
+stay parameters (the module can be rebuilt with other values; the traced ones are its
+defaults); ``jaxflex.export.cgen`` translates the same programs into C.
 """
 
 from __future__ import annotations
