@@ -167,3 +167,21 @@ def test_c_parity_two_joints(tmp_path):
     r = check_parity(sc, cmod, t_final=1.0)
     assert r.tau_jax.shape == (1000, 2)
     assert parity_ok(r), str(r)
+
+
+@pytest.mark.slow
+@needs_cc
+def test_bench_export_step_study_small(tmp_path):
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).parents[1] / "studies" / "bench_export_step.py"
+    spec = importlib.util.spec_from_file_location("bench_export_step", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.main(["--small", "--out", str(tmp_path), "--repeats", "2"])
+    assert json.loads((tmp_path / "results.json").read_text())["baseline"] == "c"
+    b = res["backends"]
+    assert set(b) == {"numpy", "python", "c", "c_ctypes"}
+    assert all(v["max_abs_diff_to_jax_Nm"] <= 1e-12 for v in b.values())
+    assert b["c"]["median_us"] > 0 and res["setup_s"]["compile_c"] > 0
