@@ -41,6 +41,16 @@ def test_reproduce_cli_writes_results(tmp_path):
         for f in e["figures"]:
             assert (out / f).stat().st_size > 1000
     assert (out / "sinusoid_torque_friction.png").stat().st_size > 1000
+    # every title names the estimator and the observer shown
+    title = res["experiments"]["sinusoid"]["title"]
+    assert "Kalman-filter velocities" in title and "leak 0.2 rad/s" in title
+    # the paper's own controller (no leak, dirty derivative) has its figure too
+    own = res["paper_own_observer"]
+    assert own["velocity"] == "filtered" and own["observer_leak"] == [0.0]
+    assert "dirty-derivative" in own["label"] and "no leak" in own["label"]
+    fig = own["experiments"]["sinusoid"]["figures"]
+    assert fig == ["sinusoid_paper_own_observer.png"]
+    assert (out / fig[0]).stat().st_size > 1000
 
 
 def test_reproduce_cli_bad_params_file_is_a_clear_error(tmp_path, capsys):
