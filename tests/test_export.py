@@ -257,6 +257,10 @@ def test_kalman_and_leak_exported_as_certified(kalman_export):
     ctrl = mod.Controller()
     ctrl.step(0.0, 0.0, 0.0)
     assert set(ctrl.state) == set(mod.STATE_NAMES)
+    # the filter's matrices belong to the exported model: a model override is refused by name
+    with pytest.raises(ValueError, match=r"model\.friction\.Fc.*Kalman"):
+        mod.Controller(params={"model.friction.Fc": 0.1})
+    mod.Controller(params={"gains.L1": 150.0})
 
 
 def test_parity_kalman_leak_under_paper_sensing(kalman_export):

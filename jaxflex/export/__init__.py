@@ -38,6 +38,7 @@ from jaxflex.export.program import (
     SampledController,
     check_exportable,
     describe,
+    describe_sensing,
     parity_sensing,
     rig_controller,
     sampled_controller,
@@ -47,7 +48,7 @@ from jaxflex.export.translate import UnsupportedPrimitive
 __all__ = [
     "REFERENCE_ROWS", "ExportError", "ParityResult", "SampledController", "Traced",
     "UnsupportedPrimitive", "build_controller", "check_exportable", "check_parity",
-    "describe", "export_controller", "generate_source", "load_module", "parity_ok",
+    "describe", "describe_sensing", "export_controller", "generate_source", "load_module", "parity_ok",
     "parity_sensing", "rig_controller", "sampled_controller", "trace",
 ]
 
@@ -293,7 +294,8 @@ def check_parity(
             tau_e = np.asarray(out.tau)
             eager_diff = max(eager_diff, float(np.max(np.abs(np.asarray(tau_x) - tau_e))))
             floor = max(floor, float(np.max(np.abs(tau_e - tau_jax[k]))))
-    config = describe(sc) + (", reference given at each sample" if reference else "")
+    config = (f"{describe(sc)}; under {describe_sensing(sc.sensing)}"
+              + ("; reference given at each sample" if reference else ""))
     return ParityResult(diff, eager_diff, floor, worst, tau_jax, tau_np, q1m, q2m, rms,
                         applied_diff, jit_drift, config)
 

@@ -399,7 +399,8 @@ Joints: {n}; sample period dt = {dt} s; q2d_method = {method!r}; friction compen
 Controller-side sensing: {config}.
 
     ctrl = Controller()                      # the exported parameters
-    ctrl = Controller.from_json("P.json")    # other plant/friction/gains (docs/spec.md section 7)
+    ctrl = Controller.from_json("P.json")    # other plant/friction/gains (docs/spec.md section 7;
+                                             # not the model where the Kalman filter runs)
     ctrl = Controller(params={{"gains.L1": [150.0]}})
     ctrl.reset()
     tau = ctrl.step(t, q1, q2)               # t [s], q1, q2 [rad] -> tau [N m], recorded reference
@@ -523,6 +524,11 @@ class Controller:
             if any(_m.isnan(x) for x in vals):
                 raise ValueError(f"parameter {{name}}: NaN")
             p[name] = vals
+        model = sorted(k for k in (params or {{}}) if k.startswith("model."))
+        if VELOCITY == "kalman" and model:
+            raise ValueError(f"parameters {{model}}: the Kalman filter's matrices (estimator.*) "
+                             "were designed for the exported model; export again from the "
+                             "parameter file instead of overriding the model")
         self.params = p
         flat = [x for k in DEFAULT_PARAMS for x in p[k]]
         self._step = _make_step(*_derive_step(*flat))

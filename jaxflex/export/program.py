@@ -179,17 +179,42 @@ def rig_controller(
 
 
 def describe(sc: SampledController) -> str:
-    """One line naming the velocity source, observer leak and DAC of ``sc``."""
+    """One line naming what the controller computes on the rig: its velocity source (with
+    the DAC the Kalman filter predicts through), its observer and leak.
+
+    **Arguments:**
+
+    - ``sc``: the controller.
+
+    **Returns:**
+
+    E.g. "Kalman-filter velocities (predicting through a 12-bit DAC over +-2.0 N m),
+    observer leak 0.2 rad/s".
+    """
     s = sc.sensing
     leak = [float(v) for v in jnp.broadcast_to(sc.controller.gains.leak, (sc.n,))]
-    vel = {"filtered": "dirty-derivative velocities",
-           "kalman": "Kalman-filter velocities" + (" and angles" if sc.estimator is not None
-                                                   and sc.estimator.angles else "")}[s.velocity]
+    if s.velocity == "kalman":
+        vel = "Kalman-filter velocities" + (" and angles" if sc.estimator.angles else "")
+        if s.dac_bits:
+            vel += f" (predicting through a {_dac(s)})"
+    else:
+        vel = "dirty-derivative velocities"
     obs = ("paper's observer (no leak)" if not any(leak)
            else f"observer leak {leak if sc.n > 1 else leak[0]} rad/s")
     if not sc.controller.compensation:
         obs = "no friction compensation"
-    rng = np.ravel(np.asarray(s.dac_range, dtype=float))
-    dac = (f"{s.dac_bits}-bit DAC over +-{rng[0] if rng.size == 1 else rng.tolist()} N m"
-           if s.dac_bits else "no DAC")
-    return f"{vel}, {obs}, {dac}"
+    return f"{vel}, {obs}"
+
+
+def describe_sensing(sensing: AbstractSensing) -> str:
+    """One line naming a sensing's encoder steps [rad] and DAC (the rig side of a run)."""
+    r1 = np.ravel(np.asarray(sensing.q1_resolution, dtype=float))
+    r2 = np.ravel(np.asarray(sensing.q2_resolution, dtype=float))
+    enc = (f"encoder steps {r1[0]:.3g} / {r2[0]:.3g} rad" if r1.size == 1 and r2.size == 1
+           else f"encoder steps {r1.tolist()} / {r2.tolist()} rad")
+    return f"{enc}, {_dac(sensing) if sensing.dac_bits else 'no DAC'}"
+
+
+def _dac(sensing: AbstractSensing) -> str:
+    rng = np.ravel(np.asarray(sensing.dac_range, dtype=float))
+    return f"{sensing.dac_bits}-bit DAC over +-{rng[0] if rng.size == 1 else rng.tolist()} N m"
