@@ -16,7 +16,6 @@ import datetime
 import json
 import re
 
-import numpy as np
 
 from jaxflex.export.codegen import _SPEC_MAP, Traced, _program, trace
 from jaxflex.export.program import REFERENCE_ROWS, describe
