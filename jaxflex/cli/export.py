@@ -122,14 +122,14 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.params import load_params
     from jaxflex.presets import controller_config, paper_params
 
-    fmt = output_format(args.out)
-    header = str(Path(args.out).with_suffix(".h")) if fmt == ".c" else None
+    header = str(Path(args.out).with_suffix(".h")) if Path(args.out).suffix == ".c" else None
     check_outputs(args.force, files=[args.out, header])
     params = load_params(args.params) if args.params else paper_params()
     cfg = controller_config(params, {
         "trajectory": args.trajectory, "q2d_method": args.q2d, "dt": args.dt,
         "tau_max": args.tau_max, "compensation": False if args.no_compensation else None,
     }, CONTROLLER_FLAGS, source=args.params or "the paper's parameters")
+    fmt = output_format(args.out)  # before any tracing or writing
     sc = rig_controller(
         params, cfg.trajectory_name,
         q2d_method=cfg.q2d_method, dt=cfg.dt, tau_max=cfg.tau_max,

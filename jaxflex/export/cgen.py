@@ -17,9 +17,9 @@ import json
 import re
 
 
-from jaxflex.export.codegen import _SPEC_MAP, Traced, _program, trace
+from jaxflex.export.codegen import SPEC_ENTRIES, Traced, trace, translate_program
 from jaxflex.export.program import REFERENCE_ROWS, describe
-from jaxflex.export.translate import C99, Program, Sym, _const_array, eliminate_dead, format_atom
+from jaxflex.export.translate import C99, Program, Sym, const_array, eliminate_dead, format_atom
 
 C_FLAGS: tuple[str, ...] = ("-std=c99", "-O2", "-ffp-contract=off", "-fno-fast-math")
 """Compiler flags the generated C is checked with (gcc/clang syntax)."""
@@ -78,8 +78,8 @@ def generate_c(controller: object = None, *, traced: Traced | None = None,
 
     tr = trace(controller) if traced is None else traced
     with jax.enable_x64(True):
-        params = [_const_array(v) for v in tr.values]
-        progs = {name: _program(tr, name, params, C99) for name in _C_FUNCS}
+        params = [const_array(v) for v in tr.values]
+        progs = {name: translate_program(tr, name, params, C99) for name in _C_FUNCS}
     n, ns, rows = tr.n, tr.n_state, REFERENCE_ROWS
     c = tr.sc.controller
     desc = description or "Cascade controller with LuGre friction observer"
@@ -122,7 +122,7 @@ def generate_c(controller: object = None, *, traced: Traced | None = None,
         "reference_rows": rows, "state_names": tr.state_names,
         "params": {name: [list(v.shape), v.reshape(-1).tolist()]
                    for name, v in zip(tr.names, tr.values)},
-        "spec_map": {k: v for k, v in _SPEC_MAP.items() if v in tr.names},
+        "spec_map": {k: v for k, v in SPEC_ENTRIES.items() if v in tr.names},
     }
     info_c = json.dumps(json.dumps(info, separators=(",", ":")))  # a C string literal
     guard = "JAXFLEX_CONTROLLER_H"

@@ -43,8 +43,8 @@ from jaxflex.export.translate import (
 )
 from jaxflex.simulate import REFERENCE_ORDER
 
-# docs/spec.md section 7 entries -> controller leaf names
-_SPEC_MAP: dict[str, str] = {
+# docs/spec.md section 7 entries -> controller leaf names (the model the rig's plant defaults to)
+SPEC_ENTRIES: dict[str, str] = {
     "plant.I": "model.links.I", "plant.J": "model.J", "plant.K": "model.K",
     **{f"friction.{k}": f"model.friction.{k}" for k in ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")},
     **{f"gains.{k}": f"gains.{k}" for k in ("Ke", "KD1", "KD2", "kv", "L1", "L2")},
@@ -280,8 +280,27 @@ def _signal_args(sig: list[tuple[str, tuple[int, ...]]]) -> list[str]:
             for name, shape in sig for i in range(int(np.prod(shape, dtype=int)))]
 
 
-def _program(tr: Traced, name: str, param_inputs: list[np.ndarray],
-             dialect: Dialect = PYTHON) -> Program:
+def translate_program(tr: Traced, name: str, param_inputs: list[np.ndarray],
+                      dialect: Dialect = PYTHON) -> Program:
+    """Translate one traced program of ``tr`` into ``dialect``.
+
+    **Arguments:**
+
+    - ``tr``: the traced programs (``trace``).
+    - ``name``: which one ("init", "step", "init_ref", "step_ref", "reference",
+      "reference_derivatives").
+    - ``param_inputs``: the controller's leaves as atoms (``sym_array`` symbols to keep
+      them parameters, ``const_array`` of their values to fold them into the code).
+    - ``dialect``: the back end's spelling (``PYTHON`` or ``C99``).
+
+    **Returns:**
+
+    The ``Program`` (hoisted and per-sample statements, outputs).
+
+    **Raises:**
+
+    ``UnsupportedPrimitive`` naming a primitive the translator cannot handle.
+    """
     closed, sig = tr.jaxprs[name]
     t = Translator(prefix="v", dialect=dialect)
     outs = t.run(closed.jaxpr, closed.consts, [*param_inputs, *_signal_syms(sig)])
@@ -341,8 +360,11 @@ def _generate(tr: Traced, description: str) -> str:
     sc = tr.sc
     c = sc.controller
     param_syms = [sym_array(f"p{i}", v.shape, True) for i, v in enumerate(tr.values)]
-    progs = {name: _program(tr, name, param_syms) for name in _PY_FUNCS}
-    used = sorted(_used_params(list(progs.values())))
+    progs = {name: translate_program(tr, name, param_syms) for name in _PY_FUNCS}
+    # the leaves the code reads, and the parameter file's entries (the rig's plant and
+    # friction default to them) even where the law does not read them
+    spec_leaves = {tr.names.index(v) for v in SPEC_ENTRIES.values() if v in tr.names}
+    used = sorted(_used_params(list(progs.values())) | spec_leaves)
     param_args = [f"p{i}_{k}" for i in used for k in range(tr.values[i].size)]
     tup = lambda xs: "(" + "".join(x + ", " for x in xs) + ")"
     one = lambda xs: xs[0] if n == 1 else tup(xs)
@@ -372,7 +394,7 @@ def _generate(tr: Traced, description: str) -> str:
         for i in used
     )
     used_names = {tr.names[i] for i in used}
-    spec_map = {k: v for k, v in _SPEC_MAP.items() if v in used_names}
+    spec_map = {k: v for k, v in SPEC_ENTRIES.items() if v in used_names}
     header = _HEADER.format(
         description=description or "Cascade controller with LuGre friction observer",
         date=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),

@@ -379,11 +379,11 @@ class Translator:
 
         def read(v):
             if type(v).__name__ == "Literal":
-                return _const_array(v.val)
+                return const_array(v.val)
             return env[v]
 
         for v, c in zip(jaxpr.constvars, consts):
-            env[v] = c if isinstance(c, np.ndarray) and c.dtype == object else _const_array(c)
+            env[v] = c if isinstance(c, np.ndarray) and c.dtype == object else const_array(c)
         for v, a in zip(jaxpr.invars, args):
             env[v] = a
         for eqn in jaxpr.eqns:
@@ -506,7 +506,7 @@ class Translator:
             shape, dim = tuple(p["shape"]), int(p["dimension"])
             idx = np.indices(shape)[dim]
             conv = float if np.issubdtype(np.dtype(p["dtype"]), np.floating) else int
-            return [_const_array(np.vectorize(conv, otypes=[object])(idx))]
+            return [const_array(np.vectorize(conv, otypes=[object])(idx))]
         if prim == "pad":
             pad_val = ins[1].reshape(()).item()
             cfg = p["padding_config"]
@@ -622,7 +622,8 @@ class Translator:
         return np.array(outs, dtype=object)
 
 
-def _const_array(v: Any) -> np.ndarray:
+def const_array(v: Any) -> np.ndarray:
+    """An object array of the constants (or atoms) of ``v``, as the translator holds values."""
     arr = np.asarray(v)
     out = np.empty(arr.shape, dtype=object)
     for idx in np.ndindex(arr.shape):
