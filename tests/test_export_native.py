@@ -76,6 +76,7 @@ def test_c_parity_with_jax_and_python(exported):
     cmod = load_c(folder / "controller.c")
     assert cmod.VELOCITY == "kalman" and cmod.N_JOINTS == 1 and cmod.DT == 1e-3
     assert cmod.STATE_NAMES == py.STATE_NAMES
+    assert cmod.DEFAULT_PARAMS == py.DEFAULT_PARAMS and cmod.SPEC_MAP == py.SPEC_MAP
     r = check_parity(sc, cmod, t_final=2.0)
     assert r.max_abs_diff <= 1e-12, str(r)
     assert r.eager_diff <= 1e-14, str(r)
@@ -113,11 +114,13 @@ def test_c_reference_input_and_reset(exported):
 
 def test_cli_export_c_check(tmp_path, capsys):
     """`export --out controller.c` writes controller.c and controller.h; --check compiles it
-    and runs it in the closed loop (or says there is no compiler)."""
+    and runs it in the closed loop, --check-reference also with the reference given at each
+    step (or it says there is no compiler)."""
     from jaxflex.cli import main
 
     out = tmp_path / "controller.c"
-    rc = main(["export", "--out", str(out), "--check", "--check-duration", "0.3"])
+    rc = main(["export", "--out", str(out), "--check", "--check-reference",
+               "--check-duration", "0.3"])
     text = capsys.readouterr().out
     assert out.exists() and (tmp_path / "controller.h").exists()
     assert "wrote" in text and "controller.h" in text
@@ -125,7 +128,7 @@ def test_cli_export_c_check(tmp_path, capsys):
         assert rc == 1 and "no C compiler" in text
     else:
         assert rc == 0, text
-        assert "check passed" in text
+        assert text.count("check passed") == 2 and "reference given at each sample" in text
 
 
 @needs_cc

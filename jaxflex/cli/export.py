@@ -86,6 +86,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="close the loop in JAX under the configuration's own sensing, run the "
                    "exported file (a C file compiled with the system's cc) on the same sensed "
                    "angles and print the largest torque difference")
+    p.add_argument("--check-reference", action="store_true",
+                   help="with --check: also run the check with the reference given to the "
+                   "exported controller at each step (its ref input, as a rig gives it)")
     p.add_argument("--check-duration", type=float, default=10.0,
                    help="seconds of closed loop for --check (default 10)")
     p.set_defaults(func=run)
@@ -160,16 +163,18 @@ def run(args: argparse.Namespace) -> int:
             module = load_c(args.out)
         else:
             module = load_module(args.out)
-        r = check_parity(sc, module, t_final=args.check_duration)
-        print(r)
-        print(f"largest difference: {r.max_abs_diff:.3e} N m")
-        if r.max_abs_diff <= 1e-12:
-            print("check passed (<= 1e-12 N m)")
-        elif parity_ok(r):
-            print("check passed: above 1e-12 N m against the jitted JAX loop, but the export "
-                  "equals JAX evaluated op by op to 1e-12 at the worst samples, and XLA's "
-                  "compilation itself moves the torque as much (JAX against itself)")
-        else:
-            print("check FAILED: exported torques differ from JAX by more than 1e-12 N m")
-            return 1
+        modes = (False, True) if args.check_reference else (False,)
+        for reference in modes:
+            r = check_parity(sc, module, t_final=args.check_duration, reference=reference)
+            print(r)
+            print(f"largest difference: {r.max_abs_diff:.3e} N m")
+            if r.max_abs_diff <= 1e-12:
+                print("check passed (<= 1e-12 N m)")
+            elif parity_ok(r):
+                print("check passed: above 1e-12 N m against the jitted JAX loop, but the "
+                      "export equals JAX evaluated op by op to 1e-12 at the worst samples, and "
+                      "XLA's compilation itself moves the torque as much (JAX against itself)")
+            else:
+                print("check FAILED: exported torques differ from JAX by more than 1e-12 N m")
+                return 1
     return 0

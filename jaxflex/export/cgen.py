@@ -17,7 +17,13 @@ import json
 import re
 
 
-from jaxflex.export.codegen import SPEC_ENTRIES, Traced, trace, translate_program
+from jaxflex.export.codegen import (
+    SPEC_ENTRIES,
+    Traced,
+    listed_leaves,
+    trace,
+    translate_program,
+)
 from jaxflex.export.program import REFERENCE_ROWS, describe
 from jaxflex.export.translate import C99, Program, Sym, const_array, eliminate_dead, format_atom
 
@@ -80,6 +86,7 @@ def generate_c(controller: object = None, *, traced: Traced | None = None,
     with jax.enable_x64(True):
         params = [const_array(v) for v in tr.values]
         progs = {name: translate_program(tr, name, params, C99) for name in _C_FUNCS}
+        listed = listed_leaves(tr)
     n, ns, rows = tr.n, tr.n_state, REFERENCE_ROWS
     c = tr.sc.controller
     desc = description or "Cascade controller with LuGre friction observer"
@@ -120,9 +127,10 @@ def generate_c(controller: object = None, *, traced: Traced | None = None,
         "n_joints": n, "dt": float(c.dt), "q2d_method": c.q2d_method,
         "velocity": tr.sc.sensing.velocity, "config": describe(tr.sc),
         "reference_rows": rows, "state_names": tr.state_names,
-        "params": {name: [list(v.shape), v.reshape(-1).tolist()]
-                   for name, v in zip(tr.names, tr.values)},
-        "spec_map": {k: v for k, v in SPEC_ENTRIES.items() if v in tr.names},
+        "params": {tr.names[i]: [list(tr.values[i].shape), tr.values[i].reshape(-1).tolist()]
+                   for i in listed},
+        "spec_map": {k: v for k, v in SPEC_ENTRIES.items()
+                     if v in {tr.names[i] for i in listed}},
     }
     info_c = json.dumps(json.dumps(info, separators=(",", ":")))  # a C string literal
     guard = "JAXFLEX_CONTROLLER_H"

@@ -325,6 +325,27 @@ def _used_params(progs: list[Program]) -> set[int]:
     return used
 
 
+def listed_leaves(tr: Traced, progs: list[Program] | None = None) -> list[int]:
+    """Indices of the controller leaves an export lists as its constants: those its code
+    reads, and the parameter file's entries (the rig's plant and friction default to them)
+    even where the law does not read them.
+
+    **Arguments:**
+
+    - ``tr``: the traced programs.
+    - ``progs``: their translations with the leaves as parameters (translated here if None).
+
+    **Returns:**
+
+    Sorted indices into ``tr.names``.
+    """
+    if progs is None:
+        syms = [sym_array(f"p{i}", v.shape, True) for i, v in enumerate(tr.values)]
+        progs = [translate_program(tr, name, syms) for name in tr.jaxprs]
+    spec_leaves = {tr.names.index(v) for v in SPEC_ENTRIES.values() if v in tr.names}
+    return sorted(_used_params(progs) | spec_leaves)
+
+
 _PY_FUNCS = ("step", "init", "reference", "step_ref", "init_ref", "reference_derivatives")
 
 
@@ -361,10 +382,7 @@ def _generate(tr: Traced, description: str) -> str:
     c = sc.controller
     param_syms = [sym_array(f"p{i}", v.shape, True) for i, v in enumerate(tr.values)]
     progs = {name: translate_program(tr, name, param_syms) for name in _PY_FUNCS}
-    # the leaves the code reads, and the parameter file's entries (the rig's plant and
-    # friction default to them) even where the law does not read them
-    spec_leaves = {tr.names.index(v) for v in SPEC_ENTRIES.values() if v in tr.names}
-    used = sorted(_used_params(list(progs.values())) | spec_leaves)
+    used = listed_leaves(tr, list(progs.values()))
     param_args = [f"p{i}_{k}" for i in used for k in range(tr.values[i].size)]
     tup = lambda xs: "(" + "".join(x + ", " for x in xs) + ")"
     one = lambda xs: xs[0] if n == 1 else tup(xs)
