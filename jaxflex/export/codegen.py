@@ -185,18 +185,30 @@ class Traced:
 
     @property
     def n(self) -> int:
+        """Number of joints."""
         return self.sc.n
 
     @property
     def n_state(self) -> int:
+        """Number of state values (every leaf's size)."""
         return sum(self.state_sizes)
 
 
 def trace(controller: CascadeController | SampledController) -> Traced:
-    """Trace the programs of ``controller`` (a ``CascadeController`` runs with the dirty
-    derivative and no DAC) once, in float64, for every back end.
+    """Trace the programs of a controller once, in float64, for every back end.
 
-    Raises ``ExportError`` for a configuration the export cannot run.
+    **Arguments:**
+
+    - ``controller``: a ``SampledController``, or a ``CascadeController`` (run with the
+      dirty derivative and no DAC, ``jaxflex.export.sampled_controller``).
+
+    **Returns:**
+
+    The ``Traced`` programs.
+
+    **Raises:**
+
+    ``ExportError`` for a configuration the export cannot run.
     """
     with jax.enable_x64(True):
         return _trace(sampled_controller(controller))
