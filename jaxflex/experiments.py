@@ -48,6 +48,7 @@ from jaxflex.presets import (
     REPRODUCE_LEAK,
     paper_params,
     paper_sinusoid,
+    sensing_fields,
     sensing_preset,
     trajectory_preset,
     with_estimator,
@@ -159,6 +160,21 @@ class PaperExperiments:
     paper_own_observer: dict[str, Any] | None = None
     paper_own_runs: dict[str, SimResult] | None = None
 
+    def params(self) -> Params:
+        """The configuration run, as a parameter file: the parameters with the observer leak
+        in ``gains`` and a ``controller`` section recording the sensing (its fields, with the
+        velocity source used), q2d method, dt, torque limit, compensation and the tasks, so
+        that ``jaxflex export --params`` writes the controller these experiments ran."""
+        c = self.config
+        d = dict(c["params"])
+        d.pop("certificate", None)  # certified for other gains (the leak is added here)
+        d["gains"] = {**d["gains"], "leak": list(c["observer_leak"])}
+        d["controller"] = {
+            "q2d_method": c["q2d_method"], "dt": c["dt"], "tau_max": c["tau_max"],
+            "compensation": True, "sensing": c["sensing_fields"],
+            "trajectory": list(self.experiments) or list(TRAJECTORIES)}
+        return Params.from_dict(d)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready results (``results.json`` without the figure names)."""
         out: dict[str, Any] = {
@@ -213,6 +229,7 @@ def run_paper_experiments(
         "dt": 1e-3, "t_final": t_final, "tau_max": 2.0,
     }
     config["label"] = configuration_label(sens.velocity, leak_used)
+    config["sensing_fields"] = sensing_fields(sens)
     t_start = time.perf_counter()
     unknown = set(tasks or ()) - set(TRAJECTORIES)
     if unknown:

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxflex.experiments import PaperExperiments
+from jaxflex.params import save_params
 from jaxflex.plots.tracking import plot_q2d_comparison, plot_torque_friction, plot_tracking
 from jaxflex.plots.tune import plot_history, plot_lambda_min, plot_tracking_comparison
 from jaxflex.tune import TuneComparison, TuneResult, TuneTask
@@ -43,7 +44,8 @@ def write_tune_report(result: TuneResult, task: TuneTask, comparison: TuneCompar
 def write_paper_experiments(results: PaperExperiments, out: str | Path) -> dict[str, Any]:
     """Write the figures of the paper's experiments (tracking per experiment, torque and
     friction of the compensated sinusoid, the paper's own controller per experiment, the
-    q2d comparison) and ``results.json`` to the folder ``out``; returns the results document
+    q2d comparison), ``results.json`` and ``params.json`` (the configuration run, which
+    ``jaxflex export --params`` exports) to the folder ``out``; returns the results document
     (with figure names per experiment). Every title names the velocity source and the
     observer shown."""
     from jaxflex.presets import TRAJECTORY_DESCRIPTIONS
@@ -64,6 +66,8 @@ def write_paper_experiments(results: PaperExperiments, out: str | Path) -> dict[
             own["experiments"][name]["figures"] = plot_tracking(
                 {"with_compensation": r}, f"{TRAJECTORY_DESCRIPTIONS[name]}\n{own['label']}",
                 out / f"{name}_paper_own_observer.png")
+    save_params(results.params(), out / "params.json")
+    doc["params_file"] = "params.json"
     if results.q2d_comparison is not None:
         leak = results.config.get("observer_leak", [0.0])
         obs = label.split("; ", 1)[1] if "; " in label else ""

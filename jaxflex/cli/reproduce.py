@@ -97,5 +97,7 @@ def run(args: argparse.Namespace) -> int:
             w = e["with_compensation"]
             print(f"  {name:<12} RMS err {w['rms_error']:.3e} rad, max {w['max_error']:.3e} rad, "
                   f"{100 * w['saturation_fraction']:.0f}% of samples at the torque limit")
-    print(f"\nwrote {args.out}/results.json and figures ({res['wall_time_s']:.0f} s)")
+    print(f"\nwrote {args.out}/results.json, figures and {args.out}/params.json, the "
+          f"configuration run ({res['wall_time_s']:.0f} s); export it with: jaxflex export "
+          f"--params {args.out}/params.json --out controller.c")
     return 0
