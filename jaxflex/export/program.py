@@ -18,8 +18,8 @@ from collections.abc import Mapping
 from typing import Any
 
 import equinox as eqx
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jaxflex.controller import CascadeController, ControllerState, LawOutput
@@ -98,7 +98,7 @@ class SampledController(eqx.Module):
 
     def with_reference(self, derivs: Float[Array, "5 n"], t: ArrayLike) -> SampledController:
         """This controller with the reference given at time t [s] by ``derivs``: rows q1d,
-        q1d', ..., q1d'''' [rad/s^k] (``REFERENCE_ROWS``), as the sampled-data loop hands it
+        q1d', ..., q1d^(4) [rad/s^k] (``REFERENCE_ROWS``), as the sampled-data loop hands it
         (``jaxflex.trajectory.Taylor``)."""
         derivs = jnp.asarray(derivs)
         if derivs.shape != (REFERENCE_ROWS, self.n):
@@ -110,10 +110,22 @@ class SampledController(eqx.Module):
 
 def sampled_controller(controller: CascadeController | SampledController,
                        sensing: AbstractSensing | None = None) -> SampledController:
-    """``controller`` under ``sensing`` (default: ``parity_sensing``, the rig's encoders with
-    the dirty derivative and no DAC); a ``SampledController`` is returned as it is.
+    """A controller as the loop runs it under a sensing.
 
-    Raises ``ExportError`` for velocity "exact"."""
+    **Arguments:**
+
+    - ``controller``: a ``CascadeController`` (a ``SampledController`` is returned as it is).
+    - ``sensing``: the sensing (default ``parity_sensing``: the rig's encoders, the dirty
+      derivative, no DAC); with velocity "kalman" the loop's Kalman filter is built for it.
+
+    **Returns:**
+
+    The ``SampledController``.
+
+    **Raises:**
+
+    ``ExportError`` for velocity "exact".
+    """
     if isinstance(controller, SampledController):
         return controller
     sensing = parity_sensing() if sensing is None else sensing
