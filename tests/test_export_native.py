@@ -142,7 +142,8 @@ def test_compile_error_is_reported(tmp_path):
 @needs_cc
 def test_run_loop_runs_the_c_controller(exported, tmp_path, capsys):
     """run-loop --controller controller.c: the C controller in the fixed-period loop against
-    the simulated rig, lock-step, to completion with a log."""
+    the simulated rig, lock-step, to completion with a log; with --reference the rig gives it
+    another task's reference at each step."""
     from jaxflex.cli import main
 
     _, folder, _, _, _ = exported
@@ -154,6 +155,17 @@ def test_run_loop_runs_the_c_controller(exported, tmp_path, capsys):
     summary = json.loads((tmp_path / "run.summary.json").read_text())
     assert summary["completed"] and summary["samples"] == 300
     assert log.read_text().splitlines()[0] == "t,tau,q1,q2,q1d"
+    # the rig's reference instead of the recorded one (--reference)
+    from jaxflex.cli.run_loop import rig_reference
+    from jaxflex.logs import load_log
+
+    log2 = tmp_path / "run_poly.csv"
+    rc = main(["run-loop", "--controller", str(folder / "controller.c"), "--duration", "0.3",
+               "--lockstep", "--reference", "polynomial", "--log", str(log2)])
+    assert rc == 0, capsys.readouterr().out
+    q1d = np.asarray(load_log(log2).q1d).reshape(-1)
+    np.testing.assert_allclose(q1d, rig_reference("polynomial", 1, 1e-3, 0.3)[:300, 0, 0],
+                               atol=1e-12)
 
 
 @pytest.mark.slow

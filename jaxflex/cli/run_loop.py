@@ -57,6 +57,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--log", required=True, help="output CSV log (docs/spec.md section 6)")
     p.add_argument("--trajectory", default=None, choices=TRAJECTORIES,
                    help="reference task when exporting now (default: the file's, else sinusoid)")
+    p.add_argument("--reference", default=None, choices=TRAJECTORIES,
+                   help="the rig's reference task, given to the controller at each step (q1d "
+                   "and its first four derivatives) instead of the trajectory it was exported "
+                   "with (default: the controller's own)")
     p.add_argument("--q2d", default=None, choices=["model", "filtered", "reference"],
                    help="q2d derivative method when exporting now (default: the file's, else "
                    "model)")
@@ -152,6 +156,32 @@ def exported_config(mod: types.ModuleType) -> ControllerConfig:
                             tau_max=float(tau) if tau is not None and math.isfinite(tau) else None)
 
 
+def rig_reference(name: str, n: int, period: float, duration: float) -> Any:
+    """The reference task ``name`` at every sample of a run, as the rig gives it to an
+    exported controller.
+
+    **Arguments:**
+
+    - ``name``: a trajectory of ``jaxflex.presets.TRAJECTORIES`` (one joint, broadcast to n).
+    - ``n``: joints; ``period`` [s]: the loop's period; ``duration`` [s]: the run's length.
+
+    **Returns:**
+
+    An array (samples, 5, n): q1d [rad] and its first four derivatives [rad/s^k].
+    """
+    import jax
+    import numpy as np
+
+    from jaxflex.export import REFERENCE_ROWS, broadcast_trajectory
+    from jaxflex.presets import trajectory_preset
+
+    with jax.enable_x64(True):
+        traj = trajectory_preset(name)
+        traj = broadcast_trajectory(traj, n) if n > 1 else traj
+        ts = np.arange(int(round(duration / period)) + 1) * period
+        return np.asarray(jax.jit(lambda t: traj.sample(t, order=REFERENCE_ROWS - 1))(ts))
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the loop; returns 0 when it completed, 1 when a protection stopped it."""
     import dataclasses
@@ -198,11 +228,14 @@ def run(args: argparse.Namespace) -> int:
     if ctrl.n != rig_params.n:
         raise ValueError(f"controller is for {ctrl.n} joint(s), the rig has {rig_params.n}")
     res = 2 * math.pi / 2**args.encoder_bits if args.encoder_bits > 0 else 0.0
-    q1_0 = ctrl.reference(0.0)
+    reference = None
+    if args.reference is not None:
+        reference = rig_reference(args.reference, ctrl.n, loop.period, args.duration)
+    q1_0 = ctrl.reference(0.0) if reference is None else reference[0, 0]
     with SimulatedRig(rig_params, loop.period, q1_0=q1_0, resolution=(res, res / 50.0)) as rig:
         print(f"[run-loop] rig ready; running {args.duration:g} s at {loop.rate:g} Hz "
               "(Ctrl-C stops at zero torque and writes the log)", file=sys.stderr, flush=True)
-        out = run_loop(rig, ctrl, loop, log_path=args.log)
+        out = run_loop(rig, ctrl, loop, log_path=args.log, reference=reference)
     summ = out.timing_summary()
     err = None
     if out.q1d is not None and out.samples:

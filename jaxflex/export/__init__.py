@@ -46,10 +46,11 @@ from jaxflex.export.program import (
 from jaxflex.export.translate import UnsupportedPrimitive
 
 __all__ = [
-    "REFERENCE_ROWS", "ExportError", "ParityResult", "SampledController", "Traced",
-    "UnsupportedPrimitive", "build_controller", "check_exportable", "check_parity",
-    "describe", "describe_sensing", "export_controller", "generate_source", "load_module", "parity_ok",
-    "parity_sensing", "rig_controller", "sampled_controller", "trace",
+    "ExportError", "ParityResult", "REFERENCE_ROWS", "SampledController", "Traced",
+    "UnsupportedPrimitive", "broadcast_trajectory", "build_controller", "check_exportable",
+    "check_parity", "describe", "describe_sensing", "export_controller", "generate_source",
+    "load_module", "parity_ok", "parity_sensing", "rig_controller", "sampled_controller",
+    "trace",
 ]
 
 
@@ -102,7 +103,7 @@ def build_controller(
     if q.shape[-1] != n:
         if q.shape[-1] != 1:
             raise ValueError(f"trajectory is for {q.shape[-1]} joints, parameters for {n}")
-        traj = _broadcast_trajectory(traj, n)
+        traj = broadcast_trajectory(traj, n)
     return CascadeController(
         model=params.to_plant(with_effects=False), gains=params.to_gains(), trajectory=traj,
         compensation=cfg.compensation, q2d_method=cfg.q2d_method, dt=cfg.dt,
@@ -110,7 +111,22 @@ def build_controller(
     )
 
 
-def _broadcast_trajectory(traj: Any, n: int):
+def broadcast_trajectory(traj: Any, n: int) -> Any:
+    """A one-joint reference task for n joints (every joint the same motion).
+
+    **Arguments:**
+
+    - ``traj``: a one-joint ``Sinusoid`` or ``RestToRest``.
+    - ``n``: joints.
+
+    **Returns:**
+
+    The trajectory with every array leaf of shape (n,) (waypoints (k, n)).
+
+    **Raises:**
+
+    ``ValueError`` for another trajectory type.
+    """
     import jax
 
     from jaxflex.trajectory import RestToRest, Sinusoid
