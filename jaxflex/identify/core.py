@@ -866,7 +866,8 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
 
     The shift is the Gauss-Newton step the solution's own finer replay induces
     (``jaxflex.fit.discretisation_bias``), judged twice: in standard errors (``bias_se`` at
-    most ``tol``) and against the parameters' values (``bias_rel`` at most ``rel_tol``). A
+    most ``tol``) and against the parameters' values (``bias_rel`` at most ``rel_tol``, over
+    the parameters it moves by a tenth of a standard error or more). A
     model-limited fit's standard errors are inflated by its residual, and a coarse
     integrator's own error can be that residual; the relative shift holds either way. The fit
     is refined while either fails. Each refinement multiplies the substeps by 2^k (a first-order
@@ -894,7 +895,11 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
             return prob, sol, checks
         chk = discretisation_bias(prob, sol)
         finite = all(math.isfinite(v) for v in chk["shift_theta"].values())
-        chk["bias_rel"] = relative_shift(prob, sol.y, chk["shift_theta"]) if finite else math.inf
+        # the relative shift of the parameters it moves by a tenth of a standard error or
+        # more (a shift far inside a poorly determined parameter's error is no bias)
+        seen = {k: v for k, v in chk["shift_theta"].items()
+                if abs(v) >= 0.1 * chk["stderr_theta"][k]}
+        chk["bias_rel"] = relative_shift(prob, sol.y, seen) if finite else math.inf
         checks.append(chk)
         settled = chk["bias_se"] <= tol and chk["bias_rel"] <= rel_tol
         if not refine or settled or prob.n_substeps * 2 > most:
