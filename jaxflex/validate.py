@@ -11,6 +11,9 @@ Per log, three numbers (each from the one implementation of its equation):
   steady state, eq. 35): rigid model ``tau_hat = tau + r_link + r_rotor`` with q2 = q1;
   flexible and rotor models ``tau_hat = tau + r_rotor`` (the rotor line of eq. 3 with the
   measured q1 and q2; for "rotor" the link reading passes the ``encoder_skew`` effect);
+  reported beside its **noise floor** (``torque_noise_floor``): the error the log's
+  measurement noise alone gives a model, so that an error at the floor says "as good as the
+  data can tell", not "97% wrong";
 - **closed-loop simulation error** in the benchmark metric ``100 ||y - y_sim|| / ||y||`` [%]
   for position, velocity and torque, when the parameters declare the controller that ran
   (the parameter file's top-level ``loop_controller`` section, ``LOOP_TYPES``: ``PPCascade``,
@@ -677,18 +680,58 @@ def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int
     return float(gap(prob, space.theta0()))
 
 
+def noise_std(x: np.ndarray) -> np.ndarray:
+    """Standard deviation of the white noise on each column of a densely sampled signal
+    ``x`` (N,) or (N, n): the RMS of its second difference (variance 6 sigma^2 for white
+    noise; a smooth signal's own second difference is O(dt^2)), the largest 2% of the
+    differences left out so that steps and spikes do not count as noise."""
+    d = np.diff(np.asarray(x, dtype=float), n=2, axis=0)
+    if d.shape[0] == 0:
+        return np.zeros(np.shape(x)[1:])
+    a = np.abs(d)
+    keep = a <= np.quantile(a, 0.98, axis=0)
+    return np.sqrt(np.sum(np.where(keep, d * d, 0.0), axis=0) / np.maximum(keep.sum(axis=0), 1)
+                   / 6.0)
+
+
+def torque_noise_floor(params: Params, log: Log, *, kind: str = "flexible", window: int = 31,
+                       seed: int = 0, tau_hat: np.ndarray | None = None) -> dict[str, Any]:
+    """The torque prediction error [%] that the log's measurement noise alone gives the model
+    ``params``: ``100 ||n_tau - (tau_hat(q + n_q) - tau_hat(q))|| / ||tau||`` with white
+    noise ``n`` of the standard deviations ``noise_std`` finds on tau, q1 and q2 (the error
+    of a perfect model on a log with that noise, to first order in the noise). ``tau_hat``:
+    ``torque_prediction`` on ``log`` when already computed. Returns ``{"pct": ...,
+    "std": {"tau": [...], "q1": [...], "q2": [...]}}`` (std in the log's units)."""
+    if tau_hat is None:
+        tau_hat = torque_prediction(params, log, kind=kind, window=window)
+    rng = np.random.default_rng(seed)
+    std = {c: noise_std(getattr(log, c)) for c in ("tau", "q1", "q2")
+           if getattr(log, c) is not None}
+    noisy = {c: getattr(log, c) + rng.standard_normal(getattr(log, c).shape) * std[c]
+             for c in ("q1", "q2") if c in std}
+    moved = torque_prediction(params, dataclasses.replace(log, **noisy), kind=kind,
+                              window=window)
+    resid = rng.standard_normal(log.tau.shape) * std["tau"] - (moved - tau_hat)
+    pct = float(100.0 * np.linalg.norm(resid) / np.linalg.norm(log.tau))
+    return {"pct": pct, "std": {c: np.asarray(v).tolist() for c, v in std.items()}}
+
+
 def validate(
     params: Params, log: Log, *, kind: str = "flexible", segment: int | None = None,
     substeps: int = 4, disturbance: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """All validation numbers of ``params`` on one ``log`` (module docstring): ``gap``,
-    ``torque_pct``, and ``closed_loop`` (dict of position/velocity/torque errors [%], or
-    None). ``series`` holds the measured and predicted signals for figures."""
+    ``torque_pct`` beside ``torque_noise_pct`` (its noise floor, ``torque_noise_floor``;
+    ``noise_std`` the noise found on each column), and ``closed_loop`` (dict of
+    position/velocity/torque errors [%], or None). ``series`` holds the measured and
+    predicted signals for figures."""
     tau_hat = torque_prediction(params, log, kind=kind)
+    floor = torque_noise_floor(params, log, kind=kind, tau_hat=tau_hat)
     out: dict[str, Any] = {
         "model": kind, "samples": log.N, "dt": log.dt,
         "gap": segment_gap(params, log, kind=kind, length=segment, substeps=substeps),
         "torque_pct": rel_error_pct(log.tau, tau_hat),
+        "torque_noise_pct": floor["pct"], "noise_std": floor["std"],
     }
     loop_kind = {"rotor": "rigid", "link": "flexible"}.get(kind, kind)
     cl = closed_loop_errors(params, log, kind=loop_kind,

@@ -1,4 +1,4 @@
-"""``jaxflex discover LOG [--params NOMINAL.json] --out DIR``: discrepancy discovery (issue 7).
+"""``jaxflex discover LOG [--params NOMINAL.json] --out DIR``: discrepancy discovery.
 
 Writes ``DIR/report.json`` (first effect added or ``none``, all effects, held-out gap before
 and after, fitted effect parameters with standard errors, candidate scores, localisation),
@@ -10,6 +10,10 @@ from __future__ import annotations
 import argparse
 
 EXAMPLE = "jaxflex discover log.csv --params nominal.json --out out/discover"
+#: The files ``discover`` writes in its output folder (one joint; n joints add
+#: ``params_joint<j>.json`` and ``joint<j>/``): an existing one needs ``--force``.
+OUTPUT_FILES = ("report.json", "params.json", "params_joint0.json", "signature.png",
+                "replay.png", "scores.png")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -54,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.presets import paper_params
 
     from jaxflex.cli.outputs import check_outputs
-    check_outputs(args.force, folders=[args.out], marker="report.json")
+    check_outputs(args.force, folders=[args.out], marker=OUTPUT_FILES)
     if not 0.1 <= args.train_frac <= 0.9:
         raise ValueError(f"--train-frac must be in [0.1, 0.9], got {args.train_frac}")
     if args.segment <= 0:
@@ -69,8 +73,7 @@ def run(args: argparse.Namespace) -> int:
         alpha=args.alpha, min_gain=args.min_gain, max_effects=args.max_effects, candidates=cands,
         substeps=args.substeps,
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(args.out)  # created once there is a result to write (no empty folder on Ctrl-C)
     if log.n > 1:
         return _run_joints(args, log, nominal, cfg, out)
     # matplotlib is imported beside the fits (0.4 s), not after them
@@ -85,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     params = res.params
     params.extra = dict(params.extra)
     params.extra["discover"] = {"effects": rep["effects"], "stderr": rep["final_stderr"]}
+    out.mkdir(parents=True, exist_ok=True)
     save_params(params, out / "params.json")
     if plots is not None:
         from jaxflex.plots.discover import plot_report
@@ -123,6 +127,7 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
     from jaxflex.params import save_params
 
     results = discover_joints(log, nominal, cfg, progress=print)
+    out.mkdir(parents=True, exist_ok=True)
     reps = []
     for j, res in enumerate(results):
         rep = res.to_json()

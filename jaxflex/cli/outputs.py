@@ -1,4 +1,4 @@
-"""Output paths of the commands, checked before any computation (issue 16).
+"""Output paths of the commands, checked before any computation.
 
 Every command calls ``check_file`` / ``check_folder`` on its outputs right after parsing, so a
 mistyped or unwritable ``--out`` fails in a second with a message saying what to do, not after
@@ -13,10 +13,14 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
+from collections.abc import Sequence
 from pathlib import Path
 
+from jaxflex.errors import InputError
 
-class OutputError(ValueError):
+
+class OutputError(InputError):
     """An output path that cannot or must not be written; the message says what to do."""
 
 
@@ -48,7 +52,7 @@ def check_file(path: str | os.PathLike, *, force: bool, flag: str = "--out") -> 
             raise OutputError(f"{flag} {p}: {anc} is a file, not a folder; choose another path")
     if not parent.is_dir():
         raise OutputError(f"{flag} {p}: the folder {parent} does not exist; create it first "
-                          f"(mkdir -p {parent}) or choose another path")
+                          f"(mkdir -p {shlex.quote(str(parent))}) or choose another path")
     _writable_folder(parent, flag, p)
     if p.exists():
         if not force:
@@ -60,12 +64,13 @@ def check_file(path: str | os.PathLike, *, force: bool, flag: str = "--out") -> 
 
 
 def check_folder(path: str | os.PathLike, *, force: bool, flag: str = "--out",
-                 marker: str | None = None, resume: bool = False) -> Path:
+                 marker: str | Sequence[str] | None = None, resume: bool = False) -> Path:
     """Check that the output folder ``path`` can be created or written now: it is not a file,
     its nearest existing ancestor is a writable folder, and (unless ``force`` or ``resume``)
     it does not already hold a result, recognised by the file ``marker`` (e.g.
-    ``report.json``). Returns the path; raises ``OutputError`` naming ``flag`` and what to do.
-    Nothing is created here."""
+    ``report.json``) or any of the files of a sequence of markers (every file the command
+    would write there). Returns the path; raises ``OutputError`` naming ``flag`` and what to
+    do. Nothing is created here."""
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise OutputError(f"{flag} {p}: is a file, but a folder is expected here; give a folder "
@@ -78,16 +83,18 @@ def check_folder(path: str | os.PathLike, *, force: bool, flag: str = "--out",
     if anc.exists() and not anc.is_dir():
         raise OutputError(f"{flag} {p}: {anc} is a file, not a folder; choose another path")
     _writable_folder(anc, flag, p)
-    if marker is not None and (p / marker).exists() and not (force or resume):
-        raise OutputError(f"{flag} {p}: the folder already holds a result ({marker}); pass "
-                          "--force to overwrite it, or choose another folder (nothing was "
+    markers = [marker] if isinstance(marker, str) else list(marker or ())
+    held = [m for m in markers if (p / m).exists()]
+    if held and not (force or resume):
+        raise OutputError(f"{flag} {p}: the folder already holds a result ({', '.join(held)}); "
+                          "pass --force to overwrite it, or choose another folder (nothing was "
                           "written)")
     return p
 
 
 def check_outputs(force: bool, files: tuple[str | os.PathLike | None, ...] | list = (),
                   folders: tuple[str | os.PathLike | None, ...] | list = (),
-                  marker: str | None = None, flag: str = "--out") -> None:
+                  marker: str | Sequence[str] | None = None, flag: str = "--out") -> None:
     """``check_file`` on each of ``files`` and ``check_folder`` (with ``marker``) on each of
     ``folders``; ``None`` entries are skipped. One call at the top of a command's ``run``."""
     for f in files:
@@ -96,3 +103,13 @@ def check_outputs(force: bool, files: tuple[str | os.PathLike | None, ...] | lis
     for d in folders:
         if d is not None:
             check_folder(d, force=force, flag=flag, marker=marker)
+
+
+def suggest_command(argv: Sequence[str], add: Sequence[str] = (),
+                    drop: Sequence[str] = ()) -> str:
+    """The command line ``jaxflex ARGV`` with the flags ``drop`` (options without a value)
+    removed and ``add`` appended unless already there, quoted for a POSIX shell: a command a
+    message suggests runs as printed, with every option the user gave."""
+    args = [a for a in argv if a not in drop]
+    args += [a for a in add if a not in args]
+    return "jaxflex " + shlex.join(args)

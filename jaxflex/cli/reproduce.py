@@ -46,11 +46,15 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.experiments import run_paper_experiments
     from jaxflex.params import load_params
     from jaxflex.cli.outputs import check_outputs
+    from jaxflex.errors import InputError
     from jaxflex.reports import write_paper_experiments
 
     if args.leak is not None and not args.leak >= 0:
-        raise SystemExit(f"jaxflex reproduce: --leak must be >= 0 rad/s, got {args.leak}")
-    check_outputs(args.force, folders=[args.out], marker="results.json")
+        raise InputError(f"--leak must be >= 0 rad/s, got {args.leak}")
+    tasks = args.tasks or TRAJECTORIES
+    check_outputs(args.force, folders=[args.out],
+                  marker=["results.json", "sinusoid_torque_friction.png", "q2d_comparison.png",
+                          *(f"{t}_tracking.png" for t in tasks)])
     params = load_params(args.params) if args.params else None
     results = run_paper_experiments(
         params=params, sensing=args.sensing, estimator=args.estimator, q2d_method=args.q2d,

@@ -19,6 +19,9 @@ EXAMPLE = ("jaxflex sweep studies/spreads/sweep_paper_20pct.json --out out/sweep
            "  (after Ctrl-C)  jaxflex sweep studies/spreads/sweep_paper_20pct.json --out out/sweep "
            "--samples 2000 --resume")
 CHECKPOINT = "checkpoint.pkl"
+#: The files ``sweep`` writes in its output folder: an existing one needs ``--force``.
+OUTPUT_FILES = ("summary.json", "samples.csv", "error_histograms.png", "error_bands.png",
+                "sensitivity.png")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -60,15 +63,19 @@ def run(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from jaxflex.cli.outputs import OutputError, check_folder
+    from jaxflex.cli.outputs import OutputError, check_folder, suggest_command
     from jaxflex.sweep import load_spread, nominal_run, run_sweep
+    from jaxflex.sweep.summary import collinear_groups
 
     spec = load_spread(args.spread)  # validate before starting any process group
+    # the command as given (main's argv), for the --resume hint; the spread and --out as
+    # parsed when called without it
+    argv = getattr(args, "argv", None) or ["sweep", args.spread, "--out", args.out]
     ckpt_path = Path(args.out) / CHECKPOINT
     if ckpt_path.exists() and not (args.resume or args.force):
         raise OutputError(f"--out {args.out}: holds an interrupted sweep ({CHECKPOINT}); pass "
                           "--resume to continue it or --force to start again")
-    out = check_folder(args.out, force=args.force, marker="summary.json", resume=args.resume)
+    out = check_folder(args.out, force=args.force, resume=args.resume, marker=OUTPUT_FILES)
     resume = None
     if args.resume:
         if args.coordinator:
@@ -137,8 +144,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"jaxflex sweep: interrupted after {res.summary['chunks_done']} of "
                   f"{res.summary['chunks']} chunks ({res.summary['samples']} samples); wrote the "
                   f"partial summary {out / 'summary.json'} (\"partial\": true, no figures); "
-                  f"continue with: jaxflex sweep {args.spread} --out {out} --resume (and the "
-                  "same options)", file=sys.stderr)
+                  f"continue with: {suggest_command(argv, add=['--resume'], drop=['--force'])}",
+                  file=sys.stderr)
             return 130
         from jaxflex.plots.sweep import plot_sweep
 
@@ -149,12 +156,20 @@ def run(args: argparse.Namespace) -> int:
         if res.summary["fs_raised_to_fc"]:
             print(f"note: {res.summary['fs_raised_to_fc']} sample(s) kept Fs < Fc after "
                   "their redraws; their Fs was raised to Fc")
+        sens = res.summary["sensitivity"]
+        pu = "rad"  # the sweep's plant is a revolute joint model
+        top = (f"{sens[0]['parameter']} (explains {100 * sens[0]['shapley']:.3g}% of the RMS "
+               "error's variance, Shapley share of the linear fit)") if sens else "-"
         print(
             f"{res.summary['samples']} samples, {res.summary['diverged']} diverged; RMS link error "
-            f"median {m['q50']:.3g} rad, 95% {m['q95']:.3g} rad; "
-            f"top driver: {res.summary['sensitivity'][0]['parameter'] if res.summary['sensitivity'] else '-'}; "
-            f"wrote {out}"
+            f"median {m['q50']:.3g} {pu}, 95% {m['q95']:.3g} {pu}; top driver: {top}; wrote {out}"
         )
+        for group in collinear_groups(sens):
+            print(f"warning: {', '.join(group)} are drawn so correlated that their separate "
+                  "effects cannot be told apart; their Shapley shares split what they explain "
+                  "together, and their regression coefficients (src) are not meaningful",
+                  file=sys.stderr)
     if args.coordinator:
         jax.distributed.shutdown()
     return 0
+

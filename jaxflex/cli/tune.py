@@ -92,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     report_dir = Path(args.report) if args.report else out.with_name(out.stem + "_report")
     check_outputs(args.force, files=[out])
-    check_outputs(args.force, folders=[report_dir], marker="report.json", flag="--report")
+    check_outputs(args.force, folders=[report_dir], flag="--report",
+                  marker=["report.json", "lambda_min.png", "tracking.png", "history.png"])
     if args.margin < 0:
         raise ValueError(f"--margin must be >= 0, got {args.margin}")
     if args.iterations < 0 or args.starts < 1:

@@ -44,25 +44,40 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def output_files(logs: list[str], against: bool) -> list[str]:
+    """Every file ``validate`` writes in its output folder for these logs."""
+    from pathlib import Path
+
+    which = ("params", "against") if against else ("params",)
+    return (["report.json", "table.md", "torque_errors.png"]
+            + [f"{Path(f).stem}_{w}.png" for f in logs for w in which])
+
+
 def run(args: argparse.Namespace) -> int:
     """Validate and write the report; returns the exit code."""
     import json
     from pathlib import Path
 
-    from jaxflex.logs import LogError, evaluate, load_log, parse_mapping, read_variables
+    from jaxflex.cli.outputs import OutputError, check_outputs
+    from jaxflex.logs import LogError, axis_units, evaluate, load_log, parse_mapping, read_variables
     from jaxflex.params import load_params
-    from jaxflex.plots.validate import plot_table, plot_validation_log
     from jaxflex.validate import loop_controller, validate
 
+    stems = [Path(f).stem for f in args.logs]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise OutputError(f"logs: two logs share the name {dup[0]!r}; their figures would "
+                          "overwrite each other in --out: rename one or validate them apart")
+    check_outputs(args.force, folders=[args.out],
+                  marker=output_files(args.logs, args.against is not None))
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a folder")
     sets = {"params": load_params(args.params)}
     if args.against:
         sets["against"] = load_params(args.against)
     for p in sets.values():  # a bad loop_controller section is refused before any work
         loop_controller(p)
     mapping = parse_mapping(args.map)
+    units = axis_units(mapping, args.linear)
     logs = []
     for f in args.logs:
         log = load_log(f, mapping, required=("t", "tau", "q1"))
@@ -75,33 +90,44 @@ def run(args: argparse.Namespace) -> int:
                     raise
                 print(f"note: {f} has no '{args.disturbance}'; no disturbance for it")
         logs.append((Path(f).stem, log, d))
-    out.mkdir(parents=True, exist_ok=True)
-    units = ("m", "N") if args.linear else ("rad", "N m")
-    rows, report = [], {"model": args.model, "logs": {}}
+    results = []  # everything is computed before the folder is created
     for name, log, d in logs:
-        report["logs"][name] = {}
         for which, p in sets.items():
             res = validate(p, log, kind=args.model, segment=args.segment,
                            substeps=args.substeps, disturbance=d)
-            fig = plot_validation_log(
-                res["series"], out / f"{name}_{which}.png", units=units,
-                title=f"{name}: {which} ({args.model} model); torque error "
-                      f"{res['torque_pct']:.2f}%, replay gap {res['gap']:.3f}")
-            row = {k: v for k, v in res.items() if k != "series"}
-            row["figure"] = fig
-            report["logs"][name][which] = row
-            rows.append({"log": name, "params": which, **row})
+            results.append((name, which, res))
+
+    from jaxflex.plots.validate import plot_table, plot_validation_log
+
+    out.mkdir(parents=True, exist_ok=True)
+    rows, report = [], {"model": args.model, "units": {"position": units[0], "torque": units[1]},
+                        "logs": {}}
+    for name, which, res in results:
+        fig = plot_validation_log(
+            res["series"], out / f"{name}_{which}.png", units=units,
+            title=f"{name}: {which} ({args.model} model); torque error "
+                  f"{res['torque_pct']:.2f}% (noise alone {res['torque_noise_pct']:.2f}%), "
+                  f"replay gap {res['gap']:.3f}")
+        row = {k: v for k, v in res.items() if k != "series"}
+        row["figure"] = fig
+        report["logs"].setdefault(name, {})[which] = row
+        rows.append({"log": name, "params": which, **row})
     report["figures"] = [plot_table(rows, out / "torque_errors.png")]
-    lines = ["| log | params | gap | torque % | CL position % | CL velocity % | CL torque % |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| log | params | gap | torque % | noise floor % | CL position % | CL velocity % | "
+             "CL torque % |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         cl = r["closed_loop"] or {}
         f = lambda k: f"{cl[k]:.4g}" if k in cl else "-"
         lines.append(f"| {r['log']} | {r['params']} | {r['gap']:.4g} | {r['torque_pct']:.4g} | "
-                     f"{f('position_pct')} | {f('velocity_pct')} | {f('torque_pct')} |")
+                     f"{r['torque_noise_pct']:.4g} | {f('position_pct')} | {f('velocity_pct')} | "
+                     f"{f('torque_pct')} |")
     table = "\n".join(lines)
     (out / "table.md").write_text(table + "\n")
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     print(table)
+    print("torque %: 100 ||tau - tau_hat|| / ||tau||; noise floor %: the same error that the "
+          f"log's measurement noise alone gives (std of tau in {units[1]}, of q1 and q2 in "
+          f"{units[0]}, in report.json noise_std): an error near its floor is as good as the "
+          "log can tell")
     print(f"wrote {out / 'report.json'}")
     return 0
