@@ -89,6 +89,42 @@ def test_any_file_a_command_would_write_needs_force(tmp_path, capsys, command, e
     assert (out / existing).read_text() == SENTINEL
 
 
+def test_every_command_with_outputs_refuses_an_existing_one(tmp_path, capsys):
+    """One existing output per command that writes files; nothing is overwritten."""
+    p = _params(tmp_path)
+    log = _log(tmp_path)
+    spread = tmp_path / "s.json"
+    spread.write_text(json.dumps({"t_final": 0.05, "samples": 4}))
+    cases = {
+        "identify": (["identify", str(log), "--params", str(p), "--out"], "r.json", None),
+        "export": (["export", "--out"], "c.py", None),
+        "tune": (["tune", "--params", str(p), "--out"], "g.json", None),
+        "run-loop": (["run-loop", "--lockstep", "--log"], "run.csv", None),
+        "validate": (["validate", str(log), "--params", str(p), "--out"], "v", "report.json"),
+        "discover": (["discover", str(log), "--out"], "d", "report.json"),
+        "sweep": (["sweep", str(spread), "--out"], "w", "summary.json"),
+        "reproduce": (["reproduce", "--out"], "r", "results.json"),
+    }
+    registered = set(build_parser()._subparsers._group_actions[0].choices)
+    with_outputs = {c for c in registered
+                    if {"--out", "--log"} & set(build_parser()._subparsers._group_actions[0]
+                                                .choices[c]._option_string_actions)}
+    assert with_outputs == set(cases)
+    for command, (argv, name, inner) in cases.items():
+        target = tmp_path / command / name
+        target.parent.mkdir()
+        if inner is None:
+            target.write_text(SENTINEL)
+            check = target
+        else:
+            target.mkdir()
+            check = target / inner
+            check.write_text(SENTINEL)
+        rc, _, err = _run(capsys, [*argv, str(target)])
+        assert rc == 2 and "--force" in err, (command, err)
+        assert check.read_text() == SENTINEL
+
+
 def test_tune_report_figure_needs_force(tmp_path, capsys):
     rep = tmp_path / "g_report"
     rep.mkdir()
@@ -131,6 +167,25 @@ def test_interrupted_command_leaves_no_empty_folder(tmp_path, capsys, monkeypatc
     rc, _, err = _run(capsys, [*argv, "--out", str(out)])
     assert rc == 130 and "interrupted" in err and "Traceback" not in err
     assert not out.exists() and not out.parent.exists()
+
+
+def test_ctrl_c_while_writing_leaves_the_whole_result(tmp_path, capsys, monkeypatch):
+    """Ctrl-C as the first figure is written: the command finishes writing, then exits 130."""
+    import jaxflex.plots.validate as plots
+
+    real = plots.plot_validation_log
+
+    def ctrl_c_then_plot(*a, **k):
+        signal.raise_signal(signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(plots, "plot_validation_log", ctrl_c_then_plot)
+    out = tmp_path / "v"
+    rc, _, err = _run(capsys, ["validate", str(_log(tmp_path)), "--params",
+                               str(_params(tmp_path)), "--out", str(out)])
+    assert rc == 130 and "interrupted" in err
+    assert json.loads((out / "report.json").read_text())["logs"]["log"]["params"]["figure"]
+    assert (out / "table.md").exists() and (out / "torque_errors.png").exists()
 
 
 def test_interrupted_command_keeps_a_folder_that_existed(tmp_path, capsys, monkeypatch):
@@ -282,6 +337,21 @@ def test_sweep_resume_hint_runs_as_printed(tmp_path, capsys, monkeypatch):
     assert not doc["partial"] and doc["samples"] == 12
 
 
+def test_milliseconds_hint_runs_as_printed(tmp_path, capsys):
+    """A log timed in ms: the message's --map option, added as printed, makes the command
+    run."""
+    f = _log(tmp_path, "ms.csv")
+    rows = f.read_text().splitlines()
+    f.write_text("\n".join([rows[0]] + [",".join([f"{1000 * float(r.split(',')[0]):.6g}",
+                                                   *r.split(",")[1:]]) for r in rows[1:]]) + "\n")
+    argv = ["validate", str(f), "--params", str(_params(tmp_path)), "--out", str(tmp_path / "v")]
+    rc, _, err = _run(capsys, argv)
+    assert rc == 2 and "milliseconds" in err
+    hint = re.search(r"Map it with a unit: (--map '[^']*')", err).group(1)
+    rc, _, err = _run(capsys, argv + shlex.split(hint))
+    assert rc == 0, err
+
+
 def test_missing_folder_hint_runs_as_printed(tmp_path, capsys):
     import subprocess
 
@@ -302,7 +372,7 @@ def test_sensitivity_ranks_the_real_driver_under_correlated_draws():
     barely moving the error, the inertia driving it. The ranking names the inertia, and the
     pair is flagged as not separable."""
     from jaxflex.sweep.spec import parse_spread
-    from jaxflex.sweep.summary import Accumulator, collinear_groups
+    from jaxflex.sweep.summary import Accumulator
 
     spec = parse_spread({"uncertain": {"friction.Fc": {"dist": "uniform", "rel": 1e-4},
                                        "friction.sigma2": {"dist": "uniform", "rel": 3e-3},
@@ -327,6 +397,8 @@ def test_sensitivity_ranks_the_real_driver_under_correlated_draws():
                                             + by["friction.sigma2"]["shapley"])
     total = sum(s["shapley"] for s in sens)
     assert total == pytest.approx(sens[0]["r2_linear"], rel=1e-9)
+    from jaxflex.sweep.summary import collinear_groups
+
     assert collinear_groups(sens) == [["friction.Fc", "friction.sigma2"]]
     assert "collinear_with" not in by["plant.I"]
 
@@ -512,7 +584,8 @@ def _bad_cases(tmp: Path) -> list[tuple[list[str], list[str]]]:
          ["--t-final"]),
         (["sweep", str(tmp / "absent_spread.json"), "--out", str(tmp / "w2")],
          ["absent_spread.json"]),
-        (["export", "--params", str(params_neg), "--out", str(tmp / "c.py")], ["neg.json", "K must be > 0"]),
+        (["export", "--params", str(params_neg), "--out", str(tmp / "c.py")],
+         ["neg.json", "K must be > 0"]),
         (["tune", "--params", str(p), "--out", str(tmp / "g.json"), "--margin", "-1"],
          ["--margin"]),
     ]

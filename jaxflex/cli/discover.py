@@ -57,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.params import load_params, save_params
     from jaxflex.presets import paper_params
 
-    from jaxflex.cli.outputs import check_outputs
+    from jaxflex.cli.outputs import check_outputs, writing
+
     check_outputs(args.force, folders=[args.out], marker=OUTPUT_FILES)
     if not 0.1 <= args.train_frac <= 0.9:
         raise ValueError(f"--train-frac must be in [0.1, 0.9], got {args.train_frac}")
@@ -88,13 +89,14 @@ def run(args: argparse.Namespace) -> int:
     params = res.params
     params.extra = dict(params.extra)
     params.extra["discover"] = {"effects": rep["effects"], "stderr": rep["final_stderr"]}
-    out.mkdir(parents=True, exist_ok=True)
-    save_params(params, out / "params.json")
-    if plots is not None:
-        from jaxflex.plots.discover import plot_report
+    with writing():  # the whole result or nothing, Ctrl-C included
+        out.mkdir(parents=True, exist_ok=True)
+        save_params(params, out / "params.json")
+        if plots is not None:
+            from jaxflex.plots.discover import plot_report
 
-        rep["figures"] = plot_report(res, out)
-    (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
+            rep["figures"] = plot_report(res, out)
+        (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
     print(f"effect: {rep['effect']}  effects: {rep['effects']}  gap {rep['gap_before']:.4f} -> "
           f"{rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})  {rep['seconds']:.0f} s")
     added = [r for r in rep["rounds"] if r["winner"] != "none"]
@@ -126,27 +128,31 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
     from jaxflex.discover import discover_joints
     from jaxflex.params import save_params
 
-    results = discover_joints(log, nominal, cfg, progress=print)
-    out.mkdir(parents=True, exist_ok=True)
-    reps = []
-    for j, res in enumerate(results):
-        rep = res.to_json()
-        params = res.params
-        params.extra = {"discover": {"effects": rep["effects"], "stderr": rep["final_stderr"],
-                                     "joint": j}}
-        save_params(params, out / f"params_joint{j}.json")
-        if not args.no_plots:
-            from jaxflex.plots.discover import plot_report
+    from jaxflex.cli.outputs import writing
 
-            sub = out / f"joint{j}"
-            sub.mkdir(exist_ok=True)
-            rep["figures"] = [f"joint{j}/{f}" for f in plot_report(res, sub)]
-        reps.append({"joint": j, **rep})
+    results = discover_joints(log, nominal, cfg, progress=print)
+    reps = []
+    with writing():  # the whole result or nothing, Ctrl-C included
+        out.mkdir(parents=True, exist_ok=True)
+        for j, res in enumerate(results):
+            rep = res.to_json()
+            params = res.params
+            params.extra = {"discover": {"effects": rep["effects"], "stderr": rep["final_stderr"],
+                                         "joint": j}}
+            save_params(params, out / f"params_joint{j}.json")
+            if not args.no_plots:
+                from jaxflex.plots.discover import plot_report
+
+                sub = out / f"joint{j}"
+                sub.mkdir(exist_ok=True)
+                rep["figures"] = [f"joint{j}/{f}" for f in plot_report(res, sub)]
+            reps.append({"joint": j, **rep})
+        summary = {"joints": reps, "effect": [r["effect"] for r in reps],
+                   "effects": [r["effects"] for r in reps],
+                   "unexplained": [r["unexplained"] for r in reps]}
+        (out / "report.json").write_text(json.dumps(summary, indent=2) + "\n")
+    for j, rep in enumerate(reps):
         print(f"joint {j}: effect {rep['effect']}  effects {rep['effects']}  gap "
               f"{rep['gap_before']:.4f} -> {rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})")
-    summary = {"joints": reps, "effect": [r["effect"] for r in reps],
-               "effects": [r["effects"] for r in reps],
-               "unexplained": [r["unexplained"] for r in reps]}
-    (out / "report.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"wrote {out / 'report.json'} and {len(reps)} params_joint<j>.json")
     return 0

@@ -7,14 +7,21 @@ minutes of work; and an existing result is never overwritten without ``--force``
 Rules: an output *file*'s folder must exist (a typo in a folder name is not silently created);
 an output *folder* is created at write time with its missing parents, so the nearest existing
 ancestor must be a writable folder; a file is never where a folder is expected, nor the reverse.
+
+Also here: ``writing`` (a command's result files are written whole or not at all, Ctrl-C
+waits for them) and ``suggest_command`` (a command a message suggests, built from the command
+line given, so that it runs as printed).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shlex
-from collections.abc import Sequence
+import signal
+import threading
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from jaxflex.errors import InputError
@@ -113,3 +120,24 @@ def suggest_command(argv: Sequence[str], add: Sequence[str] = (),
     args = [a for a in argv if a not in drop]
     args += [a for a in add if a not in args]
     return "jaxflex " + shlex.join(args)
+
+
+@contextlib.contextmanager
+def writing() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) and SIGTERM while a command writes its result files, then
+    raise ``KeyboardInterrupt`` if one came: an interrupted command leaves either nothing
+    or its whole result, never a folder with half of it. Off the main thread (where no
+    signal handler can be set) the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list[int] = []
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    old = {s: signal.signal(s, lambda num, frame: got.append(num)) for s in sigs}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    if got:
+        raise KeyboardInterrupt

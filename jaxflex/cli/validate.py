@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from jaxflex.cli.outputs import OutputError, check_outputs
+    from jaxflex.cli.outputs import OutputError, check_outputs, writing
     from jaxflex.logs import LogError, axis_units, evaluate, load_log, parse_mapping, read_variables
     from jaxflex.params import load_params
     from jaxflex.validate import loop_controller, validate
@@ -99,31 +99,33 @@ def run(args: argparse.Namespace) -> int:
 
     from jaxflex.plots.validate import plot_table, plot_validation_log
 
-    out.mkdir(parents=True, exist_ok=True)
-    rows, report = [], {"model": args.model, "units": {"position": units[0], "torque": units[1]},
-                        "logs": {}}
-    for name, which, res in results:
-        fig = plot_validation_log(
-            res["series"], out / f"{name}_{which}.png", units=units,
-            title=f"{name}: {which} ({args.model} model); torque error "
-                  f"{res['torque_pct']:.2f}% (noise alone {res['torque_noise_pct']:.2f}%), "
-                  f"replay gap {res['gap']:.3f}")
-        row = {k: v for k, v in res.items() if k != "series"}
-        row["figure"] = fig
-        report["logs"].setdefault(name, {})[which] = row
-        rows.append({"log": name, "params": which, **row})
-    report["figures"] = [plot_table(rows, out / "torque_errors.png")]
-    lines = ["| log | params | gap | torque % | noise floor % | CL position % | CL velocity % | "
-             "CL torque % |", "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        cl = r["closed_loop"] or {}
-        f = lambda k: f"{cl[k]:.4g}" if k in cl else "-"
-        lines.append(f"| {r['log']} | {r['params']} | {r['gap']:.4g} | {r['torque_pct']:.4g} | "
-                     f"{r['torque_noise_pct']:.4g} | {f('position_pct')} | {f('velocity_pct')} | "
-                     f"{f('torque_pct')} |")
-    table = "\n".join(lines)
-    (out / "table.md").write_text(table + "\n")
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    with writing():  # the whole result or nothing, Ctrl-C included
+        out.mkdir(parents=True, exist_ok=True)
+        rows = []
+        report = {"model": args.model, "logs": {},
+                  "units": {"position": units[0], "torque": units[1]}}
+        for name, which, res in results:
+            fig = plot_validation_log(
+                res["series"], out / f"{name}_{which}.png", units=units,
+                title=f"{name}: {which} ({args.model} model); torque error "
+                      f"{res['torque_pct']:.2f}% (noise alone {res['torque_noise_pct']:.2f}%), "
+                      f"replay gap {res['gap']:.3f}")
+            row = {k: v for k, v in res.items() if k != "series"}
+            row["figure"] = fig
+            report["logs"].setdefault(name, {})[which] = row
+            rows.append({"log": name, "params": which, **row})
+        report["figures"] = [plot_table(rows, out / "torque_errors.png")]
+        lines = ["| log | params | gap | torque % | noise floor % | CL position % | "
+                 "CL velocity % | CL torque % |", "|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            cl = r["closed_loop"] or {}
+            f = lambda k: f"{cl[k]:.4g}" if k in cl else "-"
+            lines.append(f"| {r['log']} | {r['params']} | {r['gap']:.4g} | "
+                         f"{r['torque_pct']:.4g} | {r['torque_noise_pct']:.4g} | "
+                         f"{f('position_pct')} | {f('velocity_pct')} | {f('torque_pct')} |")
+        table = "\n".join(lines)
+        (out / "table.md").write_text(table + "\n")
+        (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     print(table)
     print("torque %: 100 ||tau - tau_hat|| / ||tau||; noise floor %: the same error that the "
           f"log's measurement noise alone gives (std of tau in {units[1]}, of q1 and q2 in "
