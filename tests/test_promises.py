@@ -609,3 +609,35 @@ def test_bad_or_odd_input_is_refused_by_name(tmp_path, capsys, case):
     for n in names:
         assert n in err, (n, err)
     assert not any(p.is_dir() and not any(p.iterdir()) for p in tmp_path.glob("[vdrwg]*"))
+
+
+def test_torque_noise_floor_counts_fast_torque_the_motion_cannot_resolve():
+    """Chatter at 200 Hz on the torque (a controller on quantised angles): not white, so the
+    white-noise estimate alone would miss most of it; the true model is still at the floor."""
+    from jaxflex.logs import Log
+    from jaxflex.params import Params
+    from jaxflex.validate import rel_error_pct, torque_noise_floor, torque_prediction
+
+    p = Params.from_dict({"plant": {"I": 0.07, "J": 0.005, "K": 6.77},
+                          "friction": {"Fc": 1e-9, "Fs": 1e-9, "vs": 0.05, "sigma0": 100.0,
+                                       "sigma1": 0.0, "sigma2": 0.2}})
+    N, dt = 3000, 1e-3
+    t = np.arange(N) * dt
+    q = 0.3 * np.sin(2.0 * t)
+    tau = 0.075 * (-1.2 * np.sin(2.0 * t)) + 0.2 * 0.6 * np.cos(2.0 * t)
+    tau = tau + 0.3 * np.sin(2 * np.pi * 200.0 * t + 0.3)
+    log = Log.from_arrays(t=t, tau=tau, q1=q, q2=q)
+    err = rel_error_pct(log.tau, torque_prediction(p, log, kind="rigid"))
+    assert torque_noise_floor(p, log, kind="rigid")["pct"] == pytest.approx(err, rel=0.05)
+
+
+def test_fast_energy_is_the_energy_above_the_derivatives_band():
+    from jaxflex.validate import fast_energy
+
+    dt, N = 1e-3, 4000
+    t = np.arange(N) * dt
+    slow = 0.5 * np.sin(2.0 * t) + 0.2 * t
+    for hz in (120.0, 200.0, 400.0):
+        tone = 0.3 * np.sin(2 * np.pi * hz * t + 0.4)
+        assert fast_energy(slow + tone, dt) == pytest.approx(np.sum(tone**2), rel=0.02)
+    assert fast_energy(slow, dt) < 1e-6 * np.sum(slow**2)
