@@ -403,6 +403,39 @@ def test_sensitivity_ranks_the_real_driver_under_correlated_draws():
     assert "collinear_with" not in by["plant.I"]
 
 
+def test_sweep_over_a_posterior_names_the_driver_and_warns_of_collinear_draws(tmp_path, capsys):
+    """A sweep drawing from an identification's posterior with Fc and sigma2 correlated at
+    -0.9997: the summary names the inertia, and says the pair cannot be separated."""
+    from jax.flatten_util import ravel_pytree
+
+    from jaxflex.fit.space import ParamSpace
+    from jaxflex.presets import paper_params
+
+    p = paper_params()
+    names = ("Fc", "sigma2", "I")
+    theta0 = ParamSpace.build(p.to_plant(), names).theta0()
+    labels = [f"{k}[0]" for k in sorted(theta0)]
+    sd = np.array([{"Fc[0]": 3e-5, "I[0]": 0.05, "sigma2[0]": 1e-3}[k] for k in labels])
+    corr = np.eye(3)
+    i, j = labels.index("Fc[0]"), labels.index("sigma2[0]")
+    corr[i, j] = corr[j, i] = -0.9997
+    doc = p.to_dict()
+    doc["identification"] = {"converged": True, "covariance": {
+        "parameters": list(names), "labels": labels,
+        "theta": np.asarray(ravel_pytree(theta0)[0]).tolist(),
+        "matrix": (corr * np.outer(sd, sd)).tolist()}}
+    (tmp_path / "ident.json").write_text(json.dumps(doc))
+    spread = tmp_path / "spread.json"
+    spread.write_text(json.dumps({"identified": "ident.json", "samples": 64, "t_final": 0.5}))
+    rc, out, err = _run(capsys, ["sweep", str(spread), "--out", str(tmp_path / "w"),
+                                 "--no-progress"])
+    assert rc == 0, err
+    assert "top driver: plant.I" in out
+    assert "friction.Fc, friction.sigma2 are drawn so correlated" in err
+    sens = json.loads((tmp_path / "w" / "summary.json").read_text())["sensitivity"]
+    assert sens[0]["parameter"] == "plant.I" and sens[0]["shapley"] > 0.8
+
+
 def test_shapley_shares_of_independent_inputs_are_squared_correlations():
     from jaxflex.sweep.summary import shapley_r2
 
