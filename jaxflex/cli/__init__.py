@@ -58,10 +58,12 @@ def add_global_options(parser: argparse.ArgumentParser, after_command: bool = Fa
     ``--accept-unconverged``) is left to the command."""
     own = parser._option_string_actions
     extra = {"default": argparse.SUPPRESS} if after_command else {}
+    group = (parser.add_argument_group("global options (also accepted before the command)")
+             if after_command else parser)
 
     def add(flag: str, **kw) -> None:
         if flag not in own:
-            parser.add_argument(flag, **{**kw, **extra})
+            group.add_argument(flag, **{**kw, **extra})
 
     add("--accept-unconverged", action="store_true",
         help="use parameter files from an identification that did not converge "
