@@ -162,11 +162,11 @@ EXIT_INPUT, EXIT_UNCONVERGED, EXIT_BUG, EXIT_INTERRUPTED = 2, 3, 70, 130
 
 
 def _output_folders(args: argparse.Namespace) -> list[Path]:
-    """The folders a command may create (its ``--out`` and ``--report`` when they are
-    folders or files in folders) with every missing ancestor, deepest first: those that do
-    not exist before the run and are empty after a failed one are removed again."""
+    """The folders a command may create: its ``--out`` and ``--report`` when they name a
+    folder (no suffix), with every missing ancestor, deepest first. Those that did not exist
+    before the run and are empty after a failed or interrupted one are removed again."""
     made = []
-    for key in ("out", "report", "log"):
+    for key in ("out", "report"):
         v = getattr(args, key, None)
         if not isinstance(v, str) or not v:
             continue
@@ -192,12 +192,13 @@ def report_bug(command: str, argv: list[str], exc: BaseException) -> Path | None
     """Write the traceback of ``exc`` with the command line and versions to a file in the
     temporary folder; returns its path (None if it cannot be written)."""
     import platform
+    import shlex
     import tempfile
     import time
     import traceback
 
     text = (f"jaxflex {command}: a bug report\n"
-            f"command: jaxflex {' '.join(argv)}\n"
+            f"command: jaxflex {shlex.join(argv)}\n"
             f"time: {time.strftime('%Y-%m-%d %H:%M:%S %Z')}\n"
             f"python {platform.python_version()} on {platform.platform()}\n")
     for mod in ("jax", "jaxlib", "numpy", "scipy", "equinox", "optimistix"):
@@ -230,7 +231,7 @@ def handle_failure(command: str, argv: list[str], exc: BaseException) -> int:
         return EXIT_UNCONVERGED
     path = report_bug(command, argv, exc)
     where = (f"the full traceback is in {path}" if path is not None else
-             "the traceback could not be saved; run with python -X dev for it")
+             "the traceback follows (it could not be saved to a file)")
     print(f"jaxflex {command}: internal error (a bug in jaxflex, not a problem with your "
           f"input): {type(exc).__name__}: {msg}. {where}; please report it with the command "
           "line and that file", file=sys.stderr)
