@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the experiments and print a table of the results."""
     from jaxflex.experiments import run_paper_experiments
     from jaxflex.params import load_params
-    from jaxflex.cli.outputs import check_outputs
+    from jaxflex.cli.outputs import check_outputs, writing
     from jaxflex.errors import InputError
     from jaxflex.reports import write_paper_experiments
 
@@ -61,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         t_final=args.duration, leak=args.leak,
         compare_q2d=not args.no_q2d_comparison, tasks=args.tasks,
     )
-    res = write_paper_experiments(results, args.out)
+    with writing():  # the whole result or nothing, Ctrl-C included
+        res = write_paper_experiments(results, args.out)
     print(f"\n{'experiment':<12} {'compensation':<13} {'RMS err (rad)':>14} {'max err (rad)':>14} {'torque RMS (N m)':>17}")
     for name, e in res["experiments"].items():
         for key in ("without_compensation", "with_compensation"):

@@ -172,4 +172,3 @@ def run(args: argparse.Namespace) -> int:
     if args.coordinator:
         jax.distributed.shutdown()
     return 0
-
