@@ -621,10 +621,24 @@ def _bad_cases(tmp: Path) -> list[tuple[list[str], list[str]]]:
          ["neg.json", "K must be > 0"]),
         (["tune", "--params", str(p), "--out", str(tmp / "g.json"), "--margin", "-1"],
          ["--margin"]),
+        (["validate", str(log), "--params", str(p), "--segment", "0", "--out", str(tmp / "v17")],
+         ["--segment", "at least 2 samples"]),
+        (["validate", str(log), "--params", str(p), "--substeps", "0", "--out",
+          str(tmp / "v18")], ["--substeps", ">= 1"]),
+        (["sweep", str(spread), "--samples", "0", "--out", str(tmp / "w3")], ["--samples"]),
+        (["sweep", str(spread), "--chunk-size", "0", "--out", str(tmp / "w4")],
+         ["--chunk-size"]),
+        (["sweep", str(spread), "--worst", "-1", "--out", str(tmp / "w5")], ["--worst"]),
+        (["reproduce", "--duration", "0", "--out", str(tmp / "r2")], ["--duration", "> 0 s"]),
+        (["analyse", "--modes", "0"], ["--modes", ">= 1"]),
+        (["certify", "--params", str(p), "--vmax", "-1"], ["vmax", "> 0"]),
+        (["export", "--dt", "-1", "--out", str(tmp / "c2.py")], ["dt must be > 0"]),
+        (["run-loop", "--duration", "-1", "--lockstep", "--log", str(tmp / "rl.csv")],
+         ["duration must be > 0"]),
     ]
 
 
-N_BAD_CASES = 28
+N_BAD_CASES = 38
 
 
 def test_there_are_enough_bad_cases(tmp_path):

@@ -51,6 +51,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.leak is not None and not args.leak >= 0:
         raise InputError(f"--leak must be >= 0 rad/s, got {args.leak}")
+    if not args.duration > 0:
+        raise InputError(f"--duration must be > 0 s, got {args.duration}")
     tasks = args.tasks or TRAJECTORIES
     check_outputs(args.force, folders=[args.out],
                   marker=["results.json", "sinusoid_torque_friction.png", "q2d_comparison.png",

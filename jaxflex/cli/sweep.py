@@ -64,9 +64,14 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from jaxflex.cli.outputs import OutputError, check_folder, suggest_command
+    from jaxflex.errors import InputError
     from jaxflex.sweep import load_spread, nominal_run, run_sweep
     from jaxflex.sweep.summary import collinear_groups
 
+    for flag, value, low in (("--samples", args.samples, 1), ("--chunk-size", args.chunk_size, 1),
+                             ("--worst", args.worst, 0)):
+        if value is not None and value < low:
+            raise InputError(f"{flag} must be an integer >= {low}, got {value}")
     spec = load_spread(args.spread)  # validate before starting any process group
     # the command as given (main's argv), for the --resume hint; the spread and --out as
     # parsed when called without it

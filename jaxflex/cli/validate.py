@@ -59,10 +59,15 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from jaxflex.cli.outputs import OutputError, check_outputs, writing
+    from jaxflex.errors import InputError
     from jaxflex.logs import LogError, axis_units, evaluate, load_log, parse_mapping, read_variables
     from jaxflex.params import load_params
     from jaxflex.validate import loop_controller, validate
 
+    if args.segment is not None and args.segment < 2:
+        raise InputError(f"--segment must be at least 2 samples, got {args.segment}")
+    if args.substeps < 1:
+        raise InputError(f"--substeps must be an integer >= 1, got {args.substeps}")
     stems = [Path(f).stem for f in args.logs]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
