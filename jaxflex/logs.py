@@ -504,6 +504,16 @@ def axis_units(mapping: Mapping[str, str] | None, linear: bool = False) -> tuple
     return ("m", "N") if linear else ("rad", "N m")
 
 
+def map_option(mapping: Mapping[str, str] | None, **changes: str) -> str:
+    """The ``--map`` option, quoted for a shell, of ``mapping`` with the items ``changes``
+    set: a message's suggestion keeps every item the user gave, so it runs as printed."""
+    import shlex
+
+    items = {**(mapping or {}), **changes}
+    text = ",".join(f"{k}={v}" for k, v in items.items())
+    return "--map " + (f"'{text}'" if "'" not in text else shlex.quote(text))
+
+
 def load_log(
     path: str | os.PathLike, mapping: Mapping[str, str] | None = None, *,
     required: Sequence[str] = REQUIRED_COLUMNS, time_rtol: float = 1e-3,
@@ -539,9 +549,10 @@ def load_log(
             cols[c] = evaluate(mapping[c], raw, where)
         elif c in raw:
             if isinstance(raw[c], dict):
+                field = sorted(raw[c])[0] if raw[c] else "field"
                 raise LogError(f"{where}variable '{c}' is a struct with fields "
-                               f"{sorted(raw[c])}; map the column to one, e.g. --map "
-                               f"'{c}={c}.{sorted(raw[c])[0] if raw[c] else 'field'}'")
+                               f"{sorted(raw[c])}; map the column to one, e.g. "
+                               f"{map_option(mapping, **{c: f'{c}.{field}'})}")
             cols[c] = raw[c]
     missing = [c for c in required if c not in cols]
     if missing:
@@ -566,7 +577,8 @@ def load_log(
                 raise LogError(
                     f"{where}time column t advances by {period:g} per sample: this looks like "
                     f"milliseconds (or another unit), not seconds. Map it with a unit: "
-                    f"--map 't={expr}:ms' (or 't={expr}:s' if it really is in seconds)")
+                    f"{map_option(mapping, t=f'{expr}:ms')} (or ':s' in place of ':ms' if it "
+                    "really is in seconds)")
     for c, a in list(cols.items()):
         if np.ndim(a) == 0:
             raise LogError(f"{where}column {c} is a single number, expected one value per sample")

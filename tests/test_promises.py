@@ -345,9 +345,10 @@ def test_milliseconds_hint_runs_as_printed(tmp_path, capsys):
     f.write_text("\n".join([rows[0]] + [",".join([f"{1000 * float(r.split(',')[0]):.6g}",
                                                    *r.split(",")[1:]]) for r in rows[1:]]) + "\n")
     argv = ["validate", str(f), "--params", str(_params(tmp_path)), "--out", str(tmp_path / "v")]
-    rc, _, err = _run(capsys, argv)
+    rc, _, err = _run(capsys, argv + ["--map", "q2=q1"])
     assert rc == 2 and "milliseconds" in err
-    hint = re.search(r"Map it with a unit: (--map '[^']*')", err).group(1)
+    hint = re.search(r"Map it with a unit: (--map \S+)", err).group(1)
+    assert "q2=q1" in hint  # the items given are kept
     rc, _, err = _run(capsys, argv + shlex.split(hint))
     assert rc == 0, err
 
