@@ -1,4 +1,4 @@
-"""Validation of a parameter set on measured logs (issue 14): a workflow on the engine.
+"""Validation of a parameter set on measured logs: a workflow on the engine.
 
 Per log, three numbers (each from the one implementation of its equation):
 
@@ -470,7 +470,7 @@ def rigid_torque_fit(log: Log, joint: int = 0, window: int = 31) -> dict[str, fl
     ``tau = Jt q'' + Fv q' + Fc sign(q') + offset`` (the rigid model of eq. 37 with Coulomb
     and viscous friction and a constant, linear in its coefficients), the derivatives by
     zero-phase Savitzky-Golay differentiation over ``window`` samples (``jaxflex.fit.savgol``).
-    The baseline a flexible model must beat on real data (issue 14), and a starting point for
+    The baseline a flexible model must beat on real data, and a starting point for
     a model of a log no one has identified yet. Returns ``RIGID_TERMS``: Jt [kg m^2],
     Fv [N m s/rad], Fc [N m], offset [N m]. Raises ``ValueError`` for a joint the log lacks
     or a log without torque."""
