@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
         load_module,
         parity_ok,
     )
-    from jaxflex.cli.outputs import check_outputs
+    from jaxflex.cli.outputs import check_outputs, writing
     from jaxflex.params import load_params
     from jaxflex.presets import controller_config, paper_params
 
@@ -78,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     )
     desc = (f"Cascade controller ({args.params or 'paper parameters'}, trajectory "
             f"{cfg.trajectory_name!r})")
-    src = export_controller(c, args.out, description=desc)
+    with writing():  # the whole file or nothing, Ctrl-C included
+        src = export_controller(c, args.out, description=desc)
     print(f"wrote {args.out} ({len(src.splitlines())} lines, {c.model.n} joint(s), "
           f"q2d_method={c.q2d_method!r}, dt={c.dt} s, tau_max={cfg.tau_max} N m, "
           f"compensation={cfg.compensation})")
