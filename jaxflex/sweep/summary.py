@@ -354,13 +354,24 @@ def shapley_r2(corr: np.ndarray, r: np.ndarray, permutations: int = 2000,
             phi[j] = np.sum(weight[size[without]] * (val[without + 2**j] - val[without]))
         return phi
     rng = np.random.default_rng(seed)
-    for _ in range(permutations):
-        cur, prev = np.zeros(d, bool), 0.0
-        for j in rng.permutation(d):
-            cur[j] = True
-            v = _r2(corr, r, cur)
-            phi[j] += v - prev
-            prev = v
+    perms = np.array([rng.permutation(d) for _ in range(permutations)])
+    # the R^2 gains along an order are the squared last-row entries of the Cholesky factor of
+    # the joint correlation matrix [[corr, r], [r, 1]] in that order (y last), all orders at once
+    joint = np.block([[corr, r[:, None]], [r[None, :], np.ones((1, 1))]])
+    order = np.concatenate([perms, np.full((permutations, 1), d)], axis=1)
+    try:
+        L = np.linalg.cholesky(joint[order[:, :, None], order[:, None, :]]
+                               + 1e-10 * np.eye(d + 1))
+        gains = L[:, d, :d] ** 2
+    except np.linalg.LinAlgError:  # not positive definite to rounding: one R^2 at a time
+        gains = np.empty((permutations, d))
+        for p, perm in enumerate(perms):
+            cur, prev = np.zeros(d, bool), 0.0
+            for k, j in enumerate(perm):
+                cur[j] = True
+                v = _r2(corr, r, cur)
+                gains[p, k], prev = v - prev, v
+    np.add.at(phi, perms, gains)
     return phi / permutations
 
 
