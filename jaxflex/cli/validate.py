@@ -40,7 +40,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--segment", type=int, default=None,
                    help="samples per replay segment (default: 0.5 s)")
     p.add_argument("--substeps", type=int, default=4, help="integrator substeps per sample (4)")
-    p.add_argument("--linear", action="store_true", help="prismatic joint: label m and N")
+    p.add_argument("--linear", action="store_true",
+                   help="prismatic joint: label m and N (implied by a --map that converts q1 or "
+                        "q2 from :m or :mm, or tau from :N)")
     p.set_defaults(func=run)
 
 
