@@ -353,6 +353,24 @@ def test_milliseconds_hint_runs_as_printed(tmp_path, capsys):
     assert rc == 0, err
 
 
+def test_struct_column_hint_runs_as_printed(tmp_path, capsys):
+    """A .mat whose torque is a struct: the message's --map (keeping the items given) runs."""
+    from scipy.io import savemat
+
+    t = np.arange(400) * 1e-3
+    q = 0.2 * np.sin(6.0 * t)
+    f = tmp_path / "rig.mat"
+    savemat(f, {"t": t, "tau": {"cmd": 0.05 * np.cos(6.0 * t)}, "pos": q})
+    argv = ["validate", str(f), "--params", str(_params(tmp_path)), "--out", str(tmp_path / "v"),
+            "--model", "rigid"]
+    rc, _, err = _run(capsys, argv + ["--map", "q1=pos"])
+    assert rc == 2 and "struct" in err
+    hint = re.search(r"e\.g\. (--map \S+)", err).group(1)
+    assert "q1=pos" in hint and "tau=tau.cmd" in hint
+    rc, _, err = _run(capsys, argv + shlex.split(hint))
+    assert rc == 0, err
+
+
 def test_missing_folder_hint_runs_as_printed(tmp_path, capsys):
     import subprocess
 
