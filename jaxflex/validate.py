@@ -45,8 +45,8 @@ from jaxflex.controller import (
     pd_torque,
 )
 from jaxflex.effects import link_input
-from jaxflex.fit import (ParamSpace, Problem, gap, make_segments, output_columns, savgol,
-                         savgol_coeffs)
+from jaxflex.fit import (ParamSpace, Problem, gap, make_segments, noise_level, output_columns,
+                         savgol, savgol_coeffs)
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
@@ -683,17 +683,11 @@ def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int
 
 
 def noise_std(x: np.ndarray) -> np.ndarray:
-    """Standard deviation of the white noise on each column of a densely sampled signal
-    ``x`` (N,) or (N, n): the RMS of its second difference (variance 6 sigma^2 for white
-    noise; a smooth signal's own second difference is O(dt^2)), the largest 2% of the
-    differences left out so that steps and spikes do not count as noise."""
-    d = np.diff(np.asarray(x, dtype=float), n=2, axis=0)
-    if d.shape[0] == 0:
-        return np.zeros(np.shape(x)[1:])
-    a = np.abs(d)
-    keep = a <= np.quantile(a, 0.98, axis=0)
-    return np.sqrt(np.sum(np.where(keep, d * d, 0.0), axis=0) / np.maximum(keep.sum(axis=0), 1)
-                   / 6.0)
+    """Measurement noise standard deviation of each column of a logged signal ``x`` (N,) or
+    (N, n): ``jaxflex.fit.noise_level``'s total (white noise by differencing, at least the
+    quantisation's step / sqrt(12))."""
+    x = np.asarray(x, float).reshape(np.shape(x)[0], -1)
+    return np.array([noise_level(x[:, j])["total_std"] for j in range(x.shape[1])])
 
 
 def fast_energy(x: np.ndarray, dt: float, window: int = 31, order: int = 3) -> np.ndarray:
