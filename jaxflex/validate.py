@@ -46,7 +46,7 @@ from jaxflex.controller import (
 )
 from jaxflex.effects import link_input
 from jaxflex.fit import (ParamSpace, Problem, gap, make_segments, noise_level, output_columns,
-                         savgol, savgol_coeffs)
+                         savgol, savgol_coeffs, simulated_outputs)
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
@@ -512,7 +512,25 @@ def closed_loop_errors(
     return {"position_pct": rel_error_pct(q, q_sim, drop),
             "velocity_pct": rel_error_pct(v, v_sim, drop),
             "torque_pct": rel_error_pct(tau, tau_sim, drop),
+            "noise_floor": closed_loop_noise_floor(log, drop),
             "series": {"q": q_sim, "v": v_sim, "v_meas": v, "tau": tau_sim}}
+
+
+def closed_loop_noise_floor(log: Log, drop: int = 49, seed: int = 0) -> dict[str, float]:
+    """The benchmark metric's errors [%] (``closed_loop_errors``) that the log's measurement
+    noise alone gives a perfect closed-loop model of joint 0 (``noise_std`` of q1 and tau,
+    white): position ``100 sigma_q1 sqrt(N) / ||q1||``, velocity that noise through
+    ``benchmark_derivative``, torque ``100 sigma_tau sqrt(N) / ||tau||``; the first ``drop``
+    samples left out. (A simulated loop holds the torque's fast content, unlike the inverse
+    dynamics of ``torque_noise_floor``.)"""
+    q, tau = log.q1[:, 0], log.tau[:, 0]
+    rng = np.random.default_rng(seed)
+    n_q = rng.standard_normal(q.shape) * float(noise_std(q)[0])
+    n_tau = rng.standard_normal(tau.shape) * float(noise_std(tau)[0])
+    v = benchmark_derivative(q, log.dt)
+    return {"position_pct": rel_error_pct(q, q + n_q, drop),
+            "velocity_pct": rel_error_pct(v, v + benchmark_derivative(n_q, log.dt), drop),
+            "torque_pct": rel_error_pct(tau, tau + n_tau, drop)}
 
 
 class ClosedLoopFit(eqx.Module):
@@ -665,11 +683,10 @@ def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
     return np.asarray(eqx.filter_jit(predicted_torque)(params.to_plant(), kind, motion))
 
 
-def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int | None = None,
-                substeps: int = 4) -> float:
-    """Open-loop segment replay gap of ``params`` on ``log`` (module docstring): segments of
-    ``length`` samples (default: 0.5 s, at least 20 samples) started from the measured state."""
-    _need_x64("segment_gap")
+def _replay_problem(params: Params, log: Log, kind: str, length: int | None,
+                    substeps: int) -> tuple[Problem, Any]:
+    """``segment_gap``'s problem (segments of ``length`` samples, default 0.5 s and at least
+    20, started from the measured state) and its coordinates (the parameters as given)."""
     plant = params.to_plant()
     L = min(log.N, length or max(20, int(round(0.5 / log.dt))))
     outputs = output_columns(log, kind, None)
@@ -679,7 +696,37 @@ def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int
     n_state = segs.x0.shape[1]
     prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
                    dt=log.dt, kind=kind, substeps=substeps, outputs=outputs, free_starts=False)
-    return float(gap(prob, space.theta0()))
+    return prob, space.theta0()
+
+
+def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int | None = None,
+                substeps: int = 4) -> float:
+    """Open-loop segment replay gap of ``params`` on ``log`` (module docstring): segments of
+    ``length`` samples (default: 0.5 s, at least 20 samples) started from the measured state."""
+    _need_x64("segment_gap")
+    prob, theta = _replay_problem(params, log, kind, length, substeps)
+    return float(gap(prob, theta))
+
+
+def segment_gap_floor(params: Params, log: Log, *, kind: str = "flexible",
+                      length: int | None = None, substeps: int = 4, seed: int = 0) -> float:
+    """The segment replay gap (``segment_gap``) that the log's measurement noise alone gives
+    a perfect model: the model's own replays from the measured starts stand for the truth;
+    they are measured with fresh white noise of the log's (``noise_std`` of each angle), and
+    replayed again from start states estimated from the log with that noise added (noise in
+    the measured starts, velocities included, carried forward by the replay)."""
+    _need_x64("segment_gap_floor")
+    prob, theta = _replay_problem(params, log, kind, length, substeps)
+    truth = np.asarray(simulated_outputs(prob, theta))
+    rng = np.random.default_rng(seed)
+    std = {c: noise_std(getattr(log, c)) for c in ("q1", "q2") if getattr(log, c) is not None}
+    noisy = dataclasses.replace(log, **{c: getattr(log, c) + rng.standard_normal(
+        getattr(log, c).shape) * s for c, s in std.items()})
+    again, _ = _replay_problem(params, noisy, kind, length, substeps)
+    sig = np.concatenate([std[o] for o in prob.outputs])  # (n_out,) as the outputs' columns
+    measured = truth + rng.standard_normal(truth.shape) * sig
+    again = eqx.tree_at(lambda p: p.segs.y_meas, again, jnp.asarray(measured))
+    return float(gap(again, theta))
 
 
 def noise_std(x: np.ndarray) -> np.ndarray:
@@ -746,16 +793,20 @@ def validate(
     params: Params, log: Log, *, kind: str = "flexible", segment: int | None = None,
     substeps: int = 4, disturbance: np.ndarray | None = None,
 ) -> dict[str, Any]:
-    """All validation numbers of ``params`` on one ``log`` (module docstring): ``gap``,
-    ``torque_pct`` beside ``torque_noise_pct`` (its noise floor, ``torque_noise_floor``;
+    """All validation numbers of ``params`` on one ``log`` (module docstring), each beside
+    what the log's noise alone gives a perfect model: ``gap`` and ``gap_noise``
+    (``segment_gap_floor``), ``torque_pct`` and ``torque_noise_pct`` (``torque_noise_floor``;
     ``noise_std`` the noise found on each column), and ``closed_loop`` (dict of
-    position/velocity/torque errors [%], or None). ``series`` holds the measured and
-    predicted signals for figures."""
+    position/velocity/torque errors [%] with their ``noise_floor``,
+    ``closed_loop_noise_floor``; or None). ``series`` holds the measured and predicted
+    signals for figures."""
     tau_hat = torque_prediction(params, log, kind=kind)
     floor = torque_noise_floor(params, log, kind=kind, tau_hat=tau_hat)
     out: dict[str, Any] = {
         "model": kind, "samples": log.N, "dt": log.dt,
         "gap": segment_gap(params, log, kind=kind, length=segment, substeps=substeps),
+        "gap_noise": segment_gap_floor(params, log, kind=kind, length=segment,
+                                       substeps=substeps),
         "torque_pct": rel_error_pct(log.tau, tau_hat),
         "torque_noise_pct": floor["pct"], "noise_std": floor["std"],
     }

@@ -707,3 +707,43 @@ def test_fast_energy_is_the_energy_above_the_derivatives_band():
         tone = 0.3 * np.sin(2 * np.pi * hz * t + 0.4)
         assert fast_energy(slow + tone, dt) == pytest.approx(np.sum(tone**2), rel=0.02)
     assert fast_energy(slow, dt) < 1e-6 * np.sum(slow**2)
+
+
+def test_validate_reports_every_error_beside_its_noise_floor(tmp_path, capsys):
+    """A closed-loop log (the EMPS P/P cascade simulated from known parameters, with encoder
+    and torque noise): the replay gap, the torque error and the three closed-loop errors each
+    come with their noise floor, and the true model's closed-loop position error sits near
+    its floor."""
+    from jaxflex.data import load_emps
+    from jaxflex.logs import Log, save_log
+    from jaxflex.params import Params, save_params
+    from jaxflex.validate import PPCascade, simulate_pp_cascade
+
+    truth = Params.from_dict({
+        "plant": {"I": 95.0 - 1e-3, "J": 1e-3, "K": 1e6},
+        "friction": {"Fc": 20.0, "Fs": 26.0, "vs": 0.01, "sigma0": 1e6, "sigma1": 0.0,
+                     "sigma2": 200.0},
+        "loop_controller": {"type": "pp_cascade", "kp": 160.18, "kv": 243.44, "gtau": 35.15}})
+    dt, N = 1e-3, 2000
+    ref = load_emps("DATA_EMPS").q1d[:N, 0]
+    q, tau = simulate_pp_cascade(truth, PPCascade.from_dict(truth.extra["loop_controller"]),
+                                 ref, dt)
+    rng = np.random.default_rng(1)
+    q = np.asarray(q) + 2e-6 * rng.standard_normal(N)
+    tau = np.asarray(tau) + 0.5 * rng.standard_normal(N)
+    save_log(Log.from_arrays(t=np.arange(N) * dt, tau=tau, q1=q, q2=q, q1d=ref),
+             tmp_path / "emps.csv")
+    save_params(truth, tmp_path / "truth.json")
+    out = tmp_path / "v"
+    rc, stdout, err = _run(capsys, ["validate", str(tmp_path / "emps.csv"), "--params",
+                                    str(tmp_path / "truth.json"), "--model", "rigid",
+                                    "--linear", "--out", str(out)])
+    assert rc == 0, err
+    row = json.loads((out / "report.json").read_text())["logs"]["emps"]["params"]
+    assert row["gap_noise"] > 0 and row["torque_noise_pct"] > 0
+    cl = row["closed_loop"]
+    assert set(cl["noise_floor"]) == {"position_pct", "velocity_pct", "torque_pct"}
+    for k in ("position_pct", "velocity_pct", "torque_pct"):  # the true model: at its floors
+        assert cl[k] < 1.5 * cl["noise_floor"][k], k
+    assert row["gap"] < 1.5 * row["gap_noise"]
+    assert f"({cl['noise_floor']['position_pct']:.2g})" in stdout

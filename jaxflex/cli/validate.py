@@ -122,21 +122,23 @@ def run(args: argparse.Namespace) -> int:
             report["logs"].setdefault(name, {})[which] = row
             rows.append({"log": name, "params": which, **row})
         report["figures"] = [plot_table(rows, out / "torque_errors.png")]
-        lines = ["| log | params | gap | torque % | noise floor % | CL position % | "
-                 "CL velocity % | CL torque % |", "|---|---|---|---|---|---|---|---|"]
+        lines = ["| log | params | replay gap | torque % | CL position % | CL velocity % | "
+                 "CL torque % |", "|---|---|---|---|---|---|---|"]
         for r in rows:
             cl = r["closed_loop"] or {}
-            f = lambda k: f"{cl[k]:.4g}" if k in cl else "-"
-            lines.append(f"| {r['log']} | {r['params']} | {r['gap']:.4g} | "
-                         f"{r['torque_pct']:.4g} | {r['torque_noise_pct']:.4g} | "
+            fl = cl.get("noise_floor", {})
+            f = lambda k: f"{cl[k]:.4g} ({fl[k]:.2g})" if k in cl else "-"
+            lines.append(f"| {r['log']} | {r['params']} | {r['gap']:.4g} ({r['gap_noise']:.2g}) | "
+                         f"{r['torque_pct']:.4g} ({r['torque_noise_pct']:.3g}) | "
                          f"{f('position_pct')} | {f('velocity_pct')} | {f('torque_pct')} |")
         table = "\n".join(lines)
         (out / "table.md").write_text(table + "\n")
         (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     print(table)
-    print("torque %: 100 ||tau - tau_hat|| / ||tau||; noise floor %: the same error that the "
-          f"log's measurement noise alone gives (std of tau in {units[1]}, of q1 and q2 in "
-          f"{units[0]}, in report.json noise_std): an error near its floor is as good as the "
-          "log can tell")
+    print("in parentheses, each error's noise floor: what the log's measurement noise alone "
+          f"gives a perfect model (noise std of tau in {units[1]}, of q1 and q2 in {units[0]}: "
+          "report.json noise_std); an error near its floor is as good as this log can tell. "
+          "torque %: 100 ||tau - tau_hat|| / ||tau|| from the measured motion; CL: the declared "
+          "closed loop, the benchmark metric")
     print(f"wrote {out / 'report.json'}")
     return 0
