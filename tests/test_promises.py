@@ -169,6 +169,31 @@ def test_interrupted_command_leaves_no_empty_folder(tmp_path, capsys, monkeypatc
     assert not out.exists() and not out.parent.exists()
 
 
+def test_ctrl_c_stops_discover_even_where_a_fit_swallows_it(tmp_path, capsys, monkeypatch):
+    """A fit's solve ends on Ctrl-C and returns its last point (``least_squares``); the
+    workflow would carry on for minutes and write a result as if nothing happened. The
+    command stops within a second, exits 130 and writes nothing."""
+    import time
+
+    def swallowing_workflow(log, nominal, cfg, progress=None):
+        try:
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C during a solve ...
+        except KeyboardInterrupt:
+            pass  # ... which ends on it and returns
+        t0 = time.time()
+        while time.time() - t0 < 20.0:  # the rest of the workflow, no progress calls
+            sum(range(1000))
+        return None
+
+    monkeypatch.setattr("jaxflex.discover.discover", swallowing_workflow)
+    out = tmp_path / "out"
+    t0 = time.time()
+    rc, _, err = _run(capsys, ["discover", str(_log(tmp_path)), "--out", str(out), "--no-plots"])
+    assert rc == 130 and "interrupted" in err and "Traceback" not in err
+    assert time.time() - t0 < 10.0 and not out.exists()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
+
+
 def test_ctrl_c_while_writing_leaves_the_whole_result(tmp_path, capsys, monkeypatch):
     """Ctrl-C as the first figure is written: the command finishes writing, then exits 130."""
     import jaxflex.plots.validate as plots
@@ -747,3 +772,36 @@ def test_validate_reports_every_error_beside_its_noise_floor(tmp_path, capsys):
         assert cl[k] < 1.5 * cl["noise_floor"][k], k
     assert row["gap"] < 1.5 * row["gap_noise"]
     assert f"({cl['noise_floor']['position_pct']:.2g})" in stdout
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_real_discover_run(tmp_path):
+    """A terminal's Ctrl-C (SIGINT to the process group) during discover's fits: exit 130 in
+    seconds, no output folder."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from jaxflex.datagen import generate_log
+    from jaxflex.logs import save_log
+
+    save_log(generate_log((), seed=1, t_final=4.0).log, tmp_path / "log.csv")
+    out = tmp_path / "new" / "out"
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    p = subprocess.Popen([sys.executable, "-m", "jaxflex", "--no-cache", "discover",
+                          str(tmp_path / "log.csv"), "--out", str(out)], cwd=root, env=env,
+                         start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    try:
+        time.sleep(8.0)  # compiling and fitting the nominal model
+        t0 = time.time()
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 130, err
+    assert time.time() - t0 < 10.0 and "Traceback" not in err
+    assert not (tmp_path / "new").exists()

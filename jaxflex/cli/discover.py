@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.params import load_params, save_params
     from jaxflex.presets import paper_params
 
-    from jaxflex.cli.outputs import check_outputs, writing
+    from jaxflex.cli.outputs import check_outputs, interrupts_stop, writing
 
     check_outputs(args.force, folders=[args.out], marker=OUTPUT_FILES)
     if not 0.1 <= args.train_frac <= 0.9:
@@ -81,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
     plots = None if args.no_plots else Ahead(
         [lambda: importlib.import_module("jaxflex.plots.discover")])
     try:
-        res = discover(log, nominal, cfg, progress=print)
+        with interrupts_stop() as check:  # a fit ends on Ctrl-C; the command stops too
+            res = discover(log, nominal, cfg, progress=lambda m: (check(), print(m)))
     finally:
         if plots is not None:  # no thread left behind, a failed run's included
             plots.join()
@@ -128,9 +129,10 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
     from jaxflex.discover import discover_joints
     from jaxflex.params import save_params
 
-    from jaxflex.cli.outputs import writing
+    from jaxflex.cli.outputs import interrupts_stop, writing
 
-    results = discover_joints(log, nominal, cfg, progress=print)
+    with interrupts_stop() as check:  # a fit ends on Ctrl-C; the command stops too
+        results = discover_joints(log, nominal, cfg, progress=lambda m: (check(), print(m)))
     reps = []
     with writing():  # the whole result or nothing, Ctrl-C included
         out.mkdir(parents=True, exist_ok=True)

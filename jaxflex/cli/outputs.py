@@ -9,7 +9,8 @@ an output *folder* is created at write time with its missing parents, so the nea
 ancestor must be a writable folder; a file is never where a folder is expected, nor the reverse.
 
 Also here: ``writing`` (a command's result files are written whole or not at all, Ctrl-C
-waits for them) and ``suggest_command`` (a command a message suggests, built from the command
+waits for them), ``interrupts_stop`` (Ctrl-C stops a computation whose library calls end a
+solve on it and carry on) and ``suggest_command`` (a command a message suggests, built from the command
 line given, so that it runs as printed).
 """
 
@@ -21,7 +22,7 @@ import os
 import shlex
 import signal
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 from jaxflex.errors import InputError
@@ -137,6 +138,55 @@ def writing() -> Iterator[None]:
     try:
         yield
     finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    if got:
+        raise KeyboardInterrupt
+
+
+#: After a first Ctrl-C inside ``interrupts_stop``, the period [s] at which a
+#: ``KeyboardInterrupt`` is raised again until the block is left.
+REPEAT_INTERRUPT_S: float = 0.25
+
+
+@contextlib.contextmanager
+def interrupts_stop() -> Iterator[Callable[[], None]]:
+    """Make Ctrl-C (SIGINT) or SIGTERM stop the block even where a library call catches the
+    ``KeyboardInterrupt`` and carries on (a fit's solve ends on it and returns its last
+    point, ``jaxflex.fit.least_squares``): after the first signal, ``KeyboardInterrupt`` is
+    raised again every ``REPEAT_INTERRUPT_S`` until it leaves the block, and once more at the
+    block's end if the block finished anyway, so nothing computed after an interrupt is
+    taken for a result. Yields ``check``, which raises ``KeyboardInterrupt`` once a signal has
+    come (for progress callbacks). Off the main thread the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+    got: list[int] = []
+    done: list[bool] = []
+
+    def again(num: int, frame: object) -> None:
+        if not done:
+            raise KeyboardInterrupt
+
+    def first(num: int, frame: object) -> None:
+        got.append(num)
+        signal.signal(signal.SIGALRM, again)
+        signal.setitimer(signal.ITIMER_REAL, REPEAT_INTERRUPT_S, REPEAT_INTERRUPT_S)
+        raise KeyboardInterrupt
+
+    def check() -> None:
+        if got:
+            raise KeyboardInterrupt
+
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    old = {s: signal.signal(s, first) for s in sigs}
+    old_alarm = signal.getsignal(signal.SIGALRM)
+    try:
+        yield check
+    finally:
+        done.append(True)
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        signal.signal(signal.SIGALRM, old_alarm)
         for s, h in old.items():
             signal.signal(s, h)
     if got:
