@@ -6,8 +6,11 @@ controller that ran (top-level ``loop_controller`` section: the EMPS P/P cascade
 ``{"type": "pp_cascade", ...}``, a PD loop ``{"type": "pd", "kp": ..., "kd": ...}`` or
 jaxflex's cascade ``{"type": "cascade"}``; docs/spec.md section 7) and the log has a
 reference q1d, the closed-loop errors in the benchmark metric (position, velocity, torque).
-``--against`` adds the same rows for a reference parameter set. Writes ``DIR/report.json``,
-``DIR/table.md`` and figures (measured against predicted, residuals).
+``--against`` adds the same rows for a reference parameter set. Each error stands beside its
+noise floor, what the log's measurement noise alone gives a perfect model
+(``jaxflex.validate``). Writes ``DIR/report.json``, ``DIR/table.md`` and figures (measured
+against predicted, residuals); an existing one of them needs ``--force``, and nothing is
+written until every log has been validated.
 
 Example (EMPS, with the pulses of the validation file injected in volts):
 
