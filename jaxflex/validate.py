@@ -1,27 +1,29 @@
 """Validation of a parameter set on measured logs: a workflow on the engine.
 
-Per log, three numbers (each from the one implementation of its equation):
+Per log, three numbers (each from the one implementation of its equation), each beside its
+**noise floor**: what the log's measurement noise alone gives a perfect model, so that an error
+at its floor says "as good as this log can tell", not "97% wrong":
 
 - **segment replay gap** (open loop): the log cut into segments, each replayed under the
   logged torque from its measured start (``jaxflex.fit.Problem`` with ``free_starts=False``,
-  ``jaxflex.fit.gap``): 0 is perfect, 1 as bad as predicting no motion;
+  ``jaxflex.fit.gap``): 0 is perfect, 1 as bad as predicting no motion (floor:
+  ``segment_gap_floor``);
 - **torque prediction error** from the measured motion, ``100 ||tau - tau_hat|| / ||tau||``
   [%], with ``tau_hat`` from the inverse dynamics ``FlexibleJointPlant.torque_residuals``
   (velocities and accelerations by Savitzky-Golay, ``jaxflex.fit.savgol``; LuGre z at its
   steady state, eq. 35): rigid model ``tau_hat = tau + r_link + r_rotor`` with q2 = q1;
   flexible and rotor models ``tau_hat = tau + r_rotor`` (the rotor line of eq. 3 with the
   measured q1 and q2; for "rotor" the link reading passes the ``encoder_skew`` effect);
-  reported beside its **noise floor** (``torque_noise_floor``): the error the log's
-  measurement noise and the torque content faster than the measured motion resolves give a
-  perfect model, so that an error at the floor says "as good as the data can tell", not
-  "97% wrong";
+  (floor: ``torque_noise_floor``, the measurement noise and the torque content faster than
+  the measured motion resolves);
 - **closed-loop simulation error** in the benchmark metric ``100 ||y - y_sim|| / ||y||`` [%]
   for position, velocity and torque, when the parameters declare the controller that ran
   (the parameter file's top-level ``loop_controller`` section, ``LOOP_TYPES``: ``PPCascade``,
   the EMPS P position / P velocity cascade; ``PDLoop``, a PD on the rotor or link angle;
   ``CascadeLoop``, jaxflex's own cascade) and the log has a reference ``q1d``. Every declared
   loop is a ``SampledLaw`` run by one sampled-data scan around ``jaxflex.step.model_step``
-  (rigid or flexible model), the log's q1d sampled as the reference.
+  (rigid or flexible model), the log's q1d sampled as the reference (floors:
+  ``closed_loop_noise_floor``).
 
 Returns plain dicts; figures and files are written by ``jaxflex.cli.validate``.
 """
