@@ -712,11 +712,24 @@ def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int
 
 def segment_gap_floor(params: Params, log: Log, *, kind: str = "flexible",
                       length: int | None = None, substeps: int = 4, seed: int = 0) -> float:
-    """The segment replay gap (``segment_gap``) that the log's measurement noise alone gives
-    a perfect model: the model's own replays from the measured starts stand for the truth;
-    they are measured with fresh white noise of the log's (``noise_std`` of each angle), and
-    replayed again from start states estimated from the log with that noise added (noise in
-    the measured starts, velocities included, carried forward by the replay)."""
+    """The segment replay gap (``segment_gap``) that the log's noise alone gives a perfect model.
+
+    The model's own replays from the measured starts stand for the truth; they are measured
+    with fresh white noise of the log's (``noise_std`` of each angle) and replayed again from
+    start states estimated from the log with that noise added (noise in the measured starts,
+    velocities included, carried forward by the replay).
+
+    **Arguments:**
+
+    - ``params``: the model, standing in for the truth.
+    - ``log``: the log.
+    - ``kind``, ``length``, ``substeps``: as ``segment_gap``.
+    - ``seed``: of the noise drawn.
+
+    **Returns:**
+
+    The gap (0 perfect, 1 as bad as predicting no motion).
+    """
     _need_x64("segment_gap_floor")
     prob, theta = _replay_problem(params, log, kind, length, substeps)
     truth = np.asarray(simulated_outputs(prob, theta))
@@ -764,18 +777,29 @@ def fast_energy(x: np.ndarray, dt: float, window: int = 31, order: int = 3) -> n
 
 def torque_noise_floor(params: Params, log: Log, *, kind: str = "flexible", window: int = 31,
                        seed: int = 0, tau_hat: np.ndarray | None = None) -> dict[str, Any]:
-    """The torque prediction error [%] that what the log cannot resolve alone gives the model
-    ``params``, a floor for ``torque_prediction``'s error (the error of a perfect model):
-    ``100 sqrt(E_tau + ||tau_hat(q + n_q) - tau_hat(q)||^2) / ||tau||``.
+    """The torque prediction error [%] that what the log cannot resolve gives a perfect model.
 
-    ``E_tau``, the torque's own share, is the larger of its energy faster than the measured
-    motion resolves (``fast_energy`` above the ``window``-sample Savitzky-Golay band of the
-    derivatives: a controller's chatter on quantised angles, say) and ``N sigma_tau^2`` (white
-    noise, part of which lies inside that band); the angles' share propagates white noise
-    ``n_q`` of the standard deviations ``noise_std`` finds on q1 and q2 through
-    ``torque_prediction`` (to first order). ``tau_hat``: ``torque_prediction`` on ``log``
-    when already computed. Returns ``{"pct": ..., "std": {"tau": [...], "q1": [...],
-    "q2": [...]}}`` (std in the log's units)."""
+    ``100 sqrt(E_tau + ||tau_hat(q + n_q) - tau_hat(q)||^2) / ||tau||``: ``E_tau``, the
+    torque's own share, is the larger of its energy faster than the measured motion resolves
+    (``fast_energy`` above the Savitzky-Golay band of the derivatives: a controller's chatter
+    on quantised angles, say) and ``N sigma_tau^2`` (white noise, part of which lies inside
+    that band); the angles' share propagates white noise ``n_q`` of the standard deviations
+    ``noise_std`` finds on q1 and q2 through ``torque_prediction`` (to first order).
+
+    **Arguments:**
+
+    - ``params``: the model, standing in for the truth.
+    - ``log``: the log (tau, q1 and, but for the rigid model, q2).
+    - ``kind``: the model kind of ``torque_prediction``.
+    - ``window``: Savitzky-Golay window [samples] of the derivatives.
+    - ``seed``: of the noise drawn for the angles.
+    - ``tau_hat``: ``torque_prediction`` on ``log``, when already computed.
+
+    **Returns:**
+
+    ``{"pct": floor [%], "std": {"tau": [...], "q1": [...], "q2": [...]}}``, the noise
+    standard deviations in the log's units.
+    """
     if tau_hat is None:
         tau_hat = torque_prediction(params, log, kind=kind, window=window)
     rng = np.random.default_rng(seed)

@@ -377,17 +377,28 @@ def shapley_r2(corr: np.ndarray, r: np.ndarray, permutations: int = 2000,
 
 def sensitivities(cov: np.ndarray, cxy: np.ndarray, var_y: float,
                   labels: list[str]) -> list[dict[str, Any]]:
-    """Sensitivities of a metric y to d sampled parameters from the sample moments: ``cov``
-    (d, d) of the parameters, ``cxy`` (d,) their covariances with y, ``var_y``.
+    """Sensitivities of a metric y to sampled parameters, valid when the draws are correlated.
 
-    Per parameter: ``shapley`` (its share of the linear R^2, ``shapley_r2``: valid under
-    correlated draws, the ranking), ``corr`` (Pearson correlation with y: what it explains
-    alone, its correlated partners' effects included), ``src`` (standardised regression
-    coefficient: its effect with the others held fixed), ``vif`` (variance inflation factor
-    of ``src``), ``r2_linear`` (R^2 of the full linear fit) and, where ``vif`` exceeds
-    ``VIF_LIMIT``, ``collinear_with``: the parameters it is drawn correlated with (|corr| >=
-    0.9, else all of its group), whose separate effects these draws cannot tell apart. A
-    parameter that does not vary gets zeros. Sorted by ``shapley``, largest first."""
+    Per parameter: ``shapley`` (its share of the linear R^2, ``shapley_r2``: the ranking),
+    ``corr`` (Pearson correlation with y: what it explains alone, its correlated partners'
+    effects included), ``src`` (standardised regression coefficient: its effect with the
+    others held fixed), ``vif`` (variance inflation factor of ``src``), ``r2_linear`` (R^2 of
+    the full linear fit) and, where ``vif`` exceeds ``VIF_LIMIT``, ``collinear_with``: the
+    parameters it is drawn correlated with (|corr| >= 0.9, else the others above the limit),
+    whose separate effects these draws cannot tell apart. A parameter that does not vary gets
+    zeros.
+
+    **Arguments:**
+
+    - ``cov``: (d, d) sample covariance of the parameters.
+    - ``cxy``: (d,) their sample covariances with y.
+    - ``var_y``: the sample variance of y.
+    - ``labels``: the d parameter names.
+
+    **Returns:**
+
+    One dict per parameter, sorted by ``shapley``, largest first.
+    """
     d = len(labels)
     sd_x = np.sqrt(np.clip(np.diag(cov), 0, None))
     live = sd_x > 0
