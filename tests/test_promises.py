@@ -444,6 +444,8 @@ def test_sensitivity_ranks_the_real_driver_under_correlated_draws():
     from jaxflex.sweep.summary import collinear_groups
 
     assert collinear_groups(sens) == [["friction.Fc", "friction.sigma2"]]
+    assert acc.result().summary["sensitivity_warnings"][0].startswith(
+        "friction.Fc, friction.sigma2 are drawn so correlated")
     assert "collinear_with" not in by["plant.I"]
 
 

@@ -66,7 +66,6 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.cli.outputs import OutputError, check_folder, suggest_command
     from jaxflex.errors import InputError
     from jaxflex.sweep import load_spread, nominal_run, run_sweep
-    from jaxflex.sweep.summary import collinear_groups
 
     for flag, value, low in (("--samples", args.samples, 1), ("--chunk-size", args.chunk_size, 1),
                              ("--worst", args.worst, 0)):
@@ -169,11 +168,8 @@ def run(args: argparse.Namespace) -> int:
             f"{res.summary['samples']} samples, {res.summary['diverged']} diverged; RMS link error "
             f"median {m['q50']:.3g} {pu}, 95% {m['q95']:.3g} {pu}; top driver: {top}; wrote {out}"
         )
-        for group in collinear_groups(sens):
-            print(f"warning: {', '.join(group)} are drawn so correlated that their separate "
-                  "effects cannot be told apart; their Shapley shares split what they explain "
-                  "together, and their regression coefficients (src) are not meaningful",
-                  file=sys.stderr)
+        for w in res.summary["sensitivity_warnings"]:
+            print(f"warning: {w}", file=sys.stderr)
     if args.coordinator:
         jax.distributed.shutdown()
     return 0

@@ -283,6 +283,7 @@ class Accumulator:
             "spec": spec.to_dict(), "samples": self.count, "diverged": self.diverged,
             "diverged_fraction": self.diverged / max(self.count, 1), "fs_raised_to_fc": self.fs_raised,
             "metrics": metrics, "sensitivity": sens, "worst": worst,
+            "sensitivity_warnings": [collinear_warning(g) for g in collinear_groups(sens)],
         }
         edges = band_bins()
         bq = hist_quantiles(self.band, edges, BAND_QUANTILES)
@@ -431,6 +432,13 @@ def sensitivities(cov: np.ndarray, cxy: np.ndarray, var_y: float,
             row["collinear_with"] = [labels[k] for k in partners]
         rows.append(row)
     return sorted(rows, key=lambda row: -row["shapley"])
+
+
+def collinear_warning(group: list[str]) -> str:
+    """The warning for a group of parameters ``collinear_groups`` found."""
+    return (f"{', '.join(group)} are drawn so correlated that their separate effects cannot "
+            "be told apart; their Shapley shares split what they explain together, and their "
+            "regression coefficients (src) are not meaningful")
 
 
 def collinear_groups(rows: list[dict[str, Any]]) -> list[list[str]]:
