@@ -356,6 +356,10 @@ def test_sweep_resume_hint_runs_as_printed(tmp_path, capsys, monkeypatch):
     hint = re.search(r"continue with: (.*)$", err.strip()).group(1)
     cmd = shlex.split(hint)
     assert cmd[0] == "jaxflex" and "--resume" in cmd and "--samples" in cmd
+    # run again as at first, without the options: refused, with the command that continues
+    rc, _, err = _run(capsys, ["sweep", str(spread), "--out", str(out), "--no-progress"])
+    assert rc == 2 and "interrupted sweep" in err
+    assert re.search(r"continue it with: (.*?); or pass --force", err).group(1) == hint
     capsys.readouterr()
     assert main(cmd[1:]) == 0, capsys.readouterr().err
     doc = json.loads((out / "summary.json").read_text())

@@ -75,10 +75,12 @@ def run(args: argparse.Namespace) -> int:
     # the command as given (main's argv), for the --resume hint; the spread and --out as
     # parsed when called without it
     argv = getattr(args, "argv", None) or ["sweep", args.spread, "--out", args.out]
+    resume_command = suggest_command(argv, add=["--resume"], drop=["--force"])
     ckpt_path = Path(args.out) / CHECKPOINT
     if ckpt_path.exists() and not (args.resume or args.force):
-        raise OutputError(f"--out {args.out}: holds an interrupted sweep ({CHECKPOINT}); pass "
-                          "--resume to continue it or --force to start again")
+        raise OutputError(f"--out {args.out}: holds an interrupted sweep ({CHECKPOINT}); "
+                          f"continue it with: {_resume_command(Path(args.out), resume_command)}"
+                          "; or pass --force to start again")
     out = check_folder(args.out, force=args.force, resume=args.resume, marker=OUTPUT_FILES)
     resume = None
     if args.resume:
@@ -135,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         doc["fs_below_fc"] = ("redrawn: sampled conditioned on Fs >= Fc"
                               if spec.fs_below_fc_possible() else "cannot occur")
         doc["figures"] = []
+        if partial:
+            doc["resume_command"] = resume_command
         tmp = out / "summary.json.tmp"
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
         os.replace(tmp, out / "summary.json")
@@ -148,8 +152,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"jaxflex sweep: interrupted after {res.summary['chunks_done']} of "
                   f"{res.summary['chunks']} chunks ({res.summary['samples']} samples); wrote the "
                   f"partial summary {out / 'summary.json'} (\"partial\": true, no figures); "
-                  f"continue with: {suggest_command(argv, add=['--resume'], drop=['--force'])}",
-                  file=sys.stderr)
+                  f"continue with: {resume_command}", file=sys.stderr)
             return 130
         from jaxflex.plots.sweep import plot_sweep
 
@@ -173,3 +176,16 @@ def run(args: argparse.Namespace) -> int:
     if args.coordinator:
         jax.distributed.shutdown()
     return 0
+
+
+def _resume_command(out, fallback: str) -> str:
+    """The command that continues the interrupted sweep in ``out``: the one its partial
+    summary recorded (the options it ran with), else ``fallback`` (this command line with
+    ``--resume``)."""
+    import json
+
+    try:
+        cmd = json.loads((out / "summary.json").read_text()).get("resume_command")
+    except (OSError, ValueError, AttributeError):
+        cmd = None
+    return cmd if isinstance(cmd, str) and cmd else fallback
