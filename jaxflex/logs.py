@@ -30,13 +30,15 @@ from typing import Any
 
 import numpy as np
 
+from jaxflex.errors import InputError
+
 LOG_COLUMNS: tuple[str, ...] = ("t", "tau", "q1", "q2", "q1d", "F", "v")
 REQUIRED_COLUMNS: tuple[str, ...] = ("t", "tau", "q1", "q2")
 _UNITS = {"t": "s", "tau": "N m", "q1": "rad", "q2": "rad", "q1d": "rad", "F": "N m",
           "v": "rad/s"}
 
 
-class LogError(ValueError):
+class LogError(InputError):
     """A log that does not follow docs/spec.md section 6 (the message names the problem)."""
 
 
@@ -154,16 +156,16 @@ class Log:
         if np.any(d <= 0):
             i = int(np.argmax(d <= 0))
             raise LogError(
-                f"{where}time is not strictly increasing: t[{i}] = {t[i]!r}, t[{i + 1}] = "
-                f"{t[i + 1]!r}"
+                f"{where}time is not strictly increasing: t[{i}] = {float(t[i])!r} s, "
+                f"t[{i + 1}] = {float(t[i + 1])!r} s"
             )
         dt = (t[-1] - t[0]) / (t.shape[0] - 1)
         dev = np.abs(d - dt)
         if np.any(dev > time_rtol * dt):
             i = int(np.argmax(dev))
             raise LogError(
-                f"{where}time is not uniformly sampled: step {i} is {d[i]!r} s but the mean "
-                f"period is {dt!r} s (tolerance {time_rtol:g} relative)"
+                f"{where}time is not uniformly sampled: step {i} is {float(d[i])!r} s but the "
+                f"mean period is {float(dt)!r} s (tolerance {time_rtol:g} relative)"
             )
         return cls(source=source, **arrs)
 
@@ -207,6 +209,13 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
         header = f.readline().strip()
     if not header:
         raise LogError(f"{path}: empty file")
+    if "," not in header:
+        for sep, word in ((";", "semicolons"), ("\t", "tabs")):
+            if sep in header:
+                raise LogError(
+                    f"{path}: the columns are separated by {word} ({sep!r}); jaxflex reads "
+                    "comma-separated CSV with '.' as the decimal point: save the file with ',' "
+                    "between columns (or as .npz)")
     names = [h.strip() for h in header.split(",")]
     if any(re.fullmatch(r"[-+0-9.eE]+", n) for n in names):
         raise LogError(f"{path}: the first row must be a header of column names, got {header!r}")
@@ -277,11 +286,26 @@ UNIT_FACTORS: dict[str, float] = {
     "mm": 1e-3, "rad/s": 1.0, "deg/s": np.pi / 180.0, "rpm": 2.0 * np.pi / 60.0,
     "Nm": 1.0, "N": 1.0, "mNm": 1e-3,
 }
-# Units guessed from a variable's name suffix (inspect); the log columns have their own.
+# Units guessed from a variable's name suffix (inspect); the log columns have their own. The
+# longest matching suffix wins, so ``_deg_per_s`` is a speed, not a time.
 _NAME_UNITS: tuple[tuple[str, str], ...] = (
-    ("_deg", "deg"), ("_rad", "rad"), ("_nm", "N m"), ("_Nm", "N m"), ("_ms", "ms"),
-    ("_mm", "mm"), ("_s", "s"), ("_m", "m"), ("_V", "V"), ("_A", "A"),
+    ("_deg", "deg"), ("_rad", "rad"), ("_nm", "N m"), ("_Nm", "N m"), ("_mNm", "mN m"),
+    ("_ms", "ms"), ("_mm", "mm"), ("_s", "s"), ("_m", "m"), ("_V", "V"), ("_A", "A"),
+    ("_rpm", "rpm"), ("_deg_per_s", "deg/s"), ("_rad_per_s", "rad/s"), ("_degps", "deg/s"),
+    ("_radps", "rad/s"), ("_m_per_s", "m/s"),
+    ("_mm_per_s", "mm/s"), ("_deg_per_s2", "deg/s^2"), ("_rad_per_s2", "rad/s^2"),
+    ("_m_per_s2", "m/s^2"), ("_per_s", "1/s"),
 )
+
+
+def name_unit(name: str) -> str:
+    """The unit a variable's name tells (a log column's, or the longest known suffix of
+    ``_NAME_UNITS``: ``act_vel_deg_per_s`` -> ``deg/s``); "" when it tells none."""
+    leaf = name.rsplit(".", 1)[-1]
+    if leaf in _UNITS:
+        return _UNITS[leaf]
+    hits = [(len(suf), u) for suf, u in _NAME_UNITS if leaf.endswith(suf)]
+    return max(hits)[1] if hits else ""
 #: A time column advancing by this much or more per sample [s] is taken for milliseconds.
 MS_SUSPECT_PERIOD: float = 0.5
 
@@ -464,6 +488,32 @@ def parse_mapping(text: str | None) -> dict[str, str] | None:
     return _parse_items(text, "")
 
 
+#: SI unit of a log column converted from each unit suffix of a mapping (``q1=x:mm`` -> m).
+_SI_OF_SUFFIX = {"m": "m", "mm": "m", "rad": "rad", "deg": "rad", "N": "N", "Nm": "N m",
+                 "mNm": "N m"}
+
+
+def axis_units(mapping: Mapping[str, str] | None, linear: bool = False) -> tuple[str, str]:
+    """(position unit, torque unit) of a log's axis for labels and messages: ``("m", "N")``
+    for a prismatic axis (``linear``, or a mapping that converts q1 or q2 from ``:m`` or
+    ``:mm``, or tau from ``:N``), ``("rad", "N m")`` otherwise."""
+    if not linear and mapping:
+        units = {c: _SI_OF_SUFFIX.get(_split_unit(mapping[c])[1] or "", "")
+                 for c in ("q1", "q2", "tau") if c in mapping}
+        linear = "m" in (units.get("q1"), units.get("q2")) or units.get("tau") == "N"
+    return ("m", "N") if linear else ("rad", "N m")
+
+
+def map_option(mapping: Mapping[str, str] | None, **changes: str) -> str:
+    """The ``--map`` option, quoted for a shell, of ``mapping`` with the items ``changes``
+    set: a message's suggestion keeps every item the user gave, so it runs as printed."""
+    import shlex
+
+    items = {**(mapping or {}), **changes}
+    text = ",".join(f"{k}={v}" for k, v in items.items())
+    return "--map " + (f"'{text}'" if "'" not in text else shlex.quote(text))
+
+
 def load_log(
     path: str | os.PathLike, mapping: Mapping[str, str] | None = None, *,
     required: Sequence[str] = REQUIRED_COLUMNS, time_rtol: float = 1e-3,
@@ -499,9 +549,10 @@ def load_log(
             cols[c] = evaluate(mapping[c], raw, where)
         elif c in raw:
             if isinstance(raw[c], dict):
+                field = sorted(raw[c])[0] if raw[c] else "field"
                 raise LogError(f"{where}variable '{c}' is a struct with fields "
-                               f"{sorted(raw[c])}; map the column to one, e.g. --map "
-                               f"'{c}={c}.{sorted(raw[c])[0] if raw[c] else 'field'}'")
+                               f"{sorted(raw[c])}; map the column to one, e.g. "
+                               f"{map_option(mapping, **{c: f'{c}.{field}'})}")
             cols[c] = raw[c]
     missing = [c for c in required if c not in cols]
     if missing:
@@ -526,7 +577,8 @@ def load_log(
                 raise LogError(
                     f"{where}time column t advances by {period:g} per sample: this looks like "
                     f"milliseconds (or another unit), not seconds. Map it with a unit: "
-                    f"--map 't={expr}:ms' (or 't={expr}:s' if it really is in seconds)")
+                    f"{map_option(mapping, t=f'{expr}:ms')} (or ':s' in place of ':ms' if it "
+                    "really is in seconds)")
     for c, a in list(cols.items()):
         if np.ndim(a) == 0:
             raise LogError(f"{where}column {c} is a single number, expected one value per sample")
@@ -540,12 +592,8 @@ def inspect_file(path: str | os.PathLike) -> list[dict[str, Any]]:
     rows = []
     for name, v in flatten_variables(read_variables(path)).items():
         a = np.asarray(v)
-        leaf = name.rsplit(".", 1)[-1]
-        unit = _UNITS.get(leaf, "")
-        if not unit:
-            unit = next((u for suf, u in _NAME_UNITS if leaf.endswith(suf)), "")
         row: dict[str, Any] = {"name": name, "shape": tuple(a.shape), "dtype": str(a.dtype),
-                               "unit": unit}
+                               "unit": name_unit(name)}
         if a.size == 1 and a.dtype.kind in "biuf":
             row["value"] = float(a.reshape(()))
         rows.append(row)

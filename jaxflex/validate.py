@@ -1,23 +1,29 @@
-"""Validation of a parameter set on measured logs (issue 14): a workflow on the engine.
+"""Validation of a parameter set on measured logs: a workflow on the engine.
 
-Per log, three numbers (each from the one implementation of its equation):
+Per log, three numbers (each from the one implementation of its equation), each beside its
+**noise floor**: what the log's measurement noise alone gives a perfect model, so that an error
+at its floor says "as good as this log can tell", not "97% wrong":
 
 - **segment replay gap** (open loop): the log cut into segments, each replayed under the
   logged torque from its measured start (``jaxflex.fit.Problem`` with ``free_starts=False``,
-  ``jaxflex.fit.gap``): 0 is perfect, 1 as bad as predicting no motion;
+  ``jaxflex.fit.gap``): 0 is perfect, 1 as bad as predicting no motion (floor:
+  ``segment_gap_floor``);
 - **torque prediction error** from the measured motion, ``100 ||tau - tau_hat|| / ||tau||``
   [%], with ``tau_hat`` from the inverse dynamics ``FlexibleJointPlant.torque_residuals``
   (velocities and accelerations by Savitzky-Golay, ``jaxflex.fit.savgol``; LuGre z at its
   steady state, eq. 35): rigid model ``tau_hat = tau + r_link + r_rotor`` with q2 = q1;
   flexible and rotor models ``tau_hat = tau + r_rotor`` (the rotor line of eq. 3 with the
   measured q1 and q2; for "rotor" the link reading passes the ``encoder_skew`` effect);
+  (floor: ``torque_noise_floor``, the measurement noise and the torque content faster than
+  the measured motion resolves);
 - **closed-loop simulation error** in the benchmark metric ``100 ||y - y_sim|| / ||y||`` [%]
   for position, velocity and torque, when the parameters declare the controller that ran
   (the parameter file's top-level ``loop_controller`` section, ``LOOP_TYPES``: ``PPCascade``,
   the EMPS P position / P velocity cascade; ``PDLoop``, a PD on the rotor or link angle;
   ``CascadeLoop``, jaxflex's own cascade) and the log has a reference ``q1d``. Every declared
   loop is a ``SampledLaw`` run by one sampled-data scan around ``jaxflex.step.model_step``
-  (rigid or flexible model), the log's q1d sampled as the reference.
+  (rigid or flexible model), the log's q1d sampled as the reference (floors:
+  ``closed_loop_noise_floor``).
 
 Returns plain dicts; figures and files are written by ``jaxflex.cli.validate``.
 """
@@ -41,7 +47,8 @@ from jaxflex.controller import (
     pd_torque,
 )
 from jaxflex.effects import link_input
-from jaxflex.fit import ParamSpace, Problem, gap, make_segments, output_columns, savgol
+from jaxflex.fit import (ParamSpace, Problem, gap, make_segments, noise_level, output_columns,
+                         savgol, savgol_coeffs, simulated_outputs)
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
@@ -465,7 +472,7 @@ def rigid_torque_fit(log: Log, joint: int = 0, window: int = 31) -> dict[str, fl
     ``tau = Jt q'' + Fv q' + Fc sign(q') + offset`` (the rigid model of eq. 37 with Coulomb
     and viscous friction and a constant, linear in its coefficients), the derivatives by
     zero-phase Savitzky-Golay differentiation over ``window`` samples (``jaxflex.fit.savgol``).
-    The baseline a flexible model must beat on real data (issue 14), and a starting point for
+    The baseline a flexible model must beat on real data, and a starting point for
     a model of a log no one has identified yet. Returns ``RIGID_TERMS``: Jt [kg m^2],
     Fv [N m s/rad], Fc [N m], offset [N m]. Raises ``ValueError`` for a joint the log lacks
     or a log without torque."""
@@ -507,7 +514,25 @@ def closed_loop_errors(
     return {"position_pct": rel_error_pct(q, q_sim, drop),
             "velocity_pct": rel_error_pct(v, v_sim, drop),
             "torque_pct": rel_error_pct(tau, tau_sim, drop),
+            "noise_floor": closed_loop_noise_floor(log, drop),
             "series": {"q": q_sim, "v": v_sim, "v_meas": v, "tau": tau_sim}}
+
+
+def closed_loop_noise_floor(log: Log, drop: int = 49, seed: int = 0) -> dict[str, float]:
+    """The benchmark metric's errors [%] (``closed_loop_errors``) that the log's measurement
+    noise alone gives a perfect closed-loop model of joint 0 (``noise_std`` of q1 and tau,
+    white): position ``100 sigma_q1 sqrt(N) / ||q1||``, velocity that noise through
+    ``benchmark_derivative``, torque ``100 sigma_tau sqrt(N) / ||tau||``; the first ``drop``
+    samples left out. (A simulated loop holds the torque's fast content, unlike the inverse
+    dynamics of ``torque_noise_floor``.)"""
+    q, tau = log.q1[:, 0], log.tau[:, 0]
+    rng = np.random.default_rng(seed)
+    n_q = rng.standard_normal(q.shape) * float(noise_std(q)[0])
+    n_tau = rng.standard_normal(tau.shape) * float(noise_std(tau)[0])
+    v = benchmark_derivative(q, log.dt)
+    return {"position_pct": rel_error_pct(q, q + n_q, drop),
+            "velocity_pct": rel_error_pct(v, v + benchmark_derivative(n_q, log.dt), drop),
+            "torque_pct": rel_error_pct(tau, tau + n_tau, drop)}
 
 
 class ClosedLoopFit(eqx.Module):
@@ -660,11 +685,10 @@ def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
     return np.asarray(eqx.filter_jit(predicted_torque)(params.to_plant(), kind, motion))
 
 
-def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int | None = None,
-                substeps: int = 4) -> float:
-    """Open-loop segment replay gap of ``params`` on ``log`` (module docstring): segments of
-    ``length`` samples (default: 0.5 s, at least 20 samples) started from the measured state."""
-    _need_x64("segment_gap")
+def _replay_problem(params: Params, log: Log, kind: str, length: int | None,
+                    substeps: int) -> tuple[Problem, Any]:
+    """``segment_gap``'s problem (segments of ``length`` samples, default 0.5 s and at least
+    20, started from the measured state) and its coordinates (the parameters as given)."""
     plant = params.to_plant()
     L = min(log.N, length or max(20, int(round(0.5 / log.dt))))
     outputs = output_columns(log, kind, None)
@@ -674,21 +698,143 @@ def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int
     n_state = segs.x0.shape[1]
     prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
                    dt=log.dt, kind=kind, substeps=substeps, outputs=outputs, free_starts=False)
-    return float(gap(prob, space.theta0()))
+    return prob, space.theta0()
+
+
+def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int | None = None,
+                substeps: int = 4) -> float:
+    """Open-loop segment replay gap of ``params`` on ``log`` (module docstring): segments of
+    ``length`` samples (default: 0.5 s, at least 20 samples) started from the measured state."""
+    _need_x64("segment_gap")
+    prob, theta = _replay_problem(params, log, kind, length, substeps)
+    return float(gap(prob, theta))
+
+
+def segment_gap_floor(params: Params, log: Log, *, kind: str = "flexible",
+                      length: int | None = None, substeps: int = 4, seed: int = 0) -> float:
+    """The segment replay gap (``segment_gap``) that the log's noise alone gives a perfect model.
+
+    The model's own replays from the measured starts stand for the truth; they are measured
+    with fresh white noise of the log's (``noise_std`` of each angle) and replayed again from
+    start states estimated from the log with that noise added (noise in the measured starts,
+    velocities included, carried forward by the replay).
+
+    **Arguments:**
+
+    - ``params``: the model, standing in for the truth.
+    - ``log``: the log.
+    - ``kind``, ``length``, ``substeps``: as ``segment_gap``.
+    - ``seed``: of the noise drawn.
+
+    **Returns:**
+
+    The gap (0 perfect, 1 as bad as predicting no motion).
+    """
+    _need_x64("segment_gap_floor")
+    prob, theta = _replay_problem(params, log, kind, length, substeps)
+    truth = np.asarray(simulated_outputs(prob, theta))
+    rng = np.random.default_rng(seed)
+    std = {c: noise_std(getattr(log, c)) for c in ("q1", "q2") if getattr(log, c) is not None}
+    noisy = dataclasses.replace(log, **{c: getattr(log, c) + rng.standard_normal(
+        getattr(log, c).shape) * s for c, s in std.items()})
+    again, _ = _replay_problem(params, noisy, kind, length, substeps)
+    sig = np.concatenate([std[o] for o in prob.outputs])  # (n_out,) as the outputs' columns
+    measured = truth + rng.standard_normal(truth.shape) * sig
+    again = eqx.tree_at(lambda p: p.segs.y_meas, again, jnp.asarray(measured))
+    return float(gap(again, theta))
+
+
+def noise_std(x: np.ndarray) -> np.ndarray:
+    """Measurement noise standard deviation of each column of a logged signal ``x`` (N,) or
+    (N, n): ``jaxflex.fit.noise_level``'s total (white noise by differencing, at least the
+    quantisation's step / sqrt(12))."""
+    x = np.asarray(x, float).reshape(np.shape(x)[0], -1)
+    return np.array([noise_level(x[:, j])["total_std"] for j in range(x.shape[1])])
+
+
+def fast_energy(x: np.ndarray, dt: float, window: int = 31, order: int = 3) -> np.ndarray:
+    """Energy ``sum x^2`` of each column of ``x`` (N,) or (N, n) above the band that a
+    Savitzky-Golay smoothing of ``window`` samples and degree ``order`` passes (``savgol``:
+    the derivatives of the measured motion): the spectrum of ``x - savgol(x)`` (no slow part
+    to leak) divided by the smoother's stop response ``|1 - H(f)|^2`` at the frequencies where
+    ``H(f)^2 < 1/2``, summed by Parseval."""
+    x = np.asarray(x, float)
+    N = x.shape[0]
+    w = min(window, N - (1 - N % 2))
+    c = savgol_coeffs(w, order)
+    f = np.fft.rfftfreq(N, dt)
+    k = np.arange(w) - w // 2
+    H = np.cos(2.0 * np.pi * f[:, None] * dt * k[None, :]) @ c  # zero phase: real
+    above = np.cumsum(H**2 < 0.5) > 0  # from the first frequency past half power on
+    R = np.fft.rfft((x - savgol(x, dt, 0, w, order)).reshape(N, -1), axis=0)
+    weight = np.full(f.shape, 2.0)
+    weight[0] = 1.0
+    if N % 2 == 0:
+        weight[-1] = 1.0
+    gain = np.where(above, weight / np.maximum((1.0 - H) ** 2, 1e-12), 0.0)
+    return (gain @ np.abs(R) ** 2 / N).reshape(x.shape[1:])
+
+
+def torque_noise_floor(params: Params, log: Log, *, kind: str = "flexible", window: int = 31,
+                       seed: int = 0, tau_hat: np.ndarray | None = None) -> dict[str, Any]:
+    """The torque prediction error [%] that what the log cannot resolve gives a perfect model.
+
+    ``100 sqrt(E_tau + ||tau_hat(q + n_q) - tau_hat(q)||^2) / ||tau||``: ``E_tau``, the
+    torque's own share, is the larger of its energy faster than the measured motion resolves
+    (``fast_energy`` above the Savitzky-Golay band of the derivatives: a controller's chatter
+    on quantised angles, say) and ``N sigma_tau^2`` (white noise, part of which lies inside
+    that band); the angles' share propagates white noise ``n_q`` of the standard deviations
+    ``noise_std`` finds on q1 and q2 through ``torque_prediction`` (to first order).
+
+    **Arguments:**
+
+    - ``params``: the model, standing in for the truth.
+    - ``log``: the log (tau, q1 and, but for the rigid model, q2).
+    - ``kind``: the model kind of ``torque_prediction``.
+    - ``window``: Savitzky-Golay window [samples] of the derivatives.
+    - ``seed``: of the noise drawn for the angles.
+    - ``tau_hat``: ``torque_prediction`` on ``log``, when already computed.
+
+    **Returns:**
+
+    ``{"pct": floor [%], "std": {"tau": [...], "q1": [...], "q2": [...]}}``, the noise
+    standard deviations in the log's units.
+    """
+    if tau_hat is None:
+        tau_hat = torque_prediction(params, log, kind=kind, window=window)
+    rng = np.random.default_rng(seed)
+    std = {c: noise_std(getattr(log, c)) for c in ("tau", "q1", "q2")
+           if getattr(log, c) is not None}
+    noisy = {c: getattr(log, c) + rng.standard_normal(getattr(log, c).shape) * std[c]
+             for c in ("q1", "q2") if c in std}
+    moved = torque_prediction(params, dataclasses.replace(log, **noisy), kind=kind,
+                              window=window)
+    own = np.maximum(fast_energy(log.tau, log.dt, window), log.tau.shape[0] * std["tau"] ** 2)
+    energy = np.sum(own) + np.sum((moved - tau_hat) ** 2)
+    pct = float(100.0 * np.sqrt(energy) / np.linalg.norm(log.tau))
+    return {"pct": pct, "std": {c: np.asarray(v).tolist() for c, v in std.items()}}
 
 
 def validate(
     params: Params, log: Log, *, kind: str = "flexible", segment: int | None = None,
     substeps: int = 4, disturbance: np.ndarray | None = None,
 ) -> dict[str, Any]:
-    """All validation numbers of ``params`` on one ``log`` (module docstring): ``gap``,
-    ``torque_pct``, and ``closed_loop`` (dict of position/velocity/torque errors [%], or
-    None). ``series`` holds the measured and predicted signals for figures."""
+    """All validation numbers of ``params`` on one ``log`` (module docstring), each beside
+    what the log's noise alone gives a perfect model: ``gap`` and ``gap_noise``
+    (``segment_gap_floor``), ``torque_pct`` and ``torque_noise_pct`` (``torque_noise_floor``;
+    ``noise_std`` the noise found on each column), and ``closed_loop`` (dict of
+    position/velocity/torque errors [%] with their ``noise_floor``,
+    ``closed_loop_noise_floor``; or None). ``series`` holds the measured and predicted
+    signals for figures."""
     tau_hat = torque_prediction(params, log, kind=kind)
+    floor = torque_noise_floor(params, log, kind=kind, tau_hat=tau_hat)
     out: dict[str, Any] = {
         "model": kind, "samples": log.N, "dt": log.dt,
         "gap": segment_gap(params, log, kind=kind, length=segment, substeps=substeps),
+        "gap_noise": segment_gap_floor(params, log, kind=kind, length=segment,
+                                       substeps=substeps),
         "torque_pct": rel_error_pct(log.tau, tau_hat),
+        "torque_noise_pct": floor["pct"], "noise_std": floor["std"],
     }
     loop_kind = {"rotor": "rigid", "link": "flexible"}.get(kind, kind)
     cl = closed_loop_errors(params, log, kind=loop_kind,

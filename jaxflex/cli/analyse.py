@@ -40,8 +40,11 @@ def run(args: argparse.Namespace) -> int:
     """Linearise and print the modes; exit 0 when every mode at rest decays, else 1."""
     from jaxflex.analyse import analyse_loop
     from jaxflex.params import load_params
+    from jaxflex.errors import InputError
     from jaxflex.presets import paper_params, sensing_preset
 
+    if args.modes < 1:
+        raise InputError(f"--modes must be >= 1, got {args.modes}")
     params = load_params(args.params) if args.params else paper_params()
     res = analyse_loop(params.to_plant(), params.to_gains(), q2d_method=args.q2d,
                        compensation=not args.no_compensation,

@@ -1,4 +1,4 @@
-"""``jaxflex discover LOG [--params NOMINAL.json] --out DIR``: discrepancy discovery (issue 7).
+"""``jaxflex discover LOG [--params NOMINAL.json] --out DIR``: discrepancy discovery.
 
 Writes ``DIR/report.json`` (first effect added or ``none``, all effects, held-out gap before
 and after, fitted effect parameters with standard errors, candidate scores, localisation),
@@ -10,6 +10,10 @@ from __future__ import annotations
 import argparse
 
 EXAMPLE = "jaxflex discover log.csv --params nominal.json --out out/discover"
+#: The files ``discover`` writes in its output folder (one joint; n joints add
+#: ``params_joint<j>.json`` and ``joint<j>/``): an existing one needs ``--force``.
+OUTPUT_FILES = ("report.json", "params.json", "params_joint0.json", "signature.png",
+                "replay.png", "scores.png")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -53,8 +57,9 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.params import load_params, save_params
     from jaxflex.presets import paper_params
 
-    from jaxflex.cli.outputs import check_outputs
-    check_outputs(args.force, folders=[args.out], marker="report.json")
+    from jaxflex.cli.outputs import check_outputs, interrupts_stop, writing
+
+    check_outputs(args.force, folders=[args.out], marker=OUTPUT_FILES)
     if not 0.1 <= args.train_frac <= 0.9:
         raise ValueError(f"--train-frac must be in [0.1, 0.9], got {args.train_frac}")
     if args.segment <= 0:
@@ -69,15 +74,15 @@ def run(args: argparse.Namespace) -> int:
         alpha=args.alpha, min_gain=args.min_gain, max_effects=args.max_effects, candidates=cands,
         substeps=args.substeps,
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(args.out)  # created once there is a result to write (no empty folder on Ctrl-C)
     if log.n > 1:
         return _run_joints(args, log, nominal, cfg, out)
     # matplotlib is imported beside the fits (0.4 s), not after them
     plots = None if args.no_plots else Ahead(
         [lambda: importlib.import_module("jaxflex.plots.discover")])
     try:
-        res = discover(log, nominal, cfg, progress=print)
+        with interrupts_stop() as check:  # a fit ends on Ctrl-C; the command stops too
+            res = discover(log, nominal, cfg, progress=lambda m: (check(), print(m)))
     finally:
         if plots is not None:  # no thread left behind, a failed run's included
             plots.join()
@@ -85,12 +90,14 @@ def run(args: argparse.Namespace) -> int:
     params = res.params
     params.extra = dict(params.extra)
     params.extra["discover"] = {"effects": rep["effects"], "stderr": rep["final_stderr"]}
-    save_params(params, out / "params.json")
-    if plots is not None:
-        from jaxflex.plots.discover import plot_report
+    with writing():  # the whole result or nothing, Ctrl-C included
+        out.mkdir(parents=True, exist_ok=True)
+        save_params(params, out / "params.json")
+        if plots is not None:
+            from jaxflex.plots.discover import plot_report
 
-        rep["figures"] = plot_report(res, out)
-    (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
+            rep["figures"] = plot_report(res, out)
+        (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
     print(f"effect: {rep['effect']}  effects: {rep['effects']}  gap {rep['gap_before']:.4f} -> "
           f"{rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})  {rep['seconds']:.0f} s")
     added = [r for r in rep["rounds"] if r["winner"] != "none"]
@@ -122,26 +129,32 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
     from jaxflex.discover import discover_joints
     from jaxflex.params import save_params
 
-    results = discover_joints(log, nominal, cfg, progress=print)
-    reps = []
-    for j, res in enumerate(results):
-        rep = res.to_json()
-        params = res.params
-        params.extra = {"discover": {"effects": rep["effects"], "stderr": rep["final_stderr"],
-                                     "joint": j}}
-        save_params(params, out / f"params_joint{j}.json")
-        if not args.no_plots:
-            from jaxflex.plots.discover import plot_report
+    from jaxflex.cli.outputs import interrupts_stop, writing
 
-            sub = out / f"joint{j}"
-            sub.mkdir(exist_ok=True)
-            rep["figures"] = [f"joint{j}/{f}" for f in plot_report(res, sub)]
-        reps.append({"joint": j, **rep})
+    with interrupts_stop() as check:  # a fit ends on Ctrl-C; the command stops too
+        results = discover_joints(log, nominal, cfg, progress=lambda m: (check(), print(m)))
+    reps = []
+    with writing():  # the whole result or nothing, Ctrl-C included
+        out.mkdir(parents=True, exist_ok=True)
+        for j, res in enumerate(results):
+            rep = res.to_json()
+            params = res.params
+            params.extra = {"discover": {"effects": rep["effects"], "stderr": rep["final_stderr"],
+                                         "joint": j}}
+            save_params(params, out / f"params_joint{j}.json")
+            if not args.no_plots:
+                from jaxflex.plots.discover import plot_report
+
+                sub = out / f"joint{j}"
+                sub.mkdir(exist_ok=True)
+                rep["figures"] = [f"joint{j}/{f}" for f in plot_report(res, sub)]
+            reps.append({"joint": j, **rep})
+        summary = {"joints": reps, "effect": [r["effect"] for r in reps],
+                   "effects": [r["effects"] for r in reps],
+                   "unexplained": [r["unexplained"] for r in reps]}
+        (out / "report.json").write_text(json.dumps(summary, indent=2) + "\n")
+    for j, rep in enumerate(reps):
         print(f"joint {j}: effect {rep['effect']}  effects {rep['effects']}  gap "
               f"{rep['gap_before']:.4f} -> {rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})")
-    summary = {"joints": reps, "effect": [r["effect"] for r in reps],
-               "effects": [r["effects"] for r in reps],
-               "unexplained": [r["unexplained"] for r in reps]}
-    (out / "report.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"wrote {out / 'report.json'} and {len(reps)} params_joint<j>.json")
     return 0

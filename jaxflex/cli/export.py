@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     """
     from pathlib import Path
 
-    from jaxflex.cli.outputs import check_outputs
+    from jaxflex.cli.outputs import check_outputs, writing
     from jaxflex.export import (
         check_parity,
         describe,
@@ -142,14 +142,15 @@ def run(args: argparse.Namespace) -> int:
     desc = (f"Cascade controller ({args.params or 'paper parameters'}, trajectory "
             f"{cfg.trajectory_name!r})")
     traced = trace(sc)
-    if fmt == ".c":
-        from jaxflex.export.native import export_c
+    with writing():  # the whole file (and header) or nothing, Ctrl-C included
+        if fmt == ".c":
+            from jaxflex.export.native import export_c
 
-        src, _ = export_c(sc, args.out, description=desc, traced=traced)
-        wrote = f"{args.out} and {header}"
-    else:
-        src = export_controller(sc, args.out, description=desc, traced=traced)
-        wrote = args.out
+            src, _ = export_c(sc, args.out, description=desc, traced=traced)
+            wrote = f"{args.out} and {header}"
+        else:
+            src = export_controller(sc, args.out, description=desc, traced=traced)
+            wrote = args.out
     print(f"wrote {wrote} ({len(src.splitlines())} lines, {c.model.n} joint(s), "
           f"q2d_method={c.q2d_method!r}, dt={c.dt} s, tau_max={cfg.tau_max} N m, "
           f"compensation={cfg.compensation}; {describe(sc)})")

@@ -48,19 +48,27 @@ def run(args: argparse.Namespace) -> int:
     """Run the experiments and print a table of the results."""
     from jaxflex.experiments import run_paper_experiments
     from jaxflex.params import load_params
-    from jaxflex.cli.outputs import check_outputs
+    from jaxflex.cli.outputs import check_outputs, writing
+    from jaxflex.errors import InputError
     from jaxflex.reports import write_paper_experiments
 
     if args.leak is not None and not args.leak >= 0:
-        raise SystemExit(f"jaxflex reproduce: --leak must be >= 0 rad/s, got {args.leak}")
-    check_outputs(args.force, folders=[args.out], marker="results.json")
+        raise InputError(f"--leak must be >= 0 rad/s, got {args.leak}")
+    if not args.duration > 0:
+        raise InputError(f"--duration must be > 0 s, got {args.duration}")
+    tasks = args.tasks or TRAJECTORIES
+    check_outputs(args.force, folders=[args.out],
+                  marker=["results.json", "params.json", "sinusoid_torque_friction.png",
+                          "q2d_comparison.png", *(f"{t}_tracking.png" for t in tasks),
+                          *(f"{t}_paper_own_observer.png" for t in tasks)])
     params = load_params(args.params) if args.params else None
     results = run_paper_experiments(
         params=params, sensing=args.sensing, estimator=args.estimator, q2d_method=args.q2d,
         t_final=args.duration, leak=args.leak,
         compare_q2d=not args.no_q2d_comparison, tasks=args.tasks,
     )
-    res = write_paper_experiments(results, args.out)
+    with writing():  # the whole result or nothing, Ctrl-C included
+        res = write_paper_experiments(results, args.out)
     print(f"\n{'experiment':<12} {'compensation':<13} {'RMS err (rad)':>14} {'max err (rad)':>14} {'torque RMS (N m)':>17}")
     for name, e in res["experiments"].items():
         for key in ("without_compensation", "with_compensation"):

@@ -19,6 +19,9 @@ EXAMPLE = ("jaxflex sweep studies/spreads/sweep_paper_20pct.json --out out/sweep
            "  (after Ctrl-C)  jaxflex sweep studies/spreads/sweep_paper_20pct.json --out out/sweep "
            "--samples 2000 --resume")
 CHECKPOINT = "checkpoint.pkl"
+#: The files ``sweep`` writes in its output folder: an existing one needs ``--force``.
+OUTPUT_FILES = ("summary.json", "samples.csv", "error_histograms.png", "error_bands.png",
+                "sensitivity.png")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -60,15 +63,25 @@ def run(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from jaxflex.cli.outputs import OutputError, check_folder
+    from jaxflex.cli.outputs import OutputError, check_folder, suggest_command
+    from jaxflex.errors import InputError
     from jaxflex.sweep import load_spread, nominal_run, run_sweep
 
+    for flag, value, low in (("--samples", args.samples, 1), ("--chunk-size", args.chunk_size, 1),
+                             ("--worst", args.worst, 0)):
+        if value is not None and value < low:
+            raise InputError(f"{flag} must be an integer >= {low}, got {value}")
     spec = load_spread(args.spread)  # validate before starting any process group
+    # the command as given (main's argv), for the --resume hint; the spread and --out as
+    # parsed when called without it
+    argv = getattr(args, "argv", None) or ["sweep", args.spread, "--out", args.out]
+    resume_command = suggest_command(argv, add=["--resume"], drop=["--force"])
     ckpt_path = Path(args.out) / CHECKPOINT
     if ckpt_path.exists() and not (args.resume or args.force):
-        raise OutputError(f"--out {args.out}: holds an interrupted sweep ({CHECKPOINT}); pass "
-                          "--resume to continue it or --force to start again")
-    out = check_folder(args.out, force=args.force, marker="summary.json", resume=args.resume)
+        raise OutputError(f"--out {args.out}: holds an interrupted sweep ({CHECKPOINT}); "
+                          f"continue it with: {_resume_command(Path(args.out), resume_command)}"
+                          "; or pass --force to start again")
+    out = check_folder(args.out, force=args.force, resume=args.resume, marker=OUTPUT_FILES)
     resume = None
     if args.resume:
         if args.coordinator:
@@ -124,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         doc["fs_below_fc"] = ("redrawn: sampled conditioned on Fs >= Fc"
                               if spec.fs_below_fc_possible() else "cannot occur")
         doc["figures"] = []
+        if partial:
+            doc["resume_command"] = resume_command
         tmp = out / "summary.json.tmp"
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
         os.replace(tmp, out / "summary.json")
@@ -137,8 +152,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"jaxflex sweep: interrupted after {res.summary['chunks_done']} of "
                   f"{res.summary['chunks']} chunks ({res.summary['samples']} samples); wrote the "
                   f"partial summary {out / 'summary.json'} (\"partial\": true, no figures); "
-                  f"continue with: jaxflex sweep {args.spread} --out {out} --resume (and the "
-                  "same options)", file=sys.stderr)
+                  f"continue with: {resume_command}", file=sys.stderr)
             return 130
         from jaxflex.plots.sweep import plot_sweep
 
@@ -149,12 +163,29 @@ def run(args: argparse.Namespace) -> int:
         if res.summary["fs_raised_to_fc"]:
             print(f"note: {res.summary['fs_raised_to_fc']} sample(s) kept Fs < Fc after "
                   "their redraws; their Fs was raised to Fc")
+        sens = res.summary["sensitivity"]
+        pu = "rad"  # the sweep's plant is a revolute joint model
+        top = (f"{sens[0]['parameter']} (explains {100 * sens[0]['shapley']:.3g}% of the RMS "
+               "error's variance, Shapley share of the linear fit)") if sens else "-"
         print(
             f"{res.summary['samples']} samples, {res.summary['diverged']} diverged; RMS link error "
-            f"median {m['q50']:.3g} rad, 95% {m['q95']:.3g} rad; "
-            f"top driver: {res.summary['sensitivity'][0]['parameter'] if res.summary['sensitivity'] else '-'}; "
-            f"wrote {out}"
+            f"median {m['q50']:.3g} {pu}, 95% {m['q95']:.3g} {pu}; top driver: {top}; wrote {out}"
         )
+        for w in res.summary["sensitivity_warnings"]:
+            print(f"warning: {w}", file=sys.stderr)
     if args.coordinator:
         jax.distributed.shutdown()
     return 0
+
+
+def _resume_command(out, fallback: str) -> str:
+    """The command that continues the interrupted sweep in ``out``: the one its partial
+    summary recorded (the options it ran with), else ``fallback`` (this command line with
+    ``--resume``)."""
+    import json
+
+    try:
+        cmd = json.loads((out / "summary.json").read_text()).get("resume_command")
+    except (OSError, ValueError, AttributeError):
+        cmd = None
+    return cmd if isinstance(cmd, str) and cmd else fallback

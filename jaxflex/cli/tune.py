@@ -87,12 +87,13 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.reports import write_tune_report
     from jaxflex.tune import TuneTask, compare, tune
 
-    from jaxflex.cli.outputs import check_outputs
+    from jaxflex.cli.outputs import check_outputs, writing
 
     out = Path(args.out)
     report_dir = Path(args.report) if args.report else out.with_name(out.stem + "_report")
     check_outputs(args.force, files=[out])
-    check_outputs(args.force, folders=[report_dir], marker="report.json", flag="--report")
+    check_outputs(args.force, folders=[report_dir], flag="--report",
+                  marker=["report.json", "lambda_min.png", "tracking.png", "history.png"])
     if args.margin < 0:
         raise ValueError(f"--margin must be >= 0, got {args.margin}")
     if args.iterations < 0 or args.starts < 1:
@@ -137,8 +138,10 @@ def run(args: argparse.Namespace) -> int:
                starts=args.starts, learning_rate=args.lr, seed=args.seed, progress=progress)
     if bar is not None:
         bar.close()
-    save_params(dataclasses.replace(params, gains=res.gains.to_dict(), controller=cfg), out)
-    rep = write_tune_report(res, task, compare(plant, res, task), report_dir)
+    comparison = compare(plant, res, task)
+    with writing():  # the whole result or nothing, Ctrl-C included
+        save_params(dataclasses.replace(params, gains=res.gains.to_dict(), controller=cfg), out)
+        rep = write_tune_report(res, task, comparison, report_dir)
     print(f"{'':<8} {'RMS err (rad)':>14} {'torque RMS (N m)':>17} {'lambda_min@task':>16} "
           f"{'certified to (rad/s)':>21}")
     for k in ("initial", "tuned"):
@@ -161,6 +164,8 @@ def run_robust(args: argparse.Namespace, out: Path, report_dir: Path) -> int:
     from jaxflex.params import ControllerConfig, load_params, save_params
     from jaxflex.robust import RiskMeasure, RobustTask, evaluate_batch, tune_robust
     from jaxflex.sweep import load_spread
+
+    from jaxflex.cli.outputs import writing
 
     ignored = [f"--{k.replace('_', '-')}" for k in ("trajectory", "sensing", "tau_max", "dt", "q2d")
                if getattr(args, k) is not None]
@@ -204,12 +209,13 @@ def run_robust(args: argparse.Namespace, out: Path, report_dir: Path) -> int:
     params = dataclasses.replace(spec.nominal, gains=res.gains.to_dict(), controller=cfg)
     params.extra = {**params.extra, "certificate": {k: v for k, v in summary.items()
                                                     if k != "starts"}}
-    report_dir.mkdir(parents=True, exist_ok=True)
     report = {"search": summary,
               "held_out": {k: {kk: vv for kk, vv in e.items() if kk not in ("rms_error", "lost")}
                            for k, e in ev.items()}}
-    (report_dir / "report.json").write_text(json.dumps(report, indent=1, default=float))
-    save_params(params, out)
+    with writing():  # the whole result or nothing, Ctrl-C included
+        report_dir.mkdir(parents=True, exist_ok=True)
+        (report_dir / "report.json").write_text(json.dumps(report, indent=1, default=float))
+        save_params(params, out)
     print(f"{'':<8} {'RMS q50 (rad)':>14} {'RMS q95 (rad)':>14} {'lost':>6} {'N2>0 at task':>13}")
     for k, e in ev.items():
         print(f"{k:<8} {e['rms_q50']:>14.3e} {e['rms_q95']:>14.3e} {e['lost_fraction']:>6.3f} "

@@ -6,8 +6,11 @@ controller that ran (top-level ``loop_controller`` section: the EMPS P/P cascade
 ``{"type": "pp_cascade", ...}``, a PD loop ``{"type": "pd", "kp": ..., "kd": ...}`` or
 jaxflex's cascade ``{"type": "cascade"}``; docs/spec.md section 7) and the log has a
 reference q1d, the closed-loop errors in the benchmark metric (position, velocity, torque).
-``--against`` adds the same rows for a reference parameter set. Writes ``DIR/report.json``,
-``DIR/table.md`` and figures (measured against predicted, residuals).
+``--against`` adds the same rows for a reference parameter set. Each error stands beside its
+noise floor, what the log's measurement noise alone gives a perfect model
+(``jaxflex.validate``). Writes ``DIR/report.json``, ``DIR/table.md`` and figures (measured
+against predicted, residuals); an existing one of them needs ``--force``, and nothing is
+written until every log has been validated.
 
 Example (EMPS, with the pulses of the validation file injected in volts):
 
@@ -40,8 +43,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--segment", type=int, default=None,
                    help="samples per replay segment (default: 0.5 s)")
     p.add_argument("--substeps", type=int, default=4, help="integrator substeps per sample (4)")
-    p.add_argument("--linear", action="store_true", help="prismatic joint: label m and N")
+    p.add_argument("--linear", action="store_true",
+                   help="prismatic joint: label m and N (implied by a --map that converts q1 or "
+                        "q2 from :m or :mm, or tau from :N)")
     p.set_defaults(func=run)
+
+
+def output_files(logs: list[str], against: bool) -> list[str]:
+    """Every file ``validate`` writes in its output folder for these logs."""
+    from pathlib import Path
+
+    which = ("params", "against") if against else ("params",)
+    return (["report.json", "table.md", "torque_errors.png"]
+            + [f"{Path(f).stem}_{w}.png" for f in logs for w in which])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -49,20 +63,31 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from jaxflex.logs import LogError, evaluate, load_log, parse_mapping, read_variables
+    from jaxflex.cli.outputs import OutputError, check_outputs, writing
+    from jaxflex.errors import InputError
+    from jaxflex.logs import LogError, axis_units, evaluate, load_log, parse_mapping, read_variables
     from jaxflex.params import load_params
-    from jaxflex.plots.validate import plot_table, plot_validation_log
     from jaxflex.validate import loop_controller, validate
 
+    if args.segment is not None and args.segment < 2:
+        raise InputError(f"--segment must be at least 2 samples, got {args.segment}")
+    if args.substeps < 1:
+        raise InputError(f"--substeps must be an integer >= 1, got {args.substeps}")
+    stems = [Path(f).stem for f in args.logs]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise OutputError(f"logs: two logs share the name {dup[0]!r}; their figures would "
+                          "overwrite each other in --out: rename one or validate them apart")
+    check_outputs(args.force, folders=[args.out],
+                  marker=output_files(args.logs, args.against is not None))
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a folder")
     sets = {"params": load_params(args.params)}
     if args.against:
         sets["against"] = load_params(args.against)
     for p in sets.values():  # a bad loop_controller section is refused before any work
         loop_controller(p)
     mapping = parse_mapping(args.map)
+    units = axis_units(mapping, args.linear)
     logs = []
     for f in args.logs:
         log = load_log(f, mapping, required=("t", "tau", "q1"))
@@ -75,33 +100,48 @@ def run(args: argparse.Namespace) -> int:
                     raise
                 print(f"note: {f} has no '{args.disturbance}'; no disturbance for it")
         logs.append((Path(f).stem, log, d))
-    out.mkdir(parents=True, exist_ok=True)
-    units = ("m", "N") if args.linear else ("rad", "N m")
-    rows, report = [], {"model": args.model, "logs": {}}
+    results = []  # everything is computed before the folder is created
     for name, log, d in logs:
-        report["logs"][name] = {}
         for which, p in sets.items():
             res = validate(p, log, kind=args.model, segment=args.segment,
                            substeps=args.substeps, disturbance=d)
+            results.append((name, which, res))
+
+    from jaxflex.plots.validate import plot_table, plot_validation_log
+
+    with writing():  # the whole result or nothing, Ctrl-C included
+        out.mkdir(parents=True, exist_ok=True)
+        rows = []
+        report = {"model": args.model, "logs": {},
+                  "units": {"position": units[0], "torque": units[1]}}
+        for name, which, res in results:
             fig = plot_validation_log(
                 res["series"], out / f"{name}_{which}.png", units=units,
                 title=f"{name}: {which} ({args.model} model); torque error "
-                      f"{res['torque_pct']:.2f}%, replay gap {res['gap']:.3f}")
+                      f"{res['torque_pct']:.2f}% (noise alone {res['torque_noise_pct']:.2f}%), "
+                      f"replay gap {res['gap']:.3f}")
             row = {k: v for k, v in res.items() if k != "series"}
             row["figure"] = fig
-            report["logs"][name][which] = row
+            report["logs"].setdefault(name, {})[which] = row
             rows.append({"log": name, "params": which, **row})
-    report["figures"] = [plot_table(rows, out / "torque_errors.png")]
-    lines = ["| log | params | gap | torque % | CL position % | CL velocity % | CL torque % |",
-             "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        cl = r["closed_loop"] or {}
-        f = lambda k: f"{cl[k]:.4g}" if k in cl else "-"
-        lines.append(f"| {r['log']} | {r['params']} | {r['gap']:.4g} | {r['torque_pct']:.4g} | "
-                     f"{f('position_pct')} | {f('velocity_pct')} | {f('torque_pct')} |")
-    table = "\n".join(lines)
-    (out / "table.md").write_text(table + "\n")
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+        report["figures"] = [plot_table(rows, out / "torque_errors.png")]
+        lines = ["| log | params | replay gap | torque % | CL position % | CL velocity % | "
+                 "CL torque % |", "|---|---|---|---|---|---|---|"]
+        for r in rows:
+            cl = r["closed_loop"] or {}
+            fl = cl.get("noise_floor", {})
+            f = lambda k: f"{cl[k]:.4g} ({fl[k]:.2g})" if k in cl else "-"
+            lines.append(f"| {r['log']} | {r['params']} | {r['gap']:.4g} ({r['gap_noise']:.2g}) | "
+                         f"{r['torque_pct']:.4g} ({r['torque_noise_pct']:.3g}) | "
+                         f"{f('position_pct')} | {f('velocity_pct')} | {f('torque_pct')} |")
+        table = "\n".join(lines)
+        (out / "table.md").write_text(table + "\n")
+        (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     print(table)
+    print("in parentheses, each error's noise floor: what the log's measurement noise alone "
+          f"gives a perfect model (noise std of tau in {units[1]}, of q1 and q2 in {units[0]}: "
+          "report.json noise_std); an error near its floor is as good as this log can tell. "
+          "torque %: 100 ||tau - tau_hat|| / ||tau|| from the measured motion; CL: the declared "
+          "closed loop, the benchmark metric")
     print(f"wrote {out / 'report.json'}")
     return 0

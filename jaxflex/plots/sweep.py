@@ -84,8 +84,10 @@ def plot_error_bands(results, path: str | Path, joint: int = 0, nominal: dict | 
 
 
 def plot_sensitivity(results, path: str | Path, top: int = 12) -> str:
-    """Bars of the standardised regression coefficients (and Spearman's rho when the samples
-    were kept) of each parameter against the RMS error, largest first."""
+    """Bars of each parameter's Shapley share of the RMS error's variance (valid under
+    correlated draws) beside its correlation with the RMS error (and Spearman's rho when the
+    samples were kept), largest share first; a parameter too collinear with others to be
+    separated is marked with an asterisk."""
     runs = _as_runs(results)
     fig, axes = plt.subplots(1, len(runs), figsize=(5 * len(runs), 0.35 * top + 1.5), squeeze=False)
     for ax, (label, r) in zip(axes[0], runs.items()):
@@ -94,14 +96,18 @@ def plot_sensitivity(results, path: str | Path, top: int = 12) -> str:
             ax.set_title(f"{label}: no sampled parameters")
             continue
         y = np.arange(len(rows))
-        ax.barh(y + 0.2, [s["src"] for s in rows], height=0.4, label="SRC")
+        ax.barh(y + 0.27, [s.get("shapley", 0.0) for s in rows], height=0.27,
+                label="Shapley share of variance")
+        ax.barh(y, [s.get("corr", s["src"]) for s in rows], height=0.27, label="correlation")
         if "spearman" in rows[0]:
-            ax.barh(y - 0.2, [s["spearman"] for s in rows], height=0.4, label="Spearman rho")
-        ax.set_yticks(y, [s["parameter"] for s in rows], fontsize=8)
+            ax.barh(y - 0.27, [s["spearman"] for s in rows], height=0.27, label="Spearman rho")
+        ax.set_yticks(y, [s["parameter"] + (" *" if "collinear_with" in s else "")
+                          for s in rows], fontsize=8)
         ax.axvline(0, color="k", lw=0.6)
         ax.set_xlabel("effect on RMS link error")
         r2 = rows[0]["r2_linear"]
-        ax.set_title(f"{label} (linear R^2 = {r2:.2f})", fontsize=9)
+        note = "; * too collinear to separate" if any("collinear_with" in s for s in rows) else ""
+        ax.set_title(f"{label} (linear R^2 = {r2:.2f}{note})", fontsize=9)
         ax.legend(fontsize=8)
     fig.suptitle("Sensitivity of RMS link error to each sampled parameter", fontsize=10)
     fig.tight_layout()

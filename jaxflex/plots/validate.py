@@ -46,11 +46,17 @@ def plot_validation_log(series: dict[str, Any], path: str | Path, title: str,
 
 
 def plot_table(rows: list[dict[str, Any]], path: str | Path) -> str:
-    """Bar chart of the torque prediction error [%] per log and parameter set."""
+    """Bar chart of the torque prediction error [%] per log and parameter set, each bar with
+    its noise floor (the error the log's noise alone gives, ``torque_noise_pct``) marked."""
     fig, ax = plt.subplots(figsize=(7, 3))
     labels = [f"{r['log']}\n{r['params']}" for r in rows]
-    ax.bar(np.arange(len(rows)), [r["torque_pct"] for r in rows], color="C0")
-    ax.set_xticks(np.arange(len(rows)), labels, fontsize=6)
+    x = np.arange(len(rows))
+    ax.bar(x, [r["torque_pct"] for r in rows], color="C0", label="torque prediction error")
+    if rows and all("torque_noise_pct" in r for r in rows):
+        ax.hlines([r["torque_noise_pct"] for r in rows], x - 0.4, x + 0.4, colors="k",
+                  linestyles="--", label="noise floor (noise alone)")
+        ax.legend(fontsize=7, loc="upper right")
+    ax.set_xticks(x, labels, fontsize=6)
     ax.set_ylabel("torque prediction error [%]")
     ax.set_title("validation: 100 ||tau - tau_hat|| / ||tau|| per log", fontsize=9)
     fig.tight_layout()

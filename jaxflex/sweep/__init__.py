@@ -1,4 +1,4 @@
-"""Monte Carlo robustness sweeps (issue 5): spread files, batched/sharded runs, summaries.
+"""Monte Carlo robustness sweeps: spread files, batched/sharded runs, summaries.
 
     spec = load_spread("spread.json")          # or parse_spread({...})
     res = run_sweep(spec, samples=10_000, chunk_size=512)

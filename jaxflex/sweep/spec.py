@@ -56,6 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.controller import Q2D_METHODS
+from jaxflex.errors import InputError
 from jaxflex.fit.posterior import Posterior
 from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
@@ -86,7 +87,7 @@ _DIST_FIELDS: dict[str, tuple[set[str], ...]] = {
 _TRUNC = {"normal"}
 
 
-class SpreadError(ValueError):
+class SpreadError(InputError):
     """A spread file that does not follow the format of ``jaxflex.sweep.spec``."""
 
 

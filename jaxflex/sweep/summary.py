@@ -6,8 +6,11 @@ The ``Accumulator`` folds in one chunk at a time and holds, whatever the number 
   saturation fraction, for quantiles and figures;
 - histograms of the link error e1 [rad] at every band time (uniform in asinh(e1 / 1 urad),
   about 8 % relative resolution) for error bands over time;
-- sufficient statistics (sums, X^T X, X^T y) of the standardised parameters and the RMS
-  error, for standardised regression coefficients (SRC) as a sensitivity ranking;
+- sufficient statistics (sums, X^T X, X^T y) of the parameters and the RMS error, for
+  sensitivities valid under correlated draws (``shapley_r2``: each parameter's Shapley share
+  of the linear R^2, which splits the variance shared by correlated parameters between them
+  instead of inflating their regression coefficients) beside the marginal correlation, the
+  standardised regression coefficient (SRC) and its variance inflation factor;
 - the ``n_worst`` samples of largest RMS error (diverged first) with their parameters;
 - optionally each sample's parameters and metrics (``keep_samples``), which add exact
   quantiles and Spearman rank correlations.
@@ -280,6 +283,7 @@ class Accumulator:
             "spec": spec.to_dict(), "samples": self.count, "diverged": self.diverged,
             "diverged_fraction": self.diverged / max(self.count, 1), "fs_raised_to_fc": self.fs_raised,
             "metrics": metrics, "sensitivity": sens, "worst": worst,
+            "sensitivity_warnings": [collinear_warning(g) for g in collinear_groups(sens)],
         }
         edges = band_bins()
         bq = hist_quantiles(self.band, edges, BAND_QUANTILES)
@@ -290,8 +294,8 @@ class Accumulator:
         )
 
     def _sensitivity(self, samples: dict[str, np.ndarray] | None) -> list[dict[str, Any]]:
-        """Per column: SRC of RMS error (linear fit on standardised parameters) and, with kept
-        samples, Spearman's rank correlation; sorted by |SRC| (largest first)."""
+        """Per sampled parameter, its effect on the RMS error (``sensitivities``; with kept
+        samples also Spearman's rank correlation); sorted by Shapley share, largest first."""
         labels = self.spec.labels
         n = self.xtx[0, 0]
         d = len(labels)
@@ -302,25 +306,151 @@ class Accumulator:
         mean_y = self.xty[0] / n
         cxy = self.xty[1:] / n - mean_x * mean_y
         var_y = self.yy / n - mean_y**2
-        sd_x = np.sqrt(np.clip(np.diag(cov), 0, None))
-        live = sd_x > 0
-        beta = np.zeros(d)
-        if live.any():
-            beta[live] = np.linalg.lstsq(cov[np.ix_(live, live)], cxy[live], rcond=None)[0]
-        sd_y = math.sqrt(max(var_y, 0.0))
-        src = beta * sd_x / sd_y if sd_y > 0 else np.zeros(d)
-        r2 = float(beta[live] @ cxy[live] / var_y) if var_y > 0 else float("nan")
-        rho = None
+        rows = sensitivities(cov, cxy, var_y, labels)
         if samples is not None:
             okm = ~samples["diverged"]
             y = samples["rms_error"][okm]
-            rho = [spearman(samples["theta"][okm, j], y) for j in range(d)]
-        rows = [
-            {"parameter": labels[j], "src": float(src[j]), "r2_linear": r2,
-             **({"spearman": rho[j]} if rho is not None else {})}
-            for j in range(d)
-        ]
-        return sorted(rows, key=lambda r: -abs(r["src"]))
+            rho = {labels[j]: spearman(samples["theta"][okm, j], y) for j in range(d)}
+            for r in rows:
+                r["spearman"] = rho[r["parameter"]]
+        return rows
+
+
+#: Variance inflation factor above which a parameter's regression coefficient (SRC) is not
+#: separable from those of the parameters it is drawn correlated with (a common rule: 10).
+VIF_LIMIT: float = 10.0
+#: Exact Shapley shares up to this many parameters (2^d subsets), sampled permutations above.
+SHAPLEY_EXACT_MAX: int = 12
+
+
+def _r2(corr: np.ndarray, r: np.ndarray, subset: np.ndarray) -> float:
+    """Linear R^2 of y on the parameters ``subset`` from their correlation matrix ``corr``
+    and their correlations ``r`` with y (pseudo-inverse: collinear sets are fine)."""
+    if not subset.any():
+        return 0.0
+    rs = r[subset]
+    return float(rs @ np.linalg.pinv(corr[np.ix_(subset, subset)], rcond=1e-12) @ rs)
+
+
+def shapley_r2(corr: np.ndarray, r: np.ndarray, permutations: int = 2000,
+               seed: int = 0) -> np.ndarray:
+    """Shapley shares of the linear R^2 of y on d parameters (the LMG decomposition; Owen's
+    Shapley effects of a linear model): each parameter's mean gain in R^2 when it joins a
+    subset of the others, over all orders. They are >= 0 and sum to the full R^2, and
+    parameters drawn correlated share what they explain together, so a parameter that
+    explains nothing by itself gets little however its regression coefficient is inflated.
+    Exact up to ``SHAPLEY_EXACT_MAX`` parameters, else over ``permutations`` random orders.
+    ``corr``: (d, d) correlation matrix of the parameters; ``r``: (d,) their correlations
+    with y."""
+    d = r.shape[0]
+    phi = np.zeros(d)
+    if d <= SHAPLEY_EXACT_MAX:
+        masks = (np.arange(2**d)[:, None] >> np.arange(d)) & 1
+        val = np.array([_r2(corr, r, m.astype(bool)) for m in masks])
+        size = masks.sum(axis=1)
+        weight = np.array([math.factorial(k) * math.factorial(d - k - 1) / math.factorial(d)
+                           for k in range(d)])
+        for j in range(d):
+            without = np.nonzero(masks[:, j] == 0)[0]
+            phi[j] = np.sum(weight[size[without]] * (val[without + 2**j] - val[without]))
+        return phi
+    rng = np.random.default_rng(seed)
+    perms = np.array([rng.permutation(d) for _ in range(permutations)])
+    # the R^2 gains along an order are the squared last-row entries of the Cholesky factor of
+    # the joint correlation matrix [[corr, r], [r, 1]] in that order (y last), all orders at once
+    joint = np.block([[corr, r[:, None]], [r[None, :], np.ones((1, 1))]])
+    order = np.concatenate([perms, np.full((permutations, 1), d)], axis=1)
+    try:
+        L = np.linalg.cholesky(joint[order[:, :, None], order[:, None, :]]
+                               + 1e-10 * np.eye(d + 1))
+        gains = L[:, d, :d] ** 2
+    except np.linalg.LinAlgError:  # not positive definite to rounding: one R^2 at a time
+        gains = np.empty((permutations, d))
+        for p, perm in enumerate(perms):
+            cur, prev = np.zeros(d, bool), 0.0
+            for k, j in enumerate(perm):
+                cur[j] = True
+                v = _r2(corr, r, cur)
+                gains[p, k], prev = v - prev, v
+    np.add.at(phi, perms, gains)
+    return phi / permutations
+
+
+def sensitivities(cov: np.ndarray, cxy: np.ndarray, var_y: float,
+                  labels: list[str]) -> list[dict[str, Any]]:
+    """Sensitivities of a metric y to sampled parameters, valid when the draws are correlated.
+
+    Per parameter: ``shapley`` (its share of the linear R^2, ``shapley_r2``: the ranking),
+    ``corr`` (Pearson correlation with y: what it explains alone, its correlated partners'
+    effects included), ``src`` (standardised regression coefficient: its effect with the
+    others held fixed), ``vif`` (variance inflation factor of ``src``), ``r2_linear`` (R^2 of
+    the full linear fit) and, where ``vif`` exceeds ``VIF_LIMIT``, ``collinear_with``: the
+    parameters it is drawn correlated with (|corr| >= 0.9, else the others above the limit),
+    whose separate effects these draws cannot tell apart. A parameter that does not vary gets
+    zeros.
+
+    **Arguments:**
+
+    - ``cov``: (d, d) sample covariance of the parameters.
+    - ``cxy``: (d,) their sample covariances with y.
+    - ``var_y``: the sample variance of y.
+    - ``labels``: the d parameter names.
+
+    **Returns:**
+
+    One dict per parameter, sorted by ``shapley``, largest first.
+    """
+    d = len(labels)
+    sd_x = np.sqrt(np.clip(np.diag(cov), 0, None))
+    live = sd_x > 0
+    sd_y = math.sqrt(max(var_y, 0.0))
+    corr_x = np.eye(d)
+    r = np.zeros(d)
+    if live.any():
+        s = sd_x[live]
+        corr_x[np.ix_(live, live)] = np.clip(cov[np.ix_(live, live)] / np.outer(s, s), -1, 1)
+        if sd_y > 0:
+            r[live] = np.clip(cxy[live] / (s * sd_y), -1, 1)
+    src, vif = np.zeros(d), np.ones(d)
+    phi = np.zeros(d)
+    r2 = float("nan")
+    if live.any() and sd_y > 0:
+        sub = corr_x[np.ix_(live, live)]
+        inv = np.linalg.pinv(sub, rcond=1e-12)
+        src[live] = inv @ r[live]
+        vif[live] = np.diag(inv)
+        r2 = float(r[live] @ src[live])
+        phi[live] = shapley_r2(sub, r[live])
+    rows = []
+    for j in range(d):
+        row = {"parameter": labels[j], "shapley": float(phi[j]), "corr": float(r[j]),
+               "src": float(src[j]), "vif": float(vif[j]), "r2_linear": r2}
+        if live[j] and vif[j] > VIF_LIMIT:
+            partners = [k for k in range(d) if k != j and live[k] and abs(corr_x[j, k]) >= 0.9]
+            if not partners:
+                partners = [k for k in range(d) if k != j and live[k] and vif[k] > VIF_LIMIT]
+            row["collinear_with"] = [labels[k] for k in partners]
+        rows.append(row)
+    return sorted(rows, key=lambda row: -row["shapley"])
+
+
+def collinear_warning(group: list[str]) -> str:
+    """The warning for a group of parameters ``collinear_groups`` found."""
+    return (f"{', '.join(group)} are drawn so correlated that their separate effects cannot "
+            "be told apart; their Shapley shares split what they explain together, and their "
+            "regression coefficients (src) are not meaningful")
+
+
+def collinear_groups(rows: list[dict[str, Any]]) -> list[list[str]]:
+    """The groups of parameters ``sensitivities`` marks as too collinear to separate (each
+    sorted, each once)."""
+    groups: list[list[str]] = []
+    for row in rows:
+        if "collinear_with" in row:
+            g = sorted({row["parameter"], *row["collinear_with"]})
+            if g not in groups:
+                groups.append(g)
+    return groups
 
 
 def _gather_samples(kept: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
