@@ -1455,6 +1455,162 @@ def tied(scores: dict[str, dict[str, Any]], winner: str | None, decisive: float 
                   and (k == winner or not told_apart(k)))
 
 
+#: The model kinds ``discover`` takes a parameter file as (``DiscoverConfig.model``, the
+#: command line's ``--model``); each is replayed as the flexible joint the workflow fits
+#: (``nominal_for_model``).
+DISCOVER_MODELS: tuple[str, ...] = ("flexible", "rigid", "rotor")
+
+#: A rigid model is replayed as two halves of its inertia joined by a spring whose internal
+#: mode is at RIGID_MODE_STEP / h [rad/s], h the replay's step: far above a loop's bandwidth,
+#: well inside RK4's stability limit (600 rad/s at 1 ms, as ``studies/discover_emps.py``).
+RIGID_MODE_STEP: float = 0.6
+
+#: RK4 is stable for an undamped mode of frequency omega while omega h < 2 sqrt(2) (its
+#: stability region on the imaginary axis); discover refuses a nominal model whose spring
+#: mode is past STABLE_MODE_STEP of that.
+STABLE_MODE_STEP: float = 0.9 * 2.0 * math.sqrt(2.0)
+
+
+class SolverFailure(RuntimeError):
+    """A fit inside discovery failed numerically (a non-converging eigen-decomposition, a
+    floating point error): not a bad input, the message names the fit (``stage``)."""
+
+    def __init__(self, stage: str, error: BaseException | str):
+        self.stage = stage
+        self.error = error
+        what = error if isinstance(error, str) else f"{type(error).__name__}: {error}"
+        super().__init__(f"discover: solver failure in {stage}: {what}")
+
+
+def spring_mode(params: Params) -> float:
+    """The fastest undamped internal mode of the joint(s) [rad/s]: omega = sqrt(K (1/I + 1/J))
+    (the two inertias of eq. 3 joined by the spring K; section 1 of docs/spec.md)."""
+    I, J, K = (np.asarray(params.plant[k], float) for k in ("I", "J", "K"))
+    return float(np.max(np.sqrt(K * (1.0 / I + 1.0 / J))))
+
+
+def model_kind_of(params: Params) -> str | None:
+    """The model kind an identification file was fitted with: ``identification.model`` as a
+    name, or a ``kind`` (or ``name``) in that entry when it is a mapping; None when the file
+    says none."""
+    ident = params.extra.get("identification")
+    if not isinstance(ident, dict):
+        return None
+    m = ident.get("model")
+    if isinstance(m, dict):
+        m = m.get("kind", m.get("name"))
+    if isinstance(m, str):
+        return m
+    k = ident.get("kind")
+    return k if isinstance(k, str) else None
+
+
+def identification_verdict(params: Params) -> str | None:
+    """What an identification file says of its model (``identification.model.verdict``:
+    "adequate" or "model-limited"), or None when the file says nothing."""
+    ident = params.extra.get("identification")
+    m = ident.get("model") if isinstance(ident, dict) else None
+    v = m.get("verdict") if isinstance(m, dict) else None
+    return v if isinstance(v, str) else None
+
+
+def check_identification(params: Params, *, accept_unconverged: bool = False) -> str | None:
+    """Whether ``discover`` takes a parameter file as its nominal model.
+
+    An identification whose solver reached a stationary point but whose model cannot
+    describe the log (``identification.model.verdict`` "model-limited") is discovery's
+    normal input, not a failure: it is taken with a note. A file whose solver did not reach
+    a stationary point (``identification.converged`` false), or that holds unmarked
+    parameters the data could not determine, is refused (``identification_problems``)
+    unless ``accept_unconverged``.
+
+    **Arguments:**
+
+    - `params`: the parameter file's contents (docs/spec.md section 7).
+    - `accept_unconverged`: take the file whatever its identification says.
+
+    **Returns:**
+
+    A one-line note to show the user, or None.
+
+    **Raises:**
+
+    `jaxflex.params.ParamsError` naming what makes the file unfit."""
+    from jaxflex.params import ParamsError, identification_problems
+
+    verdict = identification_verdict(params)
+    problems = [] if accept_unconverged else identification_problems(params)
+    if problems:
+        raise ParamsError(f"refused: {'; '.join(problems)}. Re-run the identification, or use "
+                          "the file anyway with --accept-unconverged")
+    if verdict == "model-limited":
+        why = params.extra["identification"]["model"].get("reason")
+        return ("note: the identification is model-limited (its model does not describe the "
+                f"log{': ' + str(why) if why else ''}); discover looks for what it lacks")
+    return None
+
+
+def nominal_for_model(params: Params, model: str, log: Log,
+                      step: float) -> tuple[Params, Log, str]:
+    """The flexible joint that ``discover`` replays for a parameter file of model ``model``.
+
+    - "flexible": the file as it is.
+    - "rigid" (Jx q1'' = u - F, eq. 37, Jx = I + J): two halves of Jx joined by a spring with
+      its internal mode at ``RIGID_MODE_STEP`` / ``step`` [rad/s], friction on the link side;
+      a log without q2 reads q2 = q1 (one encoder on a stiff axis).
+    - "rotor" (the rotor subsystem: J, K and the motor side; the link side not identified):
+      J and K from the file, the link inertia I = Jt - J (at least Jt / 10) and a LuGre
+      friction on the link from the rigid least-squares fit of the log's own motor encoder
+      (``jaxflex.validate.rigid_torque_fit``: Fc, Fs = 1.2 Fc, vs = 0.05 rad/s, sigma0 =
+      Fc / 1e-4 rad, sigma1 = 0, sigma2 = Fv), as ``studies/discover_kuka.py``.
+
+    **Arguments:**
+
+    - `params`: the nominal parameters (one joint).
+    - `model`: one of ``DISCOVER_MODELS``.
+    - `log`: the one-joint log discovery runs on.
+    - `step`: the replay's integration step [s] (sample period / substeps).
+
+    **Returns:**
+
+    The parameters to replay, the log (q2 filled for a rigid model), and a one-line note of
+    what was done ("" for "flexible").
+
+    **Raises:**
+
+    `ValueError` for an unknown model, or a rotor model on a log without torque."""
+    if model not in DISCOVER_MODELS:
+        raise ValueError(f"discover: model must be one of {DISCOVER_MODELS}, got {model!r}")
+    d = params.to_dict()
+    if model == "rigid":
+        Jx = float(np.ravel(params.plant["I"])[0]) + float(np.ravel(params.plant["J"])[0])
+        half = Jx / 2.0
+        omega = RIGID_MODE_STEP / step
+        d["plant"] = {**d["plant"], "I": half, "J": half, "K": omega**2 * half / 2.0}
+        if log.q2 is None:
+            log = dataclasses.replace(log, q2=log.q1)
+        note = (f"rigid model: inertia {Jx:.4g} as two halves joined by K {omega**2 * half / 2:.4g}"
+                f" (internal mode {omega:.0f} rad/s)")
+        return Params.from_dict(d), log, note
+    if model == "rotor":
+        from jaxflex.validate import rigid_torque_fit
+
+        rigid = rigid_torque_fit(log)
+        J = float(np.ravel(params.plant["J"])[0])
+        Fc, Fv = abs(rigid["Fc"]), abs(rigid["Fv"])
+        I = max(rigid["Jt"] - J, 0.1 * abs(rigid["Jt"]))
+        if not (math.isfinite(I) and I > 0 and Fc > 0):
+            raise ValueError(f"discover: the rigid fit of the log gives no usable link side "
+                             f"(Jt {rigid['Jt']:.4g}, Fc {rigid['Fc']:.4g}) for the rotor model")
+        d["plant"] = {**d["plant"], "I": I}
+        d["friction"] = {"Fc": Fc, "Fs": 1.2 * Fc, "vs": 0.05, "sigma0": Fc / 1e-4,
+                         "sigma1": 0.0, "sigma2": max(Fv, 1e-9)}
+        note = (f"rotor model: J, K from the file; link I {I:.4g}, Fc {Fc:.4g}, sigma2 "
+                f"{Fv:.4g} from the log's rigid fit")
+        return Params.from_dict(d), log, note
+    return params, log, ""
+
+
 @dataclasses.dataclass
 class DiscoverConfig:
     """Settings of ``discover``: segment length [s], training fraction, LM steps, substeps per
@@ -1469,7 +1625,9 @@ class DiscoverConfig:
     winner's held-out gap within which significant rivals are polished before the pick
     (``contest``; at most 1: never); and the share of the held-out gap's excess over the
     floor that the effects added must close for the answer to name them when the final gap
-    stays unexplained (``explained_min``, ``explained_fraction``; 0: always name them)."""
+    stays unexplained (``explained_min``, ``explained_fraction``; 0: always name them); the
+    kind of model the nominal parameters describe (``model``, one of ``DISCOVER_MODELS``:
+    ``nominal_for_model``)."""
 
     segment: float = 0.3
     train_frac: float = 0.7
@@ -1488,6 +1646,7 @@ class DiscoverConfig:
     screen_least: int = 1
     contest: float = 3.0
     explained_min: float = 0.75
+    model: str = "flexible"
 
 
 @dataclasses.dataclass
@@ -1744,9 +1903,26 @@ def discover(
     if nominal.n != 1 or log.n != 1:
         raise ValueError(f"discover handles one joint; the parameters have {nominal.n}, the "
                          f"log {log.n} (use discover_joints for an n-joint log)")
-    if log.q2 is None or log.tau is None:
+    if log.tau is None or log.q1 is None:
         raise ValueError("discover: the log needs columns tau, q1 and q2")
     say = progress or (lambda s: None)
+    h = log.dt / cfg.substeps
+    nominal, log, model_note = nominal_for_model(nominal, cfg.model, log, h)
+    if model_note:
+        say(model_note)
+    if log.q2 is None:
+        raise ValueError("discover: the log needs columns tau, q1 and q2 (a one-encoder log: "
+                         "model 'rigid')")
+    omega = spring_mode(nominal)
+    if not omega * h < STABLE_MODE_STEP:
+        raise ValueError(
+            f"discover: the nominal model's spring mode, {omega:.4g} rad/s (K "
+            f"{float(np.ravel(nominal.plant['K'])[0]):.4g}, I "
+            f"{float(np.ravel(nominal.plant['I'])[0]):.4g}, J "
+            f"{float(np.ravel(nominal.plant['J'])[0]):.4g}), is too fast for the replay's step "
+            f"of {h:.3g} s (omega h = {omega * h:.3g}, RK4 needs < {STABLE_MODE_STEP:.2f}): a "
+            "rigid model's stiff spring? Run it as model 'rigid' (--model rigid), or use "
+            f"{math.ceil(omega * log.dt / STABLE_MODE_STEP)} or more substeps")
     cands = list(cfg.candidates or candidate_effects())
     for c in cands:
         if c not in EFFECTS:
@@ -1757,6 +1933,17 @@ def discover(
                 f"candidate effect {c!r} ({EFFECTS[c].where}) does not change the motion that "
                 "discover replays nor its reading: it has none of the hooks "
                 "jaxflex.effects.REPLAY_HOOKS")
+    stage = ["the nominal model's refit"]
+    try:
+        return _discover_run(log, nominal, cfg, cands, say, stage)
+    except (np.linalg.LinAlgError, FloatingPointError) as e:
+        raise SolverFailure(stage[0], e) from e
+
+
+def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[str],
+                  say: Callable[[str], None], stage: list[str]) -> DiscoverResult:
+    """``discover``'s workflow after its input checks; ``stage[0]`` names the fit under way
+    (for ``SolverFailure``)."""
     t_start = time.perf_counter()
     nominal = Params.from_dict(nominal.to_dict())
     nominal.effects = {}
@@ -1793,6 +1980,7 @@ def discover(
     open_ties: list[tuple[int, dict[str, Any], dict[str, AbstractEffect]]] = []
     S, L = ws.train.segs.count, ws.train.segs.length
     while len(added) < cfg.max_effects:
+        stage[0] = f"round {len(rounds) + 1}: the candidates' screens and fits"
         tau_int = autocorrelation_time(ws, current)
         n_eff = current.n_res / tau_int
         series = loc_current.series
@@ -1856,7 +2044,8 @@ def discover(
             say(f"  {name:20s} gap {f.gap_test:.4f} gain {s['gain']:+.3f} p {s['p_value']:.2e} "
                 f"dBIC {s['dBIC']:+.1f} {'*' if s['significant'] else ''} ({f.seconds:.1f} s)")
         if not scores and failed:
-            raise ValueError(f"discover: every candidate fit failed: {failed}")
+            raise SolverFailure(f"round {len(rounds) + 1}: every candidate's fit", str(failed))
+        stage[0] = f"round {len(rounds) + 1}: the polish of the close candidates"
         winner = select(scores, cfg.parsimony)
         close = contest(scores, winner, cfg.contest)
         polished_fits = settle_side_by_side(ws, fits, close, max_steps=cfg.max_steps * 2,
@@ -1887,6 +2076,7 @@ def discover(
             break
         if len(rounds[-1]["tied"]) > 1:
             # the pooled evidence could not tell them apart: each encoder at its own noise
+            stage[0] = f"round {len(rounds)}: the tie-break of {rounds[-1]['tied']}"
             best, rounds[-1]["tied"], rounds[-1]["tie_break"], polished_tied = break_tie(
                 ws, fits, rounds[-1]["tied"], max_steps=cfg.max_steps * 2, tau_int=tau_int,
                 decisive=cfg.decisive, tie_alpha=cfg.tie_alpha, settled=polished_fits)
@@ -1898,6 +2088,7 @@ def discover(
         # base, not with one that merely had fewer iterations; an effect that does not lower
         # the held-out gap after this refit is dropped
         # (standard errors inflated by the same residual autocorrelation time as the round's)
+        stage[0] = f"round {len(rounds)}: the polish of {winner}"
         polished = (polished_fits[winner] if winner in polished_fits else
                     settle(ws, fits[winner], max_steps=cfg.max_steps * 2, tau_int=tau_int))
         if not polished.gap_test < current.gap_test:
@@ -1911,6 +2102,7 @@ def discover(
         # out of a local minimum of the base and then let the effect go (measured: after a
         # joint damping, a gravity fit moved Fs from 0.26 to the true 0.14 N m, the held-out
         # gap fell by 17%, and the polished mgl was 0.2 standard errors from zero)
+        stage[0] = f"round {len(rounds)}: the refit of the base without {winner}"
         reduced = without_effect(ws, polished, winner, max_steps=cfg.max_steps,
                                  tau_int=tau_int)
         k = polished.n_par - reduced.n_par
@@ -1945,6 +2137,7 @@ def discover(
         current = polished
         loc_current = localise(log, current.model.params)
         say(f"added {winner}: held-out gap {current.gap_test:.4f}")
+    stage[0] = "the second look at a tie on the final model"
     for at, rnd, rivals in open_ties:
         if at == len(added) - 1:
             continue  # judged on the final base already
@@ -1962,6 +2155,7 @@ def discover(
         loc_current = localise(log, current.model.params)
         say(f"tie of {sorted(rivals)} judged again with {added}: {now}, still tied {rnd['tied']}")
     ahead.join()  # long done: no thread is left running when discover returns
+    stage[0] = "the gap floor's bootstrap (replays of the final model)"
     fl = gap_floor(log, ws, current)
     # "unexplained": the final gap stays significantly above what noise, start errors and
     # integration cost a correct model on this log, and no candidate closed it

@@ -3,6 +3,14 @@
 Writes ``DIR/report.json`` (first effect added or ``none``, all effects, held-out gap before
 and after, fitted effect parameters with standard errors, candidate scores, localisation),
 ``DIR/params.json`` (the augmented model, docs/spec.md section 7) and figures.
+
+The parameter file's model (``--model``; default the one its identification recorded, else
+flexible) says how it is replayed (``jaxflex.discover.nominal_for_model``): a rigid model as
+two halves of its inertia joined by a stiff spring (a one-encoder log reads q2 = q1), a rotor
+subsystem with its link side fitted rigidly on the log. An identification whose model is
+limited (``identification.model.verdict`` "model-limited") is taken with a note; one whose
+solver did not converge is refused unless ``--accept-unconverged``. Bad input exits with 2; a
+numerical failure of a fit inside discovery with 1, naming the fit (report.json records it).
 """
 
 from __future__ import annotations
@@ -10,6 +18,9 @@ from __future__ import annotations
 import argparse
 
 EXAMPLE = "jaxflex discover log.csv --params nominal.json --out out/discover"
+
+#: Exit status when a fit inside discovery fails numerically (bad input exits with 2).
+SOLVER_FAILURE = 1
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -37,6 +48,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="RK4 steps per sample in every replay (1); the lag's and the delay's "
                         "time constants are fitted from 1.5 x the step dt / substeps up, so a "
                         "delay shorter than 1.5 samples needs 2 or more (longer runs)")
+    p.add_argument("--model", choices=("rigid", "flexible", "rotor"), default=None,
+                   help="the model the parameter file describes: flexible joint; rigid "
+                        "(replayed as two halves of its inertia joined by a stiff spring, a "
+                        "one-encoder log reads q2 = q1); rotor (J, K from the file, the link "
+                        "side from a rigid fit of the log). Default: the identification's "
+                        "model recorded in the file, else flexible")
     p.add_argument("--no-plots", action="store_true", help="skip figures")
     p.set_defaults(func=run)
 
@@ -45,12 +62,21 @@ def run(args: argparse.Namespace) -> int:
     """Run discovery and write the report; returns the exit code."""
     import importlib
     import json
+    import os
+    import sys
     from pathlib import Path
 
-    from jaxflex.discover import DiscoverConfig, discover
+    from jaxflex.discover import (
+        DISCOVER_MODELS,
+        DiscoverConfig,
+        SolverFailure,
+        check_identification,
+        discover,
+        model_kind_of,
+    )
     from jaxflex.fit.ahead import Ahead
     from jaxflex.logs import load_log, parse_mapping
-    from jaxflex.params import load_params, save_params
+    from jaxflex.params import ParamsError, load_params, save_params
     from jaxflex.presets import paper_params
 
     from jaxflex.cli.outputs import check_outputs
@@ -61,26 +87,53 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--segment must be > 0 s, got {args.segment}")
     if not 1 <= args.substeps <= 16:
         raise ValueError(f"--substeps must be an integer in [1, 16], got {args.substeps}")
-    log = load_log(args.log, parse_mapping(args.map))
-    nominal = load_params(args.params) if args.params else paper_params()
+    nominal = load_params(args.params, accept_unconverged=True) if args.params else paper_params()
+    try:
+        note = check_identification(nominal, accept_unconverged=os.environ.get(
+            "JAXFLEX_ACCEPT_UNCONVERGED", "") not in ("", "0"))
+    except ParamsError as e:
+        raise ParamsError(f"{args.params}: {e}") from None
+    if note:
+        print(note)
+    model = args.model or model_kind_of(nominal) or "flexible"
+    if model not in DISCOVER_MODELS:  # e.g. a link subsystem's identification
+        print(f"note: the identification's model {model!r} is replayed as a flexible joint")
+        model = "flexible"
+    required = ("t", "tau", "q1") if model == "rigid" else None
+    log = load_log(args.log, parse_mapping(args.map), **({"required": required}
+                                                          if required else {}))
     cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
     cfg = DiscoverConfig(
         segment=args.segment, train_frac=args.train_frac, max_steps=args.max_steps,
         alpha=args.alpha, min_gain=args.min_gain, max_effects=args.max_effects, candidates=cands,
-        substeps=args.substeps,
+        substeps=args.substeps, model=model,
     )
     out = Path(args.out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    if log.n > 1:
-        return _run_joints(args, log, nominal, cfg, out)
-    # matplotlib is imported beside the fits (0.4 s), not after them
-    plots = None if args.no_plots else Ahead(
-        [lambda: importlib.import_module("jaxflex.plots.discover")])
     try:
-        res = discover(log, nominal, cfg, progress=print)
-    finally:
-        if plots is not None:  # no thread left behind, a failed run's included
-            plots.join()
+        if log.n > 1:
+            return _run_joints(args, log, nominal, cfg, out)
+        # matplotlib is imported beside the fits (0.4 s), not after them
+        plots = None if args.no_plots else Ahead(
+            [lambda: importlib.import_module("jaxflex.plots.discover")])
+        try:
+            res = discover(log, nominal, cfg, progress=print)
+        finally:
+            if plots is not None:  # no thread left behind, a failed run's included
+                plots.join()
+    except SolverFailure as e:
+        # a numerical failure of a fit, not a bad input: said so, and recorded in the folder
+        (out / "report.json").write_text(json.dumps(
+            {"effect": None, "failed": {"kind": "solver failure", "stage": e.stage,
+                                        "message": str(e)}, "model": model}, indent=2) + "\n")
+        print(f"jaxflex {e} (nothing discovered; "
+              f"{out / 'report.json'} records it)", file=sys.stderr)
+        return SOLVER_FAILURE
+    except ValueError:
+        if created and not any(out.iterdir()):
+            out.rmdir()  # a refused input leaves no empty folder behind
+        raise
     rep = res.to_json()
     params = res.params
     params.extra = dict(params.extra)

@@ -1,0 +1,186 @@
+"""Discovery on real logs as a new user runs it: the parameter file's model (rigid, flexible,
+rotor) and its identification's verdict decide how the file is taken; a model the replay
+cannot integrate is refused with its remedy; a numerical failure of a fit is a solver failure,
+not a bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxflex.discover import (
+    DiscoverConfig,
+    SolverFailure,
+    check_identification,
+    discover,
+    model_kind_of,
+    nominal_for_model,
+    spring_mode,
+)
+from jaxflex.logs import save_log
+from jaxflex.params import Params, ParamsError
+
+#: The EMPS benchmark's published rigid model (Janot et al. 2019) as a rigid identification
+#: would write it: the moving mass as I, a tiny J, a large K.
+EMPS_RIGID = {
+    "plant": {"I": 95.1, "J": 1e-3, "K": 1e6},
+    "friction": {"Fc": 20.4, "Fs": 22.0, "vs": 0.01, "sigma0": 1e6, "sigma1": 100.0,
+                 "sigma2": 203.5},
+}
+
+
+@pytest.fixture(scope="module")
+def emps_log():
+    """The first 8 s of the shipped EMPS log (one encoder: q2 = q1)."""
+    from jaxflex.data import load_emps
+
+    return load_emps("DATA_EMPS").slice(0, 8000)
+
+
+def _rigid(**ident) -> Params:
+    return Params.from_dict({**EMPS_RIGID, "identification": {"model": "rigid", **ident}})
+
+
+def test_a_rigid_model_too_stiff_for_the_replay_is_refused_with_its_remedy(emps_log):
+    """Replayed as a flexible joint, the rigid file's spring mode (sqrt(K (1/I + 1/J)), 31.6
+    rad/s per ms) is past RK4's limit: the replay overflowed and the nominal refit's
+    covariance died in numpy ("Eigenvalues did not converge"). It is refused before any fit,
+    naming the mode and the remedy."""
+    p = _rigid()
+    assert spring_mode(p) == pytest.approx(np.sqrt(1e6 * (1 / 95.1 + 1e3)))
+    with pytest.raises(ValueError, match=r"spring mode.*--model rigid.*substeps"):
+        discover(emps_log, p, DiscoverConfig(candidates=("torque_offset",), model="flexible"))
+
+
+def test_a_rigid_model_is_replayed_as_two_stiff_halves(emps_log):
+    """model 'rigid': two halves of I + J joined by the spring of a 600 rad/s mode at 1 ms
+    (as ``studies/discover_emps.py``), friction unchanged; a one-encoder log reads q2 = q1."""
+    p, log, note = nominal_for_model(_rigid(), "rigid", emps_log, 1e-3)
+    half = (95.1 + 1e-3) / 2
+    assert p.plant["I"] == pytest.approx([half]) and p.plant["J"] == pytest.approx([half])
+    assert spring_mode(p) == pytest.approx(600.0)
+    assert p.friction == _rigid().friction
+    assert "rigid" in note and log is emps_log
+    one = emps_log.__class__.from_arrays(t=emps_log.t, tau=emps_log.tau, q1=emps_log.q1,
+                                         required=("t", "tau", "q1"))
+    assert np.array_equal(nominal_for_model(_rigid(), "rigid", one, 1e-3)[1].q2, one.q1)
+
+
+def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
+    """The rigid EMPS file, its model read from the file: discover runs (it used to exit 2
+    with "Eigenvalues did not converge" and leave an empty folder) and reports the model."""
+    from jaxflex.cli import main
+    from jaxflex.data import load_emps
+
+    log = load_emps("DATA_EMPS").slice(0, 8000)
+    save_log(log, tmp_path / "emps.csv")
+    (tmp_path / "rigid.json").write_text(json.dumps(_rigid(converged=True).to_dict()))
+    code = main(["discover", str(tmp_path / "emps.csv"), "--params", str(tmp_path / "rigid.json"),
+                 "--out", str(tmp_path / "o"), "--candidates", "torque_offset",
+                 "--max-effects", "1", "--no-plots"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rep["config"]["model"] == "rigid"
+    assert np.isfinite(rep["gap_before"]) and rep["gap_before"] < 0.05
+    assert "rigid model" in out
+
+
+def test_a_solver_crash_is_a_solver_failure_naming_the_fit(emps_log, tmp_path, capsys,
+                                                             monkeypatch):
+    """A numpy LinAlgError inside a fit is a ``SolverFailure`` naming the fit (the nominal
+    model's refit here), not a bad input: the command exits 1 (not 2) and report.json records
+    the failure."""
+    import jaxflex.discover as d
+    from jaxflex.cli import main
+
+    def broken(*a, **k):
+        raise np.linalg.LinAlgError("Eigenvalues did not converge")
+
+    monkeypatch.setattr(d, "covariance", broken)
+    with pytest.raises(SolverFailure, match="nominal model's refit.*Eigenvalues") as e:
+        discover(emps_log, _rigid(), DiscoverConfig(candidates=("torque_offset",),
+                                                    model="rigid"))
+    assert not isinstance(e.value, ValueError)
+    save_log(emps_log, tmp_path / "emps.csv")
+    (tmp_path / "rigid.json").write_text(json.dumps(_rigid().to_dict()))
+    code = main(["discover", str(tmp_path / "emps.csv"), "--params", str(tmp_path / "rigid.json"),
+                 "--out", str(tmp_path / "o"), "--candidates", "torque_offset", "--no-plots"])
+    assert code == 1
+    assert "solver failure in the nominal model's refit" in capsys.readouterr().err
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rep["failed"]["kind"] == "solver failure" and rep["effect"] is None
+
+
+def test_a_model_limited_identification_is_taken_with_a_note():
+    """A converged identification whose model cannot describe the log ('model-limited') is
+    discovery's normal input: taken with a note. One whose solver did not reach a stationary
+    point is refused unless accepted."""
+    ok = _rigid(converged=True, model={"kind": "rigid", "verdict": "model-limited"})
+    note = check_identification(ok)
+    assert note.startswith("note:") and "model-limited" in note and "\n" not in note
+    assert check_identification(_rigid(converged=True,
+                                       model={"verdict": "adequate"})) is None
+    bad = _rigid(converged=False, reason="max steps",
+                 model={"kind": "rigid", "verdict": "model-limited"})
+    with pytest.raises(ParamsError, match="did not converge"):
+        check_identification(bad)
+    assert "model-limited" in check_identification(bad, accept_unconverged=True)
+
+
+def test_the_model_kind_is_read_from_the_identification():
+    assert model_kind_of(_rigid()) == "rigid"
+    assert model_kind_of(_rigid(model={"kind": "rotor", "verdict": "adequate"})) == "rotor"
+    assert model_kind_of(Params.from_dict(EMPS_RIGID)) is None
+
+
+def test_a_model_limited_file_runs_from_the_command_line_with_its_kind(tmp_path, capsys,
+                                                                      monkeypatch):
+    """The command takes a converged, model-limited file without --accept-unconverged, prints
+    the one-line note, and takes the file's model kind ('rigid': the input check passes and
+    the refusal of a too-stiff flexible replay does not come)."""
+    from jaxflex.cli import main
+
+    import jaxflex.discover as d
+
+    seen = {}
+
+    def fake(log, nominal, cfg, progress=None):
+        seen["model"] = cfg.model
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(d, "discover", fake)
+    from jaxflex.data import load_emps
+
+    save_log(load_emps("DATA_EMPS").slice(0, 3000), tmp_path / "emps.csv")
+    p = _rigid(converged=True, model={"kind": "rigid", "verdict": "model-limited"})
+    (tmp_path / "p.json").write_text(json.dumps(p.to_dict()))
+    code = main(["discover", str(tmp_path / "emps.csv"), "--params", str(tmp_path / "p.json"),
+                 "--out", str(tmp_path / "o"), "--no-plots"])
+    io = capsys.readouterr()
+    assert code == 2 and "stop here" in io.err
+    assert seen["model"] == "rigid"
+    assert "model-limited" in io.out
+    assert not (tmp_path / "o").exists()  # a refused run leaves no empty folder
+    main(["discover", str(tmp_path / "emps.csv"), "--params", str(tmp_path / "p.json"),
+          "--out", str(tmp_path / "o"), "--no-plots", "--model", "flexible"])
+    assert seen["model"] == "flexible"
+
+
+def test_a_rotor_identification_gets_the_link_side_from_the_logs_rigid_fit():
+    """model 'rotor': J and K from the file, the link inertia and friction from the rigid fit
+    of the log, as the KUKA study builds its nominal (``studies/discover_kuka.py``)."""
+    from jaxflex.data import load_kuka
+    from jaxflex.validate import rigid_torque_fit
+
+    log = load_kuka("A", 1)
+    p0 = Params.from_dict({"plant": {"I": 1.0, "J": 5.0, "K": 2e6},
+                           "friction": {"Fc": 1.0, "Fs": 1.0, "vs": 0.1, "sigma0": 1e3,
+                                        "sigma1": 0.0, "sigma2": 1.0}})
+    p, _, note = nominal_for_model(p0, "rotor", log, log.dt)
+    rigid = rigid_torque_fit(log)
+    assert p.plant["J"] == [5.0] and p.plant["K"] == [2e6]
+    assert p.plant["I"][0] == pytest.approx(max(rigid["Jt"] - 5.0, 0.1 * rigid["Jt"]))
+    assert p.friction["Fc"][0] == pytest.approx(abs(rigid["Fc"]))
+    assert p.friction["sigma2"][0] == pytest.approx(abs(rigid["Fv"]))
+    assert "rotor" in note
