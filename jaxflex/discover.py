@@ -132,6 +132,9 @@ from jaxflex.fit import (
     white_noise_std,
 )
 from jaxflex.fit.ahead import Ahead, all_side_by_side, side_by_side
+from jaxflex.fit.residual_analysis import CONFIDENCE as RESID_CONFIDENCE
+from jaxflex.fit.residual_analysis import LAGS as RESID_LAGS
+from jaxflex.fit.residual_analysis import analyse_segments
 from jaxflex.fit.space import set_values
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -763,6 +766,39 @@ def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     segments (for plots)."""
     _, test, _ = ws.for_model(fit.model)
     return np.asarray(simulated_outputs(test, fit.y_test))
+
+
+def residual_analysis(ws: Workspace, fit: CandidateFit,
+                      lags: int = RESID_LAGS) -> dict[str, Any]:
+    """MATLAB ``resid`` of a fitted model on the held-out segments: per output (q1, q2) the
+    autocorrelation of the residual (measured - simulated [rad]) and its cross-correlation
+    with the logged torque, each with its 99% band, and the Ljung-Box whiteness test
+    (``jaxflex.fit.residual_analysis.analyse_segments``: the lagged products pooled within
+    the segments, each replayed from its own fitted start).
+
+    **Arguments:**
+
+    - `ws`: the workspace of the run.
+    - `fit`: the fitted model (its held-out starts fitted).
+    - `lags`: the largest lag [samples] (at most a segment's half less one).
+
+    **Returns:**
+
+    ``{"part", "input", "residual", "lags", "confidence", "channels": {"q1": summary,
+    "q2": summary}}``, each summary ``ResidualAnalysis.summary`` (curves included)."""
+    _, test, _ = ws.for_model(fit.model)
+    sim = np.asarray(simulated_outputs(test, fit.y_test))
+    meas = np.asarray(test.segs.y_meas)
+    u = np.asarray(test.segs.tau)[..., 0]
+    if test.segs.active is not None:  # padding slots hold no data
+        keep = np.asarray(test.segs.active, bool)
+        sim, meas, u = sim[keep], meas[keep], u[keep]
+    lags = max(1, min(lags, test.segs.length // 2 - 1))
+    channels = {name: analyse_segments(meas[..., c] - sim[..., c], u, lags=lags).summary()
+                for c, name in enumerate(test.outputs)}
+    return {"part": "held-out segments", "input": "tau [N m]",
+            "residual": "measured - simulated [rad]", "lags": lags,
+            "confidence": RESID_CONFIDENCE, "channels": channels}
 
 
 # ---------------------------------------------------------------------------- localisation
@@ -1675,7 +1711,8 @@ class DiscoverResult:
     round the base gap,
     the residual autocorrelation time, the effective count, every candidate's score and the
     winner; localisation: of the refit nominal model (and of the final one); config; log_info;
-    seconds; workspace: the problems (for replays in plots).
+    seconds; workspace: the problems (for replays in plots); residuals: the final model's
+    residual analysis on the held-out segments (``residual_analysis``: MATLAB's ``resid``).
     """
 
     effect: str
@@ -1697,6 +1734,7 @@ class DiscoverResult:
     workspace: Workspace
     tied: list[str] = dataclasses.field(default_factory=list)
     explained: float = 0.0
+    residuals: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def params(self) -> Params:
@@ -1769,6 +1807,7 @@ class DiscoverResult:
             "telling_quantity": TELLING.get(self.effect) if self.effects else None,
             "config": dataclasses.asdict(self.config) | {"candidates": self.candidates},
             "log": self.log_info, "seconds": self.seconds,
+            "residual_analysis": self.residuals,
         }
 
 
@@ -2165,6 +2204,11 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
     # the round that added the first effect (a round whose winner was dropped comes before it)
     first_tied = next(r["tied"] for r in rounds if r["winner"] == added[0]) if added else []
     answer = final_answer(added, first_tied, unexplained, explained, cfg.explained_min)
+    stage[0] = "the residual analysis of the final model"
+    try:
+        resid = residual_analysis(ws, current)
+    except ValueError as e:  # a residual the statistics refuse is reported, not raised
+        resid = {"error": str(e)}
     return DiscoverResult(
         effect=answer, effects=added, gap_before=first_fit.gap_test,
         gap_after=current.gap_test, gap_floor=fl["floor"], floor=fl,
@@ -2176,5 +2220,5 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
                   "segment_samples": L, "train_segments": S,
                   "test_segments": ws.test.segs.count},
         seconds=time.perf_counter() - t_start, workspace=ws, tied=list(first_tied),
-        explained=explained,
+        explained=explained, residuals=resid,
     )

@@ -68,7 +68,8 @@ def test_a_rigid_model_is_replayed_as_two_stiff_halves(emps_log):
 
 def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
     """The rigid EMPS file, its model read from the file: discover runs (it used to exit 2
-    with "Eigenvalues did not converge" and leave an empty folder) and reports the model."""
+    with "Eigenvalues did not converge" and leave an empty folder), reports the model and
+    the final model's residual analysis with its figure."""
     from jaxflex.cli import main
     from jaxflex.data import load_emps
 
@@ -77,13 +78,20 @@ def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
     (tmp_path / "rigid.json").write_text(json.dumps(_rigid(converged=True).to_dict()))
     code = main(["discover", str(tmp_path / "emps.csv"), "--params", str(tmp_path / "rigid.json"),
                  "--out", str(tmp_path / "o"), "--candidates", "torque_offset",
-                 "--max-effects", "1", "--no-plots"])
+                 "--max-effects", "1"])
     out = capsys.readouterr().out
     assert code == 0, out
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert rep["config"]["model"] == "rigid"
     assert np.isfinite(rep["gap_before"]) and rep["gap_before"] < 0.05
     assert "rigid model" in out
+    # the final model's residual analysis (MATLAB's resid) per output, and its figure
+    ra = rep["residual_analysis"]
+    assert set(ra["channels"]) == {"q1", "q2"} and ra["lags"] == 25
+    for c in ra["channels"].values():
+        assert len(c["autocorrelation"]) == 26 and len(c["cross_correlation"]) == 51
+        assert 0 <= c["p_white"] <= 1 and c["band"] > 0 and c["cross_band"] > 0
+    assert "residuals.png" in rep["figures"] and (tmp_path / "o" / "residuals.png").exists()
 
 
 def test_a_solver_crash_is_a_solver_failure_naming_the_fit(emps_log, tmp_path, capsys,
