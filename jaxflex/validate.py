@@ -19,6 +19,10 @@ Per log, three numbers (each from the one implementation of its equation):
   loop is a ``SampledLaw`` run by one sampled-data scan around ``jaxflex.step.model_step``
   (rigid or flexible model), the log's q1d sampled as the reference.
 
+Beside them, the segment replay's residual analysis as MATLAB's ``resid`` gives it
+(``replay_residual_analysis``: autocorrelation and torque cross-correlation with 99% bands,
+Ljung-Box whiteness).
+
 Returns plain dicts; figures and files are written by ``jaxflex.cli.validate``.
 """
 
@@ -41,7 +45,18 @@ from jaxflex.controller import (
     pd_torque,
 )
 from jaxflex.effects import link_input
-from jaxflex.fit import ParamSpace, Problem, gap, make_segments, output_columns, savgol
+from jaxflex.fit import (
+    ParamSpace,
+    Problem,
+    gap,
+    make_segments,
+    output_columns,
+    savgol,
+    simulated_outputs,
+)
+from jaxflex.fit.residual_analysis import CONFIDENCE as RESID_CONFIDENCE
+from jaxflex.fit.residual_analysis import LAGS as RESID_LAGS
+from jaxflex.fit.residual_analysis import analyse_segments
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
@@ -660,11 +675,9 @@ def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
     return np.asarray(eqx.filter_jit(predicted_torque)(params.to_plant(), kind, motion))
 
 
-def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int | None = None,
-                substeps: int = 4) -> float:
-    """Open-loop segment replay gap of ``params`` on ``log`` (module docstring): segments of
-    ``length`` samples (default: 0.5 s, at least 20 samples) started from the measured state."""
-    _need_x64("segment_gap")
+def _replay_problem(params: Params, log: Log, kind: str, length: int | None,
+                   substeps: int) -> Problem:
+    """The open-loop segment replay of ``segment_gap`` as a ``Problem`` (nothing fitted)."""
     plant = params.to_plant()
     L = min(log.N, length or max(20, int(round(0.5 / log.dt))))
     outputs = output_columns(log, kind, None)
@@ -672,9 +685,66 @@ def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int
                          friction=plant.friction)
     space = ParamSpace.build(plant, ["J"])  # evaluated at the base values: nothing is fitted
     n_state = segs.x0.shape[1]
-    prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
+    return Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
                    dt=log.dt, kind=kind, substeps=substeps, outputs=outputs, free_starts=False)
-    return float(gap(prob, space.theta0()))
+
+
+def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int | None = None,
+                substeps: int = 4) -> float:
+    """Open-loop segment replay gap of ``params`` on ``log`` (module docstring): segments of
+    ``length`` samples (default: 0.5 s, at least 20 samples) started from the measured state."""
+    _need_x64("segment_gap")
+    prob = _replay_problem(params, log, kind, length, substeps)
+    return float(gap(prob, prob.space.theta0()))
+
+
+def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible",
+                             length: int | None = None, substeps: int = 4,
+                             lags: int = RESID_LAGS) -> dict[str, Any]:
+    """MATLAB ``resid`` of ``params`` on ``log``: the residual (measured - simulated) of the
+    open-loop segment replay of ``segment_gap``, per output and joint, its autocorrelation
+    and its cross-correlation with the logged torque, each with its 99% band, and the
+    Ljung-Box whiteness test (``jaxflex.fit.residual_analysis.analyse_segments``, the lagged
+    products pooled within the segments).
+
+    **Arguments:**
+
+    - `params`: the parameters judged.
+    - `log`: the log.
+    - `kind`: the model structure (``jaxflex.step.MODEL_KINDS``).
+    - `length`: samples per segment (default: 0.5 s, at least 20).
+    - `substeps`: integrator substeps per sample.
+    - `lags`: the largest lag [samples] (at most a segment's half less one).
+
+    **Returns:**
+
+    ``{"part", "input", "residual", "lags", "confidence", "channels": {name: summary}}``,
+    names "q1", "q2" (with "[j]" per joint on an n-joint log), each summary
+    ``ResidualAnalysis.summary``; ``{"error": message}`` when the replay is not finite.
+
+    **Raises:**
+
+    `ValueError` for a model kind the log cannot replay (``motion_of``'s)."""
+    _need_x64("replay_residual_analysis")
+    prob = _replay_problem(params, log, kind, length, substeps)
+    y = np.asarray(simulated_outputs(prob, prob.space.theta0()))
+    meas = np.asarray(prob.segs.y_meas)
+    u = np.asarray(prob.segs.tau)
+    u = u[..., 0, :] if u.ndim == 4 else u  # a subsystem's inputs: the torque first
+    n = log.n
+    lags = max(1, min(lags, prob.segs.length // 2 - 1))
+    channels = {}
+    try:
+        for c, o in enumerate(prob.outputs):
+            for j in range(n):
+                name = o if n == 1 else f"{o}[{j}]"
+                channels[name] = analyse_segments(meas[..., c * n + j] - y[..., c * n + j],
+                                                  u[..., j], lags=lags).summary()
+    except ValueError as e:  # a replay that diverged: said so, not raised
+        return {"error": str(e)}
+    return {"part": "open-loop segment replay", "input": "tau", "lags": lags,
+            "residual": "measured - simulated", "confidence": RESID_CONFIDENCE,
+            "channels": channels}
 
 
 def validate(
@@ -682,13 +752,16 @@ def validate(
     substeps: int = 4, disturbance: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """All validation numbers of ``params`` on one ``log`` (module docstring): ``gap``,
-    ``torque_pct``, and ``closed_loop`` (dict of position/velocity/torque errors [%], or
+    ``torque_pct``, ``residual_analysis`` (``replay_residual_analysis``), and
+    ``closed_loop`` (dict of position/velocity/torque errors [%], or
     None). ``series`` holds the measured and predicted signals for figures."""
     tau_hat = torque_prediction(params, log, kind=kind)
     out: dict[str, Any] = {
         "model": kind, "samples": log.N, "dt": log.dt,
         "gap": segment_gap(params, log, kind=kind, length=segment, substeps=substeps),
         "torque_pct": rel_error_pct(log.tau, tau_hat),
+        "residual_analysis": replay_residual_analysis(params, log, kind=kind, length=segment,
+                                                      substeps=substeps),
     }
     loop_kind = {"rotor": "rigid", "link": "flexible"}.get(kind, kind)
     cl = closed_loop_errors(params, log, kind=loop_kind,
