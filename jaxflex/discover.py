@@ -1697,7 +1697,8 @@ class DiscoverResult:
     ``explained``, and are listed in ``effects`` as a partial explanation only; something is
     missing that the library does not describe; the localisation says where to look);
     tied: the first round's candidates that the data cannot tell apart (``tied``; one name,
-    the effect, when the answer is decided; empty when none was added);
+    the effect, when the answer is decided; empty when none was added); the ties of every
+    round are in ``effects_tied`` and in the one-line ``answer``;
     effects: all added, in order (in a tie the model carries one representative so that
     later rounds have a base: the held-out gap's pick while it stays tied, ``representative``;
     a tie is judged again on the final model, ``revisit_tie``, and the representative may
@@ -1735,6 +1736,21 @@ class DiscoverResult:
     tied: list[str] = dataclasses.field(default_factory=list)
     explained: float = 0.0
     residuals: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @property
+    def effects_tied(self) -> list[list[str]]:
+        """Per effect added, the candidates its round could not tell apart from it (the
+        effect first; ``effect_ties``): a tie of any round, not only the first's."""
+        return effect_ties(self.rounds)
+
+    def answer(self) -> str:
+        """The answer in one line: ``effect``, then every effect added with the rivals its
+        round could not tell apart from it ("a | b": one of them, the data cannot say which)."""
+        ties = self.effects_tied
+        if not ties:
+            return self.effect
+        parts = [" | ".join(t) for t in ties]
+        return f"{self.effect}: {', then '.join(parts)}"
 
     @property
     def params(self) -> Params:
@@ -1789,6 +1805,7 @@ class DiscoverResult:
         nominal = {k: v for k, v in self.before.values.items()}
         return {
             "effect": self.effect, "effects": list(self.effects), "tied": list(self.tied),
+            "effects_tied": self.effects_tied, "answer": self.answer(),
             "gap_before": self.gap_before, "gap_after": self.gap_after,
             "gap_metric": "normalised RMS error of simulated q1 and q2 over held-out segments "
                           "(open-loop replay under logged torque from start states fitted "
@@ -1809,6 +1826,20 @@ class DiscoverResult:
             "log": self.log_info, "seconds": self.seconds,
             "residual_analysis": self.residuals,
         }
+
+
+def effect_ties(rounds: Sequence[dict[str, Any]]) -> list[list[str]]:
+    """Per effect added, in order, the candidates its round could not tell apart from it
+    (the effect first, then its rivals by name; the effect alone when its round decided),
+    from the rounds' records (``tied``, after any second look: ``revisit_tie``). Rounds
+    whose winner was dropped or that added nothing are skipped."""
+    out = []
+    for r in rounds:
+        w = r["winner"]
+        if w == "none":
+            continue
+        out.append([w] + sorted(k for k in r.get("tied", []) if k != w))
+    return out
 
 
 def final_answer(added: Sequence[str], tied: Sequence[str], unexplained: bool,

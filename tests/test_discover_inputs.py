@@ -83,6 +83,7 @@ def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
     assert code == 0, out
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert rep["config"]["model"] == "rigid"
+    assert rep["answer"].startswith(rep["effect"]) and len(rep["effects_tied"]) <= 1
     assert np.isfinite(rep["gap_before"]) and rep["gap_before"] < 0.05
     assert "rigid model" in out
     # the final model's residual analysis (MATLAB's resid) per output, and its figure
@@ -192,3 +193,26 @@ def test_a_rotor_identification_gets_the_link_side_from_the_logs_rigid_fit():
     assert p.friction["Fc"][0] == pytest.approx(abs(rigid["Fc"]))
     assert p.friction["sigma2"][0] == pytest.approx(abs(rigid["Fv"]))
     assert "rotor" in note
+
+
+def test_every_rounds_tie_is_in_the_answer():
+    """A tie left by a later round reaches the answer: with gravity decided in round 1 and
+    time_delay tied with actuator_lag in round 2, the answer names both rivals of the second
+    effect (it used to read "gravity" with effects [gravity, time_delay] only); a round whose
+    winner was dropped adds nothing."""
+    from jaxflex.discover import DiscoverResult, effect_ties
+
+    rounds = [{"winner": "gravity", "tied": ["gravity"]},
+              {"winner": "time_delay", "tied": ["time_delay", "actuator_lag"]},
+              {"winner": "none", "tied": ["cogging", "backlash"]}]
+    assert effect_ties(rounds) == [["gravity"], ["time_delay", "actuator_lag"]]
+    fields = {f: None for f in DiscoverResult.__dataclass_fields__}
+    res = DiscoverResult(**(fields | dict(effect="gravity", effects=["gravity", "time_delay"],
+                                          rounds=rounds, tied=["gravity"])))
+    assert res.effects_tied == [["gravity"], ["time_delay", "actuator_lag"]]
+    assert res.answer() == "gravity: gravity, then time_delay | actuator_lag"
+    first = [{"winner": "cogging", "tied": ["motor_cogging", "cogging"]}]
+    res = DiscoverResult(**(fields | dict(effect="indistinguishable", effects=["cogging"],
+                                          rounds=first)))
+    assert res.answer() == "indistinguishable: cogging | motor_cogging"
+    assert DiscoverResult(**(fields | dict(effect="none", rounds=[]))).answer() == "none"

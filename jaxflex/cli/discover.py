@@ -151,7 +151,9 @@ def run(args: argparse.Namespace) -> int:
         others = [t for t in r.get("tied", []) if t != r["winner"]]
         if others:
             print(f"effect {k + 1} ({r['winner']}) is not told apart from {', '.join(others)} "
-                  "on this log: the model carries one of them (report.json rounds[].tied)")
+                  "on this log: the model carries one of them (report.json effects_tied)")
+    if any(len(t) > 1 for t in rep["effects_tied"]):
+        print(f"answer: {rep['answer']}")
     if rep["unexplained"]:
         where = rep["localisation"].get("side", "?")
         print(f"unexplained: the held-out gap stays above {cfg.unexplained_factor:g} x the floor "
@@ -190,9 +192,10 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
             sub.mkdir(exist_ok=True)
             rep["figures"] = [f"joint{j}/{f}" for f in plot_report(res, sub)]
         reps.append({"joint": j, **rep})
-        print(f"joint {j}: effect {rep['effect']}  effects {rep['effects']}  gap "
+        print(f"joint {j}: answer {rep['answer']}  effects {rep['effects']}  gap "
               f"{rep['gap_before']:.4f} -> {rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})")
     summary = {"joints": reps, "effect": [r["effect"] for r in reps],
+               "answer": [r["answer"] for r in reps],
                "effects": [r["effects"] for r in reps],
                "unexplained": [r["unexplained"] for r in reps]}
     (out / "report.json").write_text(json.dumps(summary, indent=2) + "\n")
