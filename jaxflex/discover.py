@@ -1507,6 +1507,55 @@ RIGID_MODE_STEP: float = 0.6
 STABLE_MODE_STEP: float = 0.9 * 2.0 * math.sqrt(2.0)
 
 
+#: What a parameter file may declare of its axis (top-level ``axis``: one value, or one per
+#: joint; docs/spec.md section 7) and the candidate effects that then cannot act: about a
+#: vertical rotation axis gravity has no moment, and on a prismatic axis no angle for its
+#: sine (a weight along an inclined prismatic axis is a constant force: ``torque_offset``).
+AXES: dict[str, tuple[str, ...]] = {
+    "horizontal": (), "vertical": ("gravity",), "prismatic": ("gravity",),
+}
+
+
+def declared_axes(params: Params) -> list[str] | None:
+    """The axis kind of each joint that ``params`` declares (top-level ``axis``: one of
+    ``AXES``, or a list of them, one per joint), or None when it declares none.
+
+    **Arguments:**
+
+    - `params`: the parameter file's contents.
+
+    **Returns:**
+
+    One name of ``AXES`` per joint, or None.
+
+    **Raises:**
+
+    `jaxflex.params.ParamsError` for a value not in ``AXES`` or a list of the wrong
+    length."""
+    from jaxflex.params import ParamsError
+
+    a = params.extra.get("axis")
+    if a is None:
+        return None
+    values = [a] * params.n if isinstance(a, str) else a
+    if not isinstance(values, list) or len(values) != params.n or not all(
+            isinstance(v, str) and v in AXES for v in values):
+        raise ParamsError(f"axis: expected one of {sorted(AXES)} or a list of {params.n} of "
+                          f"them, got {a!r}")
+    return list(values)
+
+
+def cannot_act(params: Params) -> dict[str, str]:
+    """The candidate effects that cannot act on a one-joint ``params``'s axis as it declares
+    it (``declared_axes``, ``AXES``), each with the reason in words; empty when it declares
+    nothing."""
+    axes = declared_axes(params)
+    if not axes:
+        return {}
+    return {name: f"the parameter file declares the axis {axes[0]!r}: {name} cannot act"
+            for name in AXES[axes[0]]}
+
+
 class SolverFailure(RuntimeError):
     """A fit inside discovery failed numerically (a non-converging eigen-decomposition, a
     floating point error): not a bad input, the message names the fit (``stage``)."""
@@ -1713,7 +1762,9 @@ class DiscoverResult:
     the residual autocorrelation time, the effective count, every candidate's score and the
     winner; localisation: of the refit nominal model (and of the final one); config; log_info;
     seconds; workspace: the problems (for replays in plots); residuals: the final model's
-    residual analysis on the held-out segments (``residual_analysis``: MATLAB's ``resid``).
+    residual analysis on the held-out segments (``residual_analysis``: MATLAB's ``resid``);
+    not_tried: the candidates left out because the file's declared axis says they cannot act
+    (``cannot_act``), each with the reason.
     """
 
     effect: str
@@ -1736,6 +1787,7 @@ class DiscoverResult:
     tied: list[str] = dataclasses.field(default_factory=list)
     explained: float = 0.0
     residuals: dict[str, Any] = dataclasses.field(default_factory=dict)
+    not_tried: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def effects_tied(self) -> list[list[str]]:
@@ -1824,7 +1876,7 @@ class DiscoverResult:
             "telling_quantity": TELLING.get(self.effect) if self.effects else None,
             "config": dataclasses.asdict(self.config) | {"candidates": self.candidates},
             "log": self.log_info, "seconds": self.seconds,
-            "residual_analysis": self.residuals,
+            "residual_analysis": self.residuals, "not_tried": dict(self.not_tried or {}),
         }
 
 
@@ -1953,8 +2005,11 @@ def discover_joints(
     out = []
     for j in range(log.n):
         say(f"joint {j}")
-        out.append(discover(log.joint(j), nominal.joint(j if nominal.n > 1 else 0), config,
-                            progress))
+        one = nominal.joint(j if nominal.n > 1 else 0)
+        axes = declared_axes(nominal)
+        if axes:  # the declaration of this joint (``joint`` drops the extra keys)
+            one.extra = {"axis": axes[j if nominal.n > 1 else 0]}
+        out.append(discover(log.joint(j), one, config, progress))
     return out
 
 
@@ -1976,6 +2031,7 @@ def discover(
     if log.tau is None or log.q1 is None:
         raise ValueError("discover: the log needs columns tau, q1 and q2")
     say = progress or (lambda s: None)
+    excluded = cannot_act(nominal)
     h = log.dt / cfg.substeps
     nominal, log, model_note = nominal_for_model(nominal, cfg.model, log, h)
     if model_note:
@@ -1993,7 +2049,13 @@ def discover(
             f"of {h:.3g} s (omega h = {omega * h:.3g}, RK4 needs < {STABLE_MODE_STEP:.2f}): a "
             "rigid model's stiff spring? Run it as model 'rigid' (--model rigid), or use "
             f"{math.ceil(omega * log.dt / STABLE_MODE_STEP)} or more substeps")
-    cands = list(cfg.candidates or candidate_effects())
+    cands = list(cfg.candidates or [c for c in candidate_effects() if c not in excluded])
+    for c in cands:
+        if c in excluded:
+            raise ValueError(f"candidate effect {c!r}: {excluded[c]} (remove it from the "
+                             "candidates, or the declaration from the file)")
+    if excluded and not cfg.candidates:
+        say(f"not tried: {', '.join(excluded)} ({next(iter(excluded.values()))})")
     for c in cands:
         if c not in EFFECTS:
             raise ValueError(f"unknown candidate effect {c!r}; known: {sorted(EFFECTS)}")
@@ -2252,4 +2314,5 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
                   "test_segments": ws.test.segs.count},
         seconds=time.perf_counter() - t_start, workspace=ws, tied=list(first_tied),
         explained=explained, residuals=resid,
+        not_tried={k: v for k, v in cannot_act(nominal).items() if k not in cands},
     )

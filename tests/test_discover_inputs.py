@@ -216,3 +216,56 @@ def test_every_rounds_tie_is_in_the_answer():
                                           rounds=first)))
     assert res.answer() == "indistinguishable: cogging | motor_cogging"
     assert DiscoverResult(**(fields | dict(effect="none", rounds=[]))).answer() == "none"
+
+
+def test_a_declared_vertical_axis_leaves_gravity_untried(monkeypatch):
+    """A parameter file that declares its axis vertical (top-level ``axis``, as KUKA's axis
+    1) or prismatic: gravity cannot act there and is not tried; asked for by name it is
+    refused, naming the declaration; a bad declaration is refused naming its values."""
+    import jaxflex.discover as dm
+    from jaxflex.datagen import generate_log
+    from jaxflex.discover import cannot_act, declared_axes
+    from jaxflex.effects import candidate_effects
+    from jaxflex.presets import paper_params
+
+    d = paper_params().to_dict()
+    vertical = Params.from_dict(d | {"axis": "vertical"})
+    assert declared_axes(vertical) == ["vertical"] and "gravity" in cannot_act(vertical)
+    assert "gravity" in cannot_act(Params.from_dict(d | {"axis": "prismatic"}))
+    assert cannot_act(Params.from_dict(d | {"axis": "horizontal"})) == {}
+    assert cannot_act(paper_params()) == {}
+    with pytest.raises(ParamsError, match="axis: expected one of"):
+        declared_axes(Params.from_dict(d | {"axis": "sideways"}))
+    log = generate_log((), seed=4, t_final=3.0).log
+    with pytest.raises(ValueError, match="'gravity'.*declares the axis 'vertical'"):
+        discover(log, vertical, DiscoverConfig(candidates=("gravity", "torque_offset")))
+
+    class Tried(Exception):
+        pass
+
+    def tried(log, nominal, universe, **kw):
+        raise Tried(list(universe))
+
+    monkeypatch.setattr(dm, "workspace", tried)
+    seen = []
+    with pytest.raises(Tried) as e:
+        discover(log, vertical, progress=seen.append)
+    assert "gravity" not in e.value.args[0]
+    assert sorted(e.value.args[0]) == sorted(c for c in candidate_effects() if c != "gravity")
+    assert any(s.startswith("not tried: gravity") for s in seen), seen
+    with pytest.raises(Tried) as e:
+        discover(log, paper_params())
+    assert "gravity" in e.value.args[0]
+    # an n-joint file declares per joint
+    two = Params.from_dict({"plant": {k: [v[0]] * 2 for k, v in d["plant"].items()},
+                            "friction": {k: [v[0]] * 2 for k, v in d["friction"].items()},
+                            "axis": ["vertical", "horizontal"]})
+    assert declared_axes(two) == ["vertical", "horizontal"]
+    from jaxflex.logs import Log
+
+    got = []
+    monkeypatch.setattr(dm, "discover", lambda lg, nom, cfg, progress: got.append(cannot_act(nom)))
+    both = Log.from_arrays(t=log.t, **{k: np.hstack([getattr(log, k)] * 2)
+                                       for k in ("tau", "q1", "q2")})
+    dm.discover_joints(both, two)
+    assert "gravity" in got[0] and got[1] == {}
