@@ -68,6 +68,14 @@ Workflow (``discover``), for one joint:
    the MuJoCo rig, seed 700, every effect rightly named closed 87-100%; a stiffness that
    ripples with the link angle, named a motor cogging and a torque offset, 50%).
 
+The nominal model comes as the kind its file describes (``DiscoverConfig.model``,
+``nominal_for_model``: a flexible joint as it is, a rigid model as two halves joined by a
+stiff spring, a rotor subsystem with its link side from a rigid fit of the log); a candidate
+the file's declared axis says cannot act is not tried (``cannot_act``). The report carries
+every round's tie (``effect_ties``) and the final model's residual analysis as MATLAB's
+``resid`` gives it (``residual_analysis``); a numerical failure of a fit is a
+``SolverFailure`` naming the fit, not a bad input.
+
 All candidates share one compiled model: the plant holds every candidate effect, wrapped in
 ``jaxflex.effects.Gated`` (gate 0 or 1), and the engine's parameter mask says which are fitted;
 both are data, so the solver compiles once per log shape. The gates are run-time branches
