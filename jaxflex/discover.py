@@ -2073,24 +2073,35 @@ def discover(
                 f"candidate effect {c!r} ({EFFECTS[c].where}) does not change the motion that "
                 "discover replays nor its reading: it has none of the hooks "
                 "jaxflex.effects.REPLAY_HOOKS")
-    stage = ["the nominal model's refit"]
+    run = _Run()
     try:
-        return _discover_run(log, nominal, cfg, cands, say, stage)
+        return _discover_run(log, nominal, cfg, cands, say, run)
     except (np.linalg.LinAlgError, FloatingPointError) as e:
-        raise SolverFailure(stage[0], e) from e
+        raise SolverFailure(run.stage, e) from e
+    finally:
+        if run.ahead is not None:  # no thread is left running, a failed run's included
+            run.ahead.join()
+
+
+@dataclasses.dataclass
+class _Run:
+    """Where a ``discover`` run is: the fit under way (for ``SolverFailure``) and its
+    background work (``made_ahead``)."""
+
+    stage: str = "the nominal model's refit"
+    ahead: Ahead | None = None
 
 
 def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[str],
-                  say: Callable[[str], None], stage: list[str]) -> DiscoverResult:
-    """``discover``'s workflow after its input checks; ``stage[0]`` names the fit under way
-    (for ``SolverFailure``)."""
+                  say: Callable[[str], None], run: _Run) -> DiscoverResult:
+    """``discover``'s workflow after its input checks; ``run`` says where it is."""
     t_start = time.perf_counter()
     nominal = Params.from_dict(nominal.to_dict())
     nominal.effects = {}
     ws = workspace(log, nominal, cands, segment=cfg.segment, train_frac=cfg.train_frac,
                    substeps=cfg.substeps, max_effects=cfg.max_effects)
     trace_fit(ws, Model(nominal, []))
-    ahead = made_ahead(ws, nominal)
+    ahead = run.ahead = made_ahead(ws, nominal)
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2, held_out=False)
     # the base every candidate is compared with must not keep a load that the first solve's
     # long early steps pushed past the capacity (``settle``). Its stops stay in the units of
@@ -2120,7 +2131,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
     open_ties: list[tuple[int, dict[str, Any], dict[str, AbstractEffect]]] = []
     S, L = ws.train.segs.count, ws.train.segs.length
     while len(added) < cfg.max_effects:
-        stage[0] = f"round {len(rounds) + 1}: the candidates' screens and fits"
+        run.stage = f"round {len(rounds) + 1}: the candidates' screens and fits"
         tau_int = autocorrelation_time(ws, current)
         n_eff = current.n_res / tau_int
         series = loc_current.series
@@ -2185,7 +2196,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
                 f"dBIC {s['dBIC']:+.1f} {'*' if s['significant'] else ''} ({f.seconds:.1f} s)")
         if not scores and failed:
             raise SolverFailure(f"round {len(rounds) + 1}: every candidate's fit", str(failed))
-        stage[0] = f"round {len(rounds) + 1}: the polish of the close candidates"
+        run.stage = f"round {len(rounds) + 1}: the polish of the close candidates"
         winner = select(scores, cfg.parsimony)
         close = contest(scores, winner, cfg.contest)
         polished_fits = settle_side_by_side(ws, fits, close, max_steps=cfg.max_steps * 2,
@@ -2216,7 +2227,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
             break
         if len(rounds[-1]["tied"]) > 1:
             # the pooled evidence could not tell them apart: each encoder at its own noise
-            stage[0] = f"round {len(rounds)}: the tie-break of {rounds[-1]['tied']}"
+            run.stage = f"round {len(rounds)}: the tie-break of {rounds[-1]['tied']}"
             best, rounds[-1]["tied"], rounds[-1]["tie_break"], polished_tied = break_tie(
                 ws, fits, rounds[-1]["tied"], max_steps=cfg.max_steps * 2, tau_int=tau_int,
                 decisive=cfg.decisive, tie_alpha=cfg.tie_alpha, settled=polished_fits)
@@ -2228,7 +2239,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         # base, not with one that merely had fewer iterations; an effect that does not lower
         # the held-out gap after this refit is dropped
         # (standard errors inflated by the same residual autocorrelation time as the round's)
-        stage[0] = f"round {len(rounds)}: the polish of {winner}"
+        run.stage = f"round {len(rounds)}: the polish of {winner}"
         polished = (polished_fits[winner] if winner in polished_fits else
                     settle(ws, fits[winner], max_steps=cfg.max_steps * 2, tau_int=tau_int))
         if not polished.gap_test < current.gap_test:
@@ -2242,7 +2253,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         # out of a local minimum of the base and then let the effect go (measured: after a
         # joint damping, a gravity fit moved Fs from 0.26 to the true 0.14 N m, the held-out
         # gap fell by 17%, and the polished mgl was 0.2 standard errors from zero)
-        stage[0] = f"round {len(rounds)}: the refit of the base without {winner}"
+        run.stage = f"round {len(rounds)}: the refit of the base without {winner}"
         reduced = without_effect(ws, polished, winner, max_steps=cfg.max_steps,
                                  tau_int=tau_int)
         k = polished.n_par - reduced.n_par
@@ -2277,7 +2288,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         current = polished
         loc_current = localise(log, current.model.params)
         say(f"added {winner}: held-out gap {current.gap_test:.4f}")
-    stage[0] = "the second look at a tie on the final model"
+    run.stage = "the second look at a tie on the final model"
     for at, rnd, rivals in open_ties:
         if at == len(added) - 1:
             continue  # judged on the final base already
@@ -2295,7 +2306,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         loc_current = localise(log, current.model.params)
         say(f"tie of {sorted(rivals)} judged again with {added}: {now}, still tied {rnd['tied']}")
     ahead.join()  # long done: no thread is left running when discover returns
-    stage[0] = "the gap floor's bootstrap (replays of the final model)"
+    run.stage = "the gap floor's bootstrap (replays of the final model)"
     fl = gap_floor(log, ws, current)
     # "unexplained": the final gap stays significantly above what noise, start errors and
     # integration cost a correct model on this log, and no candidate closed it
@@ -2305,7 +2316,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
     # the round that added the first effect (a round whose winner was dropped comes before it)
     first_tied = next(r["tied"] for r in rounds if r["winner"] == added[0]) if added else []
     answer = final_answer(added, first_tied, unexplained, explained, cfg.explained_min)
-    stage[0] = "the residual analysis of the final model"
+    run.stage = "the residual analysis of the final model"
     try:
         resid = residual_analysis(ws, current)
     except ValueError as e:  # a residual the statistics refuse is reported, not raised
