@@ -2073,7 +2073,7 @@ def discover(
                 f"candidate effect {c!r} ({EFFECTS[c].where}) does not change the motion that "
                 "discover replays nor its reading: it has none of the hooks "
                 "jaxflex.effects.REPLAY_HOOKS")
-    run = _Run()
+    run = _Run(model_note=model_note)
     try:
         return _discover_run(log, nominal, cfg, cands, say, run)
     except (np.linalg.LinAlgError, FloatingPointError) as e:
@@ -2085,11 +2085,13 @@ def discover(
 
 @dataclasses.dataclass
 class _Run:
-    """Where a ``discover`` run is: the fit under way (for ``SolverFailure``) and its
-    background work (``made_ahead``)."""
+    """Where a ``discover`` run is: the fit under way (for ``SolverFailure``), its
+    background work (``made_ahead``), and how its nominal model was read
+    (``nominal_for_model``'s note)."""
 
     stage: str = "the nominal model's refit"
     ahead: Ahead | None = None
+    model_note: str = ""
 
 
 def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[str],
@@ -2330,7 +2332,8 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         config=cfg, candidates=cands,
         log_info={"samples": log.N, "dt": log.dt, "train_samples": int(cfg.train_frac * log.N),
                   "segment_samples": L, "train_segments": S,
-                  "test_segments": ws.test.segs.count},
+                  "test_segments": ws.test.segs.count, "model": cfg.model,
+                  "model_note": run.model_note},
         seconds=time.perf_counter() - t_start, workspace=ws, tied=list(first_tied),
         explained=explained, residuals=resid,
         not_tried={k: v for k, v in cannot_act(nominal).items() if k not in cands},

@@ -82,7 +82,8 @@ def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
     out = capsys.readouterr().out
     assert code == 0, out
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
-    assert rep["config"]["model"] == "rigid"
+    assert rep["config"]["model"] == "rigid" and rep["log"]["model"] == "rigid"
+    assert rep["log"]["model_note"].startswith("rigid model: inertia 95.1")
     assert rep["answer"].startswith(rep["effect"]) and len(rep["effects_tied"]) <= 1
     assert np.isfinite(rep["gap_before"]) and rep["gap_before"] < 0.05
     assert "rigid model" in out
