@@ -140,9 +140,6 @@ from jaxflex.fit import (
     white_noise_std,
 )
 from jaxflex.fit.ahead import Ahead, all_side_by_side, side_by_side
-from jaxflex.fit.residual_analysis import CONFIDENCE as RESID_CONFIDENCE
-from jaxflex.fit.residual_analysis import LAGS as RESID_LAGS
-from jaxflex.fit.residual_analysis import analyse_segments
 from jaxflex.fit.space import set_values
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -777,7 +774,7 @@ def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
 
 
 def residual_analysis(ws: Workspace, fit: CandidateFit,
-                      lags: int = RESID_LAGS) -> dict[str, Any]:
+                      lags: int = 25) -> dict[str, Any]:
     """MATLAB ``resid`` of a fitted model on the held-out segments: per output (q1, q2) the
     autocorrelation of the residual (measured - simulated [rad]) and its cross-correlation
     with the logged torque, each with its 99% band, and the Ljung-Box whiteness test
@@ -788,12 +785,16 @@ def residual_analysis(ws: Workspace, fit: CandidateFit,
 
     - `ws`: the workspace of the run.
     - `fit`: the fitted model (its held-out starts fitted).
-    - `lags`: the largest lag [samples] (at most a segment's half less one).
+    - `lags`: the largest lag [samples] (at most a segment's half less one; MATLAB's
+      ``resid``: 25).
 
     **Returns:**
 
     ``{"part", "input", "residual", "lags", "confidence", "channels": {"q1": summary,
     "q2": summary}}``, each summary ``ResidualAnalysis.summary`` (curves included)."""
+    # imported here: scipy.stats costs a command's start 0.55 s (tests/test_app_layer.py)
+    from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
+
     _, test, _ = ws.for_model(fit.model)
     sim = np.asarray(simulated_outputs(test, fit.y_test))
     meas = np.asarray(test.segs.y_meas)
@@ -806,7 +807,7 @@ def residual_analysis(ws: Workspace, fit: CandidateFit,
                 for c, name in enumerate(test.outputs)}
     return {"part": "held-out segments", "input": "tau [N m]",
             "residual": "measured - simulated [rad]", "lags": lags,
-            "confidence": RESID_CONFIDENCE, "channels": channels}
+            "confidence": CONFIDENCE, "channels": channels}
 
 
 # ---------------------------------------------------------------------------- localisation

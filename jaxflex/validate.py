@@ -54,9 +54,6 @@ from jaxflex.fit import (
     savgol,
     simulated_outputs,
 )
-from jaxflex.fit.residual_analysis import CONFIDENCE as RESID_CONFIDENCE
-from jaxflex.fit.residual_analysis import LAGS as RESID_LAGS
-from jaxflex.fit.residual_analysis import analyse_segments
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
@@ -700,7 +697,7 @@ def segment_gap(params: Params, log: Log, *, kind: str = "flexible", length: int
 
 def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible",
                              length: int | None = None, substeps: int = 4,
-                             lags: int = RESID_LAGS) -> dict[str, Any]:
+                             lags: int = 25) -> dict[str, Any]:
     """MATLAB ``resid`` of ``params`` on ``log``: the residual (measured - simulated) of the
     open-loop segment replay of ``segment_gap``, per output and joint, its autocorrelation
     and its cross-correlation with the logged torque, each with its 99% band, and the
@@ -714,7 +711,8 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
     - `kind`: the model structure (``jaxflex.step.MODEL_KINDS``).
     - `length`: samples per segment (default: 0.5 s, at least 20).
     - `substeps`: integrator substeps per sample.
-    - `lags`: the largest lag [samples] (at most a segment's half less one).
+    - `lags`: the largest lag [samples] (at most a segment's half less one; MATLAB's
+      ``resid``: 25).
 
     **Returns:**
 
@@ -725,6 +723,9 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
     **Raises:**
 
     `ValueError` for a model kind the log cannot replay (``motion_of``'s)."""
+    # imported here: scipy.stats costs a command's start 0.55 s (tests/test_app_layer.py)
+    from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
+
     _need_x64("replay_residual_analysis")
     prob = _replay_problem(params, log, kind, length, substeps)
     y = np.asarray(simulated_outputs(prob, prob.space.theta0()))
@@ -743,7 +744,7 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
     except ValueError as e:  # a replay that diverged: said so, not raised
         return {"error": str(e)}
     return {"part": "open-loop segment replay", "input": "tau", "lags": lags,
-            "residual": "measured - simulated", "confidence": RESID_CONFIDENCE,
+            "residual": "measured - simulated", "confidence": CONFIDENCE,
             "channels": channels}
 
 
