@@ -301,3 +301,27 @@ def test_a_model_limited_rotor_identification_of_kuka_axis_1_runs(tmp_path, caps
     assert "gravity" not in rep["config"]["candidates"]
     assert rep["gap_after"] <= rep["gap_before"] and np.isfinite(rep["gap_after"])
     assert set(rep["residual_analysis"]["channels"]) == {"q1", "q2"}
+
+
+def test_an_unconverged_identification_is_refused_unless_accepted(tmp_path, capsys,
+                                                                    monkeypatch):
+    """A file whose solver did not reach a stationary point is refused by the command (exit
+    2, naming the file) and taken with --accept-unconverged."""
+    import jaxflex.discover as d
+    from jaxflex.cli import main
+
+    # "0": not accepted; monkeypatch restores the variable that --accept-unconverged sets
+    monkeypatch.setenv("JAXFLEX_ACCEPT_UNCONVERGED", "0")
+    monkeypatch.setattr(d, "discover", lambda *a, **k: (_ for _ in ()).throw(ValueError("ran")))
+    from jaxflex.data import load_emps
+
+    save_log(load_emps("DATA_EMPS").slice(0, 3000), tmp_path / "emps.csv")
+    p = _rigid(converged=False, reason="max steps")
+    (tmp_path / "p.json").write_text(json.dumps(p.to_dict()))
+    argv = ["discover", str(tmp_path / "emps.csv"), "--params", str(tmp_path / "p.json"),
+            "--out", str(tmp_path / "o"), "--no-plots"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "p.json: refused: the identification did not converge" in err and "ran" not in err
+    assert main(["--accept-unconverged"] + argv) == 2
+    assert "ran" in capsys.readouterr().err
