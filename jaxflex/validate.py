@@ -700,9 +700,10 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
                              lags: int = 25) -> dict[str, Any]:
     """MATLAB ``resid`` of ``params`` on ``log``: the residual (measured - simulated) of the
     open-loop segment replay of ``segment_gap``, per output and joint, its autocorrelation
-    and its cross-correlation with the logged torque, each with its 99% band, and the
-    Ljung-Box whiteness test (``jaxflex.fit.residual_analysis.analyse_segments``, the lagged
-    products pooled within the segments).
+    and its cross-correlation with the logged torque (the link subsystem's input: the
+    measured rotor angle), each with its 99% band, and the Ljung-Box whiteness test
+    (``jaxflex.fit.residual_analysis.analyse_segments``, the lagged products pooled within
+    the segments).
 
     **Arguments:**
 
@@ -718,11 +719,12 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
 
     ``{"part", "input", "residual", "lags", "confidence", "channels": {name: summary}}``,
     names "q1", "q2" (with "[j]" per joint on an n-joint log), each summary
-    ``ResidualAnalysis.summary``; ``{"error": message}`` when the replay is not finite.
+    ``ResidualAnalysis.summary``; ``{"error": message}`` when the replay is not finite or
+    the segments are too short for the statistics.
 
     **Raises:**
 
-    `ValueError` for a model kind the log cannot replay (``motion_of``'s)."""
+    `ValueError` for a model kind the log cannot replay (a rotor or link model without q2)."""
     # imported here: scipy.stats costs a command's start 0.55 s (tests/test_app_layer.py)
     from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
 
@@ -731,7 +733,8 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
     y = np.asarray(simulated_outputs(prob, prob.space.theta0()))
     meas = np.asarray(prob.segs.y_meas)
     u = np.asarray(prob.segs.tau)
-    u = u[..., 0, :] if u.ndim == 4 else u  # a subsystem's inputs: the torque first
+    u = u[..., 0, :] if u.ndim == 4 else u  # a subsystem's inputs: the torque, or the rotor
+    # angle that drives the link subsystem, first
     n = log.n
     lags = max(1, min(lags, prob.segs.length // 2 - 1))
     channels = {}
@@ -743,8 +746,8 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
                                                   u[..., j], lags=lags).summary()
     except ValueError as e:  # a replay that diverged: said so, not raised
         return {"error": str(e)}
-    return {"part": "open-loop segment replay", "input": "tau", "lags": lags,
-            "residual": "measured - simulated", "confidence": CONFIDENCE,
+    return {"part": "open-loop segment replay", "input": "q2" if kind == "link" else "tau",
+            "lags": lags, "residual": "measured - simulated", "confidence": CONFIDENCE,
             "channels": channels}
 
 
