@@ -23,6 +23,7 @@ import difflib
 import json
 import math
 import os
+import warnings
 from pathlib import Path
 from collections.abc import Mapping
 from typing import Any
@@ -442,7 +443,27 @@ def load_params(path: str | os.PathLike, *, accept_unconverged: bool | None = No
             f"{path}: refused: {'; '.join(problems)}. Re-run the identification, or use the "
             "file anyway with --accept-unconverged"
         )
+    note = model_limited_note(params)
+    if note:
+        warnings.warn(f"{path}: {note}", ModelLimitedWarning, stacklevel=2)
     return params
+
+
+class ModelLimitedWarning(UserWarning):
+    """A parameter file from a converged identification whose model the noise does not
+    explain (the normal result on a real rig's log): used, with this one-line note."""
+
+
+def model_limited_note(params: Params) -> str:
+    """The one-line note on a model-limited identification (``identification.model``), or
+    "" for an adequate one or a file without the verdict."""
+    ident = params.extra.get("identification")
+    model = ident.get("model") if isinstance(ident, dict) else None
+    if not isinstance(model, dict) or model.get("verdict") != "model-limited":
+        return ""
+    ratio = model.get("cost_over_noise")
+    size = f" (cost {ratio:.3g} x what the noise explains)" if isinstance(ratio, float) else ""
+    return f"a model-limited identification{size}: the model leaves something unexplained"
 
 
 def save_params(params: Params, path: str | os.PathLike) -> None:

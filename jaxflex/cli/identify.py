@@ -1,18 +1,25 @@
-"""``jaxflex identify LOG --params INIT.json --out RESULT.json``: fit parameters to a log.
+"""``jaxflex identify LOG --out RESULT.json``: fit parameters to a log.
 
 Writes the identified parameters in the docs/spec.md section 7 format with standard errors under
 ``"stderr"``, a figure of measured against simulated response next to it, and prints a short
-table. ``--free`` picks the free parameters, ``--map`` maps a ``.mat`` file's variables to the
-log columns (e.g. ``t=t,tau=gtau*vir,q1=qm,q2=qm``).
+table with the two-part verdict: the solver's (converged or not) and the model's (adequate, or
+model-limited with what the residual shows). ``LOG`` is a file or a shipped data set
+(``jaxflex:emps/DATA_EMPS``, ``jaxflex:kuka/A/2``); without ``--params`` every parameter
+starts from the log's inverse dynamics.
 """
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from typing import Any
 
-EXAMPLE = ("jaxflex identify log.csv --params init.json --out identified.json "
-           "--free Fc,Fs,vs,sigma0,sigma1,sigma2")
+EXAMPLE = ("jaxflex identify jaxflex:emps/DATA_EMPS --out emps.json\n"
+           "  jaxflex identify jaxflex:emps/DATA_EMPS --out emps_cl.json --closed-loop\n"
+           "  jaxflex identify DATA_EMPS.mat --map 't=t,tau=gtau*vir,q1=qm,q2=qm' --out emps.json\n"
+           "  jaxflex identify log.csv --params init.json --out identified.json "
+           "--free Fc,Fs,vs,sigma0,sigma1,sigma2\n"
+           "  (exit 0: converged, adequate or model-limited; 3: the solver did not converge)")
 
 
 def _count_or_auto(least: int, what: str) -> Callable[[str], int | str]:
@@ -45,17 +52,32 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Fit LuGre (and optionally I, J, K or effect) parameters to a logged run "
         "by gradient through the simulator (Levenberg-Marquardt, multiple shooting).",
     )
-    p.add_argument("log", help="log file (.csv with header, .npz or .mat)")
-    p.add_argument("--params", required=True, help="initial parameter file (JSON, docs/spec.md section 7)")
+    p.add_argument("log", help="log file (.csv with header, .npz or .mat), or a shipped data "
+                               "set: jaxflex:emps/DATA_EMPS, jaxflex:emps/DATA_EMPS_PULSES, "
+                               "jaxflex:kuka/A (axes 1-3; B, C), jaxflex:kuka/A/2 (one axis)")
+    p.add_argument("--params", default=None,
+                   help="start parameter file (JSON, docs/spec.md section 7); default: every "
+                        "parameter from the log's inverse dynamics (linear least squares, "
+                        "as the EMPS benchmark's IDIM-LS), a torque offset included where "
+                        "the log shows one")
     p.add_argument("--out", required=True, help="where to write the identified parameters (JSON)")
-    p.add_argument("--free", default="Fc,Fs,vs,sigma0,sigma1,sigma2",
+    p.add_argument("--free", default=None,
                    help="comma-separated free parameters: Fc,Fs,vs,sigma0,sigma1,sigma2,I,J,K "
-                   "or <effect>.<param> (default: the six LuGre parameters)")
+                   "or <effect>.<param> (an effect the start lacks is added, e.g. "
+                   "torque_offset.offset). Default: the six LuGre parameters, with --params; "
+                   "without, also the inertia (I; J, K for the flexible model) and the "
+                   "offset the data show")
+    p.add_argument("--fix", default=None, metavar="NAME=VALUE,...",
+                   help="pin parameters at values before the fit (e.g. 'sigma1=0,J=1e-3'), "
+                        "names as --free; a pinned name is not fitted")
     p.add_argument("--map", dest="mapping", default=None,
                    help="column mapping for .mat/.npz/.csv variables, e.g. "
                    "'t=t,tau=gtau*vir,q1=qm,q2=qm'")
-    p.add_argument("--model", choices=("flexible", "rigid", "rotor", "link"), default="flexible",
-                   help="flexible joint (eq. 3), rigid Jx x'' = u - F (eq. 37), or rotor: the "
+    p.add_argument("--model", choices=("auto", "flexible", "rigid", "rotor", "link"),
+                   default="auto",
+                   help="auto (default): rigid when the log has one encoder (q2 absent or "
+                        "equal to q1), else flexible; flexible joint (eq. 3), rigid "
+                        "Jx x'' = u - F (eq. 37), or rotor: the "
                         "rotor subsystem J q2'' + K (q2 - q1) + motor effects = tau driven by "
                         "the measured link motion (subsystem identification, no link model), "
                         "or link: the link subsystem M q1'' + F = K (q2 - q1) driven by the "
@@ -74,55 +96,124 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stop", type=int, default=None, help="one past the last sample used")
     p.add_argument("--figure", default=None,
                    help="figure path (default: RESULT.json with .png suffix)")
+    p.add_argument("--closed-loop", action="store_true",
+                   help="then refine by closed-loop output error through the loop controller "
+                        "that ran (the start file's 'loop_controller' section, or the shipped "
+                        "data set's: EMPS's P/P cascade), on the log's reference q1d "
+                        "(jaxflex.validate.closed_loop_fit); the closed-loop errors before "
+                        "and after are written under identification.closed_loop")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--accept-unconverged", dest="accept_result", action="store_true",
-                   help="exit 0 even when the fit does not converge (the result file is still "
-                        "marked unconverged)")
+                   help="exit 0 even when the solver does not converge (the result file is "
+                        "still marked unconverged)")
     p.set_defaults(func=run)
 
 
+def _pins(text: str | None) -> dict[str, float]:
+    """``--fix``'s NAME=VALUE pairs; raises ``ValueError`` naming a malformed item."""
+    out = {}
+    for item in (text or "").split(","):
+        if not item.strip():
+            continue
+        name, eq, value = item.partition("=")
+        try:
+            if not eq:
+                raise ValueError
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"--fix: expected NAME=VALUE, got {item.strip()!r}") from None
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
-    """Run the identification; returns the exit code."""
+    """Run the identification; returns the exit code (0 converged, 3 the solver did not
+    converge)."""
     import importlib
     import sys
     import threading
     import warnings
     from pathlib import Path
 
+    from jaxflex.data import is_named, load_named
     from jaxflex.identify import IdentificationWarning, choose_segment_length, identify
-    from jaxflex.identify.core import SEGMENT_TIME_CONSTANTS
+    from jaxflex.identify.core import SEGMENT_TIME_CONSTANTS, default_free, start_hints
+    from jaxflex.identify.start import check_model, start_from_data
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params
 
     from jaxflex.cli.outputs import check_outputs
 
     check_outputs(args.force, files=[args.out, args.figure or Path(args.out).with_suffix(".png")])
-    required = REQUIRED_COLUMNS if args.model != "rigid" else ("t", "tau", "q1")
-    log = load_log(args.log, parse_mapping(args.mapping), required=required)
+    pins = _pins(args.fix)
+    loop = None
+    if is_named(args.log):
+        if args.mapping:
+            raise ValueError("--map is for files; a shipped data set has its own columns")
+        named = load_named(args.log)
+        log, loop = named.log, named.loop_controller
+    else:
+        required = REQUIRED_COLUMNS if args.model not in ("rigid", "auto") else ("t", "tau", "q1")
+        log = load_log(args.log, parse_mapping(args.mapping), required=required)
     log = log.slice(args.start, args.stop)
-    init = load_params(args.params, accept_unconverged=True)  # a start guess
-    free = [s.strip() for s in args.free.split(",") if s.strip()]
+    say = (lambda s: None) if args.quiet else print
+    model, why = check_model(log, args.model)
+    data = None
+    if args.params is not None:
+        init = load_params(args.params, accept_unconverged=True)  # a start guess
+        start_note = f"start {args.params}"
+        try:  # the common mistakes (degrees, rate), named before the long fit
+            data = start_from_data(log, model)
+            for hint in start_hints(data, init):
+                print(f"jaxflex identify: hint: {hint}", file=sys.stderr)
+        except ValueError:
+            pass
+    else:
+        data = start_from_data(log, model)
+        init = data.params
+        start_note = "start from the log's inverse dynamics:\n  " + data.summary().replace(
+            "\n", "\n  ")
+    loop = init.extra.get("loop_controller", loop)
+    if args.closed_loop and loop is None:
+        raise ValueError("--closed-loop: no loop controller declared (add a 'loop_controller' "
+                         "section to --params, docs/spec.md section 7)")
+    if args.closed_loop and log.q1d is None:
+        raise ValueError("--closed-loop: the log has no reference column q1d")
+    if args.free:
+        free = [s.strip() for s in args.free.split(",") if s.strip()]
+    elif args.params is None:
+        free = default_free(model, init)
+    else:  # the LuGre six, and a torque offset where the log's inverse dynamics show one
+        free = list(("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2"))
+        if data is not None and "torque_offset" in data.params.effects:
+            free.append("torque_offset.offset")
+            off = data.params.effects["torque_offset"]["offset"]
+            say(f"[identify] the log's inverse dynamics show a torque offset "
+                f"({', '.join(f'{o:.4g}' for o in off)} N m): fitted as torque_offset.offset "
+                "(--free to choose otherwise)")
+    free = [k for k in free if k not in pins]
     if args.segment == "auto":
-        seg, rec = choose_segment_length(log, init, args.model)
+        seg, rec = choose_segment_length(log, init, model)
         how = (f" (auto: {SEGMENT_TIME_CONSTANTS:g} x the smallest time constant of "
                f"{', '.join(f'{t:.3g}' for t in rec['time_constants_s'])} s)")
     else:
         seg, how = (None if args.segment <= 0 else min(args.segment, log.N)), ""
-    say = (lambda s: None) if args.quiet else print
     say(f"[identify] {log.N} samples at {1e3 * log.dt:g} ms, {log.n} joint(s), model "
-        f"{args.model}, free {free}, segments of {seg or log.N} samples{how}")
-    say("[identify] compiling and solving (progress every 5 steps) ...")
+        f"{model} ({why}), free {free}, segments of {seg or log.N} samples{how}")
+    say(f"[identify] {start_note}")
+    say("[identify] compiling and solving (progress every 5 steps; Ctrl-C stops) ...")
     # the figure's module (matplotlib, 0.33 s) loads beside the fit, in the seconds a first
-    # run waits for its compiled solver; Python's import lock hands it to the import below
-    # (cold identify on the 3 s log, 8 pairs: 0.2-0.35 s sooner on average, warm unchanged)
+    # run waits for its compiled solver
     threading.Thread(target=importlib.import_module, args=("jaxflex.plots.identify",),
                      name="jaxflex-import-figures", daemon=True).start()
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", IdentificationWarning)
-        res = identify(log, init, free, model=args.model,
+        warnings.simplefilter("ignore", IdentificationWarning)  # printed below, once
+        res = identify(log, init if args.params is not None else None, free, model=model,
+                       pin=pins,
                        segment_length="auto" if args.segment == "auto" else seg,
                        substeps=args.substeps, max_steps=args.max_steps,
                        progress=False if args.quiet else 5)
+    if args.closed_loop:
+        _closed_loop(res, log, loop, model, args.max_steps, say)
     out = Path(args.out)
     save_params(res.params, out)
     fig = Path(args.figure) if args.figure else out.with_suffix(".png")
@@ -133,9 +224,46 @@ def run(args: argparse.Namespace) -> int:
     for w in res.warnings:
         print(f"warning: {w}")
     say(f"[identify] wrote {out} and {fig} ({res.wall_s:.1f} s solve)")
+    verdict = res.model.get("summary", "")
     if not res.converged:
-        print(f"jaxflex identify: not converged: {res.reason}. {out} is marked unconverged; "
-              "downstream commands refuse it unless given --accept-unconverged",
+        print(f"jaxflex identify: the solver did not converge: {res.reason}. {out} is marked "
+              "unconverged; downstream commands refuse it unless given --accept-unconverged",
               file=sys.stderr)
         return 0 if args.accept_result else 3
+    say(f"[identify] verdict: solver converged; {verdict}")
     return 0
+
+
+def _closed_loop(res: Any, log: Any, loop: dict[str, Any], model: str, max_steps: int,
+                 say: Callable[[str], None]) -> None:
+    """Refine ``res`` by closed-loop output error (``closed_loop_fit``) through the declared
+    ``loop``; the refined parameters replace ``res.params`` only where they lower both
+    closed-loop errors' combined cost, and the numbers go under
+    ``identification.closed_loop``."""
+    import dataclasses
+
+    from jaxflex.validate import closed_loop_errors, closed_loop_fit
+
+    p = dataclasses.replace(res.params, extra={**res.params.extra, "loop_controller": loop})
+    kind = "rigid" if model == "rigid" else "flexible"
+    names = [k for k in res.params.extra["identification"]["free"]
+             if res.params.extra["identification"]["parameters"].get(k, {}).get("identified")]
+    before = closed_loop_errors(p, log, kind=kind)
+    say(f"[identify] closed-loop refinement of {names} (before: position "
+        f"{before['position_pct']:.4g}%, torque {before['torque_pct']:.4g}%) ...")
+    fit = closed_loop_fit(p, log, names, kind=kind, max_steps=max_steps)
+    after = closed_loop_errors(fit["params"], log, kind=kind)
+    better = (after["position_pct"] / before["position_pct"]) ** 2 + (
+        after["torque_pct"] / before["torque_pct"]) ** 2 < 2.0
+    record = {"free": names, "before": before, "after": after, "kept": bool(better),
+              "converged": fit["converged"], "reason": fit["reason"], "steps": fit["steps"],
+              "stderr": {k: list(map(float, v)) for k, v in fit["stderr"].items()},
+              "stderr_kind": fit["stderr_kind"]}
+    if better:
+        extra = dict(fit["params"].extra)
+        extra["identification"] = {**res.params.extra["identification"], "closed_loop": record}
+        res.params = dataclasses.replace(fit["params"], extra=extra)
+    else:
+        res.params.extra["identification"]["closed_loop"] = record
+    say(f"[identify] closed loop: position {after['position_pct']:.4g}%, torque "
+        f"{after['torque_pct']:.4g}% ({'kept' if better else 'not kept: no better'})")

@@ -303,3 +303,61 @@ __all__ = [
     "DATA_DIR", "EMPS_NAMES", "KUKA_AXES", "KUKA_TRAJECTORIES", "EmpsRecord", "KukaRecord",
     "available", "emps_record", "kuka_record", "load_emps", "load_kuka", "reduce_kuka",
 ]
+
+
+#: The prefix that names a shipped data set on the command line (``jaxflex:emps/DATA_EMPS``).
+NAMED_PREFIX: str = "jaxflex:"
+
+
+@dataclasses.dataclass(frozen=True)
+class NamedData:
+    """A shipped data set named on the command line.
+
+    Attributes:
+        log: the log (docs/spec.md section 6).
+        loop_controller: the controller that ran while it was recorded, as a parameter
+            file's ``loop_controller`` section (EMPS: its P/P cascade), or None.
+        name: the name as given.
+    """
+
+    log: Log
+    loop_controller: dict[str, Any] | None
+    name: str
+
+
+def is_named(spec: str) -> bool:
+    """Whether ``spec`` names a shipped data set (``jaxflex:...``) rather than a file."""
+    return str(spec).startswith(NAMED_PREFIX)
+
+
+def load_named(spec: str) -> NamedData:
+    """A shipped data set by name: ``jaxflex:emps/DATA_EMPS``,
+    ``jaxflex:emps/DATA_EMPS_PULSES``, ``jaxflex:kuka/A`` (axes 1-3 of trajectory A, also B,
+    C) or ``jaxflex:kuka/A/2`` (one axis).
+
+    Arguments:
+        spec: the name.
+
+    Returns:
+        A ``NamedData`` (the log and, for EMPS, its declared loop controller).
+
+    Raises:
+        ValueError: an unknown set, file, trajectory or axis, listing the valid names.
+    """
+    known = ([f"{NAMED_PREFIX}emps/{n}" for n in EMPS_NAMES]
+             + [f"{NAMED_PREFIX}kuka/{t}[/<axis 1-3>]" for t in KUKA_TRAJECTORIES])
+    if not is_named(spec):
+        raise ValueError(f"not a shipped data set name: {spec!r}; known: {known}")
+    parts = spec[len(NAMED_PREFIX):].strip("/").split("/")
+    try:
+        if parts[0] == "emps" and len(parts) == 2 and parts[1] in EMPS_NAMES:
+            rec = emps_record(parts[1])
+            loop = {"type": "pp_cascade", "kp": float(rec.kp), "kv": float(rec.kv),
+                    "gtau": float(rec.gtau), "vmax": 10.0}
+            return NamedData(log=load_emps(parts[1]), loop_controller=loop, name=spec)
+        if parts[0] == "kuka" and len(parts) in (2, 3) and parts[1] in KUKA_TRAJECTORIES:
+            axis = KUKA_AXES if len(parts) == 2 else int(parts[2])
+            return NamedData(log=load_kuka(parts[1], axis), loop_controller=None, name=spec)
+    except ValueError:
+        pass
+    raise ValueError(f"unknown shipped data set {spec!r}; known: {known}")

@@ -67,6 +67,8 @@ class Solution:
     residual: Any = None
     normal: dict[str, Any] | None = None
     decrement: float | None = None
+    #: the run ended on Ctrl-C (``y`` is the last accepted point); workflows stop there
+    interrupted: bool = False
 
 
 class _WithAux(eqx.Module):
@@ -906,7 +908,7 @@ def least_squares(
     return Solution(y=y, steps=steps, converged=converged,
                     cost=final, reason=reason, seconds=time.perf_counter() - t0,
                     residual=residual, normal=normal,
-                    decrement=None if dec is None else float(dec))
+                    decrement=None if dec is None else float(dec), interrupted=interrupted)
 
 
 def _setup(prob: Any, y0: Any, fn: Callable, rtol: float, atol: float, scaling: str,

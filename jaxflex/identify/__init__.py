@@ -2,7 +2,9 @@
 
 Public API (a workflow on the fitting engine ``jaxflex.fit``):
 
-- ``identify(log, init, free, model=..., segment_length=...) -> IdentResult``: joint
+- ``start_from_data(log, model)``, ``suggest_model(log)``: a full start and the model kind
+  from the log alone (linear least squares on the inverse dynamics);
+- ``identify(log, init=None, free=None, model=..., segment_length=...) -> IdentResult``: joint
   output-error fit by gradient through the simulator (optimistix Levenberg-Marquardt,
   multiple shooting, constraints by reparametrisation, standard errors, identifiability
   warnings);
@@ -29,6 +31,7 @@ from jaxflex.identify.core import (
     IdentResult,
     choose_segment_length,
     choose_substeps,
+    default_free,
     finish,
     identify,
     make_problem,
@@ -44,6 +47,8 @@ from jaxflex.identify.experiments import (
     synthetic_log,
     two_step,
 )
+from jaxflex.identify.start import DataStart, StartError, start_from_data, suggest_model
+from jaxflex.identify.verdict import model_verdict
 from jaxflex.identify.static import (
     STATIC_NAMES,
     StaticMap,
@@ -60,5 +65,6 @@ __all__ = [
     "finish", "fit_static_map", "get_value", "identify", "make_problem", "noise_cost", "perturb", "replay",
     "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",
     "start_from_static_map", "static_map_from_log",
-    "synthetic_log", "two_step",
+    "synthetic_log", "two_step", "DataStart", "StartError", "start_from_data", "suggest_model",
+    "model_verdict", "default_free",
 ]

@@ -8,8 +8,10 @@ Output-error least squares with multiple shooting and free segment start states
 ``n_out / 2`` (``noise_cost``, less with a finer second encoder) is what noise explains. Physical constraints hold by reparametrisation
 (``jaxflex.fit.ParamSpace``); the solver is the engine's Levenberg-Marquardt
 (``jaxflex.fit.least_squares``); standard errors come from the engine's covariance with the
-nuisance start states included. A portfolio of continuation schedules guards against local
-minima (``identify``).
+nuisance start states included. Several starts (the user's, the log's static map, the log's
+inverse dynamics, ``jaxflex.identify.start``) and continuation schedules guard against local
+minima; the answer is the best point any solve reached, with a two-part verdict
+(``jaxflex.identify.verdict``).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import dataclasses
 import math
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -30,6 +32,7 @@ from jaxflex.fit import (
     ParamSpace,
     Problem,
     Solution,
+    cost,
     covariance,
     discretisation_bias,
     dynamic_substeps,
@@ -46,11 +49,13 @@ from jaxflex.fit import (
     trace_solver,
 )
 from jaxflex.fit.ahead import Ahead
+from jaxflex.identify.start import DataStart, StartError, check_model, start_from_data
 from jaxflex.identify.static import start_from_static_map
+from jaxflex.identify.verdict import model_verdict
 from jaxflex.logs import Log
 from jaxflex.params import Params
 from jaxflex.state import PlantState
-from jaxflex.validation import requires_float64
+from jaxflex.validation import requires_float64, to_device
 from jaxflex.step import MODEL_KINDS, ModelKind, replay
 
 DEFAULT_FREE: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")
@@ -69,6 +74,10 @@ DECREMENT_TOL: float = 1e-2
 #: way), every one within 0.8% and within 0.33 standard errors of the integrator.
 OUTPUT_TOL: float = 0.5
 BIAS_TOL: float = 0.5
+#: ``refine_fit`` also refines while the integrator moves a fitted parameter by more than
+#: this share of its value: the standard errors of a model-limited fit are inflated by its
+#: residual and alone would let a coarse integrator bias the answer.
+BIAS_REL: float = 5e-3
 MAX_SUBSTEPS: int = 32
 #: Automatic segment length (``choose_segment_length``, ``identify(segment_length="auto")``):
 #: SEGMENT_TIME_CONSTANTS mechanical time constants of the start model (inertia over viscous
@@ -98,19 +107,20 @@ class IdentResult:
     cost: final 0.5 sum r^2 (output and continuity residuals, in the weighted units);
     rms: RMS output residual [rad]; rank, n_free: numerical rank of the Jacobian over all
     unknowns and their number; singular_values of the column-scaled Jacobian; unidentifiable:
-    names the data cannot identify (they keep their initial values in ``params`` and are
-    marked ``"identified": false`` with the reason in the file); warnings: messages; steps:
-    solver steps; converged: the final cost is explained by the measurement noise (0.5 ||r||^2
-    <= accept_cost x ``noise_cost``, what the noise estimated from the log explains) and
-    the solver met its tolerance;
-    reason: why not, or "cost explained by noise"; noise_cost: that bound; wall_s: solve time
-    [s]; problem: the ``Problem`` (for re-simulation and benchmarks); solution: the solver's
-    final unknowns (theta and segment states); attempts: the continuation schedules tried, with
-    their final costs; why: per unidentifiable name, the reason; discretisation: the
-    substeps used and how far they move the fitted parameters (``refine_fit``); segments: the
-    multiple-shooting segments (their length, how it was chosen). rank, n_free,
-    singular_values describe the fit with every free parameter (before the unidentifiable
-    ones were fixed).
+    names the data cannot identify, marked ``"identified": false`` with the reason in the
+    file (those fixed at their start values, or kept at their fitted values where fixing
+    them costs what the data can see); warnings: messages; steps: solver steps;
+    converged: the solver reached a stationary point (its tolerance or statistical stop);
+    model: the model's half of the verdict (``jaxflex.identify.verdict.model_verdict``:
+    "adequate" when the measurement noise explains the cost, else "model-limited" with the
+    residual's size, colour and where it sits); reason: both halves in words; noise_cost:
+    accept_cost x what the noise explains; wall_s: solve time [s]; problem: the ``Problem``
+    (for re-simulation and benchmarks); solution: the solver's final unknowns (theta and
+    segment states); attempts: every solve, with its final cost and how it ended; why: per
+    unidentifiable name, the reason; discretisation: the substeps used and how far they move
+    the fitted parameters (``refine_fit``); segments: the multiple-shooting segments (their
+    length, how it was chosen). rank, n_free, singular_values describe the fit with every
+    free parameter (before any was fixed).
     """
 
     params: Params
@@ -137,6 +147,12 @@ class IdentResult:
     #: relative standard errors of white residuals (the information in the data), on which
     #: identifiability is judged and the least determined parameter chosen
     information_rel_stderr: dict[str, list[float]] = dataclasses.field(default_factory=dict)
+    model: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @property
+    def adequate(self) -> bool:
+        """Whether the model explains the log to its noise level (``model["verdict"]``)."""
+        return self.model.get("verdict") == "adequate"
 
     def table(self) -> str:
         """A short text table: name, value, standard error, relative standard error (or
@@ -237,10 +253,101 @@ def make_problem(
     return prob, prob.y0()
 
 
+#: The model kinds ``identify`` takes, and "auto": the kind the log's encoders suggest.
+MODEL_CHOICES: tuple[str, ...] = (*MODEL_KINDS, "auto")
+#: Inertia ratios (the log's inverse dynamics against the user's start) that point to a unit
+#: or rate mistake: degrees instead of radians (180 / pi) and a time axis off by an integer.
+_DEGREES = 180.0 / math.pi
+
+
+def default_free(model: ModelKind, params: Params) -> list[str]:
+    """The parameters ``identify`` fits when none are named: the six LuGre parameters, the
+    inertia (I, with J and K for the flexible model) when the start comes from the data, and
+    every parameter of a ``torque_offset`` effect in ``params``."""
+    free = list(DEFAULT_FREE)
+    free += {"rigid": ["I"], "flexible": ["I", "J", "K"], "rotor": ["J", "K"],
+             "link": ["I", "K"]}[model]
+    if "torque_offset" in params.effects:
+        free.append("torque_offset.offset")
+    return free
+
+
+def _with_named_effects(init: Params, free: Sequence[str], data: Params | None) -> Params:
+    """``init`` with every effect that ``free`` names ("<effect>.<param>") and ``init`` lacks,
+    started from the data's start where it has the effect, else from the effect's
+    ``typical`` instance (a torque offset from zero)."""
+    from jaxflex.effects import EFFECTS
+
+    missing = [k.partition(".")[0] for k in free if "." in k]
+    missing = [e for e in dict.fromkeys(missing) if e not in init.effects and e in EFFECTS]
+    if not missing:
+        return init
+    effects = dict(init.effects)
+    for name in missing:
+        if data is not None and name in data.effects:
+            effects[name] = data.effects[name]
+        else:
+            inst = EFFECTS[name].typical(init.n)
+            effects[name] = {f.name: np.asarray(getattr(inst, f.name), float).tolist()
+                             for f in dataclasses.fields(inst)
+                             if not f.metadata.get("static", False)}
+    return dataclasses.replace(init, effects=effects)
+
+
+def start_hints(data: DataStart, init: Params) -> list[str]:
+    """Hints for the common log mistakes, from the log's inverse-dynamics inertia against the
+    user's start (before any fit): angles in degrees, a time axis off by an integer factor
+    (a decimated log, milliseconds). Empty when the two agree within a factor of 3."""
+    hints = []
+    for j, f in enumerate(data.fits):
+        ratio = f["Jx"][0] / float(init.plant["I"][j] + init.plant["J"][j])
+        if 1 / 3 <= ratio <= 3:
+            continue
+        what = f"joint {j}: the log's inverse dynamics give an inertia {ratio:.3g} x the start's"
+        if abs(math.log(ratio * _DEGREES)) < math.log(2):
+            hints.append(f"{what}: are the angles in degrees? (map them with ':deg')")
+        elif ratio > 1 and abs(round(ratio ** 0.5) - ratio ** 0.5) < 0.15:
+            # a time axis r x too long makes accelerations r^2 x too small
+            hints.append(f"{what}: is the time axis {round(ratio ** 0.5)} x too long "
+                         "(a decimated log, a wrong rate)?")
+        elif ratio < 1 and abs(round(ratio ** -0.5) - ratio ** -0.5) < 0.15:
+            hints.append(f"{what}: is the time axis {round(ratio ** -0.5)} x too short "
+                         "(a decimated log, a wrong rate)?")
+        else:
+            hints.append(f"{what}: check the torque's units and gear ratio")
+    return hints
+
+
+class _Search:
+    """Every solve of one identification: the attempts written to the file and the end
+    points of the full problem's solves, from which the best is taken at the end."""
+
+    def __init__(self, good: float, solve: dict[str, Any], progress: bool | int):
+        self.good, self.solve, self.progress = good, solve, progress
+        self.attempts: list[dict[str, Any]] = []
+        self.ends: list[tuple[int, Any]] = []  # (attempt index, y) of the full problem
+
+    def run(self, prob: Problem, y: Any, label: dict[str, Any], max_steps: int,
+            full: bool = True) -> Solution:
+        """One ``least_squares`` solve, recorded; a Ctrl-C inside it ends the whole
+        identification (``KeyboardInterrupt``)."""
+        sol = least_squares(prob, y, max_steps=max_steps, **self.solve)
+        if sol.interrupted:
+            raise KeyboardInterrupt
+        self.attempts.append({**label, "cost": sol.cost, "steps": sol.steps,
+                              "converged": sol.converged, "reason": sol.reason})
+        if full:
+            self.ends.append((len(self.attempts) - 1, sol.y))
+        if self.progress and "start" in label:
+            print(f"  [identify] {label['start']}: cost {sol.cost:.6e} (noise explains <= "
+                  f"{self.good:.3e}); {sol.reason}")
+        return sol
+
+
 @requires_float64
 def identify(
-    log: Log, init: Params, free: Sequence[str] = DEFAULT_FREE, *,
-    model: ModelKind = "flexible", segment_length: int | str | None = "auto",
+    log: Log, init: Params | None = None, free: Sequence[str] | None = None, *,
+    model: ModelKind | str = "flexible", segment_length: int | str | None = "auto",
     substeps: int | str = "auto",
     outputs: Sequence[str] | None = None, output_scale: float | Sequence[float] | None = None,
     continuity_weight: float = 10.0,
@@ -249,60 +356,86 @@ def identify(
     rtol: float = 1e-10, atol: float = 1e-10, max_steps: int = 200,
     rel_stderr_limit: float = 0.5, progress: bool | int = False, static_start: bool = True,
     decrement_tol: float | None = DECREMENT_TOL, geodesic: float = GEODESIC,
-    vs_restarts: Sequence[float] = (3.0, 1.0 / 3.0),
+    vs_restarts: Sequence[float] = (3.0, 1.0 / 3.0), data_start: bool = True,
+    pin: Mapping[str, float | Sequence[float]] | None = None,
 ) -> IdentResult:
-    """Identify the ``free`` parameters of ``init`` from ``log`` (docs/spec.md section 5).
+    """Identify the ``free`` parameters from ``log`` (docs/spec.md section 5).
 
-    ``model``: "flexible" (eq. 3) or "rigid" (eq. 37, Jx = I + J). ``segment_length``:
-    samples per multiple-shooting segment (None: single shooting), or "auto" (default): two
-    mechanical time constants of the start model on a grid of lengths
-    (``choose_segment_length``; recorded under ``extra["identification"]["segments"]``);
-    ``substeps``: integrator
-    substeps per sample, or "auto": chosen from the log and the model (``choose_substeps``:
-    the fewest whose replay error is below ``OUTPUT_TOL`` of the noise at the start), then,
-    coarse to fine, doubled and the fit continued from its own solution until the
-    discretisation moves no fitted parameter by more than ``BIAS_TOL`` standard errors
-    (``jaxflex.fit.discretisation_bias``, at most ``MAX_SUBSTEPS``). With a number the check
-    is still made and reported (``extra["identification"]["discretisation"]``; a warning when
-    it fails). ``rtol``/``atol``: Levenberg-Marquardt termination; ``max_steps``:
-    iteration cap; ``accept_cost``: the factor on ``noise_cost`` below which the cost counts as
-    explained by the noise; ``decrement_tol``: the solver's statistical stop (``least_squares``): the
-    residuals are in units of the log's noise, so a point from which a full Gauss-Newton step
-    would lower chi-square by less than this is as settled as the data can tell (default 1e-2:
-    the remaining step is below 0.1 standard errors; None: the tolerances alone);
-    ``geodesic``: the solver's geodesic acceleration (``least_squares``; 0: off), which takes
-    LuGre's curved Fs-vs-sigma valley in a few steps where plain Levenberg-Marquardt creeps
-    along it for hundreds. A parameter whose relative standard error exceeds ``rel_stderr_limit``, or
-    that lies in a numerically null direction of the Jacobian, is named in an
-    ``IdentificationWarning`` and in ``IdentResult.unidentifiable``. ``progress``: print the
-    cost every ``progress`` steps (True: every step).
-    ``warm_start``: with several segments, first solve for at most ``warm_steps`` steps with
-    the continuity weight multiplied by this factor (segments nearly independent, a far less
-    nonconvex problem), then tighten to the full weight (a continuation; None: off). A
-    sequence of factors is a portfolio of such schedules, tried in order from the same start
-    until one ends with a cost the noise explains (0.5 ||r||^2 <= ``accept_cost`` x
-    ``noise_cost``, what the noise estimated from each channel of the log gives); otherwise the
-    lowest cost wins. The default tries 1e-2 before the plain schedule: on the 3 s closed-loop
-    logs of datagen seeds 7-14 both orders converge the same eight, but on seed 7 the plain
-    schedule first runs its 200 steps into a local minimum.
-    All stages share one compilation (the engine's solver loops on the host).
-    ``static_start``: for the flexible and link models (both encoders), a first start takes
-    the free static parameters (Fc, Fs, vs, sigma2) from a fit of eq. 35 to the friction the
-    log shows by inverse dynamics (``start_from_static_map``), where that fit determines them,
-    joint by joint (each joint's map from its own inverse dynamics; a joint whose map fixes
-    nothing keeps its values in ``init``); the user's ``init`` is the second start, tried
-    when the first does not reach the noise level (a portfolio of starts x schedules,
-    stopping at the first success). ``vs_restarts``: when every start and schedule ends in
-    a local minimum (the cost above what the noise explains), the first start is tried again
-    with vs multiplied by each of these factors in turn (a multi-start in the Stribeck
-    velocity, which decides where the friction hump lies; () turns it off).
-    Parameters the data cannot determine keep their initial values and are marked (see
-    ``finish``); a converged fit is then repeated without them.
+    Arguments:
+        log: the log (docs/spec.md section 6).
+        init: the start parameter set; None: the log's own (``start_from_data``, linear
+            least squares on the inverse dynamics), every parameter included.
+        free: the fitted names (``jaxflex.fit.ParamSpace``); None: ``default_free``. A name
+            "<effect>.<param>" of an effect ``init`` lacks adds the effect, started from the
+            data's estimate (a torque offset) or the effect's typical value.
+        model: "flexible" (eq. 3), "rigid" (eq. 37, Jx = I + J), "rotor", "link"
+            (``jaxflex.step.MODEL_KINDS``), or "auto": the kind the encoders suggest
+            (``suggest_model``: one encoder, q1 = q2, is rigid).
+        segment_length: samples per multiple-shooting segment (None: single shooting), or
+            "auto": two mechanical time constants of the start model
+            (``choose_segment_length``).
+        substeps: integrator substeps per sample, or "auto": the fewest whose replay error at
+            the start is below ``OUTPUT_TOL`` of the noise (``choose_substeps``), then refined
+            at the solution until its own finer replay moves no fitted parameter by more than
+            ``BIAS_TOL`` standard errors nor ``BIAS_REL`` of its value (``refine_fit``).
+        warm_start, warm_steps: continuation schedules: the first ``warm_steps`` steps with
+            the continuity weight times each factor (None: none), tried in turn.
+        accept_cost: the model is adequate when the cost is at most this times what the
+            noise explains (``noise_cost``).
+        rtol, atol, max_steps, decrement_tol, geodesic: the solver's
+            (``jaxflex.fit.least_squares``).
+        rel_stderr_limit: a parameter above this relative standard error (white residuals),
+            or in a null direction, is fixed at its start if that costs no more than the
+            noise can tell (``_REFIT_TOL`` at the fit's residual scale); else it keeps its
+            fitted value, marked as poorly determined.
+        static_start: a start from the log's static friction map (``start_from_static_map``).
+        vs_restarts: when no start reaches an adequate fit, the first start again with vs
+            multiplied by these factors.
+        data_start: also start from the log's inverse dynamics when ``init`` is given.
+        pin: names (as ``free``) set to these values on the start and not fitted (a value
+            or one per joint).
+        progress: print the cost every ``progress`` steps (True: every step).
+
+    Returns:
+        An ``IdentResult`` whose file records every attempt's cost and how it ended
+        (``identification.attempts``), the two-part verdict (``converged``: the solver reached
+        a stationary point; ``identification.model``: adequate or model-limited, from
+        ``model_verdict``). The answer is never worse than the best point any solve of the
+        full problem reached, judged at the final discretisation.
+
+    Raises:
+        ValueError: a bad model, column, parameter, segment length, a log whose single
+            encoder is asked to be flexible, or (``init`` None) a log whose inverse dynamics
+            give no physical start.
+        KeyboardInterrupt: on Ctrl-C, from within the solve that was running.
     """
     auto = substeps == "auto"
     if not auto and not (isinstance(substeps, int) and substeps >= 1):
         raise ValueError(f"identify: substeps must be a positive integer or 'auto', "
                          f"got {substeps!r}")
+    if model not in MODEL_CHOICES:
+        raise ValueError(f"identify: model must be one of {MODEL_CHOICES}, got {model!r}")
+    model, why_kind = check_model(log, model)
+    data, data_note = None, ""
+    if init is None or data_start:
+        try:
+            data = start_from_data(log, model)
+        except StartError as e:
+            if init is None:
+                raise ValueError(f"identify: no start from the data: {e}; give a start "
+                                 "(--params)") from None
+            data_note = str(e)
+    hints = start_hints(data, init) if (data is not None and init is not None) else []
+    for h in hints:
+        warnings.warn(h, IdentificationWarning, stacklevel=3)
+    user_start = init is not None
+    init = data.params if init is None else init
+    free = default_free(model, init) if free is None else list(free)
+    if pin:
+        init = set_values(init, {k: np.broadcast_to(np.asarray(v, float), (init.n,))
+                                 for k, v in pin.items()})
+        free = [k for k in free if k not in pin]
+    init = _with_named_effects(init, free, None if data is None else data.params)
     if isinstance(segment_length, str):
         if segment_length != "auto":
             raise ValueError(f"identify: segment_length must be a number of samples, None or "
@@ -318,12 +451,7 @@ def identify(
     # the solver options every solve of this fit shares (they key its compiled program)
     options = dict(rtol=rtol, atol=atol, decrement_tol=decrement_tol, geodesic=geodesic)
     ahead = compile_ahead(prob, y0, options)
-    start = (start_from_static_map(log, init, free)
-             if (static_start and model in ("flexible", "link")) else None)
-    starts = [("user", y0)]
-    if start:
-        th = prob.space.theta_of({**{k: get_value(init, k) for k in prob.space.names}, **start})
-        starts.insert(0, ("static map of the log", (th, y0[1])))
+    starts = _starts(log, init, free, prob, y0, model, static_start, user_start, data)
     discretisation: dict[str, Any] = {"mode": "auto" if auto else "given"}
     if auto:
         prob, discretisation["first"] = choose_substeps(prob, starts[0][1])
@@ -337,34 +465,29 @@ def identify(
     if prob.segs.count == 1:  # one segment: nothing to loosen
         schedules = [None]
     good = accept_cost * noise_cost(log, prob)
-    solve = dict(options, progress=say)
+    search = _Search(good, dict(options, progress=say), progress)
     t0 = time.perf_counter()
     best, best_factor = None, None
-    attempts = []
 
-    def warmed(problem: Problem, y: Any, factor: float | None) -> Any:
+    def warmed(problem: Problem, y: Any, factor: float | None, label: str) -> Any:
         """``y`` after the first phase of the schedule ``factor``: at most ``warm_steps``
         steps with the continuity weight times ``factor`` (None, or one segment: ``y``)."""
         if factor is None or problem.segs.count == 1:
             return y
         loose = eqx.tree_at(lambda q: q.w_def, problem, problem.w_def * factor)
-        return least_squares(loose, y, max_steps=warm_steps, **solve).y
+        return search.run(loose, y, {"warm": label, "warm_start": factor}, warm_steps,
+                          full=False).y
 
     ahead.wait(0)
     for origin, y_start in starts:
         for factor in schedules:
-            y = warmed(prob, y_start, factor)
-            sol = least_squares(prob, y, max_steps=max_steps, **solve)
+            y = warmed(prob, y_start, factor, origin)
+            sol = search.run(prob, y, {"start": origin, "warm_start": factor}, max_steps)
             if sol.cost <= good and not sol.converged:
                 # at the noise level but still moving: let it settle before judging
-                more = least_squares(prob, sol.y, max_steps=max_steps, **solve)
+                more = search.run(prob, sol.y, {"start": f"{origin}, continued"}, max_steps)
                 sol = dataclasses.replace(more, steps=sol.steps + more.steps,
                                           seconds=sol.seconds + more.seconds)
-            attempts.append({"start": origin, "warm_start": factor, "cost": sol.cost,
-                             "steps": sol.steps, "reason": sol.reason})
-            if progress:
-                print(f"  [identify] start {origin}, warm_start={factor}: cost {sol.cost:.6e}"
-                      f" (noise explains <= {good:.3e}); {sol.reason}")
             if best is None or sol.cost < best.cost:
                 best, best_factor = sol, factor
             if _settled(sol, good):
@@ -372,49 +495,125 @@ def identify(
         if _settled(best, good):
             break
     if not _settled(best, good) and "vs" in prob.space.names and vs_restarts:
-        # Every start and schedule ended in a local minimum. The Stribeck velocity decides
-        # where in the velocity range the friction hump lies; a fit whose vs starts on the
-        # wrong side of the hump lets Fs and sigma1 absorb it and vs stops moving (the 3 s
-        # closed-loop log of seed 13: vs 50% low from every start, cost 500x the noise; from
-        # vs x2 or x3 it converges within 0.2%). Multi-start in vs, geometrically, from the
-        # first start with the first schedule; the first that settles, else the lowest, wins.
+        # The Stribeck velocity decides where in the velocity range the friction hump lies;
+        # a fit whose vs starts on the wrong side of it lets Fs and sigma1 absorb the hump
+        # and vs stops moving: the first start again, vs on either side.
         origin, (th0, x0) = starts[0]
         phys = prob.space.physical_values(th0)
         for f in vs_restarts:
             th = prob.space.theta_of({**phys, "vs": phys["vs"] * f})
-            y = warmed(prob, (th, x0), schedules[0])
-            sol = least_squares(prob, y, max_steps=max_steps, **solve)
-            attempts.append({"start": f"{origin}, vs x{f:g}", "warm_start": schedules[0],
-                             "cost": sol.cost, "steps": sol.steps, "reason": sol.reason})
-            if progress:
-                print(f"  [identify] restart vs x{f:g}: cost {sol.cost:.6e}; {sol.reason}")
+            y = warmed(prob, (th, x0), schedules[0], f"{origin}, vs x{f:g}")
+            sol = search.run(prob, y, {"start": f"{origin}, vs x{f:g}",
+                                       "warm_start": schedules[0]}, max_steps)
             if sol.cost < best.cost:
                 best, best_factor = sol, schedules[0]
             if _settled(sol, good):
                 break
     ahead.join()
-    res = finish(prob, init, best.y, steps=best.steps, converged=_settled(best, good),
+    first = finish(prob, init, best.y, steps=best.steps, converged=best.converged,
+                   wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
+                   reason=_reason(best, good), noise_cost=good, log=log, solution=best)
+    f_prob, f_sol, f_fixed, total = _fix_unidentified(
+        search, first, prob, best, init, y0, log, free, model=model,
+        segment_length=segment_length, outputs=outputs, output_scale=output_scale,
+        continuity_weight=continuity_weight, max_steps=max_steps, good=good,
+        warmed=lambda p, y: warmed(p, y, best_factor, "refit"),
+        noise=good / accept_cost)
+    # the integrator must not move the answer: refined at the solution, coarse to fine
+    r_prob, r_sol, discretisation["checks"] = refine_fit(
+        f_prob, f_sol, refine=auto, solve=dict(search.solve, max_steps=max_steps),
+        attempts=search.attempts)
+    if r_prob is not f_prob:
+        total += r_sol.steps - f_sol.steps
+    # never worse than the best point a solve of the full problem reached, at this
+    # discretisation: every end point replayed with the final substeps
+    margin = _REFIT_TOL * max(1.0, best.cost * accept_cost / good) if f_fixed else 0.0
+    r_prob, r_sol, f_fixed, total = _best_at_final(
+        search, prob, r_prob, r_sol, f_fixed, total, max_steps, margin)
+    discretisation.update(discretisation["checks"][-1])
+    n_sub = r_prob.n_substeps
+    res = finish(r_prob, init, r_sol.y, steps=total, converged=r_sol.converged,
                  wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
-                 reason=_reason(best, good), noise_cost=good, log=log, solution=best)
-    res.attempts = attempts
-    if start:
-        attempts.insert(0, {"static_start": {k: [float(x) for x in v] for k, v in start.items()}})
-    # Fix what the data cannot determine at its initial value and refit the rest, so that the
-    # identified values neither absorb a meaningless direction nor are reported beside a
-    # parameter reset after the fit (converged or not: a reset value and the values fitted
-    # with the discarded one do not belong together). One parameter at a time, the least
-    # determined first: the largest relative standard error, then the names of a null
-    # direction, never one marked only because its Fs/Fc partner is; until the rest are all
-    # determined. A null direction names every parameter with weight in it, also a
-    # well-determined one whose column a poorly determined partner copies: on EMPS (rigid,
-    # segments of 1000) the first fit ends with vs = 157 m/s, far above the log's speeds, so
-    # the Stribeck hump is a level shift and Fc, Fs share a null direction although the
-    # friction level is the log's best-determined quantity; fixing Fc first (the order before)
-    # left a refit that could not recover and a report with Fc at its start, 10 N against the
-    # 20 N the log shows (force error 19% instead of 5%). vs, its relative standard error
-    # 1e14%, is the one to fix.
-    first, fixed_why, cur, y_cur, total = res, {}, prob, best.y, best.steps
-    final = (prob, best, None)  # the problem, solution and fixed names behind ``res``
+                 reason=_reason(r_sol, good), noise_cost=good, log=log,
+                 unidentified=f_fixed, solution=r_sol)
+    if f_fixed:
+        res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
+        res.warnings = first.warnings + res.warnings
+    verdict = model_verdict(r_prob, r_sol.y, res.cost, good / accept_cost, accept_cost)
+    ident = res.params.extra["identification"]
+    ident["model"] = verdict
+    ident["solver"] = {"converged": r_sol.converged, "reason": r_sol.reason}
+    ident["attempts"] = search.attempts
+    ident["discretisation"] = discretisation
+    ident["segments"] = segments
+    ident["start"] = {"kind": model, "kind_reason": why_kind,
+                      "user": user_start, "hints": hints,
+                      **({"data": data.fits} if data is not None else {}),
+                      **({"data_refused": data_note} if data_note else {})}
+    res.model = verdict
+    res.attempts = search.attempts
+    res.discretisation = discretisation
+    res.segments = segments
+    res.warnings = hints + res.warnings
+    d = discretisation
+    if not (d["bias_se"] <= BIAS_TOL and d.get("bias_rel", 0.0) <= BIAS_REL) and math.isfinite(
+            d["bias_se"]):
+        msg = (f"the integrator ({n_sub} substeps per sample) moves a fitted parameter by "
+               f"{d['bias_se']:.3g} standard errors and {100 * d.get('bias_rel', 0.0):.3g}% "
+               f"(> {BIAS_TOL} and {100 * BIAS_REL:g}%): use more substeps (or "
+               "substeps='auto')")
+        res.warnings.append(msg)
+        warnings.warn(msg, IdentificationWarning, stacklevel=2)
+    return res
+
+
+def _starts(log: Log, init: Params, free: Sequence[str], prob: Problem, y0: Any,
+            model: str, static_start: bool, user_start: bool, data: DataStart | None,
+            ) -> list[tuple[str, Any]]:
+    """The starts, in the order they are tried: the log's static map over the start, the
+    user's start, the log's inverse dynamics (each once: the data start is the start when
+    the user gave none)."""
+    starts: list[tuple[str, Any]] = []
+    static = (start_from_static_map(log, init, free)
+              if (static_start and model in ("flexible", "link")) else None)
+    if static:
+        th = prob.space.theta_of({**{k: get_value(init, k) for k in prob.space.names},
+                                  **static})
+        starts.append(("static map of the log", (th, y0[1])))
+    starts.append(("user" if user_start else "inverse dynamics of the log", y0))
+    if user_start and data is not None:
+        vals = {}
+        for k in prob.space.names:
+            try:
+                vals[k] = get_value(data.params, k)
+            except (KeyError, ValueError):
+                vals[k] = get_value(init, k)
+        th = prob.space.theta_of(vals)
+        starts.append(("inverse dynamics of the log", (th, y0[1])))
+    return starts
+
+
+#: A parameter the data cannot determine is fixed at its start only when that raises the
+#: cost by at most this many units of 0.5 chi-square at the fit's own residual scale
+#: (cost / noise cost, at least 1): a fixing the data can see is not made.
+_REFIT_TOL: float = 2.0
+
+
+def _fix_unidentified(search: _Search, res: IdentResult, prob: Problem, best: Solution,
+                      init: Params, y0: Any, log: Log, free: Sequence[str], *,
+                      model: str, segment_length: int | None, outputs: Any, output_scale: Any,
+                      continuity_weight: float, max_steps: int, good: float, warmed: Any,
+                      noise: float) -> tuple[Problem, Solution, dict[str, str] | None, int]:
+    """Fix what the data cannot determine at its start value and refit the rest, one
+    parameter at a time (the least determined first: the largest relative standard error,
+    then the names of a null direction, never Fs before Fc), each refit from the values
+    fitted so far and from the user's start. The refits are kept when the last one's cost is
+    within ``_REFIT_TOL`` of the free fit's (at the fit's residual scale), and then released
+    once from their point; otherwise the free fit is the answer, its poorly determined
+    parameters marked at their fitted values. Returns the answer's problem, solution, the
+    names fixed (with why; None: none) and the steps taken."""
+    fixed_why: dict[str, str] = {}
+    cur, sol_cur, total = prob, best, best.steps
     for _ in range(len(prob.space.names)):
         own = [k for k in res.unidentifiable if k in cur.space.names
                and not res.why.get(k, "").startswith("kept at its initial value with")]
@@ -429,93 +628,76 @@ def identify(
         fixed_why[worst] = res.why[worst]
         sub, _ = make_problem(log, init, keep, model=model, segment_length=segment_length,
                               substeps=prob.substeps, outputs=outputs,
-                              output_scale=output_scale,
-                              continuity_weight=continuity_weight)
-        # from the values fitted so far and from the user's start with the winning schedule
-        # (those fitted together with the parameter now fixed may sit far from where the
-        # better-posed problem goes); the second start is only prepared if it is tried
+                              output_scale=output_scale, continuity_weight=continuity_weight)
+
         def kept(space: Any, y: Any) -> Any:
-            """``y`` (unknowns of the problem whose space is ``space``) in the refit's
-            coordinates: the physical values of the names kept (not their coordinates: an
+            """``y`` in the refit's coordinates: the physical values of the names kept (an
             ordered Fs is built on Fc, so with Fc fixed the same coordinate is another Fs)."""
             phys = space.physical_values(y[0])
             return sub.space.theta_of({k: phys[k] for k in keep}), y[1]
 
         sol = None
-        for label, start_of in (("fitted", lambda: kept(cur.space, y_cur)),
-                                ("user", lambda: warmed(sub, kept(prob.space, y0), best_factor))):
-            s_ = least_squares(sub, start_of(), max_steps=max_steps, **solve)
+        for label, start_of in (("fitted", lambda: kept(cur.space, sol_cur.y)),
+                                ("user", lambda: warmed(sub, kept(prob.space, y0)))):
+            s_ = search.run(sub, start_of(), {"refit_without": list(fixed_why),
+                                              "start": label}, max_steps, full=False)
             total += s_.steps
-            attempts.append({"refit_without": list(fixed_why), "start": label,
-                             "cost": s_.cost, "steps": s_.steps, "reason": s_.reason})
             if sol is None or s_.cost < sol.cost:
                 sol = s_
             if _settled(sol, good):
                 break
-        # The refit is the answer even when its cost is above the free fit's: that fit is not
-        # what would be reported (its unidentified parameters reset to their initial values,
-        # beside values fitted with them: a set no fit produced), the refit's values are fitted
-        # together. (Before, a refit above the free fit's cost was
-        # dropped for the free fit's reset set: on EMPS with segments of 250 the refit reached
-        # 3.06e10, the free fit 3.03e10 with Fs = 3e20 N and vs = 0, and the set reported, Fc
-        # and Fs at their starts, had a closed-loop force error of 21% instead of 5%.)
-        res = finish(sub, init, sol.y, steps=total, converged=_settled(sol, good),
-                     wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
-                     reason=_reason(sol, good), noise_cost=good, log=log,
-                     unidentified=dict(fixed_why), solution=sol)
-        cur, y_cur = sub, sol.y
-        final = (sub, sol, dict(fixed_why))
-    if fixed_why and cur is not prob:
-        # the parameters were judged unidentifiable at the first fit's point, which may be a
-        # local minimum (a 3 s log: vs "unidentifiable" at a cost 20x the optimum's, fixed
-        # 50% off, Fs then fitted 46% off to make up for it). From the refit's lower point,
-        # free them again: if every parameter is then determined at a lower cost, that fit
-        # is the answer
-        th = {k: (y_cur[0][k] if k in y_cur[0] else y0[0][k]) for k in prob.space.names}
-        full = least_squares(prob, (th, y_cur[1]), max_steps=max_steps, **solve)
-        total += full.steps
-        attempts.append({"released": list(fixed_why), "start": "refit", "cost": full.cost,
-                         "steps": full.steps, "reason": full.reason})
-        if full.cost < final[1].cost:  # the last refit's cost
-            again = finish(prob, init, full.y, steps=total, converged=_settled(full, good),
-                           wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
-                           reason=_reason(full, good), noise_cost=good, log=log,
-                           solution=full)
-            if not again.unidentifiable:
-                res = first = again
-                final = (prob, full, None)
-    # coarse to fine: the integrator must not move the fitted parameters (``refine_fit``);
-    # with substeps="auto" the answer is refined from its own solution until it does not
-    f_prob, f_sol, f_fixed = final
-    r_prob, r_sol, discretisation["checks"] = refine_fit(
-        f_prob, f_sol, refine=auto, solve=dict(solve, max_steps=max_steps), attempts=attempts)
-    discretisation.update(discretisation["checks"][-1])
-    substeps = r_prob.n_substeps
-    if r_prob is not f_prob:
-        total += r_sol.steps - f_sol.steps
-        again = finish(r_prob, init, r_sol.y, steps=total, converged=_settled(r_sol, good),
-                       wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
-                       reason=_reason(r_sol, good), noise_cost=good, log=log,
-                       unidentified=f_fixed, solution=r_sol)
-        if res is first:
-            first = again
-        res = again
-    if res is not first:
-        res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
-        res.warnings = first.warnings + res.warnings
-    res.attempts = attempts
-    res.params.extra["identification"]["attempts"] = attempts
-    res.params.extra["identification"]["discretisation"] = discretisation
-    res.params.extra["identification"]["segments"] = segments
-    res.discretisation = discretisation
-    res.segments = segments
-    if not discretisation["bias_se"] <= BIAS_TOL and math.isfinite(discretisation["bias_se"]):
-        msg = (f"the integrator ({substeps} substeps per sample) moves a fitted parameter by "
-               f"{discretisation['bias_se']:.3g} standard errors (> {BIAS_TOL}): use more "
-               f"substeps (or substeps='auto')")
-        res.warnings.append(msg)
-        warnings.warn(msg, IdentificationWarning, stacklevel=2)
-    return res
+        res = finish(sub, init, sol.y, steps=total, converged=sol.converged, wall_s=0.0,
+                     noise_cost=good, log=log, unidentified=dict(fixed_why), solution=sol)
+        cur, sol_cur = sub, sol
+    if not fixed_why:
+        return prob, best, None, total
+    scale = max(1.0, best.cost / noise)
+    if sol_cur.cost > best.cost + _REFIT_TOL * scale:
+        # fixing them costs what the data can see: they are determined, if poorly; the free
+        # fit is the answer, with them marked (``finish``'s ``poorly``)
+        search.attempts.append({"refits_rejected": list(fixed_why),
+                                "cost_increase": sol_cur.cost - best.cost,
+                                "tolerance": _REFIT_TOL * scale})
+        return prob, best, None, total
+    # judged unidentifiable at the first fit's point, which may be a local minimum: from the
+    # refit's lower point, free them again; kept if then every parameter is determined
+    th = {k: (sol_cur.y[0][k] if k in sol_cur.y[0] else y0[0][k]) for k in prob.space.names}
+    full = search.run(prob, (th, sol_cur.y[1]), {"released": list(fixed_why),
+                                                 "start": "refit"}, max_steps)
+    total += full.steps
+    if full.cost < sol_cur.cost:
+        again = finish(prob, init, full.y, steps=total, converged=full.converged, wall_s=0.0,
+                       rel_stderr_limit=0.5, noise_cost=good, log=log, solution=full)
+        if not again.unidentifiable:
+            return prob, full, None, total
+    return cur, sol_cur, dict(fixed_why), total
+
+
+def _best_at_final(search: _Search, prob: Problem, r_prob: Problem, r_sol: Solution,
+                   fixed: dict[str, str] | None, total: int, max_steps: int, margin: float,
+                   ) -> tuple[Problem, Solution, dict[str, str] | None, int]:
+    """The answer, or the best end point of the full problem's solves if one is lower at the
+    answer's discretisation (every end point replayed with its substeps; recorded as
+    ``cost_final`` in the attempts), continued there. A fit with fixed parameters (the same
+    residual, fewer unknowns) gives way only to a point lower by more than ``margin``, the
+    cost its fixing was allowed."""
+    final = dataclasses.replace(prob, substeps=r_prob.substeps)
+    costs = []
+    for i, y in search.ends:
+        c = cost(final, y)
+        search.attempts[i]["cost_final"] = c
+        costs.append((c, i, y))
+    if not costs:
+        return r_prob, r_sol, fixed, total
+    c_best, i_best, y_best = min(costs, key=lambda t: t[0])
+    if not c_best < r_sol.cost - margin:
+        return r_prob, r_sol, fixed, total
+    again = search.run(final, y_best, {"start": f"best end point (attempt {i_best})",
+                                       "substeps": final.n_substeps}, max_steps)
+    total += again.steps
+    if again.cost < r_sol.cost - margin:
+        return final, again, None, total
+    return r_prob, r_sol, fixed, total
 
 
 def compile_ahead(prob: Problem, y0: Any, solve: dict[str, Any]) -> Ahead:
@@ -631,43 +813,76 @@ def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
         prob, coarse = refined(prob), fine
 
 
+def relative_shift(prob: Problem, y: Any, shift_theta: dict[str, float]) -> float:
+    """The largest relative change |dp| / |p| of a fitted physical parameter when its
+    coordinates move by ``shift_theta`` ("name[j]" -> engine-coordinate shift, as
+    ``discretisation_bias`` gives it)."""
+    theta = prob.split(y)[0]
+    moved = {k: np.array(v, float) for k, v in theta.items()}
+    for label, d in shift_theta.items():
+        k, _, j = label.partition("[")
+        moved[k].reshape(-1)[int(j.rstrip("]"))] += d
+    p0 = prob.space.physical_values(theta)
+    p1 = prob.space.physical_values({k: to_device(v) for k, v in moved.items()})
+    rel = [float(np.max(np.abs(np.asarray(p1[k]) - np.asarray(p0[k]))
+                        / np.maximum(np.abs(np.asarray(p0[k])), 1e-12))) for k in p0]
+    return max(rel) if rel else 0.0
+
+
 def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, Any],
-               tol: float = BIAS_TOL, most: int = MAX_SUBSTEPS,
+               tol: float = BIAS_TOL, rel_tol: float = BIAS_REL, most: int = MAX_SUBSTEPS,
                attempts: list[dict[str, Any]] | None = None,
                ) -> tuple[Problem, Solution, list[dict[str, Any]]]:
-    """Check how far the integrator moves the fitted parameters of ``sol`` (``prob``'s
-    solution; ``jaxflex.fit.discretisation_bias``, in standard errors) and, with ``refine``,
-    continue the fit from its own solution with more substeps until the shift is at most
-    ``tol`` (or ``most`` substeps): a continuation from coarse to fine, so that most steps are
-    taken with the cheap replay. Each refinement multiplies the substeps by 2^k, k from a
-    first-order fall of the shift (b / tol times smaller steps; at most REFINE_MOST x per
-    refinement, each then checked again), and continues the fit from its solution (on a log
-    the noise explains, in 2-3 steps: the shift is a Gauss-Newton correction; a fit the model
-    cannot bring to the noise, e.g. real data, runs on to its step cap at the finer level,
-    and a capped continuation of 20 steps left an EMPS fit 400x above the coarse cost). On
-    the generated logs the shift fell 6x from 4 to 16 substeps, not the 16x of a second-order
-    scheme (logs made by a 10-substep simulator); on EMPS it fell from 11.6 to 0.0005
-    standard errors from 4 to 32.
-    With ``make_problem``'s traced substep count (``jaxflex.fit.dynamic_substeps``) every
-    level runs the same compiled solver. ``solve``: ``least_squares`` options.
-    Returns the final problem, solution and every check."""
+    """Check how far the integrator moves the fitted parameters of ``sol`` and, with
+    ``refine``, continue the fit with more substeps until it does not.
+
+    The shift is the Gauss-Newton step the solution's own finer replay induces
+    (``jaxflex.fit.discretisation_bias``), judged twice: in standard errors (``bias_se`` at
+    most ``tol``) and against the parameters' values (``bias_rel`` at most ``rel_tol``). A
+    model-limited fit's standard errors are inflated by its residual, and a coarse
+    integrator's own error can be that residual; the relative shift holds either way. The fit
+    is refined while either fails. Each refinement multiplies the substeps by 2^k (a first-order
+    fall of the shift, at most ``REFINE_MOST`` x) and continues from the solution, so most
+    steps use the cheap replay; with ``make_problem``'s traced substep count every level runs
+    the same compiled solver.
+
+    Arguments:
+        prob, sol: the problem and its ``least_squares`` solution.
+        refine: continue the fit with more substeps (else only check).
+        solve: ``least_squares`` options.
+        tol, rel_tol: the bounds on the shift (standard errors; share of the value).
+        most: the most substeps.
+        attempts: a list the continuations are recorded in.
+
+    Returns:
+        The final problem, solution, and every check (``discretisation_bias``'s numbers
+        with ``bias_rel``).
+    """
     checks = []
     while True:
         if sol.normal is None:  # no step was taken: nothing to judge
-            checks.append({"substeps": prob.n_substeps, "bias_se": math.nan,
+            checks.append({"substeps": prob.n_substeps, "bias_se": math.nan, "bias_rel": math.nan,
                            "bias_mahalanobis": math.nan, "output_error": math.nan})
             return prob, sol, checks
         chk = discretisation_bias(prob, sol)
+        finite = all(math.isfinite(v) for v in chk["shift_theta"].values())
+        chk["bias_rel"] = relative_shift(prob, sol.y, chk["shift_theta"]) if finite else math.inf
         checks.append(chk)
-        if not refine or not chk["bias_se"] > tol or prob.n_substeps * 2 > most:
+        settled = chk["bias_se"] <= tol and chk["bias_rel"] <= rel_tol
+        if not refine or settled or prob.n_substeps * 2 > most:
             return prob, sol, checks
-        factor = 2 ** max(1, math.ceil(math.log2(min(chk["bias_se"] / tol, 1e6))))
+        need = max(chk["bias_se"] / tol, chk["bias_rel"] / rel_tol, 2.0)
+        factor = 2 ** max(1, math.ceil(math.log2(min(need, 1e6))))
         factor = max(2, min(factor, REFINE_MOST, most // prob.n_substeps))
-        prob = refined(prob, factor)
-        more = least_squares(prob, sol.y, **solve)
+        finer = refined(prob, factor)
+        more = least_squares(finer, sol.y, **solve)
+        if more.interrupted:
+            raise KeyboardInterrupt
         if attempts is not None:
-            attempts.append({"refined_substeps": prob.n_substeps, "cost": more.cost,
-                             "steps": more.steps, "reason": more.reason})
+            attempts.append({"refined_substeps": finer.n_substeps, "cost": more.cost,
+                             "steps": more.steps, "converged": more.converged,
+                             "reason": more.reason})
+        prob = finer
         sol = dataclasses.replace(more, steps=sol.steps + more.steps,
                                   seconds=sol.seconds + more.seconds)
 
@@ -693,12 +908,16 @@ def _settled(sol: Any, good: float) -> bool:
 
 
 def _reason(sol: Any, good: float) -> str:
+    """Both halves of the verdict in words: the solver's, then the model's."""
     if _settled(sol, good):
         return "cost explained by noise"
     if sol.cost <= good:
         return f"cost explained by noise but the solver did not settle ({sol.reason})"
-    return (f"cost {sol.cost:.4g} is above what the measurement noise explains ({good:.4g}): "
-            f"a local minimum or a model that lacks something; solver: {sol.reason}")
+    model = (f"cost {sol.cost:.4g} is above what the measurement noise explains ({good:.4g}): "
+             "model-limited (a model that lacks something, or a local minimum)")
+    if sol.converged:
+        return f"converged ({sol.reason}); {model}"
+    return f"not converged ({sol.reason}); {model}"
 
 
 def finish(
@@ -768,9 +987,11 @@ def finish(
         if k not in bad:
             bad.append(k)
             why[k] = w
-    out = set_values(init, {k: v for k, v in phys.items() if k not in bad})
+    # every fitted name keeps its fitted value (those the data cannot determine are marked):
+    # the file holds the point the fit reached, whose cost it reports
+    out = set_values(init, phys)
     out.extra = dict(out.extra)
-    out.extra["stderr"] = {k: se[k] for k in phys if k not in bad}
+    out.extra["stderr"] = {k: se[k] for k in phys}
     marks = {k: {"identified": k not in bad, **({"reason": why[k]} if k in bad else {})}
              for k in list(phys) + list(fixed)}
     out.extra["identification"] = {

@@ -1,0 +1,254 @@
+"""A full start for identification from the log alone: the model kind the log's encoders
+suggest, and every parameter from linear least squares on the inverse dynamics (IDIM-LS, the
+EMPS benchmark's own reference method: the equations of motion are linear in the inertia,
+stiffness and the Coulomb and viscous friction, evaluated on filtered derivatives of the
+measured angles).
+
+For each joint (docs/spec.md section 1, one joint of eq. 3 with M = I, a constant):
+
+    rigid (eq. 37):  tau = Jx q1'' + sigma2 q1' + Fc sign(q1') - offset
+    flexible:        tau = J q2'' + K (q2 - q1) - offset          (rotor line)
+                     K (q2 - q1) = I q1'' + sigma2 q1' + Fc sign(q1')   (link line)
+
+(``offset`` is the ``torque_offset`` effect's: the plant receives tau + offset). The
+parameters the inverse dynamics cannot see (Fs, vs, sigma0, sigma1: the Stribeck hump and the
+bristles act at speeds and displacements below what filtered derivatives resolve) get
+scale-aware defaults: Fs = 1.2 Fc, vs 5% of the largest speed, a pre-sliding displacement
+Fc / sigma0 of 1e-3 of the travel, and bristle damping sigma1 = 0.04 sqrt(sigma0 Jx) (the
+paper's link: 0.1 N m s/rad).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from jaxflex.fit import noise_level, savgol
+from jaxflex.logs import Log
+from jaxflex.params import Params
+
+#: Savitzky-Golay window [samples] of the derivatives the inverse dynamics use.
+WINDOW: int = 31
+#: Samples moving slower than this share of the 99th-percentile speed are left out of the
+#: friction regressions (sign(q') is ill-defined near rest).
+MIN_SPEED_SHARE: float = 0.02
+#: A torque offset is kept in the start when its t-statistic exceeds this.
+OFFSET_T: float = 5.0
+
+
+class StartError(ValueError):
+    """The log does not determine a start (too little motion, a non-physical estimate)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DataStart:
+    """A start from the log's inverse dynamics.
+
+    Attributes:
+        params: the start parameter set (plant, friction, and a ``torque_offset`` effect where
+            the log shows one).
+        model: the model kind it was computed for.
+        fits: per joint, the least-squares estimates with their standard errors and the
+            regression's relative residual (``{"Jx": (value, stderr), ...}``).
+    """
+
+    params: Params
+    model: str
+    fits: list[dict[str, Any]]
+
+    def summary(self) -> str:
+        """One line per joint: the inverse-dynamics estimates."""
+        rows = []
+        for j, f in enumerate(self.fits):
+            vals = ", ".join(f"{k} {v[0]:.4g} +- {v[1]:.2g}" for k, v in f.items()
+                             if isinstance(v, tuple))
+            rows.append(f"joint {j}: {vals}")
+        return "\n".join(rows)
+
+
+def suggest_model(log: Log) -> tuple[str, str]:
+    """The model kind a log's encoders support.
+
+    Arguments:
+        log: the log (docs/spec.md section 6).
+
+    Returns:
+        ``(kind, why)``: "rigid" when the log has no q2 or its q2 equals q1 within the
+        encoders' resolution (one encoder mapped to both columns), else "flexible".
+    """
+    if log.q2 is None:
+        return "rigid", "the log has no rotor angle q2"
+    q1, q2 = np.asarray(log.q1, float), np.asarray(log.q2, float)
+    d = np.max(np.abs(q2 - q1), axis=0)
+    step = max(noise_level(q1[:, j])["step"] for j in range(log.n))
+    if np.all(d <= 2 * step):
+        return "rigid", (f"q2 equals q1 within {float(np.max(d)):.3g} (the encoder's step "
+                         f"{step:.3g}): one encoder mapped to both columns")
+    return "flexible", "the log has distinct link and rotor angles"
+
+
+def check_model(log: Log, model: str) -> tuple[str, str]:
+    """The model kind ``identify`` fits to ``log``: ``model``, or the suggested one for
+    "auto".
+
+    Arguments:
+        log: the log.
+        model: "auto" or one of ``jaxflex.step.MODEL_KINDS``.
+
+    Returns:
+        ``(kind, why)``.
+
+    Raises:
+        ValueError: a two-encoder model (flexible, rotor, link) asked of a log with one
+            encoder, naming ``--model rigid``.
+    """
+    suggested, why = suggest_model(log)
+    if model == "auto":
+        return suggested, why
+    if model in ("flexible", "rotor", "link") and suggested == "rigid":
+        raise ValueError(f"the {model} model needs two encoders, but {why}; use the rigid "
+                         "model (--model rigid)")
+    return model, "as given"
+
+
+def _ls(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least squares with standard errors (white residual) and relative residual."""
+    x, *_ = np.linalg.lstsq(A, b, rcond=None)
+    r = b - A @ x
+    dof = max(A.shape[0] - A.shape[1], 1)
+    s2 = float(r @ r) / dof
+    try:
+        cov = s2 * np.linalg.inv(A.T @ A)
+        se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    except np.linalg.LinAlgError:
+        se = np.full(x.shape, np.inf)
+    rel = math.sqrt(float(r @ r) / max(float(b @ b), 1e-300))
+    return x, se, rel
+
+
+def _joint(log: Log, j: int, model: str) -> dict[str, Any]:
+    """The inverse-dynamics estimates of joint ``j`` (module docstring)."""
+    dt = log.dt
+    tau = np.asarray(log.tau, float)[:, j]
+    q1 = np.asarray(log.q1, float)[:, j]
+    w = min(WINDOW, (len(q1) // 2) * 2 - 1)
+    if w < 7:
+        raise StartError(f"joint {j}: {len(q1)} samples are too few for inverse dynamics")
+    v1, a1 = savgol(q1, dt, 1, w), savgol(q1, dt, 2, w)
+    top = float(np.quantile(np.abs(v1), 0.99))
+    if not top > 0:
+        raise StartError(f"joint {j}: the link does not move")
+    moving = np.abs(v1) > MIN_SPEED_SHARE * top
+    edge = np.zeros_like(moving)
+    edge[w:-w] = True  # the filter's ends are one-sided
+    sel = moving & edge
+    if sel.sum() < 20:
+        raise StartError(f"joint {j}: too few moving samples for inverse dynamics")
+    sgn = np.sign(v1)
+    one = np.ones_like(q1)
+    out: dict[str, Any] = {}
+    if model == "rigid":
+        A = np.column_stack([a1, v1, sgn, one])[sel]
+        x, se, rel = _ls(A, tau[sel])
+        out.update(Jx=(float(x[0]), float(se[0])), sigma2=(float(x[1]), float(se[1])),
+                   Fc=(float(x[2]), float(se[2])), offset=(float(-x[3]), float(se[3])))
+    else:
+        q2 = np.asarray(log.q2, float)[:, j]
+        a2 = savgol(q2, dt, 2, w)
+        d = savgol(q2, dt, 0, w) - savgol(q1, dt, 0, w)
+        # rotor line on every interior sample (no friction there)
+        A = np.column_stack([a2, d, one])[edge]
+        x, se, rel_r = _ls(A, tau[edge])
+        J, K, c = x
+        out.update(J=(float(J), float(se[0])), K=(float(K), float(se[1])),
+                   offset=(float(-c), float(se[2])))
+        # link line with the rotor line's spring torque
+        spring = K * d
+        A = np.column_stack([a1, v1, sgn])[sel]
+        y, sy, rel = _ls(A, spring[sel])
+        out.update(I=(float(y[0]), float(sy[0])), sigma2=(float(y[1]), float(sy[1])),
+                   Fc=(float(y[2]), float(sy[2])))
+        out["rotor_residual"] = rel_r
+        out["Jx"] = (float(y[0] + J), float(math.hypot(sy[0], se[0])))
+    out["relative_residual"] = rel
+    out["speed"] = top
+    out["travel"] = float(np.ptp(q1))
+    return out
+
+
+def _check(fit: dict[str, Any], j: int, model: str) -> None:
+    """Refuse a non-physical estimate, naming the likely cause."""
+    names = ("Jx",) if model == "rigid" else ("J", "K", "I")
+    for k in names:
+        v = fit[k][0]
+        if not v > 0:
+            raise StartError(
+                f"joint {j}: the inverse dynamics give {k} = {v:.4g} <= 0; the torque's sign "
+                "may be flipped against the angles, the angles may not be the torque's axis, "
+                + ("or the log may be of a rigid axis (use --model rigid)" if model != "rigid"
+                   else "or the log may be too short"))
+
+
+def start_from_data(log: Log, model: str = "flexible") -> DataStart:
+    """A full parameter set for ``log`` from its inverse dynamics (module docstring).
+
+    Arguments:
+        log: the log, with columns tau, q1 (and q2 for the flexible model).
+        model: "rigid" or "flexible" (the subsystem models "rotor" and "link" use the
+            flexible model's estimates).
+
+    Returns:
+        A ``DataStart``: I, J [kg m^2], K [N m/rad], the six LuGre parameters (docs/spec.md
+        section 2; Fc and sigma2 estimated, the others by the defaults of the module
+        docstring) and, where the log shows one (t-statistic above ``OFFSET_T``), a
+        ``torque_offset`` effect [N m].
+
+    Raises:
+        StartError: (a ``ValueError``) when the log lacks a column the model needs, moves
+            too little, or the estimates are not physical (a flipped torque sign, a rigid
+            axis under the flexible model).
+    """
+    kind = "rigid" if model == "rigid" else "flexible"
+    if log.tau is None or log.q1 is None:
+        raise StartError("a start from the data needs columns tau and q1")
+    if kind == "flexible" and log.q2 is None:
+        raise StartError("the flexible model's start needs the rotor angle q2 (or use "
+                         "--model rigid)")
+    fits = []
+    for j in range(log.n):
+        f = _joint(log, j, kind)
+        _check(f, j, kind)
+        fits.append(f)
+    plant: dict[str, list[float]] = {"I": [], "J": [], "K": []}
+    fr: dict[str, list[float]] = {k: [] for k in ("Fc", "Fs", "vs", "sigma0", "sigma1",
+                                                  "sigma2")}
+    offsets = []
+    for f in fits:
+        Jx = f["Jx"][0]
+        if kind == "rigid":
+            I, J, K = Jx * 0.999, Jx * 1e-3, 1e6 * Jx
+        else:
+            I, J, K = f["I"][0], f["J"][0], f["K"][0]
+        Fc = max(f["Fc"][0], 1e-6 * max(abs(f["Fc"][0]), 1.0))
+        sigma2 = max(f["sigma2"][0], 1e-9)
+        z = 1e-3 * max(f["travel"], 1e-9)
+        sigma0 = Fc / z
+        plant["I"].append(I)
+        plant["J"].append(J)
+        plant["K"].append(K)
+        fr["Fc"].append(Fc)
+        fr["Fs"].append(1.2 * Fc)
+        fr["vs"].append(0.05 * f["speed"])
+        fr["sigma0"].append(sigma0)
+        fr["sigma1"].append(0.04 * math.sqrt(sigma0 * Jx))
+        fr["sigma2"].append(sigma2)
+        off, se = f["offset"]
+        offsets.append(off if abs(off) > OFFSET_T * se else 0.0)
+    effects = {}
+    if any(o != 0.0 for o in offsets):
+        effects["torque_offset"] = {"offset": offsets}
+    params = Params.from_dict({"plant": plant, "friction": fr, "effects": effects})
+    return DataStart(params=params, model=kind, fits=fits)
