@@ -1584,63 +1584,16 @@ def spring_mode(params: Params) -> float:
 
 
 def model_kind_of(params: Params) -> str | None:
-    """The model kind an identification file was fitted with: ``identification.model`` as a
-    name, or a ``kind`` (or ``name``) in that entry when it is a mapping; None when the file
-    says none."""
+    """The model kind an identification file was fitted with (``identification.start.kind``;
+    in files that carry no verdict, ``identification.model`` as a name), or None when the
+    file says none."""
     ident = params.extra.get("identification")
     if not isinstance(ident, dict):
         return None
-    m = ident.get("model")
-    if isinstance(m, dict):
-        m = m.get("kind", m.get("name"))
-    if isinstance(m, str):
-        return m
-    k = ident.get("kind")
-    return k if isinstance(k, str) else None
-
-
-def identification_verdict(params: Params) -> str | None:
-    """What an identification file says of its model (``identification.model.verdict``:
-    "adequate" or "model-limited"), or None when the file says nothing."""
-    ident = params.extra.get("identification")
-    m = ident.get("model") if isinstance(ident, dict) else None
-    v = m.get("verdict") if isinstance(m, dict) else None
-    return v if isinstance(v, str) else None
-
-
-def check_identification(params: Params, *, accept_unconverged: bool = False) -> str | None:
-    """Whether ``discover`` takes a parameter file as its nominal model.
-
-    An identification whose solver reached a stationary point but whose model cannot
-    describe the log (``identification.model.verdict`` "model-limited") is discovery's
-    normal input, not a failure: it is taken with a note. A file whose solver did not reach
-    a stationary point (``identification.converged`` false), or that holds unmarked
-    parameters the data could not determine, is refused (``identification_problems``)
-    unless ``accept_unconverged``.
-
-    **Arguments:**
-
-    - `params`: the parameter file's contents (docs/spec.md section 7).
-    - `accept_unconverged`: take the file whatever its identification says.
-
-    **Returns:**
-
-    A one-line note to show the user, or None.
-
-    **Raises:**
-
-    `jaxflex.params.ParamsError` naming what makes the file unfit."""
-    from jaxflex.params import ParamsError, identification_problems
-
-    verdict = identification_verdict(params)
-    problems = [] if accept_unconverged else identification_problems(params)
-    if problems:
-        raise ParamsError(f"refused: {'; '.join(problems)}. Re-run the identification, or use "
-                          "the file anyway with --accept-unconverged")
-    if verdict == "model-limited":
-        why = params.extra["identification"]["model"].get("reason")
-        return ("note: the identification is model-limited (its model does not describe the "
-                f"log{': ' + str(why) if why else ''}); discover looks for what it lacks")
+    start = ident.get("start")
+    for k in (start.get("kind") if isinstance(start, dict) else None, ident.get("model")):
+        if isinstance(k, str):
+            return k
     return None
 
 

@@ -11,7 +11,6 @@ import pytest
 from jaxflex.discover import (
     DiscoverConfig,
     SolverFailure,
-    check_identification,
     discover,
     model_kind_of,
     nominal_for_model,
@@ -122,33 +121,21 @@ def test_a_solver_crash_is_a_solver_failure_naming_the_fit(emps_log, tmp_path, c
     assert rep["failed"]["kind"] == "solver failure" and rep["effect"] is None
 
 
-def test_a_model_limited_identification_is_taken_with_a_note():
-    """A converged identification whose model cannot describe the log ('model-limited') is
-    discovery's normal input: taken with a note. One whose solver did not reach a stationary
-    point is refused unless accepted."""
-    ok = _rigid(converged=True, model={"kind": "rigid", "verdict": "model-limited"})
-    note = check_identification(ok)
-    assert note.startswith("note:") and "model-limited" in note and "\n" not in note
-    assert check_identification(_rigid(converged=True,
-                                       model={"verdict": "adequate"})) is None
-    bad = _rigid(converged=False, reason="max steps",
-                 model={"kind": "rigid", "verdict": "model-limited"})
-    with pytest.raises(ParamsError, match="did not converge"):
-        check_identification(bad)
-    assert "model-limited" in check_identification(bad, accept_unconverged=True)
-
-
 def test_the_model_kind_is_read_from_the_identification():
+    """From ``identification.start.kind`` beside the model's verdict, or from
+    ``identification.model`` where that is the kind's name (files without a verdict)."""
     assert model_kind_of(_rigid()) == "rigid"
-    assert model_kind_of(_rigid(model={"kind": "rotor", "verdict": "adequate"})) == "rotor"
+    assert model_kind_of(_rigid(model={"verdict": "adequate"}, start={"kind": "rotor"})) \
+        == "rotor"
+    assert model_kind_of(_rigid(model={"verdict": "adequate"})) is None
     assert model_kind_of(Params.from_dict(EMPS_RIGID)) is None
 
 
 def test_a_model_limited_file_runs_from_the_command_line_with_its_kind(tmp_path, capsys,
                                                                       monkeypatch):
-    """The command takes a converged, model-limited file without --accept-unconverged, prints
-    the one-line note, and takes the file's model kind ('rigid': the input check passes and
-    the refusal of a too-stiff flexible replay does not come)."""
+    """The command takes a converged, model-limited file without --accept-unconverged, says
+    so in one line, and takes the file's model kind ('rigid': the input check passes and the
+    refusal of a too-stiff flexible replay does not come)."""
     from jaxflex.cli import main
 
     import jaxflex.discover as d
@@ -156,25 +143,31 @@ def test_a_model_limited_file_runs_from_the_command_line_with_its_kind(tmp_path,
     seen = {}
 
     def fake(log, nominal, cfg, progress=None):
-        seen["model"] = cfg.model
+        seen["model"], seen["samples"] = cfg.model, log.N
         raise ValueError("stop here")
 
     monkeypatch.setattr(d, "discover", fake)
     from jaxflex.data import load_emps
 
     save_log(load_emps("DATA_EMPS").slice(0, 3000), tmp_path / "emps.csv")
-    p = _rigid(converged=True, model={"kind": "rigid", "verdict": "model-limited"})
+    p = _rigid(converged=True, model={"verdict": "model-limited", "cost_over_noise": 40.0},
+               start={"kind": "rigid"})
     (tmp_path / "p.json").write_text(json.dumps(p.to_dict()))
     code = main(["discover", str(tmp_path / "emps.csv"), "--params", str(tmp_path / "p.json"),
                  "--out", str(tmp_path / "o"), "--no-plots"])
     io = capsys.readouterr()
     assert code == 2 and "stop here" in io.err
     assert seen["model"] == "rigid"
-    assert "model-limited" in io.out
+    notes = [ln for ln in (io.out + io.err).splitlines() if "model-limited" in ln]
+    assert len(notes) == 1, notes
     assert not (tmp_path / "o").exists()  # a refused run leaves no empty folder
     main(["discover", str(tmp_path / "emps.csv"), "--params", str(tmp_path / "p.json"),
           "--out", str(tmp_path / "o"), "--no-plots", "--model", "flexible"])
     assert seen["model"] == "flexible"
+    # a shipped data set by name, as identify takes it
+    main(["discover", "jaxflex:emps/DATA_EMPS", "--params", str(tmp_path / "p.json"),
+          "--out", str(tmp_path / "o"), "--no-plots"])
+    assert seen["samples"] == 24841
 
 
 def test_a_rotor_identification_gets_the_link_side_from_the_logs_rigid_fit():
@@ -287,15 +280,16 @@ def test_a_model_limited_rotor_identification_of_kuka_axis_1_runs(tmp_path, caps
                    "K": float(rec.c_rad_ff[0])},
          "friction": {"Fc": 1.0, "Fs": 1.2, "vs": 0.05, "sigma0": 1e4, "sigma1": 0.0,
                       "sigma2": 1.0},
-         "identification": {"model": {"kind": "rotor", "verdict": "model-limited"},
+         "identification": {"model": {"verdict": "model-limited"}, "start": {"kind": "rotor"},
                             "converged": True},
          "axis": "vertical"}
     (tmp_path / "p.json").write_text(json.dumps(p))
     code = main(["discover", str(tmp_path / "k.csv"), "--params", str(tmp_path / "p.json"),
                  "--out", str(tmp_path / "o"), "--no-plots"])
-    out = capsys.readouterr().out
+    io = capsys.readouterr()
+    out = io.out
     assert code == 0, out
-    assert "model-limited" in out and "rotor model" in out and "not tried: gravity" in out
+    assert "model-limited" in io.err and "rotor model" in out and "not tried: gravity" in out
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert rep["config"]["model"] == "rotor" and "gravity" in rep["not_tried"]
     assert "gravity" not in rep["config"]["candidates"]

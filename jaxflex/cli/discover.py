@@ -9,7 +9,8 @@ flexible) says how it is replayed (``jaxflex.discover.nominal_for_model``): a ri
 two halves of its inertia joined by a stiff spring (a one-encoder log reads q2 = q1), a rotor
 subsystem with its link side fitted rigidly on the log. An identification whose model is
 limited (``identification.model.verdict`` "model-limited") is taken with a note; one whose
-solver did not converge is refused unless ``--accept-unconverged``. Bad input exits with 2; a
+solver did not converge is refused unless ``--accept-unconverged`` (``load_params``). Bad
+input exits with 2; a
 numerical failure of a fit inside discovery with 1, naming the fit (report.json records it).
 """
 
@@ -29,7 +30,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "discover", help="find the effect a model misses in a log, add it, report the gap",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("log", help="log file (docs/spec.md section 6; CSV with t,tau,q1,q2)")
+    p.add_argument("log", help="log file (docs/spec.md section 6; CSV with t,tau,q1,q2), or a "
+                               "shipped data set: jaxflex:emps/DATA_EMPS, jaxflex:kuka/A/1 (one "
+                               "axis; also B, C and axes 2, 3)")
     p.add_argument("--map", default=None,
                    help="column mapping for files with other variable names, e.g. "
                         "'tau=gtau*vir,q1=qm,q2=qm' (docs/spec.md section 6)")
@@ -62,7 +65,6 @@ def run(args: argparse.Namespace) -> int:
     """Run discovery and write the report; returns the exit code."""
     import importlib
     import json
-    import os
     import sys
     from pathlib import Path
 
@@ -70,13 +72,13 @@ def run(args: argparse.Namespace) -> int:
         DISCOVER_MODELS,
         DiscoverConfig,
         SolverFailure,
-        check_identification,
         discover,
         model_kind_of,
     )
+    from jaxflex.data import is_named, load_named
     from jaxflex.fit.ahead import Ahead
     from jaxflex.logs import load_log, parse_mapping
-    from jaxflex.params import ParamsError, load_params, save_params
+    from jaxflex.params import load_params, save_params
     from jaxflex.presets import paper_params
 
     from jaxflex.cli.outputs import check_outputs
@@ -87,21 +89,20 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--segment must be > 0 s, got {args.segment}")
     if not 1 <= args.substeps <= 16:
         raise ValueError(f"--substeps must be an integer in [1, 16], got {args.substeps}")
-    nominal = load_params(args.params, accept_unconverged=True) if args.params else paper_params()
-    try:
-        note = check_identification(nominal, accept_unconverged=os.environ.get(
-            "JAXFLEX_ACCEPT_UNCONVERGED", "") not in ("", "0"))
-    except ParamsError as e:
-        raise ParamsError(f"{args.params}: {e}") from None
-    if note:
-        print(note)
+    # a converged, model-limited identification is taken with load_params's one-line note
+    nominal = load_params(args.params) if args.params else paper_params()
     model = args.model or model_kind_of(nominal) or "flexible"
     if model not in DISCOVER_MODELS:  # e.g. a link subsystem's identification
         print(f"note: the identification's model {model!r} is replayed as a flexible joint")
         model = "flexible"
-    required = ("t", "tau", "q1") if model == "rigid" else None
-    log = load_log(args.log, parse_mapping(args.map), **({"required": required}
-                                                          if required else {}))
+    if is_named(args.log):  # a shipped data set by name, as identify takes it
+        if args.map:
+            raise ValueError(f"--map applies to files; {args.log} is a shipped data set")
+        log = load_named(args.log).log
+    else:
+        required = ("t", "tau", "q1") if model == "rigid" else None
+        log = load_log(args.log, parse_mapping(args.map), **({"required": required}
+                                                              if required else {}))
     cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
     cfg = DiscoverConfig(
         segment=args.segment, train_frac=args.train_frac, max_steps=args.max_steps,
