@@ -140,6 +140,7 @@ from jaxflex.fit import (
     white_noise_std,
 )
 from jaxflex.fit.ahead import Ahead, all_side_by_side, side_by_side
+from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
 from jaxflex.fit.space import set_values
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -792,9 +793,6 @@ def residual_analysis(ws: Workspace, fit: CandidateFit,
 
     ``{"part", "input", "residual", "lags", "confidence", "channels": {"q1": summary,
     "q2": summary}}``, each summary ``ResidualAnalysis.summary`` (curves included)."""
-    # imported here: scipy.stats costs a command's start 0.55 s (tests/test_app_layer.py)
-    from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
-
     _, test, _ = ws.for_model(fit.model)
     sim = np.asarray(simulated_outputs(test, fit.y_test))
     meas = np.asarray(test.segs.y_meas)
@@ -2053,6 +2051,10 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
     """``discover``'s workflow after its input checks; ``run`` says where it is."""
     t_start = time.perf_counter()
     nominal = Params.from_dict(nominal.to_dict())
+    if nominal.effects:  # e.g. an identified torque offset: discovery starts from the bare
+        # model, and such an effect is one of its candidates
+        say(f"note: the file's effects ({', '.join(nominal.effects)}) are set aside: "
+            "discover starts from the model without them and tries them as candidates")
     nominal.effects = {}
     ws = workspace(log, nominal, cands, segment=cfg.segment, train_frac=cfg.train_frac,
                    substeps=cfg.substeps, max_effects=cfg.max_effects)

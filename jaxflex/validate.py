@@ -54,6 +54,7 @@ from jaxflex.fit import (
     savgol,
     simulated_outputs,
 )
+from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
@@ -725,9 +726,6 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
     **Raises:**
 
     `ValueError` for a model kind the log cannot replay (a rotor or link model without q2)."""
-    # imported here: scipy.stats costs a command's start 0.55 s (tests/test_app_layer.py)
-    from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
-
     _need_x64("replay_residual_analysis")
     prob = _replay_problem(params, log, kind, length, substeps)
     y = np.asarray(simulated_outputs(prob, prob.space.theta0()))

@@ -15,7 +15,6 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 #: Default number of lags (MATLAB's ``resid`` uses 25).
 LAGS: int = 25
@@ -75,6 +74,15 @@ class ResidualAnalysis:
         }
 
 
+def _band_z_and_p(confidence: float, q: float, lags: int) -> tuple[float, float]:
+    """The two-sided normal quantile of ``confidence`` and the chi-square survival of the
+    Ljung-Box ``q`` with ``lags`` degrees of freedom. scipy is imported here, not with the
+    module: a command's start would pay 0.2-0.55 s for it (tests/test_app_layer.py)."""
+    from scipy import special
+
+    return float(special.ndtri(0.5 + confidence / 2)), float(special.chdtrc(lags, q))
+
+
 def _autocorrelation(x: np.ndarray, lags: int) -> np.ndarray:
     """Biased normalised autocorrelation of ``x`` (mean removed) at lags 0..``lags``."""
     x = x - x.mean()
@@ -120,12 +128,11 @@ def analyse_residual(residual: Any, input: Any = None, *, lags: int = LAGS,
     if not np.all(np.isfinite(e)):
         raise ValueError("analyse_residual: the residual holds NaN or inf")
     n = e.size
-    z = float(stats.norm.ppf(0.5 + confidence / 2))
     rho = _autocorrelation(e, lags)
-    band = z / math.sqrt(n)
     k = np.arange(1, lags + 1)
     q = float(n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k)))
-    p = float(stats.chi2.sf(q, lags))
+    z, p = _band_z_and_p(confidence, q, lags)
+    band = z / math.sqrt(n)
     first_in = next((i for i in range(1, lags + 1) if abs(rho[i]) < band), lags + 1)
     tau = float(1.0 + 2.0 * np.sum(rho[1:first_in]))
     xc, xband, xout = None, None, 0
@@ -187,14 +194,13 @@ def analyse_segments(residual: Any, input: Any = None, *, lags: int = LAGS,
     if not np.all(np.isfinite(e)):
         raise ValueError("analyse_segments: the residual holds NaN or inf")
     n = e.size
-    z = float(stats.norm.ppf(0.5 + confidence / 2))
     e = e - e.mean()
     r = _pooled_correlation(e, e, lags)[lags:]
     rho = r / r[0] if r[0] > 0 else np.zeros(lags + 1)
-    band = z / math.sqrt(n)
     k = np.arange(1, lags + 1)
     q = float(n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k)))
-    p = float(stats.chi2.sf(q, lags))
+    z, p = _band_z_and_p(confidence, q, lags)
+    band = z / math.sqrt(n)
     first_in = next((i for i in range(1, lags + 1) if abs(rho[i]) < band), lags + 1)
     tau = float(1.0 + 2.0 * np.sum(rho[1:first_in]))
     xc, xband, xout = None, None, 0
