@@ -19,8 +19,11 @@ Observer: by default the paper's gains with an observer leakage of
 ``jaxflex.presets.REPRODUCE_LEAK`` rad/s (``CascadeGains.leak``, ``studies/observer_leak.py``).
 The paper's observer (leak 0) has no leakage at rest and, with the pre-sliding spring of the
 friction, a growing ~3-4 Hz mode that saturates into a limit cycle; with the leakage the loop
-at rest is stable. The compensated runs of the paper's own observer are re-run beside the
-default ones (``paper_observer`` in the results) so both are shown.
+at rest is stable. The compensated runs of the paper's observer are re-run beside the
+default ones (``paper_observer`` in the results) so both are shown; and the paper's own
+controller, its observer without leakage fed by the dirty derivative of its text
+(``paper_own_observer``), is run and plotted too. Every figure title names the velocity
+source and the observer it shows (``configuration_label``).
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from jaxflex.presets import (
     REPRODUCE_LEAK,
     paper_params,
     paper_sinusoid,
+    sensing_fields,
     sensing_preset,
     trajectory_preset,
     with_estimator,
@@ -92,6 +96,32 @@ def run_summary(r: SimResult) -> dict[str, Any]:
     return s
 
 
+def configuration_label(velocity: str, leak: list[float], compensation: bool = True) -> str:
+    """A figure's second title line: where the controller's velocities come from and which
+    observer it runs.
+
+    **Arguments:**
+
+    - ``velocity``: the sensing's velocity source ("exact", "filtered", "kalman").
+    - ``leak`` [rad/s]: the observer leakage per joint (0: the paper's observer).
+    - ``compensation``: whether the runs shown compensate friction at all.
+
+    **Returns:**
+
+    E.g. "Kalman-filter velocities; observer with leak 0.2 rad/s".
+    """
+    vel = {"exact": "exact velocities", "filtered": "dirty-derivative velocities (the paper's)",
+           "kalman": "Kalman-filter velocities"}.get(velocity, f"{velocity} velocities")
+    if any(x > 0 for x in leak):
+        vals = sorted(set(leak))
+        obs = f"observer with leak {vals[0] if len(vals) == 1 else vals} rad/s"
+    else:
+        obs = "the paper's observer (no leak)"
+    if not compensation:
+        obs += " (runs without compensation have none)"
+    return f"{vel}; {obs}"
+
+
 @dataclasses.dataclass
 class PaperExperiment:
     """One of the paper's experiments: its trajectory name and figure title, the saved runs
@@ -115,8 +145,11 @@ class PaperExperiment:
 class PaperExperiments:
     """Result of ``run_paper_experiments``: the configuration, the experiments by trajectory
     name, the q2d-option comparison (None if not run), the wall time [s], the loop at rest
-    (``rest_oscillation``) and, when the observer has leakage, the paper's own observer
-    (leak 0) re-run with compensation: its summaries per experiment and its loop at rest."""
+    (``rest_oscillation``), when the observer has leakage the paper's observer (leak 0)
+    re-run with compensation (its summaries per experiment and its loop at rest), and the
+    paper's own controller (leak 0, dirty-derivative velocities; None where the
+    configuration is that already or the velocities are exact): the compensated run of each
+    experiment (``paper_own_runs``) and its summaries (``paper_own_observer``)."""
 
     config: dict[str, Any]
     experiments: dict[str, PaperExperiment]
@@ -124,6 +157,23 @@ class PaperExperiments:
     wall_time_s: float
     rest: dict[str, Any] | None = None
     paper_observer: dict[str, Any] | None = None
+    paper_own_observer: dict[str, Any] | None = None
+    paper_own_runs: dict[str, SimResult] | None = None
+
+    def params(self) -> Params:
+        """The configuration run, as a parameter file: the parameters with the observer leak
+        in ``gains`` and a ``controller`` section recording the sensing (its fields, with the
+        velocity source used), q2d method, dt, torque limit, compensation and the tasks, so
+        that ``jaxflex export --params`` writes the controller these experiments ran."""
+        c = self.config
+        d = dict(c["params"])
+        d.pop("certificate", None)  # certified for other gains (the leak is added here)
+        d["gains"] = {**d["gains"], "leak": list(c["observer_leak"])}
+        d["controller"] = {
+            "q2d_method": c["q2d_method"], "dt": c["dt"], "tau_max": c["tau_max"],
+            "compensation": True, "sensing": c["sensing_fields"],
+            "trajectory": list(self.experiments) or list(TRAJECTORIES)}
+        return Params.from_dict(d)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready results (``results.json`` without the figure names)."""
@@ -137,6 +187,8 @@ class PaperExperiments:
             out["rest"] = self.rest
         if self.paper_observer is not None:
             out["paper_observer"] = self.paper_observer
+        if self.paper_own_observer is not None:
+            out["paper_own_observer"] = self.paper_own_observer
         out["wall_time_s"] = self.wall_time_s
         return out
 
@@ -176,6 +228,8 @@ def run_paper_experiments(
         "q2d_method": q2d_method, "observer_leak": leak_used,
         "dt": 1e-3, "t_final": t_final, "tau_max": 2.0,
     }
+    config["label"] = configuration_label(sens.velocity, leak_used)
+    config["sensing_fields"] = sensing_fields(sens)
     t_start = time.perf_counter()
     unknown = set(tasks or ()) - set(TRAJECTORIES)
     if unknown:
@@ -192,7 +246,7 @@ def run_paper_experiments(
                                         compensation=key == "with_compensation",
                                         q2d_method=q2d_method, sensing=sens, t_final=t_final)
         experiments[name] = PaperExperiment(
-            name=name, title=TRAJECTORY_DESCRIPTIONS[name], runs=runs,
+            name=name, title=f"{TRAJECTORY_DESCRIPTIONS[name]}\n{config['label']}", runs=runs,
             summaries={k: run_summary(r) for k, r in runs.items()})
     say("[reproduce] the loop at rest ...")
     rest = rest_oscillation(plant, gains, sensing=sens, q2d_method=q2d_method)
@@ -207,13 +261,29 @@ def run_paper_experiments(
             paper_obs["experiments"][name] = {"with_compensation": run_summary(r)}
         paper_obs["rest"] = rest_oscillation(plant, paper_gains, sensing=sens,
                                              q2d_method=q2d_method, keys=("with_compensation",))
+    own_sens = with_estimator(sensing_preset(sensing), "filtered")
+    own_runs = own = None
+    if own_sens.velocity == "filtered" and (any(x > 0 for x in leak_used)
+                                            or sens.velocity != "filtered"):
+        say("[reproduce] the paper's own controller (no leakage, dirty derivative), with "
+            "compensation ...")
+        own_gains = eqx.tree_at(lambda g: g.leak, gains, jnp.zeros_like(gains.Ke))
+        own_runs = {name: run_closed_loop(plant, own_gains, trajectory_preset(name),
+                                          compensation=True, q2d_method=q2d_method,
+                                          sensing=own_sens, t_final=t_final)
+                    for name in experiments}
+        own = {"velocity": "filtered", "observer_leak": [0.0] * gains.n,
+               "label": configuration_label("filtered", [0.0] * gains.n),
+               "experiments": {name: {"with_compensation": run_summary(r)}
+                               for name, r in own_runs.items()}}
     q2d = None
     if compare_q2d:
         say("[reproduce] q2d-derivative options ...")
         q2d = compare_q2d_methods(plant, gains, t_final=t_final)
     return PaperExperiments(config=config, experiments=experiments, q2d_comparison=q2d,
                             wall_time_s=time.perf_counter() - t_start, rest=rest,
-                            paper_observer=paper_obs)
+                            paper_observer=paper_obs, paper_own_observer=own,
+                            paper_own_runs=own_runs)
 
 
 def rest_oscillation(

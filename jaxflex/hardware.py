@@ -151,12 +151,18 @@ def _sleep_until(deadline: float, busy: float) -> None:
 
 def run_loop(
     io: RigIO, controller: ControllerLike, config: LoopConfig | None = None,
-    log_path: str | os.PathLike | None = None,
+    log_path: str | os.PathLike | None = None, reference: np.ndarray | None = None,
 ) -> LoopResult:
     """Run ``controller`` around ``io`` at ``config.rate`` for ``config.duration`` seconds.
 
     Sample k is scheduled at t_k = k / rate after the start; the controller gets t_k (the
     nominal sample time, as in the simulation) and the angles read at that sample.
+    ``reference`` (samples, rows, n): the rig's reference at each sample (q1d and its
+    derivatives, as an exported controller's ``step(..., ref=...)`` takes them), given to
+    the controller instead of its recorded trajectory and logged as q1d; None: the
+    controller follows its own.
+
+    Raises ``ValueError`` (before the loop starts) for a ``reference`` of the wrong shape.
 
     Every way out ends at zero torque and returns a result whose log (if ``log_path``) is
     written: completion, a guard trip (NaN or out-of-range angle, non-finite torque), the
@@ -169,6 +175,12 @@ def run_loop(
     N = int(round(cfg.duration * cfg.rate))
     period = cfg.period
     ref = getattr(controller, "reference", None)
+    if reference is not None:
+        reference = np.asarray(reference, dtype=float)
+        if reference.ndim != 3 or reference.shape[0] < N or reference.shape[2] != n:
+            raise ValueError(f"run_loop: reference must be (samples >= {N}, rows, {n}), got "
+                             f"shape {reference.shape}")
+        ref = lambda t: reference[int(round(t / period)), 0]  # noqa: E731 - the log's q1d
     T = np.full(N, np.nan)
     TAU = np.zeros((N, n))
     Q1 = np.zeros((N, n))
@@ -217,7 +229,9 @@ def run_loop(
             else:
                 c0 = time.perf_counter()
                 try:
-                    u = controller.step(t_k, float(q1[0]), float(q2[0])) if n == 1 else controller.step(t_k, q1, q2)
+                    kw = {} if reference is None else {"ref": reference[k]}
+                    u = (controller.step(t_k, float(q1[0]), float(q2[0]), **kw) if n == 1
+                         else controller.step(t_k, q1, q2, **kw))
                     u = np.asarray(u, float).reshape(n)
                 except Exception as e:
                     stop["reason"] = f"controller: step raised at sample {k}: {_describe(e)}"

@@ -158,6 +158,37 @@ def sensing_of(entry: str | Mapping[str, Any]) -> Sensing:
     return sensing_preset(entry) if isinstance(entry, str) else Sensing(**entry)
 
 
+def sensing_fields(sensing: Sensing) -> dict[str, Any]:
+    """The fields of ``sensing`` as a parameter file's ``controller.sensing`` records them
+    (the inverse of ``sensing_of`` for a mapping; plain numbers, SI units).
+
+    **Arguments:**
+
+    - ``sensing``: a ``Sensing``.
+
+    **Returns:**
+
+    A mapping of its fields (``kalman`` only where the Kalman filter is selected).
+    """
+    import numpy as np
+
+    def num(v: Any) -> float | list[float]:
+        a = np.asarray(v, dtype=float)
+        return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
+
+    out: dict[str, Any] = {k: num(getattr(sensing, k)) for k in (
+        "q1_resolution", "q2_resolution", "q1_noise", "q2_noise")}
+    out.update(velocity=sensing.velocity, dac_bits=int(sensing.dac_bits),
+               dac_range=num(sensing.dac_range))
+    if sensing.velocity == "kalman":
+        k = sensing.kalman
+        out["kalman"] = ({} if k is None else
+                         {"disturbance_rate": num(k.disturbance_rate),
+                          "torque_noise": num(k.torque_noise),
+                          "angle_floor": num(k.angle_floor), "angles": bool(k.angles)})
+    return out
+
+
 # ----- reference tasks ------------------------------------------------------------------------
 
 def paper_sinusoid() -> Sinusoid:

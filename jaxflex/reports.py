@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxflex.experiments import PaperExperiments
+from jaxflex.params import save_params
 from jaxflex.plots.tracking import plot_q2d_comparison, plot_torque_friction, plot_tracking
 from jaxflex.plots.tune import plot_history, plot_lambda_min, plot_tracking_comparison
 from jaxflex.tune import TuneComparison, TuneResult, TuneTask
@@ -42,18 +43,36 @@ def write_tune_report(result: TuneResult, task: TuneTask, comparison: TuneCompar
 
 def write_paper_experiments(results: PaperExperiments, out: str | Path) -> dict[str, Any]:
     """Write the figures of the paper's experiments (tracking per experiment, torque and
-    friction of the compensated sinusoid, the q2d comparison) and ``results.json`` to the
-    folder ``out``; returns the results document (with figure names per experiment)."""
+    friction of the compensated sinusoid, the paper's own controller per experiment, the
+    q2d comparison), ``results.json`` and ``params.json`` (the configuration run, which
+    ``jaxflex export --params`` exports) to the folder ``out``; returns the results document
+    (with figure names per experiment). Every title names the velocity source and the
+    observer shown."""
+    from jaxflex.presets import TRAJECTORY_DESCRIPTIONS
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     doc = results.to_dict()
+    label = results.config.get("label", "")
     for name, e in results.experiments.items():
         figs = plot_tracking(e.runs, e.title, out / f"{name}_tracking.png")
         if name == "sinusoid":
             figs += plot_torque_friction(e.runs["with_compensation"],
-                                         out / "sinusoid_torque_friction.png")
+                                         out / "sinusoid_torque_friction.png", config=label)
         doc["experiments"][name]["figures"] = figs
+    if results.paper_own_runs:
+        own = doc["paper_own_observer"]
+        for name, r in results.paper_own_runs.items():
+            own["experiments"][name]["figures"] = plot_tracking(
+                {"with_compensation": r}, f"{TRAJECTORY_DESCRIPTIONS[name]}\n{own['label']}",
+                out / f"{name}_paper_own_observer.png")
+    save_params(results.params(), out / "params.json")
+    doc["params_file"] = "params.json"
     if results.q2d_comparison is not None:
-        plot_q2d_comparison(results.q2d_comparison, out / "q2d_comparison.png")
+        leak = results.config.get("observer_leak", [0.0])
+        obs = label.split("; ", 1)[1] if "; " in label else ""
+        plot_q2d_comparison(results.q2d_comparison, out / "q2d_comparison.png",
+                            config=f"each sensing's own velocities (dirty derivative; exact for "
+                            f"ideal); {obs or f'observer leak {leak}'}")
     write_json(doc, out / "results.json")
     return doc

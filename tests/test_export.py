@@ -223,3 +223,123 @@ def test_translator_unrolls_static_scan():
     out = np.array(ns["f"](*x, *w))
     ref = np.concatenate([np.ravel(o) for o in f(x, w)])
     np.testing.assert_allclose(out, ref, rtol=1e-14, atol=1e-15)
+
+
+# ----- the certified configuration: velocity source, Kalman filter, leak, reference --------
+
+from jaxflex.export import ExportError, REFERENCE_ROWS, SampledController, rig_controller  # noqa: E402
+from jaxflex.presets import REPRODUCE_LEAK, paper_sensing, with_estimator  # noqa: E402
+
+
+def _reproduce_params() -> dict:
+    """The paper's parameters with reproduce's default observer leak."""
+    p = paper_params().to_dict()
+    p["gains"]["leak"] = [REPRODUCE_LEAK]
+    return p
+
+
+@pytest.fixture(scope="module")
+def kalman_export():
+    """reproduce's default configuration: paper sensing, Kalman estimator, observer leak."""
+    sc = rig_controller(_reproduce_params(), sensing=with_estimator(paper_sensing(), "kalman"))
+    return sc, load_module(generate_source(sc))
+
+
+def test_kalman_and_leak_exported_as_certified(kalman_export):
+    """The Kalman filter (gains, state) and the leak are in the export, not dropped."""
+    sc, mod = kalman_export
+    assert mod.VELOCITY == "kalman"
+    assert {"estimator.A", "estimator.B", "estimator.L", "gains.leak"} <= set(mod.DEFAULT_PARAMS)
+    assert mod.DEFAULT_PARAMS["gains.leak"][1] == [REPRODUCE_LEAK]
+    assert [k for k in mod.STATE_NAMES if k.startswith("estimator.")] == [
+        "estimator.q1", "estimator.dq1", "estimator.q2", "estimator.dq2", "estimator.d"]
+    assert "Kalman" in mod.CONFIG and "leak 0.2" in mod.CONFIG
+    ctrl = mod.Controller()
+    ctrl.step(0.0, 0.0, 0.0)
+    assert set(ctrl.state) == set(mod.STATE_NAMES)
+    # the filter's matrices belong to the exported model: a model override is refused by name
+    with pytest.raises(ValueError, match=r"model\.friction\.Fc.*Kalman"):
+        mod.Controller(params={"model.friction.Fc": 0.1})
+    mod.Controller(params={"gains.L1": 150.0})
+
+
+def test_parity_kalman_leak_under_paper_sensing(kalman_export):
+    """Closed loop under the paper's sensing (0.72 deg encoder, 12-bit DAC) with the Kalman
+    filter and the leak: the exported torques equal the JAX controller's to 1e-12, and the
+    DAC turns them into the loop's torques."""
+    sc, mod = kalman_export
+    r = check_parity(sc, mod, t_final=2.0)
+    assert np.ptp(r.tau_jax) > 1.0
+    assert r.max_abs_diff <= 1e-12, str(r)
+    assert r.applied_diff == 0.0, str(r)
+    assert r.eager_diff <= 1e-14, str(r)
+
+
+def test_parity_check_catches_a_dropped_estimator(kalman_export):
+    """The check can fail: the same law with dirty-derivative velocities (the estimator
+    dropped) is far from the certified controller in its own closed loop."""
+    sc, _ = kalman_export
+    dirty = rig_controller(_reproduce_params(), sensing=paper_sensing())
+    r = check_parity(sc, load_module(generate_source(dirty)), t_final=0.5)
+    assert r.max_abs_diff > 1e-3
+    assert not parity_ok(r)
+
+
+def test_reference_given_by_the_rig(kalman_export):
+    """step(t, q1, q2, ref=R) follows the rig's reference, not the recorded one: a controller
+    exported for the sinusoid, given the polynomial task's derivatives at each sample,
+    equals the JAX controller built for the polynomial task in its closed loop (to 1e-12
+    op by op, and within XLA's own drift -- JAX against itself compiled batched -- over the
+    run)."""
+    sc, mod = kalman_export
+    poly = rig_controller(_reproduce_params(), "polynomial",
+                          sensing=with_estimator(paper_sensing(), "kalman"))
+    r = check_parity(poly, mod, t_final=2.0, reference=True)
+    assert parity_ok(r) and r.eager_diff <= 1e-14, str(r)
+    assert r.max_abs_diff <= 4e-12, str(r)
+    ctrl = mod.Controller()  # without ref: the recorded sinusoid, another torque
+    tau = [ctrl.step(k * 1e-3, r.q1_meas[k, 0], r.q2_meas[k, 0]) for k in range(500)]
+    assert np.max(np.abs(np.array(tau) - r.tau_jax[:500, 0])) > 1e-2
+    ctrl = mod.Controller()
+    R = ctrl.reference_derivatives(0.3)
+    assert R.shape == (REFERENCE_ROWS, 1)
+    np.testing.assert_allclose(R[:, 0], np.asarray(
+        sc.controller.trajectory.derivatives(0.3, order=REFERENCE_ROWS - 1))[:, 0], rtol=1e-13)
+    with pytest.raises(ValueError, match="ref"):
+        ctrl.step(0.0, 0.0, 0.0, ref=[0.0, 0.0])
+
+
+@pytest.mark.parametrize("sensing", ["ideal", {"velocity": "exact", "q1_resolution": 1e-4}])
+def test_exact_velocity_refused_by_name(sensing, tmp_path, capsys):
+    """A controller section whose sensing gives the controller exact velocities (a rig
+    measures none) is refused naming controller.sensing.velocity, by the library and the
+    command line."""
+    p = paper_params().to_dict()
+    p["controller"] = {"sensing": sensing}
+    with pytest.raises(ExportError, match=r"controller\.sensing\.velocity"):
+        rig_controller(p)
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps(p))
+    from jaxflex.cli import main
+
+    assert main(["export", "--params", str(path), "--out", str(tmp_path / "c.py")]) == 2
+    assert "controller.sensing.velocity" in capsys.readouterr().err
+    assert not (tmp_path / "c.py").exists()
+
+
+def test_unknown_output_suffix_refused_by_name(tmp_path, capsys):
+    from jaxflex.cli import main
+
+    assert main(["export", "--out", str(tmp_path / "controller.cpp")]) == 2
+    err = capsys.readouterr().err
+    assert "'.cpp'" in err and ".py" in err and ".c" in err
+    assert not list(tmp_path.iterdir())
+
+
+def test_sampled_controller_of_a_bare_controller_is_the_old_export():
+    """A bare CascadeController exports as before: dirty derivative, no DAC, no estimator."""
+    from jaxflex.export import sampled_controller
+
+    sc = sampled_controller(build_controller())
+    assert isinstance(sc, SampledController) and sc.estimator is None
+    assert sc.sensing.velocity == "filtered" and sc.sensing.dac_bits == 0

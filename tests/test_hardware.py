@@ -234,6 +234,38 @@ def test_exported_controller_on_simulated_rig_matches_jax(tmp_path):
     assert log.N == 1500 and abs(log.dt - 1e-3) < 1e-12
 
 
+def test_rig_reference_drives_the_exported_controller(tmp_path):
+    """The rig gives the reference: a controller exported for the sinusoid, fed the
+    polynomial task's derivatives by the loop at each sample, reproduces the JAX closed loop
+    of the controller built for the polynomial task (lock-step, simulated rig)."""
+    import jax
+
+    from jaxflex.cli.run_loop import rig_reference
+    from jaxflex.sensing import Sensing
+    from jaxflex.simulate import simulate_sampled
+
+    jax.config.update("jax_enable_x64", True)
+    p = paper_params()
+    ctrl = load_module(generate_source(build_controller(p, "sinusoid"))).Controller()
+    poly = build_controller(p, "polynomial")
+    T = 1.0
+    R = rig_reference("polynomial", 1, poly.dt, T)
+    assert R.shape == (1001, 5, 1)
+    res = 2 * math.pi / 2**16
+    with SimulatedRig(p, poly.dt, q1_0=R[0, 0], resolution=(res, res / 50)) as rig:
+        out = run_loop(rig, ctrl, LoopConfig(duration=T, realtime=False, tau_limit=2.0),
+                       reference=R)
+    assert out.stop_reason == "completed" and out.samples == 1000
+    s = Sensing(q1_resolution=res, q2_resolution=res / 50, velocity="filtered")
+    r = eqx.filter_jit(lambda pl, cc, ss: simulate_sampled(pl, cc, T, sensing=ss))(
+        p.to_plant(), poly, s)
+    np.testing.assert_allclose(out.q1d, np.asarray(r.q1d), atol=1e-12)
+    np.testing.assert_allclose(out.tau, np.asarray(r.tau), atol=1e-9)
+    with pytest.raises(ValueError, match="reference"):
+        run_loop(FakeIO(_still), ctrl, LoopConfig(duration=T, realtime=False),
+                 reference=R[:10])
+
+
 @pytest.mark.slow
 def test_cli_run_loop_lockstep(tmp_path, capsys):
     from jaxflex.cli import main

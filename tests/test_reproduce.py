@@ -2,9 +2,11 @@
 
 import json
 
+import numpy as np
+
 from jaxflex.cli import main
 from jaxflex.params import load_params, save_params
-from jaxflex.presets import paper_params
+from jaxflex.presets import paper_params, paper_sensing
 
 
 def test_reproduce_cli_writes_results(tmp_path):
@@ -41,6 +43,24 @@ def test_reproduce_cli_writes_results(tmp_path):
         for f in e["figures"]:
             assert (out / f).stat().st_size > 1000
     assert (out / "sinusoid_torque_friction.png").stat().st_size > 1000
+    # every title names the estimator and the observer shown
+    title = res["experiments"]["sinusoid"]["title"]
+    assert "Kalman-filter velocities" in title and "leak 0.2 rad/s" in title
+    # the paper's own controller (no leak, dirty derivative) has its figure too
+    own = res["paper_own_observer"]
+    assert own["velocity"] == "filtered" and own["observer_leak"] == [0.0]
+    assert "dirty-derivative" in own["label"] and "no leak" in own["label"]
+    fig = own["experiments"]["sinusoid"]["figures"]
+    assert fig == ["sinusoid_paper_own_observer.png"]
+    assert (out / fig[0]).stat().st_size > 1000
+    # the configuration run is written as a parameter file that export follows
+    from jaxflex.export import describe, rig_controller
+
+    assert res["params_file"] == "params.json"
+    sc = rig_controller(out / "params.json")
+    assert sc.sensing.velocity == "kalman" and sc.estimator is not None
+    assert describe(sc).startswith("Kalman-filter velocities") and "leak 0.2" in describe(sc)
+    assert np.all(np.asarray(sc.sensing.q1_resolution) == np.asarray(paper_sensing().q1_resolution))
 
 
 def test_reproduce_cli_bad_params_file_is_a_clear_error(tmp_path, capsys):

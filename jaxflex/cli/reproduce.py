@@ -16,7 +16,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "reproduce",
         help="re-run the paper's tracking experiments (with/without friction compensation)",
         description="Re-run the paper's experiments (sinusoid, polynomial, fast motion; q2d "
-        "derivative options) in simulation and write PNG figures and DIR/results.json.",
+        "derivative options) in simulation and write PNG figures and DIR/results.json. Each "
+        "figure's title names the velocity estimator and the observer it shows; the paper's "
+        "own controller (its observer without leak, dirty-derivative velocities) is run "
+        "and plotted too (NAME_paper_own_observer.png).",
     )
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--params", help="parameter file (docs/spec.md section 7); default: the paper's")
@@ -64,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"{name:<12} {key.split('_')[0]:<13} {e['rms_error'][key]:>14.3e} "
                   f"{e['max_error'][key]:>14.3e} {e['tau_rms'][key]:>17.3f}")
     leak = res["config"]["observer_leak"]
-    print(f"observer leakage {leak} rad/s" + (" (the paper's observer)" if not any(leak) else ""))
+    print(f"observer leakage {leak} rad/s" + (" (the paper's observer)" if not any(leak) else "")
+          + f"; figures show {res['config']['label']}")
 
     def rest_lines(rest, label):
         for key in ("without_compensation", "with_compensation"):
@@ -86,5 +90,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {name:<12} RMS err {w['rms_error']:.3e} rad, max {w['max_error']:.3e} rad, "
                   f"{100 * w['saturation_fraction']:.0f}% of samples at the torque limit")
         rest_lines(po["rest"], " (paper's observer)")
-    print(f"\nwrote {args.out}/results.json and figures ({res['wall_time_s']:.0f} s)")
+    own = res.get("paper_own_observer")
+    if own:
+        print(f"the paper's own controller ({own['label']}), with compensation:")
+        for name, e in own["experiments"].items():
+            w = e["with_compensation"]
+            print(f"  {name:<12} RMS err {w['rms_error']:.3e} rad, max {w['max_error']:.3e} rad, "
+                  f"{100 * w['saturation_fraction']:.0f}% of samples at the torque limit")
+    print(f"\nwrote {args.out}/results.json, figures and {args.out}/params.json, the "
+          f"configuration run ({res['wall_time_s']:.0f} s); export it with: jaxflex export "
+          f"--params {args.out}/params.json --out controller.c")
     return 0

@@ -12,6 +12,8 @@ from jaxflex.presets import TRAJECTORIES
 
 EXAMPLE = ("jaxflex export --params tuned.json --out controller.py\n"
            "  jaxflex run-loop --controller controller.py --duration 5 --log run.csv\n"
+           "  jaxflex run-loop --controller controller.c --duration 5 --log run.csv "
+           "(compiled with cc)\n"
            "  (writes run.csv and run.summary.json, also after Ctrl-C or a fault)")
 # what run-loop reads from an exported controller module (jaxflex export)
 EXPORTED_NAMES: tuple[str, ...] = ("Controller", "DT", "Q2D_METHOD", "SPEC_MAP", "DEFAULT_PARAMS")
@@ -44,8 +46,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--params", help="the controller's parameter file (docs/spec.md section 7: model, "
                    "gains, 'controller' section) to export a controller from now; default: "
                    "the paper's. Not with --controller")
-    p.add_argument("--controller", help="exported controller file (jaxflex export); its gains "
-                   "and model are used as exported")
+    p.add_argument("--controller", help="exported controller file (jaxflex export): a .py "
+                   "file, or a .c file (compiled with the system's cc); its gains and model are "
+                   "used as exported")
     p.add_argument("--rig-params", help="the simulated rig's plant (docs/spec.md section 7, effects "
                    "included); default: the controller's own plant")
     p.add_argument("--duration", type=float, default=5.0, help="seconds (default 5)")
@@ -54,6 +57,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--log", required=True, help="output CSV log (docs/spec.md section 6)")
     p.add_argument("--trajectory", default=None, choices=TRAJECTORIES,
                    help="reference task when exporting now (default: the file's, else sinusoid)")
+    p.add_argument("--reference", default=None, choices=TRAJECTORIES,
+                   help="the rig's reference task, given to the controller at each step (q1d "
+                   "and its first four derivatives) instead of the trajectory it was exported "
+                   "with (default: the controller's own)")
     p.add_argument("--q2d", default=None, choices=["model", "filtered", "reference"],
                    help="q2d derivative method when exporting now (default: the file's, else "
                    "model)")
@@ -75,12 +82,35 @@ def summary_path(log: str) -> Path:
     return Path(log).with_suffix(".summary.json")
 
 
-def load_exported(path: str) -> types.ModuleType:
-    """Import an exported controller file, refusing (``ValueError``, naming the file and what
-    is wrong) one that does not compile, fails on import, or lacks what ``jaxflex export``
-    writes (``EXPORTED_NAMES``)."""
+def load_exported(path: str) -> Any:
+    """Import an exported controller file (a ``.py`` module, or a ``.c`` file compiled with
+    the system's C compiler and loaded through ctypes).
+
+    **Arguments:**
+
+    - ``path``: the file written by ``jaxflex export``.
+
+    **Returns:**
+
+    The module (or ``jaxflex.export.native.CModule``) with ``EXPORTED_NAMES``.
+
+    **Raises:**
+
+    ``ValueError`` naming the file and what is wrong: it does not compile, fails on import,
+    or lacks what ``jaxflex export`` writes; ``FileNotFoundError`` for a missing file.
+    """
     from jaxflex.export import load_module
 
+    if Path(path).suffix == ".c":
+        from jaxflex.export.native import load_c
+
+        if not Path(path).exists():
+            raise FileNotFoundError(f"controller file not found: {path}")
+        try:
+            mod = load_c(path)
+        except (RuntimeError, OSError, ValueError, KeyError) as e:
+            raise ValueError(f"controller file {path}: {e}") from None
+        return mod
     try:
         mod = load_module(path)
     except SyntaxError as e:
@@ -126,6 +156,32 @@ def exported_config(mod: types.ModuleType) -> ControllerConfig:
                             tau_max=float(tau) if tau is not None and math.isfinite(tau) else None)
 
 
+def rig_reference(name: str, n: int, period: float, duration: float) -> Any:
+    """The reference task ``name`` at every sample of a run, as the rig gives it to an
+    exported controller.
+
+    **Arguments:**
+
+    - ``name``: a trajectory of ``jaxflex.presets.TRAJECTORIES`` (one joint, broadcast to n).
+    - ``n``: joints; ``period`` [s]: the loop's period; ``duration`` [s]: the run's length.
+
+    **Returns:**
+
+    An array (samples, 5, n): q1d [rad] and its first four derivatives [rad/s^k].
+    """
+    import jax
+    import numpy as np
+
+    from jaxflex.export import REFERENCE_ROWS, broadcast_trajectory
+    from jaxflex.presets import trajectory_preset
+
+    with jax.enable_x64(True):
+        traj = trajectory_preset(name)
+        traj = broadcast_trajectory(traj, n) if n > 1 else traj
+        ts = np.arange(int(round(duration / period)) + 1) * period
+        return np.asarray(jax.jit(lambda t: traj.sample(t, order=REFERENCE_ROWS - 1))(ts))
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the loop; returns 0 when it completed, 1 when a protection stopped it."""
     import dataclasses
@@ -134,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from jaxflex.cli.outputs import check_outputs
-    from jaxflex.export import build_controller, generate_source, load_module
+    from jaxflex.export import generate_source, load_module, rig_controller
     from jaxflex.hardware import LoopConfig, SimulatedRig, run_loop
     from jaxflex.params import Params, load_params
     from jaxflex.presets import controller_config, paper_params
@@ -161,8 +217,9 @@ def run(args: argparse.Namespace) -> int:
         own = load_params(args.params) if args.params else paper_params()
         cfg = controller_config(own, given, CONTROLLER_FLAGS,
                                 source=args.params or "the paper's parameters")
-        c = build_controller(own, cfg.trajectory_name, q2d_method=cfg.q2d_method, dt=cfg.dt,
-                             tau_max=cfg.tau_max, compensation=cfg.compensation)
+        # the certified controller: the file's velocity source (Kalman filter included)
+        c = rig_controller(own, cfg.trajectory_name, q2d_method=cfg.q2d_method, dt=cfg.dt,
+                           tau_max=cfg.tau_max, compensation=cfg.compensation)
         ctrl = load_module(generate_source(c)).Controller()
     rig_params = load_params(args.rig_params) if args.rig_params else own
     loop = LoopConfig(rate=1.0 / cfg.dt, duration=args.duration, tau_limit=cfg.tau_max,
@@ -171,11 +228,14 @@ def run(args: argparse.Namespace) -> int:
     if ctrl.n != rig_params.n:
         raise ValueError(f"controller is for {ctrl.n} joint(s), the rig has {rig_params.n}")
     res = 2 * math.pi / 2**args.encoder_bits if args.encoder_bits > 0 else 0.0
-    q1_0 = ctrl.reference(0.0)
+    reference = None
+    if args.reference is not None:
+        reference = rig_reference(args.reference, ctrl.n, loop.period, args.duration)
+    q1_0 = ctrl.reference(0.0) if reference is None else reference[0, 0]
     with SimulatedRig(rig_params, loop.period, q1_0=q1_0, resolution=(res, res / 50.0)) as rig:
         print(f"[run-loop] rig ready; running {args.duration:g} s at {loop.rate:g} Hz "
               "(Ctrl-C stops at zero torque and writes the log)", file=sys.stderr, flush=True)
-        out = run_loop(rig, ctrl, loop, log_path=args.log)
+        out = run_loop(rig, ctrl, loop, log_path=args.log, reference=reference)
     summ = out.timing_summary()
     err = None
     if out.q1d is not None and out.samples:

@@ -1,14 +1,20 @@
-"""Export the cascade controller to a standalone numpy/standard-library Python module.
+"""Export the certified controller to standalone Python (numpy) or C99.
 
-The single source of truth is ``jaxflex.controller.CascadeController``: its ``init`` and
-``step`` (velocity estimation by dirty derivatives, friction observer eq. 18-22, q2d and its
-derivatives, cascade law eq. 9-16, saturation) are traced with ``jax.make_jaxpr`` and the
-jaxpr is translated into straight-line Python (``jaxflex.export.translate``), so that a change
-to the JAX controller changes the export. The generated file defines ``class Controller`` with
-``reset()`` and ``step(t, q1, q2) -> tau`` and imports no JAX.
+The single source of truth is the JAX controller as the sampled-data loop runs it
+(``SampledController``: ``jaxflex.controller.CascadeController`` with its configuration's
+velocity source -- the dirty derivative, or the Kalman filter of ``jaxflex.estimator`` with
+its state and the DAC it predicts through -- observer leak, q2d method, torque limit, n
+joints). Its ``init`` and ``step`` are traced once with ``jax.make_jaxpr``
+(``codegen.trace``) and the jaxprs are translated by one translator with two dialects
+(``jaxflex.export.translate``): straight-line Python (``codegen.generate_source``) and C99
+(``cgen.generate_c``; ``native`` compiles and loads it through ctypes). A change to the JAX
+controller changes both exports. Both also take the reference from the rig at each step
+(q1d and its first four derivatives) besides following the recorded trajectory.
 
-``check_parity`` closes the sampled-data loop in JAX (``simulate_sampled`` with quantised
-encoders and controller-side velocity estimation), feeds the recorded measured angles to the
+``rig_controller`` builds the controller a parameter file's ``controller`` section
+certifies and refuses, naming the entry, what the export cannot run (``ExportError``).
+``check_parity`` closes the sampled-data loop in JAX under the configuration's own sensing
+(``simulate_sampled``: quantised, noisy encoders, DAC), feeds the sensed angles to the
 exported controller and returns the largest torque difference.
 """
 
@@ -25,12 +31,26 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.export.codegen import generate_source
+from jaxflex.export.codegen import Traced, generate_source, trace
+from jaxflex.export.program import (
+    REFERENCE_ROWS,
+    ExportError,
+    SampledController,
+    check_exportable,
+    describe,
+    describe_sensing,
+    parity_sensing,
+    rig_controller,
+    sampled_controller,
+)
 from jaxflex.export.translate import UnsupportedPrimitive
 
 __all__ = [
-    "ParityResult", "UnsupportedPrimitive", "build_controller", "check_parity",
-    "export_controller", "parity_ok", "generate_source", "load_module", "parity_sensing",
+    "ExportError", "ParityResult", "REFERENCE_ROWS", "SampledController", "Traced",
+    "UnsupportedPrimitive", "broadcast_trajectory", "build_controller", "check_exportable",
+    "check_parity", "describe", "describe_sensing", "export_controller", "generate_source",
+    "load_module", "parity_ok", "parity_sensing", "rig_controller", "sampled_controller",
+    "trace",
 ]
 
 
@@ -83,7 +103,7 @@ def build_controller(
     if q.shape[-1] != n:
         if q.shape[-1] != 1:
             raise ValueError(f"trajectory is for {q.shape[-1]} joints, parameters for {n}")
-        traj = _broadcast_trajectory(traj, n)
+        traj = broadcast_trajectory(traj, n)
     return CascadeController(
         model=params.to_plant(with_effects=False), gains=params.to_gains(), trajectory=traj,
         compensation=cfg.compensation, q2d_method=cfg.q2d_method, dt=cfg.dt,
@@ -91,7 +111,22 @@ def build_controller(
     )
 
 
-def _broadcast_trajectory(traj: Any, n: int):
+def broadcast_trajectory(traj: Any, n: int) -> Any:
+    """A one-joint reference task for n joints (every joint the same motion).
+
+    **Arguments:**
+
+    - ``traj``: a one-joint ``Sinusoid`` or ``RestToRest``.
+    - ``n``: joints.
+
+    **Returns:**
+
+    The trajectory with every array leaf of shape (n,) (waypoints (k, n)).
+
+    **Raises:**
+
+    ``ValueError`` for another trajectory type.
+    """
     import jax
 
     from jaxflex.trajectory import RestToRest, Sinusoid
@@ -122,10 +157,22 @@ def load_module(source_or_path: str | os.PathLike, name: str = "jaxflex_exported
     return mod
 
 
-def export_controller(controller: Any, path: str | os.PathLike, description: str = "") -> str:
-    """Generate the standalone module for ``controller`` and write it to ``path`` (atomic);
-    returns the source."""
-    src = generate_source(controller, description=description)
+def export_controller(controller: Any, path: str | os.PathLike, description: str = "",
+                      traced: Traced | None = None) -> str:
+    """Write the Python export of ``controller`` to ``path`` (atomically).
+
+    **Arguments:**
+
+    - ``controller``: a ``SampledController`` (``rig_controller``) or a ``CascadeController``.
+    - ``path``: the ``.py`` file to write.
+    - ``description``: the module docstring's first line.
+    - ``traced``: the programs already traced (``trace``).
+
+    **Returns:**
+
+    The source.
+    """
+    src = generate_source(controller, description=description, traced=traced)
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(src)
@@ -133,25 +180,25 @@ def export_controller(controller: Any, path: str | os.PathLike, description: str
     return src
 
 
-def parity_sensing():
-    """Sensing of the parity run: the rig's 16-bit encoders (``jaxflex.presets.rig_sensing``),
-    velocities estimated by the controller, no DAC (torques are compared before it)."""
-    from jaxflex.presets import rig_sensing
-
-    return rig_sensing(dac_bits=0)
-
-
 @dataclass
 class ParityResult:
     """Exported vs JAX torques over one closed-loop run.
 
-    ``max_abs_diff`` [N m]: largest |tau_export - tau_jax| against the jitted closed loop.
-    At the ``worst`` samples (largest differences) the JAX step is also evaluated op by op
-    (``jax.disable_jit``) from the JAX controller's state: ``eager_diff`` is the largest
-    |exported - JAX op by op| there (the export's own error) and ``jit_floor`` the largest
-    |JAX op by op - JAX jitted| (what XLA's compilation -- fusion, its own exp/expm1 -- changes,
-    amplified by the law's sensitivity). Also the torque series (N, n), the measured angles fed
-    to both, and the run's RMS tracking error [rad].
+    ``max_abs_diff`` [N m]: largest |tau_export - tau_jax| of the commanded torques, against
+    the jitted closed loop (``tau_jax``: its torques, or where the sensing has a DAC, the
+    commands of the jitted controller replayed on the loop's angles, which the DAC turns
+    into the loop's torques). ``applied_diff`` [N m]: largest difference of the torques
+    after the DAC against the loop's. At the ``worst`` samples (largest differences) the
+    JAX step is also evaluated op by op (``jax.disable_jit``) from the JAX controller's
+    state: ``eager_diff`` is the largest |exported - JAX op by op| there (the export's own
+    error) and ``jit_floor`` the largest |JAX op by op - JAX jitted| (what XLA's compilation
+    -- fusion, its own exp/expm1 -- changes, amplified by the law's sensitivity).
+    ``jit_drift`` [N m]: the largest difference of the JAX controller against itself over
+    the run, compiled once as one loop and once batched (``vmap``, as sweeps run it): what
+    XLA's choices (fused multiply-adds, order of sums) change, carried by the filter and
+    observer states from sample to sample, the floor of any re-implementation. Also the
+    torque series (N, n), the measured angles fed to both, the run's RMS tracking error
+    [rad] and what was run (``config``).
     """
 
     max_abs_diff: float
@@ -163,95 +210,192 @@ class ParityResult:
     q1_meas: np.ndarray
     q2_meas: np.ndarray
     rms_error: float
+    applied_diff: float = 0.0
+    jit_drift: float = 0.0
+    config: str = ""
 
     def __str__(self) -> str:
-        return (f"parity over {self.tau_jax.shape[0]} samples: largest |tau_export - tau_jax| = "
-                f"{self.max_abs_diff:.3e} N m; at the {self.worst.size} worst samples exported vs "
-                f"JAX op-by-op {self.eager_diff:.3e} N m, JAX op-by-op vs JAX jit "
-                f"{self.jit_floor:.3e} N m (tau range {np.min(self.tau_jax):.3f} .. "
+        return (f"parity over {self.tau_jax.shape[0]} samples ({self.config}): largest "
+                f"|tau_export - tau_jax| = {self.max_abs_diff:.3e} N m (after the DAC "
+                f"{self.applied_diff:.3e} N m); at the {self.worst.size} worst samples "
+                f"exported vs JAX op-by-op {self.eager_diff:.3e} N m, JAX op-by-op vs JAX jit "
+                f"{self.jit_floor:.3e} N m; JAX against itself batched {self.jit_drift:.3e} "
+                f"N m (tau range {np.min(self.tau_jax):.3f} .. "
                 f"{np.max(self.tau_jax):.3f} N m; RMS tracking error {self.rms_error:.3e} rad)")
 
 
 def check_parity(
-    controller: Any, module: types.ModuleType | None = None, *, t_final: float = 10.0,
+    controller: Any, module: Any = None, *, t_final: float = 10.0,
     plant: Any = None, sensing: Any = None, seed: int = 0, n_worst: int = 10,
+    reference: bool = False,
 ) -> ParityResult:
-    """Closed loop in JAX (``simulate_sampled``, ``plant`` defaults to the controller's model),
-    then the exported controller (``module``, generated if None) on the recorded measured
-    angles; returns the largest torque difference (before any DAC, docs/spec.md: 1e-12 in float64)
-    and, at the ``n_worst`` worst samples, the comparison with JAX evaluated op by op."""
-    import equinox as eqx
+    """Run the closed loop in JAX, then the exported controller on its sensed angles.
+
+    **Arguments:**
+
+    - ``controller``: a ``SampledController`` (run under its own sensing) or a
+      ``CascadeController`` (run under ``sensing``, default ``parity_sensing``).
+    - ``module``: the exported controller (a Python module from ``load_module``, or a C
+      library from ``jaxflex.export.native.load_c``); None: the Python export, generated.
+    - ``t_final`` [s]: length of the run; ``plant``: the true plant (default the
+      controller's model); ``seed``: the encoders' noise; ``n_worst``: samples evaluated op
+      by op.
+    - ``reference``: give the exported controller the reference at each sample (its
+      ``ref`` input: q1d and four derivatives, as the loop hands them to the JAX controller)
+      instead of letting it evaluate the recorded one.
+
+    **Returns:**
+
+    A ``ParityResult`` (docs/spec.md: 1e-12 N m in float64).
+
+    **Raises:**
+
+    ``ValueError`` when a ``SampledController`` is given a ``sensing`` (its own is run);
+    ``ExportError`` for a configuration the export cannot run.
+    """
     import jax
 
-    from jaxflex.simulate import simulate_sampled
-
+    if isinstance(controller, SampledController) and sensing is not None:
+        raise ValueError("check_parity: a SampledController runs under its own sensing; build "
+                         "it for another one with rig_controller(..., sensing=...)")
     with jax.enable_x64(True):
+        sc = sampled_controller(controller, sensing)
         if module is None:
-            module = load_module(generate_source(controller))
-        plant = controller.model if plant is None else plant
-        sensing = parity_sensing() if sensing is None else sensing
-        if sensing.dac_bits:
-            raise ValueError("check_parity: use a sensing without DAC (torques are compared before it)")
-        sim = eqx.filter_jit(
-            lambda p, c, s, k: simulate_sampled(p, c, t_final, sensing=s, key=k)
-        )
-        r = sim(plant, controller, sensing, jax.random.PRNGKey(seed))
-        tau_jax = np.asarray(r.tau)
+            module = load_module(generate_source(sc))
+        plant = sc.controller.model if plant is None else plant
+        r = _closed_loop(plant, sc.controller, sc.sensing, jax.random.PRNGKey(seed),
+                         float(t_final))
         q1m, q2m, ts = np.asarray(r.q1_meas), np.asarray(r.q2_meas), np.asarray(r.t)
         rms = float(np.sqrt(np.mean(np.asarray(r.e1) ** 2)))
-        states, _ = _replay(controller, ts, q1m, q2m)
+        refs = np.asarray(_reference_samples(sc.controller.trajectory, ts))
+        states, tau_cmd = _replay(sc, ts, q1m, q2m, refs if reference else None)
+        _, tau_batched = _replay(sc, ts, q1m, q2m, refs if reference else None, batch=2)
+        jit_drift = float(np.max(np.abs(tau_batched - tau_cmd)))
+        tau_loop = np.asarray(r.tau)
+        tau_jax = tau_loop if not sc.sensing.dac_bits else tau_cmd
     ctrl = module.Controller()
     ctrl.reset()
     n = tau_jax.shape[1]
     tau_np = np.empty_like(tau_jax)
     for k in range(ts.shape[0]):
+        ref = refs[k] if reference else None
         if n == 1:
-            tau_np[k, 0] = ctrl.step(float(ts[k]), float(q1m[k, 0]), float(q2m[k, 0]))
+            tau_np[k, 0] = ctrl.step(float(ts[k]), float(q1m[k, 0]), float(q2m[k, 0]), ref=ref)
         else:
-            tau_np[k] = ctrl.step(ts[k], q1m[k], q2m[k])
+            tau_np[k] = ctrl.step(ts[k], q1m[k], q2m[k], ref=ref)
+    with jax.enable_x64(True):
+        applied = np.asarray(sc.sensing.dac(jax.numpy.asarray(tau_np)))
     per = np.max(np.abs(tau_np - tau_jax), axis=1)
-    diff = float(np.max(per)) if np.all(np.isfinite(tau_jax)) else math.inf
+    finite = np.all(np.isfinite(tau_jax))
+    diff = float(np.max(per)) if finite else math.inf
+    applied_diff = float(np.max(np.abs(applied - tau_loop))) if finite else math.inf
     worst = np.argsort(per)[::-1][:n_worst]
     eager_diff = floor = 0.0
+    names = getattr(module, "STATE_NAMES", None)
+    if names is not None and len(names) != len(states):
+        # an export of another configuration (another state): no step from JAX's state
+        worst, eager_diff, floor = worst[:0], math.inf, math.inf
     with jax.enable_x64(True), jax.disable_jit():
-        st_def = jax.tree_util.tree_structure(controller.init(0.0, q1m[0], q2m[0]))
+        st_def = jax.tree_util.tree_structure(sc.init(0.0, q1m[0], q2m[0]))
         for k in worst:
             st = jax.tree_util.tree_unflatten(st_def, [np.asarray(x[k]) for x in states])
-            _, out = controller.step(st, ts[k], q1m[k], q2m[k])
-            tau_e = np.asarray(out.tau)
             S = tuple(float(v) for x in states for v in np.ravel(x[k]))
-            _, tau_x = ctrl._step(S, float(ts[k]), *map(float, q1m[k]), *map(float, q2m[k]))
+            qs = [*map(float, q1m[k]), *map(float, q2m[k])]
+            if reference:
+                _, out = sc.with_reference(refs[k], ts[k]).step(st, ts[k], q1m[k], q2m[k])
+                _, tau_x = ctrl._step_ref(S, float(ts[k]), *qs, *map(float, refs[k].ravel()))
+            else:
+                _, out = sc.step(st, ts[k], q1m[k], q2m[k])
+                _, tau_x = ctrl._step(S, float(ts[k]), *qs)
+            tau_e = np.asarray(out.tau)
             eager_diff = max(eager_diff, float(np.max(np.abs(np.asarray(tau_x) - tau_e))))
             floor = max(floor, float(np.max(np.abs(tau_e - tau_jax[k]))))
-    return ParityResult(diff, eager_diff, floor, worst, tau_jax, tau_np, q1m, q2m, rms)
+    config = (f"{describe(sc)}; under {describe_sensing(sc.sensing)}"
+              + ("; reference given at each sample" if reference else ""))
+    return ParityResult(diff, eager_diff, floor, worst, tau_jax, tau_np, q1m, q2m, rms,
+                        applied_diff, jit_drift, config)
 
 
 def parity_ok(result: ParityResult, tol: float = 1e-12, floor_factor: float = 4.0) -> bool:
-    """The check's verdict: the largest difference is within ``tol`` [N m]; or the export
-    equals JAX op by op to ``tol`` at the worst samples and the difference is within
-    ``floor_factor`` times what XLA's compilation itself changes there."""
+    """The check's verdict.
+
+    **Arguments:**
+
+    - ``result``: a ``check_parity`` result.
+    - ``tol`` [N m]: the parity tolerance (docs/spec.md: 1e-12).
+    - ``floor_factor``: how far above XLA's own floor the difference may be.
+
+    **Returns:**
+
+    True when the largest difference is within ``tol``; or when the export equals JAX op by
+    op to ``tol`` at the worst samples and the difference is within ``floor_factor`` times
+    what XLA's compilation itself changes (``jit_floor`` at those samples, ``jit_drift``
+    over the run).
+    """
     d = result.max_abs_diff
-    return bool(d <= tol or (result.eager_diff <= tol and d <= floor_factor * result.jit_floor))
+    floor = max(result.jit_floor, result.jit_drift)
+    return bool(d <= tol or (result.eager_diff <= tol and d <= floor_factor * floor))
 
 
-def _replay(controller: Any, ts: np.ndarray, q1m: np.ndarray, q2m: np.ndarray):
-    """The JAX controller alone (init + step in a ``lax.scan``) on recorded angles: the state
-    leaves before each sample and the torques."""
+def _closed_loop(plant: Any, controller: Any, sensing: Any, key: Any, t_final: float):
+    """The jitted sampled-data loop of the parity run (compiled once per configuration)."""
+    return _jitted()["loop"](plant, controller, sensing, key, t_final)
+
+
+def _reference_samples(trajectory: Any, ts: np.ndarray) -> Any:
+    """q1d and its first four derivatives at every sample time, (N, 5, n)."""
+    return _jitted()["refs"](trajectory, ts)
+
+
+def _replay(sc: SampledController, ts: np.ndarray, q1m: np.ndarray, q2m: np.ndarray,
+            refs: np.ndarray | None = None, batch: int = 0):
+    """The JAX controller alone (init + step in a ``lax.scan``) on recorded angles (and, if
+    given, the reference at each sample): the state leaves before each sample and the
+    commanded torques. ``batch`` > 0: the same run ``batch`` times under ``vmap`` (another
+    compilation of the same program; the first copy is returned)."""
+    fns = _jitted()
+    if batch:
+        tile = lambda a: None if a is None else np.stack([a] * batch)
+        fn = fns["replay_batched"] if refs is None else fns["replay_batched_ref"]
+        states, taus = fn(sc, ts, tile(q1m), tile(q2m), tile(refs))
+        return [np.asarray(x[0]) for x in states], np.asarray(taus[0])
+    states, taus = fns["replay"](sc, ts, q1m, q2m, refs)
+    return [np.asarray(x) for x in states], np.asarray(taus)
+
+
+_JITTED: dict[str, Any] = {}
+
+
+def _jitted() -> dict[str, Any]:
+    """The parity run's compiled functions, made once (JAX is imported on first use)."""
+    if _JITTED:
+        return _JITTED
     import equinox as eqx
     import jax
 
-    @eqx.filter_jit
-    def go(c, ts, q1m, q2m):
-        st0 = c.init(ts[0], q1m[0], q2m[0])
+    from jaxflex.simulate import REFERENCE_ORDER, simulate_sampled
+
+    def replay(c, ts, q1m, q2m, refs):
+        at = (lambda t, R: c) if refs is None else (lambda t, R: c.with_reference(R, t))
+        st0 = at(ts[0], None if refs is None else refs[0]).init(ts[0], q1m[0], q2m[0])
 
         def body(st, inp):
-            new, out = c.step(st, *inp)
+            t, q1, q2, R = inp
+            new, out = at(t, R).step(st, t, q1, q2)
             return new, (jax.tree_util.tree_leaves(st), out.tau)
 
-        return jax.lax.scan(body, st0, (ts, q1m, q2m))[1]
+        rs = ts if refs is None else refs  # a placeholder when no reference is given
+        return jax.lax.scan(body, st0, (ts, q1m, q2m, rs))[1]
 
-    states, taus = go(controller, ts, q1m, q2m)
-    return [np.asarray(x) for x in states], np.asarray(taus)
+    _JITTED.update(
+        loop=eqx.filter_jit(lambda p, c, s, k, T: simulate_sampled(p, c, T, sensing=s, key=k)),
+        refs=eqx.filter_jit(lambda tr, ts: jax.vmap(
+            lambda t: tr.derivatives(t, order=REFERENCE_ORDER))(ts)),
+        replay=eqx.filter_jit(replay),
+        replay_batched=eqx.filter_jit(eqx.filter_vmap(replay, in_axes=(None, None, 0, 0, None))),
+        replay_batched_ref=eqx.filter_jit(eqx.filter_vmap(replay, in_axes=(None, None, 0, 0, 0))),
+    )
+    return _JITTED
 
 
 def main_check(argv: list[str] | None = None) -> int:  # pragma: no cover - convenience

@@ -1,11 +1,14 @@
-"""Write the standalone controller module from traced ``CascadeController`` functions.
+"""Trace the controller once and write the standalone Python module from its programs.
 
-Three functions of the controller are traced with ``jax.make_jaxpr`` for fixed shapes (n
-joints): ``init`` (filter and observer state at the first sample), ``step`` (one sample:
-velocity estimation, observer, q2d derivatives, cascade law, saturation) and the reference
-``trajectory.position``. Every array leaf of the controller (model, LuGre, gains, reference,
-filter constants, torque limit) is a jaxpr *input*, so the generated module can be rebuilt
-with other values; the traced values are written into it as defaults.
+``trace`` runs ``jax.make_jaxpr`` on the functions of a ``SampledController`` for fixed
+shapes (n joints): ``init`` (filters, Kalman filter and observer state at the first
+sample), ``step`` (one sample: velocity source, observer, q2d derivatives, cascade law,
+saturation), their variants with the reference given (``init_ref``, ``step_ref``) and the
+recorded reference (``reference``, ``reference_derivatives``). Every array leaf of the
+controller (model, LuGre, gains, reference, filter constants, Kalman gains, torque limit) is
+a jaxpr *input*. ``generate_source`` translates the programs into Python, where the leaves
+stay parameters (the module can be rebuilt with other values; the traced ones are its
+defaults); ``jaxflex.export.cgen`` translates the same programs into C.
 """
 
 from __future__ import annotations
@@ -22,7 +25,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.controller import CascadeController
+from jaxflex.export.program import (
+    REFERENCE_ROWS,
+    SampledController,
+    describe,
+    sampled_controller,
+)
 from jaxflex.export.translate import (
+    PYTHON,
+    Dialect,
     Program,
     Sym,
     Translator,
@@ -30,9 +41,10 @@ from jaxflex.export.translate import (
     format_atom,
     sym_array,
 )
+from jaxflex.simulate import REFERENCE_ORDER
 
-# docs/spec.md section 7 entries -> controller leaf names
-_SPEC_MAP: dict[str, str] = {
+# docs/spec.md section 7 entries -> controller leaf names (the model the rig's plant defaults to)
+SPEC_ENTRIES: dict[str, str] = {
     "plant.I": "model.links.I", "plant.J": "model.J", "plant.K": "model.K",
     **{f"friction.{k}": f"model.friction.{k}" for k in ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")},
     **{f"gains.{k}": f"gains.{k}" for k in ("Ke", "KD1", "KD2", "kv", "L1", "L2")},
@@ -43,10 +55,10 @@ _SPEC_MAP: dict[str, str] = {
 class _Leaves:
     names: list[str]
     values: list[np.ndarray]
-    rebuild: Callable[[list[Any]], CascadeController]
+    rebuild: Callable[[list[Any]], Any]
 
 
-def _leaves(controller: CascadeController) -> _Leaves:
+def _leaves(controller: Any) -> _Leaves:
     dyn, static = eqx.partition(controller, eqx.is_array)
     flat, treedef = jax.tree_util.tree_flatten_with_path(dyn)
     names = [jax.tree_util.keystr(path).lstrip(".") for path, _ in flat]
@@ -154,124 +166,301 @@ def _literal(v: float) -> str:
     return repr(float(v))
 
 
-def generate_source(controller: CascadeController, *, description: str = "") -> str:
-    """Python source of a standalone module (numpy and the standard library only) that
-    computes exactly what ``controller.init`` / ``controller.step`` compute.
+@dataclass
+class Traced:
+    """The traced programs of one ``SampledController`` (shared by every back end).
 
-    Needs float64 (the exporter turns it on while tracing). Raises ``UnsupportedPrimitive``
-    (a ``ValueError``) naming a primitive it cannot translate.
+    ``jaxprs``: name -> (ClosedJaxpr, signal inputs as (name, shape) pairs), for ``init``
+    (t, q1, q2), ``step`` (state, t, q1, q2), ``init_ref`` and ``step_ref`` (the same with
+    the reference R given), ``reference`` (t -> q1d) and ``reference_derivatives``
+    (t -> R); the controller's array leaves (``names``, ``values``) come first in each.
+    """
+
+    sc: SampledController
+    names: list[str]
+    values: list[np.ndarray]
+    state_names: list[str]
+    state_sizes: list[int]
+    jaxprs: dict[str, tuple[Any, list[tuple[str, tuple[int, ...]]]]]
+
+    @property
+    def n(self) -> int:
+        """Number of joints."""
+        return self.sc.n
+
+    @property
+    def n_state(self) -> int:
+        """Number of state values (every leaf's size)."""
+        return sum(self.state_sizes)
+
+
+def trace(controller: CascadeController | SampledController) -> Traced:
+    """Trace the programs of a controller once, in float64, for every back end.
+
+    **Arguments:**
+
+    - ``controller``: a ``SampledController``, or a ``CascadeController`` (run with the
+      dirty derivative and no DAC, ``jaxflex.export.sampled_controller``).
+
+    **Returns:**
+
+    The ``Traced`` programs.
+
+    **Raises:**
+
+    ``ExportError`` for a configuration the export cannot run.
     """
     with jax.enable_x64(True):
-        return _generate(controller, description)
+        return _trace(sampled_controller(controller))
 
 
-def _generate(controller: CascadeController, description: str) -> str:
-    n = controller.model.n
-    lv = _leaves(controller)
+def _trace(sc: SampledController) -> Traced:
+    n = sc.n
+    lv = _leaves(sc)
     f64 = jnp.float64
     leaves = [jnp.asarray(v, f64) for v in lv.values]
-    param_syms = [sym_array(f"p{i}", v.shape, True) for i, v in enumerate(lv.values)]
-    param_args = [f"p{i}_{k}" for i, v in enumerate(lv.values) for k in range(v.size)]
     zeros = jnp.zeros(n, f64)
-    state0 = controller.init(0.0, zeros, zeros)
-    st_leaves, st_def = jax.tree_util.tree_flatten(state0)
-    st_syms = [sym_array(f"s{i}", tuple(x.shape), False) for i, x in enumerate(st_leaves)]
-    t_sym = np.array(Sym("t", False), dtype=object).reshape(())
-    q1_syms = sym_array("q1", (n,), False)
-    q2_syms = sym_array("q2", (n,), False)
-    q_args = [f"q1_{k}" for k in range(n)] + [f"q2_{k}" for k in range(n)]
-    state_args = [f"s{i}_{k}" for i, x in enumerate(st_leaves) for k in range(int(np.size(x)))]
+    state0 = sc.init(0.0, zeros, zeros)
+    flat, st_def = jax.tree_util.tree_flatten_with_path(state0)
+    st_leaves = [x for _, x in flat]
+    state_names = [jax.tree_util.keystr(path).lstrip(".") for path, _ in flat]
+    t0 = jnp.asarray(0.0, f64)
+    R0 = jnp.zeros((REFERENCE_ROWS, n), f64)
+    k = len(leaves)
+
+    def rebuild(args):
+        return lv.rebuild(list(args[:k]))
+
+    def state_of(args):
+        return jax.tree_util.tree_unflatten(st_def, list(args[k:k + len(st_leaves)]))
 
     def step_fn(*args):
-        k = len(leaves)
-        c = lv.rebuild(list(args[:k]))
-        st = jax.tree_util.tree_unflatten(st_def, list(args[k:k + len(st_leaves)]))
         t, q1, q2 = args[k + len(st_leaves):]
-        new, out = c.step(st, t, q1, q2)
+        new, out = rebuild(args).step(state_of(args), t, q1, q2)
+        return jax.tree_util.tree_leaves(new), out.tau
+
+    def step_ref_fn(*args):
+        t, q1, q2, R = args[k + len(st_leaves):]
+        new, out = rebuild(args).with_reference(R, t).step(state_of(args), t, q1, q2)
         return jax.tree_util.tree_leaves(new), out.tau
 
     def init_fn(*args):
-        k = len(leaves)
-        c = lv.rebuild(list(args[:k]))
         t, q1, q2 = args[k:]
-        return jax.tree_util.tree_leaves(c.init(t, q1, q2))
+        return jax.tree_util.tree_leaves(rebuild(args).init(t, q1, q2))
+
+    def init_ref_fn(*args):
+        t, q1, q2, R = args[k:]
+        return jax.tree_util.tree_leaves(rebuild(args).with_reference(R, t).init(t, q1, q2))
 
     def ref_fn(*args):
-        k = len(leaves)
-        c = lv.rebuild(list(args[:k]))
-        return c.trajectory.position(args[k])
+        return rebuild(args).controller.trajectory.position(args[k])
 
-    t0 = jnp.asarray(0.0, f64)
-    step_prog = _translate(step_fn, [*leaves, *st_leaves, t0, zeros, zeros],
-                           [*param_syms, *st_syms, t_sym, q1_syms, q2_syms], "v")
-    init_prog = _translate(init_fn, [*leaves, t0, zeros, zeros],
-                           [*param_syms, t_sym, q1_syms, q2_syms], "v")
-    ref_prog = _translate(ref_fn, [*leaves, t0], [*param_syms, t_sym], "v")
+    def ref_derivs_fn(*args):
+        return rebuild(args).controller.trajectory.derivatives(args[k], order=REFERENCE_ORDER)
 
-    n_state = len(state_args)
-    new_state = [format_atom(a) for a in step_prog.outputs[:n_state]]
-    tau = [format_atom(a) for a in step_prog.outputs[n_state:]]
-    init_state = [format_atom(a) for a in init_prog.outputs]
-    ref = [format_atom(a) for a in ref_prog.outputs]
+    S = [(f"s{i}", tuple(x.shape)) for i, x in enumerate(st_leaves)]
+    tq = [("t", ()), ("q1", (n,)), ("q2", (n,))]
+    r = [("r", (REFERENCE_ROWS, n))]
+    specs = {
+        "init": (init_fn, tq), "step": (step_fn, S + tq),
+        "init_ref": (init_ref_fn, tq + r), "step_ref": (step_ref_fn, S + tq + r),
+        "reference": (ref_fn, [("t", ())]), "reference_derivatives": (ref_derivs_fn, [("t", ())]),
+    }
+    jaxprs = {}
+    for name, (fn, sig) in specs.items():
+        examples = [*leaves, *[jnp.zeros(shape, f64) for _, shape in sig]]
+        jaxprs[name] = (jax.make_jaxpr(fn)(*examples), sig)
+    # the law's constants keep the names of the bare controller ("gains.L1"); the
+    # estimator's and the DAC's are "estimator.L", "sensing.dac_range"
+    names = [nm.removeprefix("controller.") for nm in lv.names]
+    return Traced(sc, names, lv.values, state_names,
+                  [int(np.size(x)) for x in st_leaves], jaxprs)
+
+
+def _signal_syms(sig: list[tuple[str, tuple[int, ...]]]) -> list[np.ndarray]:
+    out = []
+    for name, shape in sig:
+        if shape == ():
+            out.append(np.array(Sym(name, False), dtype=object).reshape(()))
+        else:
+            out.append(sym_array(name, shape, False))
+    return out
+
+
+def _signal_args(sig: list[tuple[str, tuple[int, ...]]]) -> list[str]:
+    return [name if shape == () else f"{name}_{i}"
+            for name, shape in sig for i in range(int(np.prod(shape, dtype=int)))]
+
+
+def translate_program(tr: Traced, name: str, param_inputs: list[np.ndarray],
+                      dialect: Dialect = PYTHON) -> Program:
+    """Translate one traced program of ``tr`` into ``dialect``.
+
+    **Arguments:**
+
+    - ``tr``: the traced programs (``trace``).
+    - ``name``: which one ("init", "step", "init_ref", "step_ref", "reference",
+      "reference_derivatives").
+    - ``param_inputs``: the controller's leaves as atoms (``sym_array`` symbols to keep
+      them parameters, ``const_array`` of their values to fold them into the code).
+    - ``dialect``: the back end's spelling (``PYTHON`` or ``C99``).
+
+    **Returns:**
+
+    The ``Program`` (hoisted and per-sample statements, outputs).
+
+    **Raises:**
+
+    ``UnsupportedPrimitive`` naming a primitive the translator cannot handle.
+    """
+    closed, sig = tr.jaxprs[name]
+    t = Translator(prefix="v", dialect=dialect)
+    outs = t.run(closed.jaxpr, closed.consts, [*param_inputs, *_signal_syms(sig)])
+    prog = Program(params=[], signals=_signal_args(sig),
+                   outputs=[a for o in outs for a in np.asarray(o).reshape(-1)])
+    prog.static_stmts, prog.dyn_stmts = t.static_stmts, t.dyn_stmts
+    return prog
+
+
+_PARAM = re.compile(r"\bp(\d+)_\d+\b")
+
+
+def _used_params(progs: list[Program]) -> set[int]:
+    """Indices of the controller leaves that any program's live code reads."""
+    used: set[int] = set()
+    for prog in progs:
+        live = {a.name for a in prog.outputs if isinstance(a, Sym)}
+        dyn = eliminate_dead(prog.dyn_stmts, live)
+        live |= {u for st in dyn for u in st.uses}
+        eliminate_dead(prog.static_stmts, live)
+        used |= {int(m.group(1)) for name in live for m in [_PARAM.fullmatch(name)] if m}
+    return used
+
+
+def listed_leaves(tr: Traced, progs: list[Program] | None = None) -> list[int]:
+    """Indices of the controller leaves an export lists as its constants: those its code
+    reads, and the parameter file's entries (the rig's plant and friction default to them)
+    even where the law does not read them.
+
+    **Arguments:**
+
+    - ``tr``: the traced programs.
+    - ``progs``: their translations with the leaves as parameters (translated here if None).
+
+    **Returns:**
+
+    Sorted indices into ``tr.names``.
+    """
+    if progs is None:
+        syms = [sym_array(f"p{i}", v.shape, True) for i, v in enumerate(tr.values)]
+        progs = [translate_program(tr, name, syms) for name in tr.jaxprs]
+    spec_leaves = {tr.names.index(v) for v in SPEC_ENTRIES.values() if v in tr.names}
+    return sorted(_used_params(progs) | spec_leaves)
+
+
+_PY_FUNCS = ("step", "init", "reference", "step_ref", "init_ref", "reference_derivatives")
+
+
+def generate_source(controller: CascadeController | SampledController, *,
+                    description: str = "", traced: Traced | None = None) -> str:
+    """Python source of a standalone module (numpy and the standard library only) that
+    computes exactly what the controller's ``init`` / ``step`` compute.
+
+    **Arguments:**
+
+    - ``controller``: a ``SampledController`` (``jaxflex.export.rig_controller``), or a
+      ``CascadeController`` (run with the dirty derivative, no DAC).
+    - ``description``: the module docstring's first line.
+    - ``traced``: the programs already traced by ``trace`` (else traced here).
+
+    **Returns:**
+
+    The module's source: ``class Controller`` with ``reset()``, ``step(t, q1, q2, ref=None)``
+    and ``reference(t)``.
+
+    **Raises:**
+
+    ``UnsupportedPrimitive`` (a ``ValueError``) naming a primitive it cannot translate;
+    ``ExportError`` for a configuration the export cannot run.
+    """
+    tr = trace(controller) if traced is None else traced
+    with jax.enable_x64(True):
+        return _generate(tr, description)
+
+
+def _generate(tr: Traced, description: str) -> str:
+    n = tr.n
+    sc = tr.sc
+    c = sc.controller
+    param_syms = [sym_array(f"p{i}", v.shape, True) for i, v in enumerate(tr.values)]
+    progs = {name: translate_program(tr, name, param_syms) for name in _PY_FUNCS}
+    used = listed_leaves(tr, list(progs.values()))
+    param_args = [f"p{i}_{k}" for i in used for k in range(tr.values[i].size)]
     tup = lambda xs: "(" + "".join(x + ", " for x in xs) + ")"
-    if n == 1:
-        step_ret = f"{tup(new_state)}, {tau[0]}"
-        ref_ret = ref[0]
-    else:
-        step_ret = f"{tup(new_state)}, {tup(tau)}"
-        ref_ret = tup(ref)
-    sig = ", ".join(["S", "t", *q_args])
+    one = lambda xs: xs[0] if n == 1 else tup(xs)
+    q_args = [f"q1_{k}" for k in range(n)] + [f"q2_{k}" for k in range(n)]
+    r_args = [f"r_{k}" for k in range(REFERENCE_ROWS * n)]
+    state_args = [f"s{i}_{k}" for i, size in enumerate(tr.state_sizes) for k in range(size)]
     unpack = f"{tup(state_args)} = S"
-    funcs = [
-        _fn_source(step_prog, "step", param_args, sig, unpack, step_ret),
-        _fn_source(init_prog, "init", param_args, ", ".join(["t", *q_args]), "", tup(init_state)),
-        _fn_source(ref_prog, "reference", param_args, "t", "", ref_ret),
-    ]
+    funcs = []
+    for name in _PY_FUNCS:
+        prog = progs[name]
+        outs = [format_atom(a) for a in prog.outputs]
+        if name in ("step", "step_ref"):
+            ns = len(state_args)
+            ret = f"{tup(outs[:ns])}, {one(outs[ns:])}"
+            sig = ", ".join(["S", "t", *q_args, *(r_args if name == "step_ref" else [])])
+            funcs.append(_fn_source(prog, name, param_args, sig, unpack, ret))
+        elif name in ("init", "init_ref"):
+            sig = ", ".join(["t", *q_args, *(r_args if name == "init_ref" else [])])
+            funcs.append(_fn_source(prog, name, param_args, sig, "", tup(outs)))
+        elif name == "reference":
+            funcs.append(_fn_source(prog, name, param_args, "t", "", one(outs)))
+        else:
+            funcs.append(_fn_source(prog, name, param_args, "t", "", tup(outs)))
     defaults = ",\n".join(
-        f"    {name!r}: ({tuple(v.shape)!r}, [{', '.join(_literal(x) for x in v.reshape(-1))}])"
-        for name, v in zip(lv.names, lv.values)
+        f"    {tr.names[i]!r}: ({tuple(tr.values[i].shape)!r}, "
+        f"[{', '.join(_literal(x) for x in tr.values[i].reshape(-1))}])"
+        for i in used
     )
-    spec_map = {k: v for k, v in _SPEC_MAP.items() if v in lv.names}
-    state_names = [f.name for f in _state_fields(state0)]
+    used_names = {tr.names[i] for i in used}
+    spec_map = {k: v for k, v in SPEC_ENTRIES.items() if v in used_names}
     header = _HEADER.format(
         description=description or "Cascade controller with LuGre friction observer",
         date=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        n=n, dt=repr(float(controller.dt)), method=controller.q2d_method,
-        compensation=controller.compensation,
-        n_ops=sum(1 for _ in funcs[0].splitlines()),
+        n=n, dt=repr(float(c.dt)), method=c.q2d_method, compensation=c.compensation,
+        config=describe(sc), rows=REFERENCE_ROWS,
     )
     body = _BODY.format(
-        n=n, dt=repr(float(controller.dt)), method=controller.q2d_method,
-        defaults=defaults, spec_map=repr(spec_map), state_names=repr(state_names),
+        n=n, dt=repr(float(c.dt)), method=c.q2d_method, velocity=sc.sensing.velocity,
+        config=describe(sc), rows=REFERENCE_ROWS,
+        defaults=defaults, spec_map=repr(spec_map), state_names=repr(tr.state_names),
         funcs="\n\n\n".join(funcs),
     )
     return header + body
 
 
-def _state_fields(state: Any) -> list[Any]:
-    import dataclasses
-
-    # fields that hold None (e.g. ControllerState.estimator without the Kalman filter) have
-    # no leaves and no place in the exported state
-    return [f for f in dataclasses.fields(state) if getattr(state, f.name) is not None]
-
-
 _HEADER = '''"""{description} -- standalone export.
 
 Generated by ``jaxflex export`` on {date} from the traced JAX definition
-(``jaxflex.controller.CascadeController.init`` / ``.step``); DO NOT EDIT: change the JAX
-controller and export again. Imports only numpy and the Python standard library.
+(``jaxflex.export.SampledController.init`` / ``.step``: the cascade law with its
+configuration's velocity source); DO NOT EDIT: change the JAX controller and export again.
+Imports only numpy and the Python standard library.
 
 Joints: {n}; sample period dt = {dt} s; q2d_method = {method!r}; friction compensation: {compensation}.
+Controller-side sensing: {config}.
 
     ctrl = Controller()                      # the exported parameters
-    ctrl = Controller.from_json("P.json")    # other plant/friction/gains (docs/spec.md section 7)
+    ctrl = Controller.from_json("P.json")    # other plant/friction/gains (docs/spec.md section 7;
+                                             # not the model where the Kalman filter runs)
     ctrl = Controller(params={{"gains.L1": [150.0]}})
     ctrl.reset()
-    tau = ctrl.step(t, q1, q2)               # t [s], q1, q2 [rad] -> tau [N m]
+    tau = ctrl.step(t, q1, q2)               # t [s], q1, q2 [rad] -> tau [N m], recorded reference
+    tau = ctrl.step(t, q1, q2, ref=R)        # the rig's reference, R ({rows}, n): q1d, q1d', ..., q1d^(4)
 
-``step`` must be called once per sample period dt (the velocity filters and the observer
-assume it). One joint: floats in, float out; n joints: arrays (n,) in, numpy array out.
+``step`` must be called once per sample period dt (the velocity filters, the Kalman filter
+and the observer assume it). One joint: floats in, float out; n joints: arrays (n,) in,
+numpy array out. The torque is the command before the DAC.
 """
 
 '''
@@ -284,6 +473,9 @@ import numpy as _np
 N_JOINTS = {n}
 DT = {dt}
 Q2D_METHOD = {method!r}
+VELOCITY = {velocity!r}
+CONFIG = {config!r}
+REFERENCE_ROWS = {rows}
 _INF = float("inf")
 _NAN = float("nan")
 
@@ -384,11 +576,19 @@ class Controller:
             if any(_m.isnan(x) for x in vals):
                 raise ValueError(f"parameter {{name}}: NaN")
             p[name] = vals
+        model = sorted(k for k in (params or {{}}) if k.startswith("model."))
+        if VELOCITY == "kalman" and model:
+            raise ValueError(f"parameters {{model}}: the Kalman filter's matrices (estimator.*) "
+                             "were designed for the exported model; export again from the "
+                             "parameter file instead of overriding the model")
         self.params = p
         flat = [x for k in DEFAULT_PARAMS for x in p[k]]
         self._step = _make_step(*_derive_step(*flat))
         self._init = _make_init(*_derive_init(*flat))
         self._ref = _make_reference(*_derive_reference(*flat))
+        self._step_ref = _make_step_ref(*_derive_step_ref(*flat))
+        self._init_ref = _make_init_ref(*_derive_init_ref(*flat))
+        self._ref_derivs = _make_reference_derivatives(*_derive_reference_derivatives(*flat))
         self._state = None
 
     @classmethod
@@ -416,26 +616,39 @@ class Controller:
         return dict(zip(STATE_NAMES, vals))
 
     def reference(self, t):
-        """Reference link angle q1d(t) [rad]."""
+        """Recorded reference link angle q1d(t) [rad]."""
         r = self._ref(float(t))
         return r if N_JOINTS == 1 else _np.array(r)
 
-    def step(self, t, q1, q2):
-        """Motor torque tau [N m] at time t [s] from link and rotor angles q1, q2 [rad]."""
-        if N_JOINTS == 1:
-            q1 = _scalar(q1, "q1")
-            q2 = _scalar(q2, "q2")
-            t = float(t)
-            if self._state is None:
-                self._state = self._init(t, q1, q2)
-            self._state, tau = self._step(self._state, t, q1, q2)
-            return tau
-        q = _vector(q1, "q1") + _vector(q2, "q2")
+    def reference_derivatives(self, t):
+        """Recorded reference at t [s] as ``step``'s ``ref`` takes it: (REFERENCE_ROWS, n),
+        rows q1d, q1d', ..., q1d^(4) [rad/s^k]."""
+        return _np.array(self._ref_derivs(float(t))).reshape(REFERENCE_ROWS, N_JOINTS)
+
+    def step(self, t, q1, q2, ref=None):
+        """Motor torque tau [N m] at time t [s] from link and rotor angles q1, q2 [rad];
+        ``ref`` (REFERENCE_ROWS, n): the rig's reference at t (rows q1d, q1d', ...,
+        q1d^(4) [rad/s^k]); None: the recorded one."""
         t = float(t)
-        if self._state is None:
-            self._state = self._init(t, *q)
-        self._state, tau = self._step(self._state, t, *q)
-        return _np.array(tau)
+        if N_JOINTS == 1:
+            q = (_scalar(q1, "q1"), _scalar(q2, "q2"))
+        else:
+            q = _vector(q1, "q1") + _vector(q2, "q2")
+        if ref is None:
+            if self._state is None:
+                self._state = self._init(t, *q)
+            self._state, tau = self._step(self._state, t, *q)
+        else:
+            r = _np.asarray(ref, dtype=float)
+            if r.size != REFERENCE_ROWS * N_JOINTS:
+                raise ValueError(f"ref: expected ({{REFERENCE_ROWS}}, {{N_JOINTS}}) values "
+                                 f"(q1d and its first {{REFERENCE_ROWS - 1}} derivatives), got "
+                                 f"shape {{r.shape}}")
+            r = r.reshape(-1).tolist()
+            if self._state is None:
+                self._state = self._init_ref(t, *q, *r)
+            self._state, tau = self._step_ref(self._state, t, *q, *r)
+        return tau if N_JOINTS == 1 else _np.array(tau)
 '''
 
 

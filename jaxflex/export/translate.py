@@ -1,4 +1,8 @@
-"""Translate a traced jaxpr into straight-line Python on floats (the exporter's code generator).
+"""Translate a traced jaxpr into straight-line code on floats (the exporter's code generator).
+
+One translator, several back ends: a ``Dialect`` spells each operation, ``PYTHON`` (floats and
+``math``) or ``C99`` (doubles and libm); the same jaxpr translated in both gives the same
+operations in the same order, so the two exports round alike.
 
 Every array value of the jaxpr is *scalarised*: it becomes a numpy object array of atoms, one
 per element, where an atom is a Python constant (folded at generation time) or a ``Sym`` (a
@@ -6,7 +10,7 @@ variable name in the generated code). Structural primitives (reshape, broadcast,
 concatenate, transpose, pad, ...) only rearrange atoms and emit no code; elementwise
 primitives emit one statement per element; reductions and ``dot_general`` emit sums of
 products. For a one-joint controller this gives plain float code with ``math`` functions,
-which is ~10x faster than numpy on size-1 arrays (docs/spec.md section 9).
+several times faster than the same code on numpy scalars (``studies/bench_export_step.py``).
 
 Inputs are either *parameters* (controller constants that may be overridden when the exported
 controller is built) or *signals* (state, time, angles). Statements whose inputs are all
@@ -126,6 +130,97 @@ _FOLD2: dict[str, Callable[[Any, Any], Any]] = {
 }
 _FOLD1: dict[str, Callable[[Any], Any]] = {"neg": lambda a: -a, "abs": abs, "not": lambda a: not a}
 
+
+def _c_lit(c: Any) -> str:
+    if isinstance(c, (bool, np.bool_)):
+        return "1" if c else "0"
+    if isinstance(c, (int, np.integer)):
+        v = int(c)
+        return f"({v})" if v < 0 else str(v)
+    v = float(c)
+    if math.isnan(v):
+        return "NAN"
+    if math.isinf(v):
+        return "INFINITY" if v > 0 else "(-INFINITY)"
+    r = repr(v)
+    return f"({r})" if v < 0 or r.startswith("-") else r
+
+
+def _py_solve(n: int, names: list[str], targets: list[str]) -> str:
+    return f"_solve({n}, ({', '.join(names[: n * n])},), ({', '.join(names[n * n:])},))"
+
+
+def _c_solve(n: int, names: list[str], targets: list[str]) -> str:
+    return (f"jf_solve({n}, (const double[]){{{', '.join(names[: n * n])}}}, "
+            f"(const double[]){{{', '.join(names[n * n:])}}}, "
+            f"(double *[]){{{', '.join('&' + t for t in targets)}}})")
+
+
+@dataclass(frozen=True)
+class Dialect:
+    """How a back end spells the translator's operations (one traced jaxpr, several back ends).
+
+    ``unary``/``binary``: templates of elementwise primitives ({0}, {1}: operands);
+    ``literal``: a constant's source; ``select2``/``select_n``: two-way and n-way selects
+    ({0}: predicate; ``select_n`` takes the case index); ``to_bool``/``to_int``/``to_float``:
+    conversions (``to_float`` None: no code, the value is already a float); ``int_div``:
+    integer division; ``round_even``/``round_away``: the two rounding methods; ``solve``:
+    the statement of a linear solve (size, operand names, target names).
+    """
+
+    name: str
+    unary: dict[str, str]
+    binary: dict[str, str]
+    literal: Callable[[Any], str]
+    select2: str
+    select_n: str
+    to_bool: str
+    to_int: str
+    to_float: str | None
+    int_div: str
+    round_even: str
+    round_away: str
+    solve: Callable[[int, list[str], list[str]], str]
+
+
+PYTHON = Dialect(
+    name="python", unary=_UNARY, binary=_BINARY, literal=_lit,
+    select2="({2} if {0} else {1})", select_n="({{1}} if {{0}} == {i} else {{2}})",
+    to_bool="bool({0})", to_int="int({0})", to_float="float({0})", int_div="int({0} / {1})",
+    round_even="float(round({0}))", round_away="_round_away({0})", solve=_py_solve,
+)
+"""Python on floats with ``math`` (``_m``); the generated module defines ``_sign``,
+``_round_away`` and ``_solve``."""
+
+_C_UNARY: dict[str, str] = {
+    **{k: f"{k}({{0}})" for k in ("sin", "cos", "tan", "asin", "acos", "atan", "sinh", "cosh",
+                                  "tanh", "asinh", "acosh", "atanh", "exp", "exp2", "log",
+                                  "expm1", "log1p", "sqrt", "floor", "ceil", "erf", "erfc",
+                                  "lgamma")},
+    "neg": "-{0}", "rsqrt": "1.0 / sqrt({0})",
+    "cbrt": "copysign(pow(fabs({0}), 1.0 / 3.0), {0})", "abs": "fabs({0})",
+    "sign": "jf_sign({0})", "is_finite": "(isfinite({0}) != 0)", "not": "(!{0})",
+    "square": "{0} * {0}", "logistic": "1.0 / (1.0 + exp(-{0}))",
+}
+_C_BINARY: dict[str, str] = {
+    "add": "{0} + {1}", "add_any": "{0} + {1}", "sub": "{0} - {1}", "mul": "{0} * {1}",
+    "div": "{0} / {1}", "pow": "pow({0}, {1})", "atan2": "atan2({0}, {1})",
+    "rem": "fmod({0}, {1})", "nextafter": "nextafter({0}, {1})",
+    "max": "(({0} >= {1} || {0} != {0}) ? {0} : {1})",
+    "min": "(({0} <= {1} || {0} != {0}) ? {0} : {1})",
+    "eq": "({0} == {1})", "ne": "({0} != {1})", "lt": "({0} < {1})", "le": "({0} <= {1})",
+    "gt": "({0} > {1})", "ge": "({0} >= {1})", "and": "({0} && {1})", "or": "({0} || {1})",
+}
+
+C99 = Dialect(
+    name="c99", unary=_C_UNARY, binary=_C_BINARY, literal=_c_lit,
+    select2="({0} ? {2} : {1})", select_n="({{0}} == {i} ? {{1}} : {{2}})",
+    to_bool="({0} != 0)", to_int="trunc({0})", to_float=None, int_div="trunc({0} / {1})",
+    round_even="nearbyint({0})", round_away="round({0})", solve=_c_solve,
+)
+"""C99 on doubles with libm (every value, booleans and integers included, is a double);
+the generated file defines ``jf_sign`` and ``jf_solve``."""
+
 _CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint", "custom_jvp_call",
           "custom_vjp_call", "custom_vjp_call_jaxpr", "custom_lin")
 _IDENTITY = ("stop_gradient", "copy", "copy_p", "optimization_barrier", "reduce_precision")
@@ -142,8 +237,9 @@ def _is_bool_dtype(aval: Any) -> bool:
 class Translator:
     """Walks jaxprs and accumulates the statements of one ``Program``."""
 
-    def __init__(self, prefix: str = "v"):
+    def __init__(self, prefix: str = "v", dialect: Dialect = PYTHON):
         self.prefix = prefix
+        self.d = dialect
         self.count = 0
         self.cse: dict[str, Sym] = {}
         self.static_stmts: list[Stmt] = []
@@ -162,7 +258,7 @@ class Translator:
                 raise UnsupportedPrimitive(
                     f"the exporter cannot use the {a.what} output of a primitive directly"
                 )
-        code = template.format(*[a.name if isinstance(a, Sym) else _lit(a) for a in args])
+        code = template.format(*[a.name if isinstance(a, Sym) else self.d.literal(a) for a in args])
         hit = self.cse.get(code)
         if hit is not None:
             return hit
@@ -173,12 +269,14 @@ class Translator:
         self.cse[code] = s
         return s
 
-    def emit_multi(self, code_fn: Callable[[list[str]], str], args: Sequence[Atom], nout: int) -> list[Sym]:
-        """A statement with several targets (e.g. a linear solve returning a tuple)."""
-        names = [a.name if isinstance(a, Sym) else _lit(a) for a in args]
-        code = code_fn(names)
+    def emit_multi(self, code_fn: Callable[[list[str], list[str]], str], args: Sequence[Atom],
+                   nout: int) -> list[Sym]:
+        """A statement with several targets (e.g. a linear solve); ``code_fn`` gets the
+        operands' and the targets' names."""
+        names = [a.name if isinstance(a, Sym) else self.d.literal(a) for a in args]
         static = all(a.static for a in args if isinstance(a, Sym))
         outs = [self._new(static) for _ in range(nout)]
+        code = code_fn(names, [o.name for o in outs])
         uses = tuple(a.name for a in args if isinstance(a, Sym))
         st = Stmt(tuple(o.name for o in outs), code, uses, static)
         (self.static_stmts if static else self.dyn_stmts).append(st)
@@ -195,16 +293,16 @@ class Translator:
                 return float(getattr(math, prim)(a))
             except (ValueError, OverflowError):
                 pass
-        if prim not in _UNARY:
+        if prim not in self.d.unary:
             raise UnsupportedPrimitive(f"primitive '{prim}' is not supported by the exporter")
-        return self.emit(_UNARY[prim], a)
+        return self.emit(self.d.unary[prim], a)
 
     def binary(self, prim: str, a: Atom, b: Atom, *, is_int: bool = False) -> Atom:
         ca, cb = _is_const(a), _is_const(b)
         if prim == "div" and is_int:
             if ca and cb:
                 return int(a / b)
-            return self.emit("int({0} / {1})", a, b)
+            return self.emit(self.d.int_div, a, b)
         if ca and cb:
             if prim in _FOLD2:
                 return _FOLD2[prim](a, b)
@@ -233,9 +331,9 @@ class Translator:
                 return a
         elif prim == "pow" and cb and b == 1:
             return a
-        if prim not in _BINARY:
+        if prim not in self.d.binary:
             raise UnsupportedPrimitive(f"primitive '{prim}' is not supported by the exporter")
-        return self.emit(_BINARY[prim], a, b)
+        return self.emit(self.d.binary[prim], a, b)
 
     def integer_pow(self, a: Atom, y: int) -> Atom:
         if _is_const(a):
@@ -261,10 +359,10 @@ class Translator:
             if _is_const(cases[0]) and _is_const(cases[1]) and cases[0] == cases[1] \
                     and type(cases[0]) is type(cases[1]):
                 return cases[0]
-            return self.emit("({2} if {0} else {1})", pred, cases[0], cases[1])
+            return self.emit(self.d.select2, pred, cases[0], cases[1])
         acc = cases[-1]
         for i in range(len(cases) - 2, -1, -1):
-            acc = self.emit(f"({{1}} if {{0}} == {i} else {{2}})", pred, cases[i], acc)
+            acc = self.emit(self.d.select_n.format(i=i), pred, cases[i], acc)
         return acc
 
     def total(self, atoms: Sequence[Atom]) -> Atom:
@@ -281,11 +379,11 @@ class Translator:
 
         def read(v):
             if type(v).__name__ == "Literal":
-                return _const_array(v.val)
+                return const_array(v.val)
             return env[v]
 
         for v, c in zip(jaxpr.constvars, consts):
-            env[v] = c if isinstance(c, np.ndarray) and c.dtype == object else _const_array(c)
+            env[v] = c if isinstance(c, np.ndarray) and c.dtype == object else const_array(c)
         for v, a in zip(jaxpr.invars, args):
             env[v] = a
         for eqn in jaxpr.eqns:
@@ -347,23 +445,25 @@ class Translator:
             return [out]
         if prim == "round":
             method = int(p.get("rounding_method", 0))
-            fmt = "float(round({0}))" if method == 1 else "_round_away({0})"
+            fmt = self.d.round_even if method == 1 else self.d.round_away
             return [_map1(lambda a: self.emit(fmt, a), ins[0])]
         return [np.asarray(o, dtype=object) if not isinstance(o, np.ndarray) else o
                 for o in self.structural(prim, p, ins, out_avals)]
 
     def _convert(self, x: np.ndarray, in_aval: Any, aval: Any) -> np.ndarray:
         if _is_bool_dtype(aval):
-            return _map1(lambda a: bool(a) if _is_const(a) else self.emit("bool({0})", a), x)
+            return _map1(lambda a: bool(a) if _is_const(a) else self.emit(self.d.to_bool, a), x)
         if _is_int_dtype(aval):
-            return _map1(lambda a: int(a) if _is_const(a) else self.emit("int({0})", a), x)
+            return _map1(lambda a: int(a) if _is_const(a) else self.emit(self.d.to_int, a), x)
 
         from_float = np.issubdtype(np.dtype(in_aval.dtype), np.floating)
 
         def to_float(a):
             if _is_const(a):
                 return float(a)
-            return a if from_float else self.emit("float({0})", a)
+            if from_float or self.d.to_float is None:
+                return a
+            return self.emit(self.d.to_float, a)
 
         return _map1(to_float, x)
 
@@ -406,7 +506,7 @@ class Translator:
             shape, dim = tuple(p["shape"]), int(p["dimension"])
             idx = np.indices(shape)[dim]
             conv = float if np.issubdtype(np.dtype(p["dtype"]), np.floating) else int
-            return [_const_array(np.vectorize(conv, otypes=[object])(idx))]
+            return [const_array(np.vectorize(conv, otypes=[object])(idx))]
         if prim == "pad":
             pad_val = ins[1].reshape(()).item()
             cfg = p["padding_config"]
@@ -518,14 +618,12 @@ class Translator:
             # diagonal A: LU with partial pivoting reduces to b_i / A_ii
             return np.array([self.binary("div", b[i], A[i, i]) for i in range(n)], dtype=object)
         flat = [A[i, j] for i in range(n) for j in range(n)] + [b[i] for i in range(n)]
-        outs = self.emit_multi(
-            lambda nm: f"_solve({n}, ({', '.join(nm[: n * n])},), ({', '.join(nm[n * n:])},))",
-            flat, n,
-        )
+        outs = self.emit_multi(lambda nm, tg: self.d.solve(n, nm, tg), flat, n)
         return np.array(outs, dtype=object)
 
 
-def _const_array(v: Any) -> np.ndarray:
+def const_array(v: Any) -> np.ndarray:
+    """An object array of the constants (or atoms) of ``v``, as the translator holds values."""
     arr = np.asarray(v)
     out = np.empty(arr.shape, dtype=object)
     for idx in np.ndindex(arr.shape):
@@ -569,8 +667,8 @@ def eliminate_dead(stmts: list[Stmt], live: set[str]) -> list[Stmt]:
     return keep
 
 
-def format_atom(a: Atom) -> str:
-    """Python source of an atom."""
+def format_atom(a: Atom, dialect: Dialect = PYTHON) -> str:
+    """Source of an atom in ``dialect`` (default Python)."""
     if isinstance(a, _Opaque):
         raise UnsupportedPrimitive(f"the exporter cannot output the {a.what} directly")
-    return a.name if isinstance(a, Sym) else _lit(a)
+    return a.name if isinstance(a, Sym) else dialect.literal(a)

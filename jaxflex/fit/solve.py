@@ -1040,6 +1040,31 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     blown = (np.any(fine[:n_out] == BLOWN_RESIDUAL)
              or np.any(np.asarray(solution.residual)[:n_out] == BLOWN_RESIDUAL))
     out_err = math.inf if blown else float(np.sqrt(np.mean(e[:n_out] ** 2)))
+    shift, se, labels, fitted, cov = induced_shift(prob, solution, e)
+    finite = bool(np.all(np.isfinite(shift)))
+    maha = (float(np.sqrt(max(float(shift @ np.linalg.pinv(cov) @ shift), 0.0)))
+            if finite and shift.size else (0.0 if finite else math.inf))
+    return {"bias_se": float(np.max(np.abs(shift) / se)) if finite and shift.size
+            else (0.0 if finite else math.inf),
+            "bias_mahalanobis": maha, "output_error": out_err,
+            "substeps": prob.n_substeps,
+            "shift_theta": {labels[i]: float(v) for i, v in zip(fitted, shift)},
+            "stderr_theta": {labels[i]: float(v) for i, v in zip(fitted, se)}}
+
+
+def induced_shift(prob: Problem, solution: Solution, e: Any,
+                  ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray, np.ndarray]:
+    """The first-order move -(J^T J)^-1 J^T e of the fitted parameters that a change ``e``
+    of the residuals (rows as ``prob``'s residual) induces at ``solution``, from its own
+    normal equations, beside their standard errors (segment-robust where the log has the
+    segments for it, else white).
+
+    Returns ``(shift, stderr, labels, fitted, cov)``: the shift and standard error of each
+    fitted theta entry (engine coordinates), every entry's "name[j]" label, the indices of
+    the fitted entries among them, and their covariance."""
+    y = solution.y
+    structure = "shooting" if "Ntt" in solution.normal else "dense"
+    e = np.asarray(e, float)
     pad = Padding.of(prob, y) if structure == "shooting" else None
     normal, e_in, y_in = solution.normal, e, y
     if pad is not None:  # the solve in the slots' layout: compiled once per bucket
@@ -1055,16 +1080,22 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     cov = (robust if robust is not None else covariance(prob, y, solution=solution))[
         "cov_theta"][np.ix_(fitted, fitted)]
     se = np.sqrt(np.maximum(np.diag(cov), 1e-300))
-    finite = bool(np.all(np.isfinite(shift)))
-    maha = (float(np.sqrt(max(float(shift @ np.linalg.pinv(cov) @ shift), 0.0)))
-            if finite and shift.size else (0.0 if finite else math.inf))
     labels = [f"{k}[{j}]" for k in sorted(theta) for j in range(np.size(theta[k]))]
-    return {"bias_se": float(np.max(np.abs(shift) / se)) if finite and shift.size
-            else (0.0 if finite else math.inf),
-            "bias_mahalanobis": maha, "output_error": out_err,
-            "substeps": prob.n_substeps,
-            "shift_theta": {labels[i]: float(v) for i, v in zip(fitted, shift)},
-            "stderr_theta": {labels[i]: float(v) for i, v in zip(fitted, se)}}
+    return shift, se, labels, fitted, cov
+
+
+def remaining_step(prob: Problem, solution: Solution) -> float:
+    """The largest move of a fitted parameter, in its standard errors (segment-robust where
+    the log has the segments for it), that a full Gauss-Newton step from ``solution`` would
+    make: the statistical stop judged at the standard errors the fit reports, which a
+    model's mismatch on a real log makes far larger than the white noise's. inf without
+    normal equations or for a non-finite step."""
+    if solution.normal is None or solution.residual is None:
+        return math.inf
+    shift, se, *_ = induced_shift(prob, solution, solution.residual)
+    if not shift.size:
+        return 0.0
+    return float(np.max(np.abs(shift) / se)) if np.all(np.isfinite(shift)) else math.inf
 
 
 def simulated_outputs(prob: Problem, y: Any) -> jax.Array:

@@ -29,6 +29,7 @@ import numpy as np
 from jaxtyping import Array
 
 from jaxflex.fit import (
+    CostBound,
     ParamSpace,
     Problem,
     Solution,
@@ -42,6 +43,7 @@ from jaxflex.fit import (
     noise_level,
     output_columns,
     refined,
+    remaining_step,
     segment_robust_covariance,
     set_values,
     simulated_outputs,
@@ -318,6 +320,11 @@ def start_hints(data: DataStart, init: Params) -> list[str]:
     return hints
 
 
+#: A model-limited solve that ends at its step cap is converged when a full Gauss-Newton step
+#: would move no parameter by more than this many of its reported standard errors.
+REMAINING_TOL: float = 0.1
+
+
 class _Search:
     """Every solve of one identification: the attempts written to the file and the end
     points of the full problem's solves, from which the best is taken at the end."""
@@ -334,6 +341,16 @@ class _Search:
         sol = least_squares(prob, y, max_steps=max_steps, **self.solve)
         if sol.interrupted:
             raise KeyboardInterrupt
+        if "warm" not in label and not sol.converged and sol.cost > self.good and (
+                sol.normal is not None):
+            # a model-limited fit creeping down a valley: converged when the step that
+            # remains is small against the standard errors it reports (segment-robust)
+            rem = remaining_step(prob, sol)
+            if rem <= REMAINING_TOL:
+                sol = dataclasses.replace(sol, converged=True, reason=(
+                    f"statistical stop at the reported (segment-robust) standard errors: a "
+                    f"full Gauss-Newton step would move no parameter by more than {rem:.2g} "
+                    f"of them ({sol.reason})"))
         self.attempts.append({**label, "cost": sol.cost, "steps": sol.steps,
                               "converged": sol.converged, "reason": sol.reason})
         if full:
@@ -448,8 +465,16 @@ def identify(
         substeps=dynamic_substeps(1) if auto else substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
     )
+    # the statistical stop at the fit's own residual scale: a step that would lower chi-square
+    # by less than ``decrement_tol`` in units of the residual variance the fit leaves (the
+    # noise's, or more for a model-limited fit: cost / noise cost), is below 0.1 of the
+    # standard errors that residual gives; on a real rig's log the noise's own units would
+    # run every solve to its step cap
+    noise = noise_cost(log, prob)
+    stop = (None if decrement_tol is None
+            else CostBound(decrement_tol / noise, 0.0, (0.0, decrement_tol)))
     # the solver options every solve of this fit shares (they key its compiled program)
-    options = dict(rtol=rtol, atol=atol, decrement_tol=decrement_tol, geodesic=geodesic)
+    options = dict(rtol=rtol, atol=atol, decrement_tol=stop, geodesic=geodesic)
     ahead = compile_ahead(prob, y0, options)
     starts = _starts(log, init, free, prob, y0, model, static_start, user_start, data)
     discretisation: dict[str, Any] = {"mode": "auto" if auto else "given"}
@@ -464,7 +489,7 @@ def identify(
         raise ValueError("identify: warm_start needs at least one schedule (a factor or None)")
     if prob.segs.count == 1:  # one segment: nothing to loosen
         schedules = [None]
-    good = accept_cost * noise_cost(log, prob)
+    good = accept_cost * noise
     search = _Search(good, dict(options, progress=say), progress)
     t0 = time.perf_counter()
     best, best_factor = None, None
@@ -661,7 +686,10 @@ def _fix_unidentified(search: _Search, res: IdentResult, prob: Problem, best: So
         return prob, best, None, total
     # judged unidentifiable at the first fit's point, which may be a local minimum: from the
     # refit's lower point, free them again; kept if then every parameter is determined
-    th = {k: (sol_cur.y[0][k] if k in sol_cur.y[0] else y0[0][k]) for k in prob.space.names}
+    # in physical values: an ordered pair's coordinates differ between the two spaces
+    phys = cur.space.physical_values(sol_cur.y[0])
+    th = prob.space.theta_of({k: phys[k] if k in phys else get_value(init, k)
+                              for k in prob.space.names})
     full = search.run(prob, (th, sol_cur.y[1]), {"released": list(fixed_why),
                                                  "start": "refit"}, max_steps)
     total += full.steps
@@ -838,7 +866,8 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
 
     The shift is the Gauss-Newton step the solution's own finer replay induces
     (``jaxflex.fit.discretisation_bias``), judged twice: in standard errors (``bias_se`` at
-    most ``tol``) and against the parameters' values (``bias_rel`` at most ``rel_tol``). A
+    most ``tol``) and against the parameters' values (``bias_rel`` at most ``rel_tol``, over
+    the parameters it moves by a tenth of a standard error or more). A
     model-limited fit's standard errors are inflated by its residual, and a coarse
     integrator's own error can be that residual; the relative shift holds either way. The fit
     is refined while either fails. Each refinement multiplies the substeps by 2^k (a first-order
@@ -866,7 +895,11 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
             return prob, sol, checks
         chk = discretisation_bias(prob, sol)
         finite = all(math.isfinite(v) for v in chk["shift_theta"].values())
-        chk["bias_rel"] = relative_shift(prob, sol.y, chk["shift_theta"]) if finite else math.inf
+        # the relative shift of the parameters it moves by a tenth of a standard error or
+        # more (a shift far inside a poorly determined parameter's error is no bias)
+        seen = {k: v for k, v in chk["shift_theta"].items()
+                if abs(v) >= 0.1 * chk["stderr_theta"][k]}
+        chk["bias_rel"] = relative_shift(prob, sol.y, seen) if finite else math.inf
         checks.append(chk)
         settled = chk["bias_se"] <= tol and chk["bias_rel"] <= rel_tol
         if not refine or settled or prob.n_substeps * 2 > most:

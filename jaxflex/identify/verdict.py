@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 
 from jaxflex.fit import Problem, simulated_outputs
-from jaxflex.fit.residual_analysis import analyse_residual
 
 #: The segments named in ``where`` (the largest shares of the residual).
 WORST_SEGMENTS: int = 3
@@ -46,6 +45,8 @@ def model_verdict(prob: Problem, y: Any, cost: float, noise_cost: float, accept_
         the input leads) and ``input_peak`` its value, None where it lies within the band;
         ``where`` the segments holding the largest shares of the squared output residual.
     """
+    from jaxflex.fit.residual_analysis import analyse_residual  # scipy.stats: loaded here
+
     ratio = cost / noise_cost if noise_cost > 0 else math.inf
     adequate = bool(cost <= accept_cost * noise_cost)
     sim = np.asarray(simulated_outputs(prob, y), float)

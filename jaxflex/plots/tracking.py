@@ -38,9 +38,10 @@ def plot_tracking(runs: dict[str, SimResult], title: str, path: str | Path) -> l
     return [path.name]
 
 
-def plot_torque_friction(r: SimResult, path: str | Path) -> list[str]:
+def plot_torque_friction(r: SimResult, path: str | Path, config: str = "") -> list[str]:
     """Control torque (top) and estimated against true friction torque (bottom) (Fig. 11);
-    separate panels, since the control torque's chatter would hide the friction traces."""
+    separate panels, since the control torque's chatter would hide the friction traces.
+    ``config``: a second title line (the velocity estimator and observer shown)."""
     path = Path(path)
     fig, (ax0, ax) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     t = np.asarray(r.t)
@@ -52,14 +53,15 @@ def plot_torque_friction(r: SimResult, path: str | Path) -> list[str]:
     ax.set_xlabel("time [s]")
     ax.set_ylabel("friction torque [N m]")
     ax.legend(loc="upper right", fontsize=8)
-    fig.suptitle("Control torque and friction, compensated sinusoid (paper Fig. 11)", fontsize=10)
+    fig.suptitle("Control torque and friction, compensated sinusoid (paper Fig. 11)"
+                 + (f"\n{config}" if config else ""), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return [path.name]
 
 
-def plot_q2d_comparison(table: dict[str, Any], path: str | Path) -> list[str]:
+def plot_q2d_comparison(table: dict[str, Any], path: str | Path, config: str = "") -> list[str]:
     """Bar chart of RMS tracking error per q2d option and sensing (log scale; hatched bars
     diverged or saturated most of the time)."""
     path = Path(path)
@@ -87,7 +89,8 @@ def plot_q2d_comparison(table: dict[str, Any], path: str | Path) -> list[str]:
     handles.append(Patch(facecolor="white", edgecolor="0.3", hatch="//",
                          label="diverged or saturated > 20% of the time"))
     axes[0].legend(handles=handles, fontsize=7)
-    fig.suptitle("q2d derivative options: RMS link error by sensing", fontsize=10)
+    fig.suptitle("q2d derivative options: RMS link error by sensing"
+                 + (f"\n{config}" if config else ""), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
