@@ -68,6 +68,14 @@ Workflow (``discover``), for one joint:
    the MuJoCo rig, seed 700, every effect rightly named closed 87-100%; a stiffness that
    ripples with the link angle, named a motor cogging and a torque offset, 50%).
 
+The nominal model comes as the kind its file describes (``DiscoverConfig.model``,
+``nominal_for_model``: a flexible joint as it is, a rigid model as two halves joined by a
+stiff spring, a rotor subsystem with its link side from a rigid fit of the log); a candidate
+the file's declared axis says cannot act is not tried (``cannot_act``). The report carries
+every round's tie (``effect_ties``) and the final model's residual analysis as MATLAB's
+``resid`` gives it (``residual_analysis``); a numerical failure of a fit is a
+``SolverFailure`` naming the fit, not a bad input.
+
 All candidates share one compiled model: the plant holds every candidate effect, wrapped in
 ``jaxflex.effects.Gated`` (gate 0 or 1), and the engine's parameter mask says which are fitted;
 both are data, so the solver compiles once per log shape. The gates are run-time branches
@@ -132,6 +140,7 @@ from jaxflex.fit import (
     white_noise_std,
 )
 from jaxflex.fit.ahead import Ahead, all_side_by_side, side_by_side
+from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
 from jaxflex.fit.space import set_values
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -763,6 +772,40 @@ def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     segments (for plots)."""
     _, test, _ = ws.for_model(fit.model)
     return np.asarray(simulated_outputs(test, fit.y_test))
+
+
+def residual_analysis(ws: Workspace, fit: CandidateFit,
+                      lags: int = 25) -> dict[str, Any]:
+    """MATLAB ``resid`` of a fitted model on the held-out segments: per output (q1, q2) the
+    autocorrelation of the residual (measured - simulated [rad]) and its cross-correlation
+    with the logged torque, each with its 99% band, and the Ljung-Box whiteness test
+    (``jaxflex.fit.residual_analysis.analyse_segments``: the lagged products pooled within
+    the segments, each replayed from its own fitted start).
+
+    **Arguments:**
+
+    - `ws`: the workspace of the run.
+    - `fit`: the fitted model (its held-out starts fitted).
+    - `lags`: the largest lag [samples] (at most a segment's half less one; MATLAB's
+      ``resid``: 25).
+
+    **Returns:**
+
+    ``{"part", "input", "residual", "lags", "confidence", "channels": {"q1": summary,
+    "q2": summary}}``, each summary ``ResidualAnalysis.summary`` (curves included)."""
+    _, test, _ = ws.for_model(fit.model)
+    sim = np.asarray(simulated_outputs(test, fit.y_test))
+    meas = np.asarray(test.segs.y_meas)
+    u = np.asarray(test.segs.tau)[..., 0]
+    if test.segs.active is not None:  # padding slots hold no data
+        keep = np.asarray(test.segs.active, bool)
+        sim, meas, u = sim[keep], meas[keep], u[keep]
+    lags = max(1, min(lags, test.segs.length // 2 - 1))
+    channels = {name: analyse_segments(meas[..., c] - sim[..., c], u, lags=lags).summary()
+                for c, name in enumerate(test.outputs)}
+    return {"part": "held-out segments", "input": "tau [N m]",
+            "residual": "measured - simulated [rad]", "lags": lags,
+            "confidence": CONFIDENCE, "channels": channels}
 
 
 # ---------------------------------------------------------------------------- localisation
@@ -1455,6 +1498,164 @@ def tied(scores: dict[str, dict[str, Any]], winner: str | None, decisive: float 
                   and (k == winner or not told_apart(k)))
 
 
+#: The model kinds ``discover`` takes a parameter file as (``DiscoverConfig.model``, the
+#: command line's ``--model``); each is replayed as the flexible joint the workflow fits
+#: (``nominal_for_model``).
+DISCOVER_MODELS: tuple[str, ...] = ("flexible", "rigid", "rotor")
+
+#: A rigid model is replayed as two halves of its inertia joined by a spring whose internal
+#: mode is at RIGID_MODE_STEP / h [rad/s], h the replay's step: far above a loop's bandwidth,
+#: well inside RK4's stability limit (600 rad/s at 1 ms, as ``studies/discover_emps.py``).
+RIGID_MODE_STEP: float = 0.6
+
+#: RK4 is stable for an undamped mode of frequency omega while omega h < 2 sqrt(2) (its
+#: stability region on the imaginary axis); discover refuses a nominal model whose spring
+#: mode is past STABLE_MODE_STEP of that.
+STABLE_MODE_STEP: float = 0.9 * 2.0 * math.sqrt(2.0)
+
+
+#: What a parameter file may declare of its axis (top-level ``axis``: one value, or one per
+#: joint; docs/spec.md section 7) and the candidate effects that then cannot act: about a
+#: vertical rotation axis gravity has no moment, and on a prismatic axis no angle for its
+#: sine (a weight along an inclined prismatic axis is a constant force: ``torque_offset``).
+AXES: dict[str, tuple[str, ...]] = {
+    "horizontal": (), "vertical": ("gravity",), "prismatic": ("gravity",),
+}
+
+
+def declared_axes(params: Params) -> list[str] | None:
+    """The axis kind of each joint that ``params`` declares (top-level ``axis``: one of
+    ``AXES``, or a list of them, one per joint), or None when it declares none.
+
+    **Arguments:**
+
+    - `params`: the parameter file's contents.
+
+    **Returns:**
+
+    One name of ``AXES`` per joint, or None.
+
+    **Raises:**
+
+    `jaxflex.params.ParamsError` for a value not in ``AXES`` or a list of the wrong
+    length."""
+    from jaxflex.params import ParamsError
+
+    a = params.extra.get("axis")
+    if a is None:
+        return None
+    values = [a] * params.n if isinstance(a, str) else a
+    if not isinstance(values, list) or len(values) != params.n or not all(
+            isinstance(v, str) and v in AXES for v in values):
+        raise ParamsError(f"axis: expected one of {sorted(AXES)} or a list of {params.n} of "
+                          f"them, got {a!r}")
+    return list(values)
+
+
+def cannot_act(params: Params) -> dict[str, str]:
+    """The candidate effects that cannot act on a one-joint ``params``'s axis as it declares
+    it (``declared_axes``, ``AXES``), each with the reason in words; empty when it declares
+    nothing."""
+    axes = declared_axes(params)
+    if not axes:
+        return {}
+    return {name: f"the parameter file declares the axis {axes[0]!r}: {name} cannot act"
+            for name in AXES[axes[0]]}
+
+
+class SolverFailure(RuntimeError):
+    """A fit inside discovery failed numerically (a non-converging eigen-decomposition, a
+    floating point error): not a bad input, the message names the fit (``stage``)."""
+
+    def __init__(self, stage: str, error: BaseException | str):
+        self.stage = stage
+        self.error = error
+        what = error if isinstance(error, str) else f"{type(error).__name__}: {error}"
+        super().__init__(f"discover: solver failure in {stage}: {what}")
+
+
+def spring_mode(params: Params) -> float:
+    """The fastest undamped internal mode of the joint(s) [rad/s]: omega = sqrt(K (1/I + 1/J))
+    (the two inertias of eq. 3 joined by the spring K; section 1 of docs/spec.md)."""
+    I, J, K = (np.asarray(params.plant[k], float) for k in ("I", "J", "K"))
+    return float(np.max(np.sqrt(K * (1.0 / I + 1.0 / J))))
+
+
+def model_kind_of(params: Params) -> str | None:
+    """The model kind an identification file was fitted with (``identification.start.kind``;
+    in files that carry no verdict, ``identification.model`` as a name), or None when the
+    file says none."""
+    ident = params.extra.get("identification")
+    if not isinstance(ident, dict):
+        return None
+    start = ident.get("start")
+    for k in (start.get("kind") if isinstance(start, dict) else None, ident.get("model")):
+        if isinstance(k, str):
+            return k
+    return None
+
+
+def nominal_for_model(params: Params, model: str, log: Log,
+                      step: float) -> tuple[Params, Log, str]:
+    """The flexible joint that ``discover`` replays for a parameter file of model ``model``.
+
+    - "flexible": the file as it is.
+    - "rigid" (Jx q1'' = u - F, eq. 37, Jx = I + J): two halves of Jx joined by a spring with
+      its internal mode at ``RIGID_MODE_STEP`` / ``step`` [rad/s], friction on the link side;
+      a log without q2 reads q2 = q1 (one encoder on a stiff axis).
+    - "rotor" (the rotor subsystem: J, K and the motor side; the link side not identified):
+      J and K from the file, the link inertia I = Jt - J (at least Jt / 10) and a LuGre
+      friction on the link from the rigid least-squares fit of the log's own motor encoder
+      (``jaxflex.validate.rigid_torque_fit``: Fc, Fs = 1.2 Fc, vs = 0.05 rad/s, sigma0 =
+      Fc / 1e-4 rad, sigma1 = 0, sigma2 = Fv), as ``studies/discover_kuka.py``.
+
+    **Arguments:**
+
+    - `params`: the nominal parameters (one joint).
+    - `model`: one of ``DISCOVER_MODELS``.
+    - `log`: the one-joint log discovery runs on.
+    - `step`: the replay's integration step [s] (sample period / substeps).
+
+    **Returns:**
+
+    The parameters to replay, the log (q2 filled for a rigid model), and a one-line note of
+    what was done ("" for "flexible").
+
+    **Raises:**
+
+    `ValueError` for an unknown model, or a rotor model on a log without torque."""
+    if model not in DISCOVER_MODELS:
+        raise ValueError(f"discover: model must be one of {DISCOVER_MODELS}, got {model!r}")
+    d = params.to_dict()
+    if model == "rigid":
+        Jx = float(np.ravel(params.plant["I"])[0]) + float(np.ravel(params.plant["J"])[0])
+        half = Jx / 2.0
+        omega = RIGID_MODE_STEP / step
+        d["plant"] = {**d["plant"], "I": half, "J": half, "K": omega**2 * half / 2.0}
+        if log.q2 is None:
+            log = dataclasses.replace(log, q2=log.q1)
+        note = (f"rigid model: inertia {Jx:.4g} as two halves joined by K {omega**2 * half / 2:.4g}"
+                f" (internal mode {omega:.0f} rad/s)")
+        return Params.from_dict(d), log, note
+    if model == "rotor":
+        from jaxflex.validate import rigid_torque_fit
+
+        rigid = rigid_torque_fit(log)
+        J = float(np.ravel(params.plant["J"])[0])
+        Fc, Fv = abs(rigid["Fc"]), abs(rigid["Fv"])
+        I = max(rigid["Jt"] - J, 0.1 * abs(rigid["Jt"]))
+        if not (math.isfinite(I) and I > 0 and Fc > 0):
+            raise ValueError(f"discover: the rigid fit of the log gives no usable link side "
+                             f"(Jt {rigid['Jt']:.4g}, Fc {rigid['Fc']:.4g}) for the rotor model")
+        d["plant"] = {**d["plant"], "I": I}
+        d["friction"] = {"Fc": Fc, "Fs": 1.2 * Fc, "vs": 0.05, "sigma0": Fc / 1e-4,
+                         "sigma1": 0.0, "sigma2": max(Fv, 1e-9)}
+        note = (f"rotor model: J, K from the file; link I {I:.4g}, Fc {Fc:.4g}, sigma2 "
+                f"{Fv:.4g} from the log's rigid fit")
+        return Params.from_dict(d), log, note
+    return params, log, ""
+
+
 @dataclasses.dataclass
 class DiscoverConfig:
     """Settings of ``discover``: segment length [s], training fraction, LM steps, substeps per
@@ -1469,7 +1670,9 @@ class DiscoverConfig:
     winner's held-out gap within which significant rivals are polished before the pick
     (``contest``; at most 1: never); and the share of the held-out gap's excess over the
     floor that the effects added must close for the answer to name them when the final gap
-    stays unexplained (``explained_min``, ``explained_fraction``; 0: always name them)."""
+    stays unexplained (``explained_min``, ``explained_fraction``; 0: always name them); the
+    kind of model the nominal parameters describe (``model``, one of ``DISCOVER_MODELS``:
+    ``nominal_for_model``)."""
 
     segment: float = 0.3
     train_frac: float = 0.7
@@ -1488,6 +1691,7 @@ class DiscoverConfig:
     screen_least: int = 1
     contest: float = 3.0
     explained_min: float = 0.75
+    model: str = "flexible"
 
 
 @dataclasses.dataclass
@@ -1502,7 +1706,8 @@ class DiscoverResult:
     ``explained``, and are listed in ``effects`` as a partial explanation only; something is
     missing that the library does not describe; the localisation says where to look);
     tied: the first round's candidates that the data cannot tell apart (``tied``; one name,
-    the effect, when the answer is decided; empty when none was added);
+    the effect, when the answer is decided; empty when none was added); the ties of every
+    round are in ``effects_tied`` and in the one-line ``answer``;
     effects: all added, in order (in a tie the model carries one representative so that
     later rounds have a base: the held-out gap's pick while it stays tied, ``representative``;
     a tie is judged again on the final model, ``revisit_tie``, and the representative may
@@ -1516,7 +1721,10 @@ class DiscoverResult:
     round the base gap,
     the residual autocorrelation time, the effective count, every candidate's score and the
     winner; localisation: of the refit nominal model (and of the final one); config; log_info;
-    seconds; workspace: the problems (for replays in plots).
+    seconds; workspace: the problems (for replays in plots); residuals: the final model's
+    residual analysis on the held-out segments (``residual_analysis``: MATLAB's ``resid``);
+    not_tried: the candidates left out because the file's declared axis says they cannot act
+    (``cannot_act``), each with the reason.
     """
 
     effect: str
@@ -1538,6 +1746,23 @@ class DiscoverResult:
     workspace: Workspace
     tied: list[str] = dataclasses.field(default_factory=list)
     explained: float = 0.0
+    residuals: dict[str, Any] = dataclasses.field(default_factory=dict)
+    not_tried: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    @property
+    def effects_tied(self) -> list[list[str]]:
+        """Per effect added, the candidates its round could not tell apart from it (the
+        effect first; ``effect_ties``): a tie of any round, not only the first's."""
+        return effect_ties(self.rounds)
+
+    def answer(self) -> str:
+        """The answer in one line: ``effect``, then every effect added with the rivals its
+        round could not tell apart from it ("a | b": one of them, the data cannot say which)."""
+        ties = self.effects_tied
+        if not ties:
+            return self.effect
+        parts = [" | ".join(t) for t in ties]
+        return f"{self.effect}: {', then '.join(parts)}"
 
     @property
     def params(self) -> Params:
@@ -1592,6 +1817,7 @@ class DiscoverResult:
         nominal = {k: v for k, v in self.before.values.items()}
         return {
             "effect": self.effect, "effects": list(self.effects), "tied": list(self.tied),
+            "effects_tied": self.effects_tied, "answer": self.answer(),
             "gap_before": self.gap_before, "gap_after": self.gap_after,
             "gap_metric": "normalised RMS error of simulated q1 and q2 over held-out segments "
                           "(open-loop replay under logged torque from start states fitted "
@@ -1610,7 +1836,22 @@ class DiscoverResult:
             "telling_quantity": TELLING.get(self.effect) if self.effects else None,
             "config": dataclasses.asdict(self.config) | {"candidates": self.candidates},
             "log": self.log_info, "seconds": self.seconds,
+            "residual_analysis": self.residuals, "not_tried": dict(self.not_tried or {}),
         }
+
+
+def effect_ties(rounds: Sequence[dict[str, Any]]) -> list[list[str]]:
+    """Per effect added, in order, the candidates its round could not tell apart from it
+    (the effect first, then its rivals by name; the effect alone when its round decided),
+    from the rounds' records (``tied``, after any second look: ``revisit_tie``). Rounds
+    whose winner was dropped or that added nothing are skipped."""
+    out = []
+    for r in rounds:
+        w = r["winner"]
+        if w == "none":
+            continue
+        out.append([w] + sorted(k for k in r.get("tied", []) if k != w))
+    return out
 
 
 def final_answer(added: Sequence[str], tied: Sequence[str], unexplained: bool,
@@ -1724,8 +1965,11 @@ def discover_joints(
     out = []
     for j in range(log.n):
         say(f"joint {j}")
-        out.append(discover(log.joint(j), nominal.joint(j if nominal.n > 1 else 0), config,
-                            progress))
+        one = nominal.joint(j if nominal.n > 1 else 0)
+        axes = declared_axes(nominal)
+        if axes:  # the declaration of this joint (``joint`` drops the extra keys)
+            one.extra = {"axis": axes[j if nominal.n > 1 else 0]}
+        out.append(discover(log.joint(j), one, config, progress))
     return out
 
 
@@ -1744,10 +1988,34 @@ def discover(
     if nominal.n != 1 or log.n != 1:
         raise ValueError(f"discover handles one joint; the parameters have {nominal.n}, the "
                          f"log {log.n} (use discover_joints for an n-joint log)")
-    if log.q2 is None or log.tau is None:
+    if log.tau is None or log.q1 is None:
         raise ValueError("discover: the log needs columns tau, q1 and q2")
     say = progress or (lambda s: None)
-    cands = list(cfg.candidates or candidate_effects())
+    excluded = cannot_act(nominal)
+    h = log.dt / cfg.substeps
+    nominal, log, model_note = nominal_for_model(nominal, cfg.model, log, h)
+    if model_note:
+        say(model_note)
+    if log.q2 is None:
+        raise ValueError("discover: the log needs columns tau, q1 and q2 (a one-encoder log: "
+                         "model 'rigid')")
+    omega = spring_mode(nominal)
+    if not omega * h < STABLE_MODE_STEP:
+        raise ValueError(
+            f"discover: the nominal model's spring mode, {omega:.4g} rad/s (K "
+            f"{float(np.ravel(nominal.plant['K'])[0]):.4g}, I "
+            f"{float(np.ravel(nominal.plant['I'])[0]):.4g}, J "
+            f"{float(np.ravel(nominal.plant['J'])[0]):.4g}), is too fast for the replay's step "
+            f"of {h:.3g} s (omega h = {omega * h:.3g}, RK4 needs < {STABLE_MODE_STEP:.2f}): a "
+            "rigid model's stiff spring? Run it as model 'rigid' (--model rigid), or use "
+            f"{math.ceil(omega * log.dt / STABLE_MODE_STEP)} or more substeps")
+    cands = list(cfg.candidates or [c for c in candidate_effects() if c not in excluded])
+    for c in cands:
+        if c in excluded:
+            raise ValueError(f"candidate effect {c!r}: {excluded[c]} (remove it from the "
+                             "candidates, or the declaration from the file)")
+    if excluded and not cfg.candidates:
+        say(f"not tried: {', '.join(excluded)} ({next(iter(excluded.values()))})")
     for c in cands:
         if c not in EFFECTS:
             raise ValueError(f"unknown candidate effect {c!r}; known: {sorted(EFFECTS)}")
@@ -1757,13 +2025,41 @@ def discover(
                 f"candidate effect {c!r} ({EFFECTS[c].where}) does not change the motion that "
                 "discover replays nor its reading: it has none of the hooks "
                 "jaxflex.effects.REPLAY_HOOKS")
+    run = _Run(model_note=model_note)
+    try:
+        return _discover_run(log, nominal, cfg, cands, say, run)
+    except (np.linalg.LinAlgError, FloatingPointError) as e:
+        raise SolverFailure(run.stage, e) from e
+    finally:
+        if run.ahead is not None:  # no thread is left running, a failed run's included
+            run.ahead.join()
+
+
+@dataclasses.dataclass
+class _Run:
+    """Where a ``discover`` run is: the fit under way (for ``SolverFailure``), its
+    background work (``made_ahead``), and how its nominal model was read
+    (``nominal_for_model``'s note)."""
+
+    stage: str = "the nominal model's refit"
+    ahead: Ahead | None = None
+    model_note: str = ""
+
+
+def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[str],
+                  say: Callable[[str], None], run: _Run) -> DiscoverResult:
+    """``discover``'s workflow after its input checks; ``run`` says where it is."""
     t_start = time.perf_counter()
     nominal = Params.from_dict(nominal.to_dict())
+    if nominal.effects:  # e.g. an identified torque offset: discovery starts from the bare
+        # model, and such an effect is one of its candidates
+        say(f"note: the file's effects ({', '.join(nominal.effects)}) are set aside: "
+            "discover starts from the model without them and tries them as candidates")
     nominal.effects = {}
     ws = workspace(log, nominal, cands, segment=cfg.segment, train_frac=cfg.train_frac,
                    substeps=cfg.substeps, max_effects=cfg.max_effects)
     trace_fit(ws, Model(nominal, []))
-    ahead = made_ahead(ws, nominal)
+    ahead = run.ahead = made_ahead(ws, nominal)
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2, held_out=False)
     # the base every candidate is compared with must not keep a load that the first solve's
     # long early steps pushed past the capacity (``settle``). Its stops stay in the units of
@@ -1793,6 +2089,7 @@ def discover(
     open_ties: list[tuple[int, dict[str, Any], dict[str, AbstractEffect]]] = []
     S, L = ws.train.segs.count, ws.train.segs.length
     while len(added) < cfg.max_effects:
+        run.stage = f"round {len(rounds) + 1}: the candidates' screens and fits"
         tau_int = autocorrelation_time(ws, current)
         n_eff = current.n_res / tau_int
         series = loc_current.series
@@ -1856,7 +2153,8 @@ def discover(
             say(f"  {name:20s} gap {f.gap_test:.4f} gain {s['gain']:+.3f} p {s['p_value']:.2e} "
                 f"dBIC {s['dBIC']:+.1f} {'*' if s['significant'] else ''} ({f.seconds:.1f} s)")
         if not scores and failed:
-            raise ValueError(f"discover: every candidate fit failed: {failed}")
+            raise SolverFailure(f"round {len(rounds) + 1}: every candidate's fit", str(failed))
+        run.stage = f"round {len(rounds) + 1}: the polish of the close candidates"
         winner = select(scores, cfg.parsimony)
         close = contest(scores, winner, cfg.contest)
         polished_fits = settle_side_by_side(ws, fits, close, max_steps=cfg.max_steps * 2,
@@ -1887,6 +2185,7 @@ def discover(
             break
         if len(rounds[-1]["tied"]) > 1:
             # the pooled evidence could not tell them apart: each encoder at its own noise
+            run.stage = f"round {len(rounds)}: the tie-break of {rounds[-1]['tied']}"
             best, rounds[-1]["tied"], rounds[-1]["tie_break"], polished_tied = break_tie(
                 ws, fits, rounds[-1]["tied"], max_steps=cfg.max_steps * 2, tau_int=tau_int,
                 decisive=cfg.decisive, tie_alpha=cfg.tie_alpha, settled=polished_fits)
@@ -1898,6 +2197,7 @@ def discover(
         # base, not with one that merely had fewer iterations; an effect that does not lower
         # the held-out gap after this refit is dropped
         # (standard errors inflated by the same residual autocorrelation time as the round's)
+        run.stage = f"round {len(rounds)}: the polish of {winner}"
         polished = (polished_fits[winner] if winner in polished_fits else
                     settle(ws, fits[winner], max_steps=cfg.max_steps * 2, tau_int=tau_int))
         if not polished.gap_test < current.gap_test:
@@ -1911,6 +2211,7 @@ def discover(
         # out of a local minimum of the base and then let the effect go (measured: after a
         # joint damping, a gravity fit moved Fs from 0.26 to the true 0.14 N m, the held-out
         # gap fell by 17%, and the polished mgl was 0.2 standard errors from zero)
+        run.stage = f"round {len(rounds)}: the refit of the base without {winner}"
         reduced = without_effect(ws, polished, winner, max_steps=cfg.max_steps,
                                  tau_int=tau_int)
         k = polished.n_par - reduced.n_par
@@ -1945,6 +2246,7 @@ def discover(
         current = polished
         loc_current = localise(log, current.model.params)
         say(f"added {winner}: held-out gap {current.gap_test:.4f}")
+    run.stage = "the second look at a tie on the final model"
     for at, rnd, rivals in open_ties:
         if at == len(added) - 1:
             continue  # judged on the final base already
@@ -1962,6 +2264,7 @@ def discover(
         loc_current = localise(log, current.model.params)
         say(f"tie of {sorted(rivals)} judged again with {added}: {now}, still tied {rnd['tied']}")
     ahead.join()  # long done: no thread is left running when discover returns
+    run.stage = "the gap floor's bootstrap (replays of the final model)"
     fl = gap_floor(log, ws, current)
     # "unexplained": the final gap stays significantly above what noise, start errors and
     # integration cost a correct model on this log, and no candidate closed it
@@ -1971,6 +2274,11 @@ def discover(
     # the round that added the first effect (a round whose winner was dropped comes before it)
     first_tied = next(r["tied"] for r in rounds if r["winner"] == added[0]) if added else []
     answer = final_answer(added, first_tied, unexplained, explained, cfg.explained_min)
+    run.stage = "the residual analysis of the final model"
+    try:
+        resid = residual_analysis(ws, current)
+    except ValueError as e:  # a residual the statistics refuse is reported, not raised
+        resid = {"error": str(e)}
     return DiscoverResult(
         effect=answer, effects=added, gap_before=first_fit.gap_test,
         gap_after=current.gap_test, gap_floor=fl["floor"], floor=fl,
@@ -1980,7 +2288,9 @@ def discover(
         config=cfg, candidates=cands,
         log_info={"samples": log.N, "dt": log.dt, "train_samples": int(cfg.train_frac * log.N),
                   "segment_samples": L, "train_segments": S,
-                  "test_segments": ws.test.segs.count},
+                  "test_segments": ws.test.segs.count, "model": cfg.model,
+                  "model_note": run.model_note},
         seconds=time.perf_counter() - t_start, workspace=ws, tied=list(first_tied),
-        explained=explained,
+        explained=explained, residuals=resid,
+        not_tried={k: v for k, v in cannot_act(nominal).items() if k not in cands},
     )

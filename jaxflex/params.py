@@ -83,10 +83,11 @@ CONTROLLER_KEYS: tuple[str, ...] = (
 # top-level keys the tools write besides the sections (kept verbatim on reading);
 # "loop_controller" declares the loop that ran on a rig for ``jaxflex validate`` (the EMPS
 # P/P cascade {"type": "pp_cascade", ...}, a PD loop {"type": "pd", ...} or jaxflex's cascade
-# {"type": "cascade", ...}; read by ``jaxflex.validate.loop_controller``)
+# {"type": "cascade", ...}; read by ``jaxflex.validate.loop_controller``); "axis" declares the
+# physics the log's owner knows (read by ``jaxflex.discover.declared_axes``)
 EXTRA_KEYS: tuple[str, ...] = ("stderr", "identification", "discover", "source", "description",
                                "comment", "notes", "units", "meta", "loop_controller",
-                               "certificate")
+                               "certificate", "axis")
 SECTIONS: tuple[str, ...] = ("plant", "friction", "gains", "effects", "controller")
 
 

@@ -25,6 +25,10 @@ at its floor says "as good as this log can tell", not "97% wrong":
   (rigid or flexible model), the log's q1d sampled as the reference (floors:
   ``closed_loop_noise_floor``).
 
+Beside them, the segment replay's residual analysis as MATLAB's ``resid`` gives it
+(``replay_residual_analysis``: autocorrelation and torque cross-correlation with 99% bands,
+Ljung-Box whiteness).
+
 Returns plain dicts; figures and files are written by ``jaxflex.cli.validate``.
 """
 
@@ -49,6 +53,7 @@ from jaxflex.controller import (
 from jaxflex.effects import link_input
 from jaxflex.fit import (ParamSpace, Problem, gap, make_segments, noise_level, output_columns,
                          savgol, savgol_coeffs, simulated_outputs)
+from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
 from jaxflex.logs import Log
 from jaxflex.params import Params, ParamsError
 from jaxflex.plant import FlexibleJointPlant
@@ -696,7 +701,7 @@ def _replay_problem(params: Params, log: Log, kind: str, length: int | None,
                          friction=plant.friction)
     space = ParamSpace.build(plant, ["J"])  # evaluated at the base values: nothing is fitted
     n_state = segs.x0.shape[1]
-    prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
+    return Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
                    dt=log.dt, kind=kind, substeps=substeps, outputs=outputs, free_starts=False)
     return prob, space.theta0()
 
@@ -815,6 +820,59 @@ def torque_noise_floor(params: Params, log: Log, *, kind: str = "flexible", wind
     return {"pct": pct, "std": {c: np.asarray(v).tolist() for c, v in std.items()}}
 
 
+def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible",
+                             length: int | None = None, substeps: int = 4,
+                             lags: int = 25) -> dict[str, Any]:
+    """MATLAB ``resid`` of ``params`` on ``log``: the residual (measured - simulated) of the
+    open-loop segment replay of ``segment_gap``, per output and joint, its autocorrelation
+    and its cross-correlation with the logged torque (the link subsystem's input: the
+    measured rotor angle), each with its 99% band, and the Ljung-Box whiteness test
+    (``jaxflex.fit.residual_analysis.analyse_segments``, the lagged products pooled within
+    the segments).
+
+    **Arguments:**
+
+    - `params`: the parameters judged.
+    - `log`: the log.
+    - `kind`: the model structure (``jaxflex.step.MODEL_KINDS``).
+    - `length`: samples per segment (default: 0.5 s, at least 20).
+    - `substeps`: integrator substeps per sample.
+    - `lags`: the largest lag [samples] (at most a segment's half less one; MATLAB's
+      ``resid``: 25).
+
+    **Returns:**
+
+    ``{"part", "input", "residual", "lags", "confidence", "channels": {name: summary}}``,
+    names "q1", "q2" (with "[j]" per joint on an n-joint log), each summary
+    ``ResidualAnalysis.summary``; ``{"error": message}`` when the replay is not finite or
+    the segments are too short for the statistics.
+
+    **Raises:**
+
+    `ValueError` for a model kind the log cannot replay (a rotor or link model without q2)."""
+    _need_x64("replay_residual_analysis")
+    prob, theta = _replay_problem(params, log, kind, length, substeps)
+    y = np.asarray(simulated_outputs(prob, theta))
+    meas = np.asarray(prob.segs.y_meas)
+    u = np.asarray(prob.segs.tau)
+    u = u[..., 0, :] if u.ndim == 4 else u  # a subsystem's inputs: the torque, or the rotor
+    # angle that drives the link subsystem, first
+    n = log.n
+    lags = max(1, min(lags, prob.segs.length // 2 - 1))
+    channels = {}
+    try:
+        for c, o in enumerate(prob.outputs):
+            for j in range(n):
+                name = o if n == 1 else f"{o}[{j}]"
+                channels[name] = analyse_segments(meas[..., c * n + j] - y[..., c * n + j],
+                                                  u[..., j], lags=lags).summary()
+    except ValueError as e:  # a replay that diverged: said so, not raised
+        return {"error": str(e)}
+    return {"part": "open-loop segment replay", "input": "q2" if kind == "link" else "tau",
+            "lags": lags, "residual": "measured - simulated", "confidence": CONFIDENCE,
+            "channels": channels}
+
+
 def validate(
     params: Params, log: Log, *, kind: str = "flexible", segment: int | None = None,
     substeps: int = 4, disturbance: np.ndarray | None = None,
@@ -824,7 +882,8 @@ def validate(
     (``segment_gap_floor``), ``torque_pct`` and ``torque_noise_pct`` (``torque_noise_floor``;
     ``noise_std`` the noise found on each column), and ``closed_loop`` (dict of
     position/velocity/torque errors [%] with their ``noise_floor``,
-    ``closed_loop_noise_floor``; or None). ``series`` holds the measured and predicted
+    ``closed_loop_noise_floor``; or None), and ``residual_analysis``
+    (``replay_residual_analysis``). ``series`` holds the measured and predicted
     signals for figures."""
     tau_hat = torque_prediction(params, log, kind=kind)
     floor = torque_noise_floor(params, log, kind=kind, tau_hat=tau_hat)
@@ -835,6 +894,8 @@ def validate(
                                        substeps=substeps),
         "torque_pct": rel_error_pct(log.tau, tau_hat),
         "torque_noise_pct": floor["pct"], "noise_std": floor["std"],
+        "residual_analysis": replay_residual_analysis(params, log, kind=kind, length=segment,
+                                                      substeps=substeps),
     }
     loop_kind = {"rotor": "rigid", "link": "flexible"}.get(kind, kind)
     cl = closed_loop_errors(params, log, kind=loop_kind,

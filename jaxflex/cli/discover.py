@@ -3,6 +3,15 @@
 Writes ``DIR/report.json`` (first effect added or ``none``, all effects, held-out gap before
 and after, fitted effect parameters with standard errors, candidate scores, localisation),
 ``DIR/params.json`` (the augmented model, docs/spec.md section 7) and figures.
+
+The parameter file's model (``--model``; default the one its identification recorded, else
+flexible) says how it is replayed (``jaxflex.discover.nominal_for_model``): a rigid model as
+two halves of its inertia joined by a stiff spring (a one-encoder log reads q2 = q1), a rotor
+subsystem with its link side fitted rigidly on the log. An identification whose model is
+limited (``identification.model.verdict`` "model-limited") is taken with a note; one whose
+solver did not converge is refused unless ``--accept-unconverged`` (``load_params``). Bad
+input exits with 2; a
+numerical failure of a fit inside discovery with 1, naming the fit (report.json records it).
 """
 
 from __future__ import annotations
@@ -15,6 +24,10 @@ EXAMPLE = "jaxflex discover log.csv --params nominal.json --out out/discover"
 OUTPUT_FILES = ("report.json", "params.json", "params_joint0.json", "signature.png",
                 "replay.png", "scores.png")
 
+#: Exit status when a fit inside discovery fails numerically: a result that did not
+#: converge (bad input exits with 2, a bug with 70).
+SOLVER_FAILURE = 3
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``discover`` subcommand."""
@@ -22,7 +35,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "discover", help="find the effect a model misses in a log, add it, report the gap",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("log", help="log file (docs/spec.md section 6; CSV with t,tau,q1,q2)")
+    p.add_argument("log", help="log file (docs/spec.md section 6; CSV with t,tau,q1,q2), or a "
+                               "shipped data set: jaxflex:emps/DATA_EMPS, jaxflex:kuka/A/1 (one "
+                               "axis; also B, C and axes 2, 3)")
     p.add_argument("--map", default=None,
                    help="column mapping for files with other variable names, e.g. "
                         "'tau=gtau*vir,q1=qm,q2=qm' (docs/spec.md section 6)")
@@ -41,6 +56,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="RK4 steps per sample in every replay (1); the lag's and the delay's "
                         "time constants are fitted from 1.5 x the step dt / substeps up, so a "
                         "delay shorter than 1.5 samples needs 2 or more (longer runs)")
+    p.add_argument("--model", choices=("rigid", "flexible", "rotor"), default=None,
+                   help="the model the parameter file describes: flexible joint; rigid "
+                        "(replayed as two halves of its inertia joined by a stiff spring, a "
+                        "one-encoder log reads q2 = q1); rotor (J, K from the file, the link "
+                        "side from a rigid fit of the log). Default: the identification's "
+                        "model recorded in the file, else flexible")
     p.add_argument("--no-plots", action="store_true", help="skip figures")
     p.set_defaults(func=run)
 
@@ -49,9 +70,17 @@ def run(args: argparse.Namespace) -> int:
     """Run discovery and write the report; returns the exit code."""
     import importlib
     import json
+    import sys
     from pathlib import Path
 
-    from jaxflex.discover import DiscoverConfig, discover
+    from jaxflex.discover import (
+        DISCOVER_MODELS,
+        DiscoverConfig,
+        SolverFailure,
+        discover,
+        model_kind_of,
+    )
+    from jaxflex.data import is_named, load_named
     from jaxflex.fit.ahead import Ahead
     from jaxflex.logs import load_log, parse_mapping
     from jaxflex.params import load_params, save_params
@@ -66,13 +95,25 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--segment must be > 0 s, got {args.segment}")
     if not 1 <= args.substeps <= 16:
         raise ValueError(f"--substeps must be an integer in [1, 16], got {args.substeps}")
-    log = load_log(args.log, parse_mapping(args.map))
+    # a converged, model-limited identification is taken with load_params's one-line note
     nominal = load_params(args.params) if args.params else paper_params()
+    model = args.model or model_kind_of(nominal) or "flexible"
+    if model not in DISCOVER_MODELS:  # e.g. a link subsystem's identification
+        print(f"note: the identification's model {model!r} is replayed as a flexible joint")
+        model = "flexible"
+    if is_named(args.log):  # a shipped data set by name, as identify takes it
+        if args.map:
+            raise ValueError(f"--map applies to files; {args.log} is a shipped data set")
+        log = load_named(args.log).log
+    else:
+        required = ("t", "tau", "q1") if model == "rigid" else None
+        log = load_log(args.log, parse_mapping(args.map), **({"required": required}
+                                                              if required else {}))
     cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
     cfg = DiscoverConfig(
         segment=args.segment, train_frac=args.train_frac, max_steps=args.max_steps,
         alpha=args.alpha, min_gain=args.min_gain, max_effects=args.max_effects, candidates=cands,
-        substeps=args.substeps,
+        substeps=args.substeps, model=model,
     )
     out = Path(args.out)  # created once there is a result to write (no empty folder on Ctrl-C)
     if log.n > 1:
@@ -83,6 +124,16 @@ def run(args: argparse.Namespace) -> int:
     try:
         with interrupts_stop() as check:  # a fit ends on Ctrl-C; the command stops too
             res = discover(log, nominal, cfg, progress=lambda m: (check(), print(m)))
+    except SolverFailure as e:
+        # a numerical failure of a fit, not a bad input: said so, and recorded in the folder
+        with writing():
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "report.json").write_text(json.dumps(
+                {"effect": None, "failed": {"kind": "solver failure", "stage": e.stage,
+                                            "message": str(e)}, "model": model}, indent=2) + "\n")
+        print(f"jaxflex {e} (nothing discovered; "
+              f"{out / 'report.json'} records it)", file=sys.stderr)
+        return SOLVER_FAILURE
     finally:
         if plots is not None:  # no thread left behind, a failed run's included
             plots.join()
@@ -105,7 +156,9 @@ def run(args: argparse.Namespace) -> int:
         others = [t for t in r.get("tied", []) if t != r["winner"]]
         if others:
             print(f"effect {k + 1} ({r['winner']}) is not told apart from {', '.join(others)} "
-                  "on this log: the model carries one of them (report.json rounds[].tied)")
+                  "on this log: the model carries one of them (report.json effects_tied)")
+    if any(len(t) > 1 for t in rep["effects_tied"]):
+        print(f"answer: {rep['answer']}")
     if rep["unexplained"]:
         where = rep["localisation"].get("side", "?")
         print(f"unexplained: the held-out gap stays above {cfg.unexplained_factor:g} x the floor "
@@ -150,11 +203,12 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
                 rep["figures"] = [f"joint{j}/{f}" for f in plot_report(res, sub)]
             reps.append({"joint": j, **rep})
         summary = {"joints": reps, "effect": [r["effect"] for r in reps],
+                   "answer": [r["answer"] for r in reps],
                    "effects": [r["effects"] for r in reps],
                    "unexplained": [r["unexplained"] for r in reps]}
         (out / "report.json").write_text(json.dumps(summary, indent=2) + "\n")
     for j, rep in enumerate(reps):
-        print(f"joint {j}: effect {rep['effect']}  effects {rep['effects']}  gap "
+        print(f"joint {j}: answer {rep['answer']}  effects {rep['effects']}  gap "
               f"{rep['gap_before']:.4f} -> {rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})")
     print(f"wrote {out / 'report.json'} and {len(reps)} params_joint<j>.json")
     return 0

@@ -10,7 +10,9 @@ reference q1d, the closed-loop errors in the benchmark metric (position, velocit
 noise floor, what the log's measurement noise alone gives a perfect model
 (``jaxflex.validate``). Writes ``DIR/report.json``, ``DIR/table.md`` and figures (measured
 against predicted, residuals); an existing one of them needs ``--force``, and nothing is
-written until every log has been validated.
+written until every log has been validated. Each row's ``residual_analysis`` is the segment replay's residual analysis as
+MATLAB's ``resid`` gives it (autocorrelation and torque cross-correlation with 99% bands,
+Ljung-Box whiteness), drawn in ``DIR/<log>_<params>_residuals.png``.
 
 Example (EMPS, with the pulses of the validation file injected in volts):
 
@@ -122,6 +124,19 @@ def run(args: argparse.Namespace) -> int:
                       f"replay gap {res['gap']:.3f}")
             row = {k: v for k, v in res.items() if k != "series"}
             row["figure"] = fig
+            ra = res["residual_analysis"]
+            if ra.get("channels"):
+                from jaxflex.plots.discover import plot_residual_analysis
+
+                resid_fig = out / f"{name}_{which}_residuals.png"
+                plot_residual_analysis(ra, resid_fig, f"{name}: {which} ({args.model} model), "
+                                                      "residual of the segment replay")
+                row["residual_figure"] = resid_fig.name
+                white = ", ".join(f"{c} p {v['p_white']:.2g} (correlation time "
+                                  f"{v['correlation_time']:.3g} samples)"
+                                  for c, v in ra["channels"].items())
+                print(f"{name} {which}: residual whiteness (Ljung-Box, {ra['lags']} lags): "
+                      f"{white}")
             report["logs"].setdefault(name, {})[which] = row
             rows.append({"log": name, "params": which, **row})
         report["figures"] = [plot_table(rows, out / "torque_errors.png")]

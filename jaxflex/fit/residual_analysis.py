@@ -15,7 +15,6 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 #: Default number of lags (MATLAB's ``resid`` uses 25).
 LAGS: int = 25
@@ -75,6 +74,15 @@ class ResidualAnalysis:
         }
 
 
+def _band_z_and_p(confidence: float, q: float, lags: int) -> tuple[float, float]:
+    """The two-sided normal quantile of ``confidence`` and the chi-square survival of the
+    Ljung-Box ``q`` with ``lags`` degrees of freedom. scipy is imported here, not with the
+    module: a command's start would pay 0.2-0.55 s for it (tests/test_app_layer.py)."""
+    from scipy import special
+
+    return float(special.ndtri(0.5 + confidence / 2)), float(special.chdtrc(lags, q))
+
+
 def _autocorrelation(x: np.ndarray, lags: int) -> np.ndarray:
     """Biased normalised autocorrelation of ``x`` (mean removed) at lags 0..``lags``."""
     x = x - x.mean()
@@ -120,12 +128,11 @@ def analyse_residual(residual: Any, input: Any = None, *, lags: int = LAGS,
     if not np.all(np.isfinite(e)):
         raise ValueError("analyse_residual: the residual holds NaN or inf")
     n = e.size
-    z = float(stats.norm.ppf(0.5 + confidence / 2))
     rho = _autocorrelation(e, lags)
-    band = z / math.sqrt(n)
     k = np.arange(1, lags + 1)
     q = float(n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k)))
-    p = float(stats.chi2.sf(q, lags))
+    z, p = _band_z_and_p(confidence, q, lags)
+    band = z / math.sqrt(n)
     first_in = next((i for i in range(1, lags + 1) if abs(rho[i]) < band), lags + 1)
     tau = float(1.0 + 2.0 * np.sum(rho[1:first_in]))
     xc, xband, xout = None, None, 0
@@ -137,6 +144,76 @@ def analyse_residual(residual: Any, input: Any = None, *, lags: int = LAGS,
         rho_u = _autocorrelation(u, lags)
         # variance of the cross-correlation of independent series (Bartlett):
         # (1/N) sum_k rho_e(k) rho_u(k) over all lags, symmetric
+        s = float(rho[0] * rho_u[0] + 2 * np.sum(rho[1:] * rho_u[1:]))
+        xband = z * math.sqrt(max(s, 1.0 / n) / n)
+        xout = int(np.sum(np.abs(xc) > xband))
+    return ResidualAnalysis(
+        lags=np.arange(lags + 1), autocorrelation=rho, band=band,
+        cross_lags=np.arange(-lags, lags + 1), cross_correlation=xc, cross_band=xband,
+        ljung_box_q=q, p_white=p, correlation_time=max(tau, 1.0),
+        outside=int(np.sum(np.abs(rho[1:]) > band)), cross_outside=xout, n=n,
+    )
+
+
+def _pooled_correlation(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
+    """sum over segments s and samples t of a[s, t] b[s, t - k] at k = -lags..lags: the lagged
+    products within each segment (rows), never across two."""
+    L = a.shape[1]
+    fa, fb = np.fft.rfft(a, 2 * L, axis=1), np.fft.rfft(b, 2 * L, axis=1)
+    r = np.fft.irfft(fa * np.conj(fb), 2 * L, axis=1).sum(axis=0)
+    return np.concatenate([r[2 * L - lags:], r[: lags + 1]]) if lags else r[:1]
+
+
+def analyse_segments(residual: Any, input: Any = None, *, lags: int = LAGS,
+                     confidence: float = CONFIDENCE) -> ResidualAnalysis:
+    """``analyse_residual`` of a residual recorded in segments (e.g. the open-loop replays
+    of a log's segments, each from its own start): the lagged products are pooled within the
+    segments, never across the join of two, and the statistics are those of one sequence of
+    all the samples (Bartlett's bands and Ljung-Box with N = S x L).
+
+    Arguments:
+        residual: the residual, shape (S, L): S segments of L samples (any unit).
+        input: the input of the same shape (e.g. the applied torque [N m]), or None.
+        lags: the largest lag M [samples].
+        confidence: confidence of the bands (two-sided).
+
+    Returns:
+        A ``ResidualAnalysis`` (one segment: the same as ``analyse_residual``).
+
+    Raises:
+        ValueError: when the residual is not two-dimensional, its segments have fewer than
+            2 (M + 1) samples, it holds a non-finite value, or the input's shape differs.
+    """
+    e = np.asarray(residual, float)
+    if e.ndim != 2:
+        raise ValueError(f"analyse_segments: the residual must be (S, L), got shape {e.shape}")
+    S, L = e.shape
+    if not 1 <= lags or L < 2 * (lags + 1):
+        raise ValueError(f"analyse_segments: segments of {L} samples are too few for {lags} "
+                         "lags")
+    if not np.all(np.isfinite(e)):
+        raise ValueError("analyse_segments: the residual holds NaN or inf")
+    n = e.size
+    e = e - e.mean()
+    r = _pooled_correlation(e, e, lags)[lags:]
+    rho = r / r[0] if r[0] > 0 else np.zeros(lags + 1)
+    k = np.arange(1, lags + 1)
+    q = float(n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k)))
+    z, p = _band_z_and_p(confidence, q, lags)
+    band = z / math.sqrt(n)
+    first_in = next((i for i in range(1, lags + 1) if abs(rho[i]) < band), lags + 1)
+    tau = float(1.0 + 2.0 * np.sum(rho[1:first_in]))
+    xc, xband, xout = None, None, 0
+    if input is not None:
+        u = np.asarray(input, float)
+        if u.shape != e.shape:
+            raise ValueError(f"analyse_segments: input has shape {u.shape}, residual {e.shape}")
+        u = u - u.mean()
+        scale = math.sqrt(float(np.sum(e * e)) * float(np.sum(u * u)))
+        xc = (_pooled_correlation(e, u, lags) / scale if scale > 0
+              else np.zeros(2 * lags + 1))
+        ru = _pooled_correlation(u, u, lags)[lags:]
+        rho_u = ru / ru[0] if ru[0] > 0 else np.zeros(lags + 1)
         s = float(rho[0] * rho_u[0] + 2 * np.sum(rho[1:] * rho_u[1:]))
         xband = z * math.sqrt(max(s, 1.0 / n) / n)
         xout = int(np.sum(np.abs(xc) > xband))

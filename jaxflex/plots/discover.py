@@ -1,5 +1,6 @@
 """Figures of the discrepancy workflow: residual signature against the telling quantity,
-measured against simulated (held-out) before and after, candidate scores."""
+measured against simulated (held-out) before and after, candidate scores, and the final
+model's residual analysis (autocorrelation and input cross-correlation with their bands)."""
 
 from __future__ import annotations
 
@@ -99,6 +100,42 @@ def plot_scores(scores: dict[str, dict[str, Any]], base_gap: float, path: Path) 
     plt.close(fig)
 
 
+def plot_residual_analysis(analysis: dict[str, Any], path: Path, title: str) -> None:
+    """MATLAB ``resid``'s figure of a residual analysis (``jaxflex.discover.residual_analysis``
+    or ``jaxflex.validate.replay_residual_analysis``): per output channel (columns), the
+    residual's autocorrelation (top) and its cross-correlation with the input (bottom),
+    each with its confidence band (shaded: a residual that explains nothing more stays
+    inside)."""
+    chans = analysis["channels"]
+    names = list(chans)
+    fig, ax = plt.subplots(2, len(names), figsize=(5 * len(names), 5.5), squeeze=False)
+    conf = 100 * analysis.get("confidence", 0.99)
+    for j, name in enumerate(names):
+        c = chans[name]
+        rho = np.asarray(c["autocorrelation"])
+        k = np.arange(rho.size)
+        ax[0, j].axhspan(-c["band"], c["band"], color="0.85", label=f"{conf:g}% band")
+        ax[0, j].vlines(k, 0, rho, color="C0")
+        ax[0, j].plot(k, rho, "C0o", ms=3)
+        ax[0, j].set_title(f"{name}: autocorrelation (Ljung-Box p {c['p_white']:.2g})",
+                           fontsize=9)
+        ax[0, j].set_xlabel("lag [samples]")
+        ax[0, j].legend(fontsize=7)
+        if c.get("cross_correlation") is not None:
+            xc = np.asarray(c["cross_correlation"])
+            kx = np.arange(xc.size) - (xc.size - 1) // 2
+            ax[1, j].axhspan(-c["cross_band"], c["cross_band"], color="0.85")
+            ax[1, j].vlines(kx, 0, xc, color="C1")
+            ax[1, j].plot(kx, xc, "C1o", ms=3)
+        ax[1, j].set_title(f"{name}: cross-correlation with {analysis.get('input', 'input')}",
+                           fontsize=9)
+        ax[1, j].set_xlabel("lag [samples] (positive: input leads)")
+    fig.suptitle(title, fontsize=10)
+    fig.subplots_adjust(**(MARGINS | dict(hspace=0.45, top=0.88)))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def plot_report(result: Any, out: Path) -> list[str]:
     """All figures of one ``DiscoverResult`` into ``out``; returns their file names."""
     out = Path(out)
@@ -111,4 +148,8 @@ def plot_report(result: Any, out: Path) -> list[str]:
     if result.candidate_scores:
         plot_scores(result.candidate_scores, result.gap_before, out / "scores.png")
         names.append("scores.png")
+    if result.residuals.get("channels"):
+        plot_residual_analysis(result.residuals, out / "residuals.png",
+                               "Residual analysis of the final model (held-out segments)")
+        names.append("residuals.png")
     return names
