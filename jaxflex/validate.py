@@ -701,7 +701,7 @@ def _replay_problem(params: Params, log: Log, kind: str, length: int | None,
                          friction=plant.friction)
     space = ParamSpace.build(plant, ["J"])  # evaluated at the base values: nothing is fitted
     n_state = segs.x0.shape[1]
-    return Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
+    prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
                    dt=log.dt, kind=kind, substeps=substeps, outputs=outputs, free_starts=False)
     return prob, space.theta0()
 

@@ -16,6 +16,7 @@ from jaxflex.discover import (
     nominal_for_model,
     spring_mode,
 )
+from jaxflex.errors import InputError
 from jaxflex.logs import save_log
 from jaxflex.params import Params, ParamsError
 
@@ -144,7 +145,7 @@ def test_a_model_limited_file_runs_from_the_command_line_with_its_kind(tmp_path,
 
     def fake(log, nominal, cfg, progress=None):
         seen["model"], seen["samples"] = cfg.model, log.N
-        raise ValueError("stop here")
+        raise InputError("stop here")
 
     monkeypatch.setattr(d, "discover", fake)
     from jaxflex.data import load_emps
@@ -306,7 +307,7 @@ def test_an_unconverged_identification_is_refused_unless_accepted(tmp_path, caps
 
     # "0": not accepted; monkeypatch restores the variable that --accept-unconverged sets
     monkeypatch.setenv("JAXFLEX_ACCEPT_UNCONVERGED", "0")
-    monkeypatch.setattr(d, "discover", lambda *a, **k: (_ for _ in ()).throw(ValueError("ran")))
+    monkeypatch.setattr(d, "discover", lambda *a, **k: (_ for _ in ()).throw(InputError("ran")))
     from jaxflex.data import load_emps
 
     save_log(load_emps("DATA_EMPS").slice(0, 3000), tmp_path / "emps.csv")
