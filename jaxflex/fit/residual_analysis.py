@@ -123,36 +123,14 @@ def analyse_residual(residual: Any, input: Any = None, *, lags: int = LAGS,
     e = np.asarray(residual, float)
     if e.ndim != 1:
         raise ValueError(f"analyse_residual: the residual must be 1-D, got shape {e.shape}")
-    if not 1 <= lags or e.size < 2 * (lags + 1):
-        raise ValueError(f"analyse_residual: {e.size} samples are too few for {lags} lags")
-    if not np.all(np.isfinite(e)):
-        raise ValueError("analyse_residual: the residual holds NaN or inf")
-    n = e.size
-    rho = _autocorrelation(e, lags)
-    k = np.arange(1, lags + 1)
-    q = float(n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k)))
-    z, p = _band_z_and_p(confidence, q, lags)
-    band = z / math.sqrt(n)
-    first_in = next((i for i in range(1, lags + 1) if abs(rho[i]) < band), lags + 1)
-    tau = float(1.0 + 2.0 * np.sum(rho[1:first_in]))
-    xc, xband, xout = None, None, 0
+    u = None
     if input is not None:
         u = np.asarray(input, float).reshape(-1)
-        if u.size != n:
-            raise ValueError(f"analyse_residual: input has {u.size} samples, residual {n}")
-        xc = _cross_correlation(e, u, lags)
-        rho_u = _autocorrelation(u, lags)
-        # variance of the cross-correlation of independent series (Bartlett):
-        # (1/N) sum_k rho_e(k) rho_u(k) over all lags, symmetric
-        s = float(rho[0] * rho_u[0] + 2 * np.sum(rho[1:] * rho_u[1:]))
-        xband = z * math.sqrt(max(s, 1.0 / n) / n)
-        xout = int(np.sum(np.abs(xc) > xband))
-    return ResidualAnalysis(
-        lags=np.arange(lags + 1), autocorrelation=rho, band=band,
-        cross_lags=np.arange(-lags, lags + 1), cross_correlation=xc, cross_band=xband,
-        ljung_box_q=q, p_white=p, correlation_time=max(tau, 1.0),
-        outside=int(np.sum(np.abs(rho[1:]) > band)), cross_outside=xout, n=n,
-    )
+        if u.size != e.size:
+            raise ValueError(f"analyse_residual: input has {u.size} samples, residual {e.size}")
+        u = u[None, :]
+    # one segment: the pooled statistics of ``analyse_segments`` are the plain ones
+    return analyse_segments(e[None, :], u, lags=lags, confidence=confidence)
 
 
 def _pooled_correlation(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
