@@ -95,13 +95,14 @@ def test_a_rigid_axis_under_the_flexible_model_is_refused_with_a_hint(tmp_path):
 
 
 def test_identify_without_a_start_file_on_the_shipped_emps(tmp_path):
-    """``jaxflex identify jaxflex:emps/DATA_EMPS`` with no start file on 4 s of the log: the
+    """``jaxflex identify jaxflex:emps/DATA_EMPS`` with no start file: the
     rigid model from the one encoder, the start from the inverse dynamics, the offset the
     log shows fitted, a two-part verdict in the file, and an exit code that follows the
-    solver's half (a converged model-limited file is accepted downstream)."""
+    solver's half (a converged model-limited file is accepted downstream). 4 s of the log
+    and 10 steps a solve: what is checked here is the command, not the fit's accuracy."""
     path = tmp_path / "emps.json"
     out = _cli("identify", "jaxflex:emps/DATA_EMPS", "--out", str(path), "--stop", "4000",
-               "--max-steps", "40", "--quiet")
+               "--max-steps", "10", "--quiet")
     assert out.returncode in (0, 3), out.stderr
     d = json.loads(path.read_text())
     ident = d["identification"]
