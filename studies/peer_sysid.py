@@ -385,8 +385,10 @@ def main(argv: list[str] | None = None) -> dict:
                                  "sigma0, sigma1 LUGRE_START_FACTORS off JAXFLEX_FRICTION",
                         "lugre_start_factors": LUGRE_START_FACTORS,
                         "stderr": "IdentResult.stderr (segment-robust where available)",
-                        "timing": "cold: first call in the process (compilation included); "
-                                  "warm: the same call again"}},
+                        "timing": "cold: first call on the log (compilation included; "
+                                  "jaxflex_log runs after mujoco_log in the same process, so "
+                                  "its cold call may reuse programs compiled for the first "
+                                  "log); warm: the same call again; no trace cache on disk"}},
         "common_quantities": {"note": "MuJoCo's damping and frictionloss (a soft constraint) "
                               "against LuGre's sigma2 and Fc; Jx = I + J with J fixed at its "
                               "truth in both. LuGre's sigma0, sigma1, Fs, vs have no MuJoCo "
