@@ -134,10 +134,12 @@ def run(args: argparse.Namespace) -> int:
     import warnings
     from pathlib import Path
 
+    import numpy as np
+
     from jaxflex.data import is_named, load_named
     from jaxflex.identify import IdentificationWarning, choose_segment_length, identify
     from jaxflex.identify.core import SEGMENT_TIME_CONSTANTS, default_free, start_hints
-    from jaxflex.identify.start import check_model, start_from_data
+    from jaxflex.identify.start import StartError, check_model, start_from_data
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params
 
@@ -161,12 +163,12 @@ def run(args: argparse.Namespace) -> int:
     if args.params is not None:
         init = load_params(args.params, accept_unconverged=True)  # a start guess
         start_note = f"start {args.params}"
-        try:  # the common mistakes (degrees, rate), named before the long fit
+        try:  # the common mistakes (degrees, rate, sign), named before the long fit
             data = start_from_data(log, model)
             for hint in start_hints(data, init):
                 print(f"jaxflex identify: hint: {hint}", file=sys.stderr)
-        except ValueError:
-            pass
+        except StartError as e:
+            print(f"jaxflex identify: hint: {e}", file=sys.stderr)
     else:
         data = start_from_data(log, model)
         init = data.params
@@ -207,11 +209,19 @@ def run(args: argparse.Namespace) -> int:
                      name="jaxflex-import-figures", daemon=True).start()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentificationWarning)  # printed below, once
-        res = identify(log, init if args.params is not None else None, free, model=model,
-                       pin=pins,
-                       segment_length="auto" if args.segment == "auto" else seg,
-                       substeps=args.substeps, max_steps=args.max_steps,
-                       progress=False if args.quiet else 5)
+        try:
+            res = identify(log, init if args.params is not None else None, free, model=model,
+                           pin=pins,
+                           segment_length="auto" if args.segment == "auto" else seg,
+                           substeps=args.substeps, max_steps=args.max_steps,
+                           progress=False if args.quiet else 5)
+        except (np.linalg.LinAlgError, FloatingPointError) as e:
+            # the fit ran into non-finite values (a diverged replay): a result that did not
+            # converge, not a bad input; nothing is written
+            print(f"jaxflex identify: the fit failed numerically ({type(e).__name__}: {e}); "
+                  "nothing written. Check the hints above, the start file and --model",
+                  file=sys.stderr)
+            return 3
     if args.closed_loop:
         _closed_loop(res, log, loop, model, args.max_steps, say)
     out = Path(args.out)
