@@ -231,9 +231,11 @@ def run_jaxflex(log, init, same_start: bool) -> dict[str, Any]:
     (no static-map or inverse-dynamics starts); else identify's own extra starts too."""
     import jax
 
-    from jaxflex.identify import identify
+    from jaxflex.identify import DEFAULT_FREE, identify
 
-    kw = dict(model="rigid", static_start=not same_start, data_start=not same_start)
+    # the six LuGre parameters and the inertia I (J is fixed in both tools)
+    kw = dict(model="rigid", free=[*DEFAULT_FREE, "I"], static_start=not same_start,
+              data_start=not same_start)
     walls, r = [], None
     for _ in range(2):
         t0 = time.perf_counter()
@@ -252,7 +254,7 @@ def run_jaxflex(log, init, same_start: bool) -> dict[str, Any]:
             "steps": int(r.steps), "success": bool(r.converged), "model_verdict": r.model,
             "reason": r.reason, "cost": float(r.cost), "noise_cost": float(r.noise_cost),
             "values": val, "stderr": se, "unidentifiable": list(r.unidentifiable),
-            "attempts": len(r.attempts), "settings": kw | {"free": "default_free('rigid')"}}
+            "attempts": len(r.attempts), "settings": kw}
 
 
 def compare(values: dict[str, float], stderr: dict[str, float], which: int) -> dict[str, Any]:

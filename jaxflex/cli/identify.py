@@ -182,12 +182,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--closed-loop: the log has no reference column q1d")
     if args.free:
         free = [s.strip() for s in args.free.split(",") if s.strip()]
-    elif args.params is None:
-        free = default_free(model, init)
-    else:  # the LuGre six, and a torque offset where the log's inverse dynamics show one
-        free = list(("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2"))
-        if data is not None and "torque_offset" in data.params.effects:
-            free.append("torque_offset.offset")
+    else:  # identify's default: the LuGre six, the inertia from a data start, an offset
+        shows = data is not None and "torque_offset" in data.params.effects
+        free = default_free(model, init, from_data=args.params is None, data_offset=shows)
+        if shows and args.params is not None:
             off = data.params.effects["torque_offset"]["offset"]
             say(f"[identify] the log's inverse dynamics show a torque offset "
                 f"({', '.join(f'{o:.4g}' for o in off)} N m): fitted as torque_offset.offset "

@@ -262,14 +262,26 @@ MODEL_CHOICES: tuple[str, ...] = (*MODEL_KINDS, "auto")
 _DEGREES = 180.0 / math.pi
 
 
-def default_free(model: ModelKind, params: Params) -> list[str]:
-    """The parameters ``identify`` fits when none are named: the six LuGre parameters, the
-    inertia (I, with J and K for the flexible model) when the start comes from the data, and
-    every parameter of a ``torque_offset`` effect in ``params``."""
+def default_free(model: ModelKind, params: Params, *, from_data: bool,
+                 data_offset: bool = False) -> list[str]:
+    """The parameters ``identify`` fits when none are named.
+
+    Arguments:
+        model: the model kind.
+        params: the start.
+        from_data: the start is the log's own (``start_from_data``): its inertia (I; J and K
+            for the flexible model) is fitted too.
+        data_offset: the log's inverse dynamics show a torque offset.
+
+    Returns:
+        The six LuGre parameters, the inertia when ``from_data``, and the torque offset
+        where ``params`` has a ``torque_offset`` effect or ``data_offset``.
+    """
     free = list(DEFAULT_FREE)
-    free += {"rigid": ["I"], "flexible": ["I", "J", "K"], "rotor": ["J", "K"],
-             "link": ["I", "K"]}[model]
-    if "torque_offset" in params.effects:
+    if from_data:
+        free += {"rigid": ["I"], "flexible": ["I", "J", "K"], "rotor": ["J", "K"],
+                 "link": ["I", "K"]}[model]
+    if data_offset or "torque_offset" in params.effects:
         free.append("torque_offset.offset")
     return free
 
@@ -447,7 +459,10 @@ def identify(
         warnings.warn(h, IdentificationWarning, stacklevel=3)
     user_start = init is not None
     init = data.params if init is None else init
-    free = default_free(model, init) if free is None else list(free)
+    if free is None:
+        free = default_free(model, init, from_data=not user_start, data_offset=(
+            data is not None and "torque_offset" in data.params.effects))
+    free = list(free)
     if pin:
         init = set_values(init, {k: np.broadcast_to(np.asarray(v, float), (init.n,))
                                  for k, v in pin.items()})
@@ -543,7 +558,7 @@ def identify(
         segment_length=segment_length, outputs=outputs, output_scale=output_scale,
         continuity_weight=continuity_weight, max_steps=max_steps, good=good,
         warmed=lambda p, y: warmed(p, y, best_factor, "refit"),
-        noise=good / accept_cost)
+        noise=good / accept_cost, rel_stderr_limit=rel_stderr_limit)
     # the integrator must not move the answer: refined at the solution, coarse to fine
     r_prob, r_sol, discretisation["checks"] = refine_fit(
         f_prob, f_sol, refine=auto, solve=dict(search.solve, max_steps=max_steps),
@@ -628,7 +643,8 @@ def _fix_unidentified(search: _Search, res: IdentResult, prob: Problem, best: So
                       init: Params, y0: Any, log: Log, free: Sequence[str], *,
                       model: str, segment_length: int | None, outputs: Any, output_scale: Any,
                       continuity_weight: float, max_steps: int, good: float, warmed: Any,
-                      noise: float) -> tuple[Problem, Solution, dict[str, str] | None, int]:
+                      noise: float, rel_stderr_limit: float,
+                      ) -> tuple[Problem, Solution, dict[str, str] | None, int]:
     """Fix what the data cannot determine at its start value and refit the rest, one
     parameter at a time (the least determined first: the largest relative standard error,
     then the names of a null direction, never Fs before Fc), each refit from the values
@@ -672,7 +688,8 @@ def _fix_unidentified(search: _Search, res: IdentResult, prob: Problem, best: So
             if _settled(sol, good):
                 break
         res = finish(sub, init, sol.y, steps=total, converged=sol.converged, wall_s=0.0,
-                     noise_cost=good, log=log, unidentified=dict(fixed_why), solution=sol)
+                     rel_stderr_limit=rel_stderr_limit, noise_cost=good, log=log,
+                     unidentified=dict(fixed_why), solution=sol)
         cur, sol_cur = sub, sol
     if not fixed_why:
         return prob, best, None, total
@@ -695,7 +712,8 @@ def _fix_unidentified(search: _Search, res: IdentResult, prob: Problem, best: So
     total += full.steps
     if full.cost < sol_cur.cost:
         again = finish(prob, init, full.y, steps=total, converged=full.converged, wall_s=0.0,
-                       rel_stderr_limit=0.5, noise_cost=good, log=log, solution=full)
+                       rel_stderr_limit=rel_stderr_limit, noise_cost=good, log=log,
+                       solution=full)
         if not again.unidentifiable:
             return prob, full, None, total
     return cur, sol_cur, dict(fixed_why), total
