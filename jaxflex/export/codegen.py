@@ -516,6 +516,26 @@ def _ieee(fn, *args):
         return _to_float(fn(*conv))
 
 
+def _fma(a, b, c):
+    """a * b + c rounded once (IEEE fused multiply-add, as XLA's CPU dot products compute):
+    Dekker's exact two-product summed by math.fsum; by rationals outside its range."""
+    p = a * b
+    if a == 0 or b == 0 or not (_m.isfinite(p) and _m.isfinite(c)):
+        return p + c
+    if 1e-140 < abs(a) < 1e140 and 1e-140 < abs(b) < 1e140:
+        t = 134217729.0 * a
+        ah = t - (t - a)
+        al = a - ah
+        t = 134217729.0 * b
+        bh = t - (t - b)
+        bl = b - bh
+        return _m.fsum((p, ((ah * bh - p) + ah * bl + al * bh) + al * bl, c))
+    from fractions import Fraction
+
+    r = Fraction(float(a)) * Fraction(float(b)) + Fraction(float(c))
+    return float(r) if r != 0 else p + c
+
+
 def _round_away(x):
     return float(_m.copysign(_m.floor(abs(x) + 0.5), x))
 

@@ -181,6 +181,7 @@ class Dialect:
     round_even: str
     round_away: str
     solve: Callable[[int, list[str], list[str]], str]
+    fma: str
 
 
 PYTHON = Dialect(
@@ -188,9 +189,10 @@ PYTHON = Dialect(
     select2="({2} if {0} else {1})", select_n="({{1}} if {{0}} == {i} else {{2}})",
     to_bool="bool({0})", to_int="int({0})", to_float="float({0})", int_div="int({0} / {1})",
     round_even="float(round({0}))", round_away="_round_away({0})", solve=_py_solve,
+    fma="_fma({0}, {1}, {2})",
 )
 """Python on floats with ``math`` (``_m``); the generated module defines ``_sign``,
-``_round_away`` and ``_solve``."""
+``_round_away``, ``_solve`` and ``_fma``."""
 
 _C_UNARY: dict[str, str] = {
     **{k: f"{k}({{0}})" for k in ("sin", "cos", "tan", "asin", "acos", "atan", "sinh", "cosh",
@@ -217,6 +219,7 @@ C99 = Dialect(
     select2="({0} ? {2} : {1})", select_n="({{0}} == {i} ? {{1}} : {{2}})",
     to_bool="({0} != 0)", to_int="trunc({0})", to_float=None, int_div="trunc({0} / {1})",
     round_even="nearbyint({0})", round_away="round({0})", solve=_c_solve,
+    fma="fma({0}, {1}, {2})",
 )
 """C99 on doubles with libm (every value, booleans and integers included, is a double);
 the generated file defines ``jf_sign`` and ``jf_solve``."""
@@ -364,6 +367,38 @@ class Translator:
         for i in range(len(cases) - 2, -1, -1):
             acc = self.emit(self.d.select_n.format(i=i), pred, cases[i], acc)
         return acc
+
+    def fma(self, a: Atom, b: Atom, c: Atom) -> Atom:
+        """a * b + c rounded once (IEEE 754 fusedMultiplyAdd)."""
+        if _is_const(a) and _is_const(b) and _is_const(c):
+            return exact_fma(float(a), float(b), float(c))
+        for x, y in ((a, b), (b, a)):
+            if _is_const(x) and x == 0 and not math.isnan(float(x)) and _is_const(y):
+                return self.binary("add", 0.0 * float(y), c)
+            if _is_const(x) and x == 1:
+                return self.binary("add", y, c)
+        if _is_const(c) and c == 0:
+            return self.binary("mul", a, b)
+        return self.emit(self.d.fma, a, b, c)
+
+    def matvec_sum(self, a: Sequence[Atom], b: Sequence[Atom]) -> Atom:
+        """One row of a matrix-vector product, sum_k a_k b_k, in the order and roundings of
+        XLA's CPU dot emitter: for 2 or 3 terms the first product, then fused multiply-adds
+        of the others; for 4 or 5 terms the first four products summed as
+        (p0 + p2) + (p1 + p3) (its four-lane vector reduced), then + p4. Longer rows are
+        summed in order."""
+        k = len(a)
+        if k in (2, 3):
+            acc = self.binary("mul", a[0], b[0])
+            for x, y in zip(a[1:], b[1:]):
+                acc = self.fma(x, y, acc)
+            return acc
+        p = [self.binary("mul", x, y) for x, y in zip(a, b)]
+        if k in (4, 5):
+            acc = self.binary("add", self.binary("add", p[0], p[2]),
+                              self.binary("add", p[1], p[3]))
+            return acc if k == 4 else self.binary("add", acc, p[4])
+        return self.total(p)
 
     def total(self, atoms: Sequence[Atom]) -> Atom:
         acc: Atom = None
@@ -587,13 +622,21 @@ class Translator:
         bshape = A.shape[:nb]
         out = np.empty(bshape + A.shape[nb:nb + len(lf)] + B.shape[nb:nb + len(rf)], dtype=object)
         csize = int(np.prod([a.shape[d] for d in lc])) if lc else 1
+        # XLA folds unit batch dimensions away: a (1, m, k) x (1, k) product is the
+        # matrix-vector product its CPU emitter orders (``matvec_sum``)
+        rows = int(np.prod(A.shape[nb:nb + len(lf)], dtype=int))
+        cols = int(np.prod(B.shape[nb:nb + len(rf)], dtype=int))
+        matvec = int(np.prod(bshape, dtype=int)) == 1 and rows >= 2 and cols == 1
         for bi in np.ndindex(bshape):
             Ab = A[bi].reshape(A[bi].shape[: len(lf)] + (csize,))
             Bb = B[bi].reshape(B[bi].shape[: len(rf)] + (csize,))
             for i in np.ndindex(Ab.shape[:-1]):
                 for j in np.ndindex(Bb.shape[:-1]):
-                    terms = [self.binary("mul", x, y) for x, y in zip(Ab[i], Bb[j])]
-                    out[bi + i + j] = self.total(terms)
+                    if matvec:
+                        out[bi + i + j] = self.matvec_sum(list(Ab[i]), list(Bb[j]))
+                    else:
+                        terms = [self.binary("mul", x, y) for x, y in zip(Ab[i], Bb[j])]
+                        out[bi + i + j] = self.total(terms)
         return out
 
     def linear_solve(self, p: dict, ins: list[np.ndarray]) -> np.ndarray:
@@ -620,6 +663,28 @@ class Translator:
         flat = [A[i, j] for i in range(n) for j in range(n)] + [b[i] for i in range(n)]
         outs = self.emit_multi(lambda nm, tg: self.d.solve(n, nm, tg), flat, n)
         return np.array(outs, dtype=object)
+
+
+def exact_fma(a: float, b: float, c: float) -> float:
+    """a * b + c rounded once to float64 (IEEE 754 fusedMultiplyAdd) on Python floats: the
+    product split exactly into p + e (Dekker's two-product) and the three summed with one
+    rounding (``math.fsum``); outside the range where the split is exact, by rationals."""
+    p = a * b
+    if a == 0 or b == 0 or not (math.isfinite(p) and math.isfinite(c)):
+        return p + c
+    if 1e-140 < abs(a) < 1e140 and 1e-140 < abs(b) < 1e140:
+        t = 134217729.0 * a
+        ah = t - (t - a)
+        al = a - ah
+        t = 134217729.0 * b
+        bh = t - (t - b)
+        bl = b - bh
+        e = ((ah * bh - p) + ah * bl + al * bh) + al * bl
+        return math.fsum((p, e, c))
+    from fractions import Fraction
+
+    r = Fraction(a) * Fraction(b) + Fraction(c)
+    return float(r) if r != 0 else p + c
 
 
 def const_array(v: Any) -> np.ndarray:
