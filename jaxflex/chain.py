@@ -278,3 +278,46 @@ class SerialChain(AbstractLinkDynamics):
         """Centres of mass [m] of the links in the base frame."""
         R, o = self.frames(q)
         return o[1:] + jnp.einsum("iab,ib->ia", R[1:], self.com)
+
+
+class LockedJoints(AbstractLinkDynamics):
+    """A chain with some joints held at fixed positions: the free joints' link dynamics.
+
+    With the held joints at rest (q_h' = q_h'' = 0) the Lagrangian of the free joints has
+    M_ff(q_f; q_h) (the free rows and columns of the chain's M) and V(q_f; q_h), so C and G
+    follow from them as for any ``AbstractLinkDynamics``. ``chain``: the full chain;
+    ``free``: indices of the free joints (static); ``q_held``: positions of all joints
+    (n_full,) [rad or m], of which the held ones are used.
+
+    A held joint that moves (a wrist following its own trajectory) adds M_fh q_h'' and
+    velocity terms to the free joints' torques; evaluate ``chain.inverse_dynamics`` on the
+    full motion for those.
+    """
+
+    chain: SerialChain
+    q_held: Float[Array, " n_full"] = eqx.field(converter=as_param)
+    free: tuple[int, ...] = eqx.field(static=True, default=())
+
+    def __check_init__(self) -> None:
+        if not self.free or len(set(self.free)) != len(self.free) or not all(
+                0 <= i < self.chain.n for i in self.free):
+            raise ValueError(f"LockedJoints: free must be distinct joint indices in "
+                             f"0..{self.chain.n - 1}, got {self.free}")
+        if self.q_held.shape != (self.chain.n,):
+            raise ValueError(f"LockedJoints: q_held must have shape ({self.chain.n},), got "
+                             f"{self.q_held.shape}")
+
+    @property
+    def n(self) -> int:
+        return len(self.free)
+
+    def full(self, q: Float[Array, " n"]) -> Float[Array, " n_full"]:
+        """All joint positions: ``q`` in the free joints, ``q_held`` elsewhere."""
+        return self.q_held.astype(q.dtype).at[jnp.asarray(self.free)].set(q)
+
+    def mass_matrix(self, q: Float[Array, " n"]) -> Float[Array, "n n"]:
+        idx = jnp.asarray(self.free)
+        return self.chain.mass_matrix(self.full(q))[idx][:, idx]
+
+    def potential(self, q: Float[Array, " n"]) -> Float[Array, ""]:
+        return self.chain.potential(self.full(q))
