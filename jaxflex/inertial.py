@@ -163,8 +163,8 @@ class BaseParameters:
 
 
 def _format(name: str, coefs: dict[str, float]) -> str:
-    terms = [name] + [f"{'-' if c < 0 else '+'} {abs(c):.6g} {k}" for k, c in coefs.items()]
-    return " ".join(terms[:1] + [t for t in terms[1:]])
+    return " ".join([name] + [f"{'-' if c < 0 else '+'} {abs(c):.6g} {k}"
+                               for k, c in coefs.items()])
 
 
 def stacked_regressor(chain: SerialChain, states: Float[Array, "N 3 n"]) -> np.ndarray:
