@@ -15,7 +15,9 @@ origin, citation and licence):
 
 Loaders return a ``jaxflex.logs.Log`` (docs/spec.md section 6: SI units, link-referred);
 ``emps_record`` and ``kuka_record`` give the data sets' other variables (gains, references,
-pulses, gear ratios). Host-only numpy/scipy code; nothing here imports JAX.
+pulses, gear ratios). Host-only numpy/scipy code; nothing here imports JAX. The KR300's
+rigid-body model (kinematics, nominal inertias, the flexible axes 1-3 as a plant, the measured
+wrist motion) is ``jaxflex.data.kr300``, which does.
 """
 
 from __future__ import annotations

@@ -1,0 +1,167 @@
+"""The KUKA KR300 R2500 ultra (Quantec) as a shipped model: kinematics and nominal inertias of
+its six links, axes 1-3 as flexible joints, the measured wrist motion.
+
+Source: the rigid-body model of the arm in the public repository the measured data come from
+(GitHub ``JonasWeigand/Robot_Identification``, MIT licence, file
+``robot_model/model_KUKA_Quantec_Ultra_KR300.m``: standard DH parameters, link masses,
+centres of mass, inertia tensors about the centre of mass, rotor inertias and gear ratios,
+written for Corke's Robotics Toolbox; the 200 kg payload of ``MASTER_create_symbolic_robot.m``
+lumped into link 6). See ``SOURCE.md`` beside this file. ``tests/test_kr300.py`` checks
+M(q) and G(q) against values of the authors' generated model.
+
+Angle convention: the recorded angles (``load_kuka``'s q1, q2; ``load_kuka_wrist``). The
+authors' dynamics adds (0, -pi/2, pi/2, 0, 0, 0) to them and their axis 3 has a DH offset of
+pi/2, so the chain's offsets are (0, -pi/2, pi, 0, 0, 0). The DH base frame has its z axis
+pointing *down* (the authors' base transform is a rotation of pi about x), so gravity is
+(0, 0, +9.81) m/s^2 in it and axis 1 is vertical: G_1 = 0.
+
+Not in G: the hydraulic weight counterbalance of axis 2 (a gas spring; the authors model it
+separately, ``hydraulic_counterbalance``), friction, and the rotor inertias (the rotor side of
+eq. 3: ``kuka_kr300_plant``'s J).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from jaxflex.chain import LockedJoints, SerialChain
+from jaxflex.data import DATA_DIR, KUKA_TRAJECTORIES, _check_choice
+from jaxflex.plant import FlexibleJointPlant
+
+#: Standard DH parameters of axes 1-6: a [m], d [m], alpha [rad].
+KR300_A: tuple[float, ...] = (0.350, 1.150, 0.041, 0.0, 0.0, 0.0)
+KR300_D: tuple[float, ...] = (-0.675, -0.189, 0.189, -1.0, 0.0, -0.240)
+KR300_ALPHA: tuple[float, ...] = (math.pi / 2, 0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, math.pi)
+#: Joint offsets [rad] from the recorded angles to the DH angles (module docstring).
+KR300_OFFSET: tuple[float, ...] = (0.0, -math.pi / 2, math.pi, 0.0, 0.0, 0.0)
+#: Link masses [kg] without payload (link 6: the flange, 17.78 kg at z = -50 mm).
+KR300_MASS: tuple[float, ...] = (395.40, 339.12, 105.21, 35.80, 31.46, 17.78)
+#: Centres of mass [m] in the link frames (link 6 without payload).
+KR300_COM: tuple[tuple[float, float, float], ...] = (
+    (-0.353, 0.174, -0.004), (-0.709, -0.001, 0.023), (-0.018, -0.018, -0.076),
+    (0.0, 0.236, 0.001), (0.0, -0.080, -0.009), (0.0, 0.0, -0.050),
+)
+#: Inertia about the centre of mass [kg m^2], entries (Ixx, Iyy, Izz, Ixy, Iyz, Ixz) as the
+#: source lists them (tensor entries); link 6 is a point mass there.
+KR300_INERTIA: tuple[tuple[float, ...], ...] = tuple(tuple(v * 1e-6 for v in row) for row in (
+    (16733765, 29799119, 32814954, -1703664, 129384, 4404062),
+    (7507819, 88886691, 88673761, 430046, 173157, -4396607),
+    (10783798, 10186135, 1943179, 118474, -606384, -101950),
+    (425035, 217993, 428465, -4, -11353, -27),
+    (283826, 229562, 258266, -4, -19521, -120),
+    (0, 0, 0, 0, 0, 0),
+))
+#: Gear ratios u and rotor inertias J_m [kg m^2] (motor side) of axes 1-6.
+KR300_GEAR: tuple[float, ...] = (1798 / 7, 1872 / 7, 757 / 3, 221.0, 5032 / 21, 206793 / 1340)
+KR300_JM: tuple[float, ...] = (0.00923, 0.0118, 0.0118, 0.00173, 0.00173, 0.00173)
+#: Payload [kg] of the authors' model and its distance [m] along link 6's z axis.
+KR300_PAYLOAD: float = 200.0
+KR300_PAYLOAD_Z: float = 0.100
+#: Gravity's acceleration [m/s^2] in the DH base frame (z down).
+KR300_GRAVITY: tuple[float, float, float] = (0.0, 0.0, 9.81)
+#: The wrist (axes 4-6), recorded without link-side encoders.
+WRIST_AXES: tuple[int, ...] = (4, 5, 6)
+
+
+def _tensor(e: tuple[float, ...]) -> np.ndarray:
+    xx, yy, zz, xy, yz, xz = e
+    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+
+
+def kuka_kr300_chain(payload: float = KR300_PAYLOAD) -> SerialChain:
+    """The six-axis rigid chain of the KR300 R2500 ultra in the recorded angle convention.
+
+    **Arguments:** ``payload`` [kg] (>= 0), a point mass 0.1 m along link 6's z axis (the
+    authors' model; 200 kg there).
+
+    **Returns:** a ``SerialChain`` (standard DH, base z down, gravity (0, 0, 9.81) m/s^2).
+    """
+    if not payload >= 0:
+        raise ValueError(f"kuka_kr300_chain: payload must be >= 0 kg, got {payload}")
+    mass = np.array(KR300_MASS)
+    com = np.array(KR300_COM)
+    m6 = mass[5] + payload
+    com[5, 2] = (mass[5] * com[5, 2] + payload * KR300_PAYLOAD_Z) / m6
+    mass[5] = m6
+    inertia = np.stack([_tensor(e) for e in KR300_INERTIA])
+    return SerialChain.from_dh(a=KR300_A, d=KR300_D, alpha=KR300_ALPHA, mass=mass, com=com,
+                               inertia=inertia, gravity=KR300_GRAVITY, offset=KR300_OFFSET)
+
+
+def kuka_kr300_arm(q_wrist: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                   payload: float = KR300_PAYLOAD) -> LockedJoints:
+    """Axes 1-3 of the KR300 with the wrist (axes 4-6) held at ``q_wrist`` [rad] (recorded
+    convention): the link dynamics of the three flexible joints."""
+    q_held = np.concatenate([np.zeros(3), np.asarray(q_wrist, float)])
+    return LockedJoints(chain=kuka_kr300_chain(payload), q_held=q_held, free=(0, 1, 2))
+
+
+def kuka_kr300_plant(q_wrist: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                     payload: float = KR300_PAYLOAD, friction=None) -> FlexibleJointPlant:
+    """Axes 1-3 as a flexible-joint arm (eq. 3): ``kuka_kr300_arm`` links, rotor inertias
+    J = u^2 J_m [kg m^2] referred to the link, and the nominal joint stiffnesses K [N m/rad]
+    of the recording's feed-forward (``c_rad_ff``, SOURCE.md); ``friction``: a ``LuGre`` for
+    the three axes or None."""
+    J = np.array(KR300_GEAR[:3]) ** 2 * np.array(KR300_JM[:3])
+    K = np.load(DATA_DIR / "kuka_kr300_traj_A.npz")["c_rad_ff"].astype(float)
+    return FlexibleJointPlant(links=kuka_kr300_arm(q_wrist, payload), J=J, K=K,
+                              friction=friction)
+
+
+def hydraulic_counterbalance(q2: np.ndarray) -> np.ndarray:
+    """Torque [N m] of the gas-spring weight counterbalance on axis 2 at the recorded angle
+    ``q2`` [rad], to add to G_2 (the authors' model of a bladder accumulator: isothermal real
+    gas, 0.159 kg of nitrogen at 328 K, anchor points 0.8 m and 0.2 m from axis 2)."""
+    D, k = 0.8, 0.2
+    area = math.pi * (0.055**2 - 0.030**2) / 4
+    delta = np.asarray(q2) - math.pi / 2 + math.radians(95.0)
+    dl = np.sqrt(D**2 + k**2 - 2 * D * k * np.cos(delta)) - (D - k)
+    lever = np.sin(delta) * D * k / (dl + D - k)
+    pressure = 1.01 * 296.8 * 328.0 * 2 * 0.0795 / (2 * 0.00048 - dl * area)
+    return lever * pressure * area
+
+
+def _wrist_file(trajectory: str) -> Path:
+    return DATA_DIR / f"kuka_kr300_wrist_{trajectory}.npz"
+
+
+def load_kuka_wrist(trajectory: str) -> dict[str, np.ndarray]:
+    """The measured wrist motion of a KUKA trajectory: t [s] (L,); q [rad] (L, 3) motor
+    angles of axes 4-6 referred to the link (no link encoders there); tau [N m] (L, 3)
+    motor torques referred to the link (u tau_m); q_ref [rad] (L, 3) references."""
+    _check_choice("trajectory", trajectory, KUKA_TRAJECTORIES)
+    z = np.load(_wrist_file(trajectory))
+    t = np.load(DATA_DIR / f"kuka_kr300_traj_{trajectory}.npz")["time_cont"]
+    return {"t": t, "q": np.deg2rad(z["act_pos_mot_deg"]).T,
+            "tau": (z["u"][:, None] * z["act_torque_abs_nm"]).T,
+            "q_ref": np.deg2rad(z["ref_pos_deg"]).T}
+
+
+def reduce_kuka_wrist(src_dir: str | Path, out_dir: str | Path = DATA_DIR) -> list[Path]:
+    """Write ``kuka_kr300_wrist_{A,B,C}.npz`` from the original ``.mat`` files in ``src_dir``
+    (``jaxflex.data.KUKA_SOURCE_FILES`` names, or the repository's ``data.mat`` per folder):
+    rows 3-5 (axes 4-6) of ``act_pos_mot_deg``, ``act_torque_abs_nm``, ``ref_pos_deg`` and
+    entries 3-5 of ``para.u``, ``para.J_mr``, bit-identical, with the source's sha256."""
+    import hashlib
+
+    import scipy.io
+
+    from jaxflex.data import KUKA_SOURCE_FILES
+
+    out = []
+    for traj, name in KUKA_SOURCE_FILES.items():
+        src = Path(src_dir) / name
+        raw = src.read_bytes()
+        mat = scipy.io.loadmat(src, squeeze_me=True, struct_as_record=False)
+        rec, para = mat["rec"], mat["para"]
+        path = Path(out_dir) / f"kuka_kr300_wrist_{traj}.npz"
+        np.savez_compressed(
+            path, act_pos_mot_deg=rec.act_pos_mot_deg[3:6], act_torque_abs_nm=
+            rec.act_torque_abs_nm[3:6], ref_pos_deg=rec.ref_pos_deg[3:6],
+            u=np.asarray(para.u)[3:6], J_mr=np.asarray(para.J_mr)[3:6],
+            source_sha256=hashlib.sha256(raw).hexdigest())
+        out.append(path)
+    return out
