@@ -289,7 +289,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     space (Jacobians over the most entries a model with ``max_effects`` effects fits: the
     last round fits the ``max_effects`` - 1 added and one candidate).
     The space bounds the Stribeck excess Fs - Fc by the largest logged torque |tau| [N m]
-    (``ParamSpace.excess_cap``): a static friction the actuator could never have broken is
+    (``ParamSpace.friction_cap``): a static friction the actuator could never have broken is
     not physical (identify marks one as unidentified), and a nominal refit that misses an
     effect could otherwise turn the bristles into a spring to ground (measured: a hardening
     spring and an actuator lag behind the cascade loop, |tau| <= 2 N m; the nominal refit
@@ -321,7 +321,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     if not (math.isfinite(top) and top > 0):
         raise ValueError(f"discover: the log's torque column has largest |tau| = {top}: "
                          "nothing drives the motion the workflow replays")
-    space = eqx.tree_at(lambda s: s.excess_cap, space, to_device(top))
+    space = eqx.tree_at(lambda s: s.friction_cap, space, to_device(top))
     # start estimates (the solver's first guess of each segment's start state): angles and
     # Savitzky-Golay velocities from the log, the bristle load that balances the link's
     # inverse dynamics there (``bristle_entries``; the start z is bounded, Problem.bounded_z)
@@ -691,8 +691,8 @@ def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float =
     return with_held_out(ws, fit)
 
 
-#: ``released``: a static friction is pinned when Fs - Fc is within PINNED of the space's
-#: cap on it (``ParamSpace.excess_cap``: the sigmoid's slope is then below 2% of the excess),
+#: ``released``: a static friction is pinned when Fs - Fc or Fc is within PINNED of the
+#: space's cap on them (``ParamSpace.friction_cap``: the sigmoid's slope is then below 2% of the excess),
 #: or Fc below PINNED_FC of Fs (Fc = exp(u): its Jacobian column is Fc itself).
 PINNED: float = 0.02
 PINNED_FC: float = 1e-6
@@ -713,8 +713,8 @@ def released(ws: Workspace, fit: CandidateFit) -> Model | None:
     if "Fc" not in v or "Fs" not in v:
         return None
     fc, fs = v["Fc"], v["Fs"]
-    cap = float(np.ravel(ws.space.excess_cap)[0])
-    at_cap = math.isfinite(cap) and fs - fc > (1.0 - PINNED) * cap
+    cap = float(np.ravel(ws.space.friction_cap)[0])
+    at_cap = math.isfinite(cap) and max(fs - fc, fc) > (1.0 - PINNED) * cap
     if not (at_cap or fc < PINNED_FC * fs):
         return None
     nominal = ws.space.base.friction

@@ -398,7 +398,7 @@ def test_a_pinned_static_friction_is_released_to_the_nominal():
     true = Params.from_dict(g.truth["plant"])
     ws = workspace(g.log, true, ("torque_offset",), segment=0.3, train_frac=0.5, substeps=1,
                    max_effects=1)
-    cap = float(np.ravel(ws.space.excess_cap)[0])
+    cap = float(np.ravel(ws.space.friction_cap)[0])
     fc0, fs0 = (float(true.friction[k][0]) for k in ("Fc", "Fs"))
 
     def fit_with(fc, fs):

@@ -71,14 +71,14 @@ def test_constraint_vocabulary():
 
 
 def test_a_capped_stribeck_excess_stays_below_its_cap_and_the_default_is_exp():
-    """``ParamSpace.excess_cap`` bounds Fs - Fc (discover sets it to the largest logged
+    """``ParamSpace.friction_cap`` bounds Fs - Fc (discover sets it to the largest logged
     torque); left infinite it is exactly the "ordered" map Fs = Fc + exp(u), so no other fit
     changes; values round-trip through theta either way, a value past the cap is moved
     inside, and the map stays finite and differentiable far past it."""
     space = ParamSpace.build(paper_params().to_plant(), ("Fc", "Fs"))
     th = {"Fc": jnp.asarray([np.log(0.1)]), "Fs": jnp.asarray([np.log(0.05)])}
     assert float(space.physical(th)["Fs"][0]) == 0.1 + 0.05  # exp, bit for bit
-    capped = eqx.tree_at(lambda s: s.excess_cap, space, jnp.asarray(2.0))
+    capped = eqx.tree_at(lambda s: s.friction_cap, space, jnp.asarray(2.0))
     for u in (-3.0, 0.0, 3.0, 50.0, 800.0):
         ph = capped.physical({"Fc": th["Fc"], "Fs": jnp.asarray([u])})
         assert 0.1 < float(ph["Fs"][0]) <= (0.1 + 2.0) * (1 + 1e-12)
@@ -90,6 +90,23 @@ def test_a_capped_stribeck_excess_stays_below_its_cap_and_the_default_is_exp():
         assert float(back["Fs"][0]) == pytest.approx(1.3, rel=1e-12)
     past = capped.physical(capped.theta_of({"Fc": 0.1, "Fs": 40.0}))
     assert float(past["Fs"][0]) < 0.1 + 2.0
+
+
+def test_a_capped_coulomb_level_stays_below_its_cap():
+    """The cap bounds Fc as well (a level the actuator never breaks turns the bristles into a
+    spring to ground): Fc stays below it however far its coordinate runs, round-trips
+    below it, and is exp(u) bit for bit while the cap is infinite."""
+    space = ParamSpace.build(paper_params().to_plant(), ("Fc", "Fs", "sigma0"))
+    th = {"Fc": jnp.asarray([np.log(0.1)]), "Fs": jnp.asarray([np.log(0.05)]),
+          "sigma0": jnp.asarray([0.0])}
+    assert float(space.physical(th)["Fc"][0]) == np.exp(np.log(0.1))
+    capped = eqx.tree_at(lambda s: s.friction_cap, space, jnp.asarray(2.0))
+    for u in (0.0, 5.0, 300.0, 800.0):
+        ph = capped.physical({**th, "Fc": jnp.asarray([u])})
+        assert 0.0 < float(ph["Fc"][0]) <= 2.0 and float(ph["Fs"][0]) <= 4.0
+    back = capped.physical(capped.theta_of({"Fc": 1.5, "Fs": 1.7}))
+    assert float(back["Fc"][0]) == pytest.approx(1.5, rel=1e-12)
+    assert float(back["Fs"][0]) == pytest.approx(1.7, rel=1e-12)
 
 
 def test_a_positive_parameter_driven_far_down_stays_positive():

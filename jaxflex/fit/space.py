@@ -13,8 +13,9 @@ covers all n joints. Every parameter has a constraint, a string of this vocabula
     "bounded:a,b"   p = a + (b - a) sigmoid(u)
     "ordered"       Fs = Fc + exp(u)              (Fs >= Fc always, docs/spec.md section 2);
                     Fc = Fs sigmoid(u) when Fc is free and Fs is not; with a finite
-                    ``ParamSpace.excess_cap`` c: Fs = Fc + c sigmoid(u - log c), so
-                    Fs - Fc < c (discover: c = the largest logged torque)
+                    ``ParamSpace.friction_cap`` c: Fc = c sigmoid(u - log c) and
+                    Fs = Fc + c sigmoid(u' - log c), so Fc < c and Fs - Fc < c
+                    (identify and discover: c = the largest logged torque)
     "free"          p = u
     "fixed"         never fitted (a smoothing width, a structural frequency)
     "tied:K"        copied from the plant's K (a backlash acts on the joint's own spring)
@@ -161,9 +162,11 @@ class ParamSpace(eqx.Module):
     the parameters in theta; ``transforms``: per name (kind, a, b) from ``_parse``;
     ``effect_index``: the position in ``base.effects`` of an effect parameter (-1 nominal);
     ``mask``: per name a boolean (array) whether it is fitted; ``fixed``: per name the
-    coordinates used where it is not; ``excess_cap``: the bound [N m] on Fs - Fc of the
-    "ordered" map (data, so a new cap compiles nothing; infinite by default, where the map
-    is exactly Fs = Fc + exp(u)).
+    coordinates used where it is not; ``friction_cap``: the bound [N m] on Fc and on Fs - Fc
+    (data, so a new cap compiles nothing; infinite by default, where the maps are exactly
+    Fc = exp(u) and Fs = Fc + exp(u')). A friction level above the largest torque a log
+    applies could never have been broken: with such a level the bristles act as a spring to
+    ground, a non-physical minimum that a fit missing an effect can run into.
     """
 
     base: FlexibleJointPlant
@@ -172,7 +175,7 @@ class ParamSpace(eqx.Module):
     effect_index: tuple[int, ...] = eqx.field(static=True)
     mask: dict[str, Array]
     fixed: dict[str, Array]
-    excess_cap: Array = eqx.field(default_factory=lambda: to_device(math.inf))
+    friction_cap: Array = eqx.field(default_factory=lambda: to_device(math.inf))
 
     @classmethod
     def build(cls, base: FlexibleJointPlant, free: Sequence[str]) -> ParamSpace:
@@ -208,6 +211,8 @@ class ParamSpace(eqx.Module):
                                  "fitted")
             if name == "Fc" and "Fs" not in free:
                 transforms.append(("frac", 0.0, 0.0))
+            elif name == "Fc":
+                transforms.append(("capped", 0.0, 0.0))
             else:
                 transforms.append(_parse(con))
         # Fs is built from Fc: evaluate Fc first.
@@ -265,16 +270,17 @@ class ParamSpace(eqx.Module):
             t = jnp.where(self.mask[name], theta[name], self.fixed[name])
             if kind == "exp":
                 out[name] = jnp.exp(jnp.maximum(t, LOG_TINY))
+            elif kind in ("capped", "gap"):
+                # cap sigmoid(t - log cap) = exp(t) / (1 + exp(t) / cap): exp(t) exactly while
+                # the cap is infinite (the default); written exp(t - softplus(t - log cap)),
+                # finite for any t
+                soft = jax.nn.softplus(t - jnp.log(self.friction_cap))
+                level = jnp.exp(jnp.maximum(t, LOG_TINY) - soft)
+                out[name] = level if kind == "capped" else out.get("Fc", fr.Fc) + level
             elif kind == "lower":
                 out[name] = a + jnp.exp(t)
             elif kind == "bounded":
                 out[name] = a + (b - a) * jax.nn.sigmoid(t)
-            elif kind == "gap":
-                # Fs - Fc = exp(t) / (1 + exp(t) / cap) = cap sigmoid(t - log cap): exp(t)
-                # exactly while the cap is infinite (the default)
-                # (written exp(t - softplus(t - log cap)): finite for any t)
-                soft = jax.nn.softplus(t - jnp.log(self.excess_cap))
-                out[name] = out.get("Fc", fr.Fc) + jnp.exp(t - soft)
             elif kind == "frac":
                 out[name] = fr.Fs * jax.nn.sigmoid(jnp.maximum(t, LOG_TINY))
             else:
@@ -298,9 +304,9 @@ class ParamSpace(eqx.Module):
             elif kind == "bounded":
                 r = np.clip((v - a) / (b - a), 1e-9, 1 - 1e-9)
                 th[name] = np.log(r / (1 - r))
-            elif kind == "gap":
-                g = np.maximum(v - fc, 1e-3 * fc)
-                cap = float(self.excess_cap)
+            elif kind in ("capped", "gap"):
+                g = np.maximum(v - fc, 1e-3 * fc) if kind == "gap" else np.maximum(v, _FLOOR)
+                cap = float(self.friction_cap)
                 g = np.minimum(g, (1 - 1e-9) * cap) if math.isfinite(cap) else g
                 th[name] = np.log(g / (1.0 - g / cap))
             elif kind == "frac":
