@@ -65,8 +65,8 @@ class Model:
 @functools.lru_cache(maxsize=2)
 def _gate(on: bool) -> jax.Array:
     """A gate (``Gated``) as one strongly typed array per value, made once: a weakly typed
-    one is converted at every compiled call that receives it (measured: twelve gates, 2.1 of
-    the 2.4 ms a solver step spent on the host before it ran)."""
+    one is converted at every compiled call that receives it, most of a solver step's host
+    time."""
     return to_device(1.0 if on else 0.0)
 
 
@@ -113,10 +113,9 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     The space bounds the Stribeck excess Fs - Fc by the largest logged torque |tau| [N m]
     (``ParamSpace.excess_cap``): a static friction the actuator could never have broken is
     not physical (identify marks one as unidentified), and a nominal refit that misses an
-    effect could otherwise turn the bristles into a spring to ground (measured: a hardening
-    spring and an actuator lag behind the cascade loop, |tau| <= 2 N m; the nominal refit
-    went to Fs = 75 N m with Fc = 0, and after the spring was added every candidate of the
-    next round gained 50-72%)."""
+    effect could otherwise turn the bristles into a spring to ground (Fs far above any
+    logged torque with Fc at zero), after which every candidate of the next round seems to
+    gain."""
     dt = log.dt
     L = int(round(segment / dt))
     N = log.N
@@ -207,9 +206,9 @@ def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
     g(q1') / sigma0. While
     sliding this is (near) the steady state; in stick, or just after a reversal, the load
     lies between +-capacity and has either sign, where the steady state of the velocity
-    (only 0 or +-capacity at rest) puts the start in another basin of the fit (measured: a
-    held-out segment starting 0.1 s after a reversal, true load -0.59 x capacity, fitted to
-    -1 from the steady state's +1, 5x the noise-level replay error)."""
+    (only 0 or +-capacity at rest) puts the start in another basin of the fit (a segment
+    that starts just after a reversal is then fitted to the opposite load, and replays
+    several times worse than the noise)."""
     dt = log.dt
     q1s, q2s, taus = (np.asarray(c, float)[:, 0] for c in (log.q1, log.q2, log.tau))
     q1, q2 = (savgol(q, dt, 0, window)[idx] for q in (q1s, q2s))
@@ -264,9 +263,8 @@ def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
     brought back within ``bound`` x the friction's capacity g(q1') / sigma0 of ``plant``. An
     entry a long solver step pushed past the capacity stops moving there (the clip has no
     slope); from just inside, a further solve can bring it back when the data want a partial
-    load (measured on a clean open-loop log: training gap 0.00089 from the first solve,
-    0.00032 after a second solve from the entries brought back, as from the true
-    parameters). Compiled (one program per bucket of segment counts, ``on_slot_rows``, kept
+    load (a second solve from the entries brought back reaches the fit the true parameters
+    give). Compiled (one program per bucket of segment counts, ``on_slot_rows``, kept
     by ``jaxflex.tracecache``): run op by op it cost a dozen small compilations per shape on
     every run."""
     return to_device(on_slot_rows(lambda x: _within_capacity(x, plant, bound), x0s))

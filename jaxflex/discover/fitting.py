@@ -50,9 +50,9 @@ FIT_SOLVER: dict[str, Any] = dict(rtol=_RTOL, atol=_ATOL, scaling="marquardt")
 DECREMENT = 0.01
 #: Progress stop of every fit (``least_squares(stall=...)``, ``relative_stop``'s units): a fit
 #: ends, not converged, when its last STALL_WINDOW steps lowered the residual by less than
-#: STALL chi-square units. The fits of friction models creep (measured on the bench's 20 s
-#: log: the nominal base's decrement stayed 50-500x above the statistical stop while 35 steps
-#: gained 0.3 chi-square units together), and AIC and BIC resolve differences of one unit.
+#: STALL chi-square units. The fits of friction models creep (the decrement can stay far
+#: above the statistical stop while many steps gain a fraction of a unit together), and AIC
+#: and BIC resolve differences of one unit.
 STALL_WINDOW, STALL = 10, 0.1
 
 
@@ -63,9 +63,8 @@ def relative_stop(n_res: int, inflation: float = 1.0,
     variance the fit itself estimates, 2 cost / ``n_res``, times the ``inflation`` its standard
     errors carry (the residual autocorrelation time). A fit stops when a full Gauss-Newton step
     would move every combination of the unknowns by less than sqrt(``fraction``) of its
-    reported standard error: further steps change nothing the workflow can resolve (measured
-    on a 20 s log: the candidate fits ran their 30-step cap without meeting the tolerances on
-    the unknowns)."""
+    reported standard error: further steps change nothing the workflow can resolve, and the
+    tolerances on the unknowns alone are rarely met within a fit's step cap."""
     return CostBound(fraction * inflation * 2.0 / n_res)
 
 
@@ -100,8 +99,7 @@ def fit_starts(prob: Problem, theta: dict[str, jax.Array], x0s: jax.Array, *,
     held-out segments are started, so that their gap measures the model and not an estimate
     of the start (no parameter sees the held-out data). Each segment's rows depend on its own
     start only: the structured solve takes 2 n_state Jacobian-vector products per step where
-    the dense Jacobian took S n_state (measured, 20 held-out segments of a 20 s log: the same
-    starts to 2e-15, 37 steps in 0.66 s against 1.96 s)."""
+    the dense Jacobian takes S n_state, with the same starts to rounding."""
     # in the bucket of segment slots (``jaxflex.fit.Padding``): held-out parts of logs of
     # other lengths share the compiled step; the stop counts the data's residuals only
     pad = Padding.of(prob, x0s)
@@ -131,8 +129,7 @@ def trace_fit(ws: Workspace, model: Model) -> bool:
     """Trace and keep the compiled loop of ``fit_model(ws, model)`` without compiling it
     (``jaxflex.fit.trace_solver``). ``discover`` calls it before the background work starts
     (``made_ahead``): tracing holds Python's interpreter lock, so traces made side by side
-    each take about twice as long (first run on the bench's 20 s log, three pairs: median
-    29.6 -> 28.3 s). Every model of the workspace shares the loop. True when a kept program
+    each take about twice as long. Every model of the workspace shares the loop. True when a kept program
     now serves the fits (False: the trace cache is off)."""
     train, _, theta0, x_train, _ = _fit_start(ws, model, None)
     return trace_solver(train, (theta0, x_train), **FIT_SOLVER)
@@ -204,9 +201,8 @@ def held_out_starts(prob: Problem, theta: dict[str, jax.Array], carried: jax.Arr
     replays it better (the segments are independent at fixed parameters): ``carried``, the
     starts of an earlier solve, and the log's estimates (``prob.segs.x0``), both brought within
     the friction's capacity. Carried starts fitted under other parameters can lie far from
-    this model's (measured: a torque offset added to a nominal refit whose Fs had gone to 0.73
-    N m, the true 0.15 refitted; the carried starts gave a held-out gap of 0.0025 after 40
-    steps and 0.00035 after 80, the log's estimates 0.00034 after 40). ``max_steps``: twice
+    this model's (after a refit that moved the friction far, the carried starts need twice
+    the steps the log's estimates need to reach the same held-out gap). ``max_steps``: twice
     fit_starts' default, since the solves this replaces each continued the held-out start fit
     of the one before (the statistical stop ends it sooner where it can)."""
     plant = prob.space.plant(theta)
@@ -224,9 +220,8 @@ def made_ahead(ws: Workspace, nominal: Params) -> Ahead:
     """The programs of the held-out part (``fit_starts``' solver, the replay that gives the
     gap, ``gap_floor``'s finer replay) and of the training replay, made in a background
     thread (``jaxflex.fit.ahead``) from the nominal model's start coordinates while the
-    calling thread fits the nominal model: every model of the workspace shares them. Measured
-    on the bench's 20 s log with a warm cache, reading them took 1.1 s of the main thread's
-    first run (0.7 s the held-out solver alone)."""
+    calling thread fits the nominal model: every model of the workspace shares them, and
+    reading them from the cache no longer holds up the main thread."""
     train, test, theta = ws.for_model(Model(nominal, []))
 
     def held_out() -> None:
@@ -249,15 +244,12 @@ def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float =
     ``tol`` (relative) or ``rounds`` solves: the base every candidate is compared with. A
     solve's long steps push some start loads past the capacity, where the clip has no slope
     and they stop moving; every candidate fit starts with them brought back, so against an
-    unsettled base every candidate gains (measured, open-loop log with a hidden actuator lag
-    and hardening spring: after the spring was added, all ten candidates of the next round
-    lowered the held-out gap by 51-78%, and the one named was a 0.002 N m asymmetry).
+    unsettled base every candidate gains, and the one named can be a negligible effect.
 
     The first solve continues ``fit``; each further one confirms it: it first runs ``probe``
     steps (default a quarter of ``max_steps``) and goes on to the full solve only when those
-    already lower the residual by more than ``tol`` (measured on the bench's 20 s log: the
-    four confirming solves ran 47-60 steps each and lowered the residual by at most 1.3e-4
-    relative, a fifth of what they cost)."""
+    already lower the residual by more than ``tol`` (a full confirming solve usually
+    changes the residual by far less than it costs)."""
     probe = max(1, max_steps // 4) if probe is None else probe
 
     def solve(fit: CandidateFit, steps: int, starts: tuple[jax.Array, jax.Array],
@@ -290,21 +282,18 @@ def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float =
         return with_held_out(ws, fit)
     # the base gets the second first guess every candidate gets (``discover``): the log's
     # start estimates instead of its own fitted starts, which can hold the shared parameters
-    # in a valley a candidate's fit from the estimates leaves (measured: a hardening spring
-    # polished from a nominal refit whose Fs rode its bound, 2.0 N m, with Fc 0; from the
-    # estimates the base itself went from 7.5 to 3.1 in training residual, and the next
-    # round's ten candidates had all been significant against it). From the confirmed fit,
-    # after the confirming solves: started beside them from the first solve's (0.25 s sooner
-    # on the bench's log), it left the KUKA KR300's axis 3 A a base of held-out gap 0.060
-    # against 0.054.
+    # in a valley a candidate's fit from the estimates leaves (a base polished from a refit
+    # whose Fs rode its bound can more than halve its own residual from the estimates, and
+    # every candidate would otherwise seem significant against it). It starts from the
+    # confirmed fit, after the confirming solves: started beside them from the first solve's,
+    # it can leave a worse base.
     # And a static friction pinned where its coordinates have no slope stays there in every
     # solve, also once the effect it stood in for is in the model: once more from the
     # nominal friction (``released``). Not for the nominal model itself, whose friction
-    # stands in for what it misses (measured on the bench's 20 s log: the nominal base had
-    # Fc at zero, and the solve from the nominal friction came back to the same training
-    # residual, 0.6 s later). Side by side with the solve from the estimates, on the core
+    # stands in for what it misses (a solve from the nominal friction comes back to the same
+    # residual). Side by side with the solve from the estimates, on the core
     # the settle leaves idle, and used only when that one does not lower the residual: the
-    # result of solving it after that one (the bench's 20 s log leaves no friction pinned)
+    # result of solving it after that one
     free = released(ws, fit) if fit.model.effects else None
     tries = [(fit, (ws.train.segs.x0, fit.test_starts))]
     if free is not None:
@@ -329,12 +318,9 @@ def released(ws: Workspace, fit: CandidateFit) -> Model | None:
     nominal values when the fit left them pinned (``PINNED``): Fs - Fc at the cap of the
     largest logged torque, or Fc at zero. There the coordinates have no slope, so no solve
     moves them back, whatever the data say once a missing effect is in the model. None when
-    neither is pinned or friction is not fitted. Measured on the grown study's log of an
-    actuator lag with a hardening spring behind the cascade loop (seed 118): the nominal
-    refit raised Fs to its 2 N m cap with Fc at 1e-17 N m; with the spring added the polish
-    stayed there (training rss 4.42, final held-out gap 17x the floor) or, on another
-    rounding of the same solves, left it by chance (rss 3.11, then Fs 0.156 N m against the
-    true 0.156 once the lag was added)."""
+    neither is pinned or friction is not fitted. Without it, a nominal refit that raised Fs
+    to its cap with Fc at zero keeps the polish of a later model there, or lets it leave by
+    the chance of rounding."""
     v = fit.values
     if "Fc" not in v or "Fs" not in v:
         return None
@@ -464,7 +450,6 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
 def finer(prob: Problem) -> Problem:
     """``prob`` replayed with 4 x its substeps (``gap_floor``'s synthetic truth), as a traced
     loop count (``jaxflex.fit.refined``'s ``traced``): one copy of the substep in the program
-    instead of four unrolled ones, for a replay that runs once per run (measured on the 20 s
-    bench log: 9,652 -> 3,544 XLA instructions, 2.1 -> 0.9 MB serialised; the second run's
-    compiling 1.84-1.88 -> 1.66-1.71 s over 4 pairs, the floor equal to every digit)."""
+    instead of four unrolled ones, for a replay that runs once per run: a program a third
+    the size, the same floor."""
     return refined(prob, 4, traced=True)

@@ -181,12 +181,10 @@ def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
     fine one about its best. The residual is first cleared (``_cleared``) of what a refit of
     the nominal model absorbs anyway, the Stribeck term at the model's ``vs`` included, and
     the grid starts at ``min_periods`` periods over the angle's travel: a slower "ripple" is a
-    smooth trend, not cogging (measured: a PD-loop log with a motor ripple of N = 60 1/rad,
-    nominal 10% off: the raw residual's best fit was N = 4.5, half a period over the travel;
-    cleared, 60.06). The Stribeck term, since a nominal refit can raise Fs to absorb a
-    ripple: on a PD-loop log with a link cogging of N = 45 1/rad and a slow 0.9 rad swing the
-    refit went to Fs = 0.72 N m (true 0.15), and its residual peaked at 13.8, 64 and
-    37 1/rad, never 45; cleared of the Stribeck term, at 45.05."""
+    smooth trend, not cogging (with a nominal model a little off, the raw residual's best
+    fit is half a period over the travel; cleared, the true ripple). The Stribeck term,
+    since a nominal refit can raise Fs to absorb a ripple, after which the residual peaks
+    at other frequencies than the ripple's."""
     rotor = name == "motor_cogging"
     q, r, Q = _cleared(series, rotor, vs)
     lowest = max(5.0, 2.0 * math.pi * min_periods / max(float(np.ptp(q)), 1e-9))
@@ -219,13 +217,10 @@ def _gravity_start(series: dict[str, np.ndarray], vs: float | None = None) -> Ab
     varies with the angle, not from its mean. The typical start (mgl = 0.05 N m hanging at 0)
     where the fit explains nothing or puts the hanging angle farther from the travel's middle
     than the travel is wide: over the travel such a sine is a constant-like torque, which an
-    asymmetric friction on a link that is always moving also is (the grown study's seed 101:
-    started at q0 = 1.65 rad, the gravity's first fit beat the asymmetric friction it
-    mimicked). Measured on the MuJoCo rig, a drive
-    following a chirp with mgl = 0.50 N m hanging at 0.17 rad: the nominal refit raised Fs
-    from 0.16 to 0.88 N m to hold the link with its bristles, and the fit from the typical
-    start stopped at mgl = 0.18, q0 = 0.39 (the held-out gap 3% lower; answered
-    "unexplained")."""
+    asymmetric friction on a link that is always moving also is, and a gravity started far
+    from the travel can beat the asymmetric friction it mimics. From the typical start alone,
+    a gravity that the nominal refit held with its bristles (a raised Fs) stops far short of
+    its magnitude and the log is answered "unexplained"."""
     q, r, Q = _cleared(series, False, vs, angle=False)
     e, a_s, a_c = _grid_fits(q, r, Q, np.ones(1), 0.0)
     if not e[0] > 0:
@@ -259,8 +254,8 @@ def _grid_fits(q: np.ndarray, r: np.ndarray, Q: np.ndarray, grid: np.ndarray,
         # the Gram entries of the columns cleared of the nuisance span, without clearing
         # them: ||P x||^2 = ||x||^2 - ||Q^T x||^2 (Q orthonormal), the plain ones from the
         # double angle (sum sin^2 = (n - Re z2) / 2, sum sin cos = Im z2 / 2, z2 = sum E^2):
-        # complex products instead of a sine and a cosine block each (2.6x faster on the
-        # bench's log, the same fits to 1e-14)
+        # complex products instead of a sine and a cosine block each (faster, the same fits
+        # to rounding)
         z2 = np.einsum("ji,ji->j", E, E)
         W = E @ Q  # Q^T C + i Q^T S, (m, p)
         ss = 0.5 * (n - z2.real) - np.einsum("ij,ij->i", W.imag, W.imag)

@@ -97,11 +97,9 @@ def contest(scores: dict[str, dict[str, Any]], winner: str | None,
     ``winner`` and every significant rival whose held-out gap is within ``factor`` of the
     winner's (those with a lower gap that ``select`` passed over for fewer parameters
     included). Their full fits stop after a few dozen steps, far from their optimum where the
-    residual is flat, so their gaps can be several times what each reaches (measured on the
-    grown study's log of an asymmetric friction behind a PD loop, seed 101: its 30-step fit
-    gave 0.0034 and 0.0015 from two nominal refits 3e-3 apart in training gap, a gravity
-    0.0013 and 0.0023, the polished asymmetric friction 0.0005): the pick between them is
-    made once each is polished (``settle``)."""
+    residual is flat, so their gaps can be several times what each reaches and their order
+    can flip between nearly equal bases: the pick between them is made once each is
+    polished (``settle``)."""
     if winner is None or factor <= 1.0:
         return []
     w = scores[winner]["gap_test"]
@@ -122,14 +120,12 @@ def break_tie(ws: Workspace, fits: dict[str, CandidateFit], names: Sequence[str]
     Why: the fits and ``tied`` weigh q1 and q2 alike, in rad, so the pooled residual is
     the link encoder's, and the pooled count is divided by the larger autocorrelation time
     of the two. The rotor encoder is finer (50x in the generator, the motor side of a
-    gearbox on a rig) and it carries what the applied torque does first. Measured on the grown
-    study's PD-loop log with a hidden 2.1 ms delay (seed 110): against the lag, the
-    delay's training residual on q2 was 31% lower (1.9e-5 against 2.8e-5; 43% lower, 6.9e-6
-    against 1.2e-5, after both were polished), while the pooled Akaike difference was 1.7:
-    the pooled rss was 99.5% q1's.
+    gearbox on a rig) and it carries what the applied torque does first: a delay and a lag
+    can differ clearly on q2 while the pooled residual, nearly all q1's, cannot tell them
+    apart.
 
     How: every candidate is polished first (``settle``, as the winner always is), since
-    30 steps leave the q2 residual far from its optimum (the delay's fell 2.8x on polishing).
+    30 steps leave the q2 residual far from its optimum.
     Then each output is a Gaussian likelihood with its own variance and its own effective
     count n / tau_c (tau_c the largest autocorrelation time of output c among the
     candidates): -2 log L = sum_c n_eff,c log rss_c + const. The winner has the lowest. A rival is
@@ -171,9 +167,8 @@ def representative(held_out: str, by_output: str, still: Sequence[str]) -> str:
     """The candidate a round carries after ``break_tie``: its per-output winner
     ``by_output`` when that told the others apart, else the held-out gap's pick ``held_out``
     (``select``) while it is still tied: a verdict the per-output test did not reach does not
-    replace the round's own rule (measured: on KUKA axis 3 B the per-output ranking carried
-    gravity instead of the encoder skew, the next round found nothing to add, and the final
-    held-out gap was 0.025 against 0.022)."""
+    replace the round's own rule (carried instead, a candidate the per-output ranking
+    merely preferred can leave the next rounds a worse base)."""
     return held_out if len(still) > 1 and held_out in still else by_output
 
 

@@ -192,10 +192,8 @@ def unresolved(screens: dict[str, dict[str, Any]], base_rss: float, *,
     but whose screen fit achieved less than half the drop of the training residual (from
     ``base_rss``) that it predicts: the start is far from where the residual is linear in the
     candidate, so the prediction is not to be trusted either way; ``discover`` screens them
-    again with more steps (measured: an actuator lag started at 3 ms behind a hardening
-    spring, its 3-step screen worse than the base and predicted 500 in Akaike difference
-    behind the best, was left out; after 12 steps it was the best predicted, and its full
-    fit the best candidate by 900)."""
+    again with more steps (a lag started far from its value can screen worse than the base
+    after a few steps and be the best candidate once it has a few more)."""
     return [k for k, s in screens.items() if "predicted_dAIC" in s
             and _could_be_significant(s, alpha)
             and base_rss - s["rss"] < 0.5 * (base_rss - s["rss_predicted"])]

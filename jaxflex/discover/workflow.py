@@ -188,9 +188,8 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2, held_out=False)
     # the base every candidate is compared with must not keep a load that the first solve's
     # long early steps pushed past the capacity (``settle``). Its stops stay in the units of
-    # white residuals: in the rounds' units (the first solve's autocorrelation time, 99
-    # samples on the bench's log) it stopped earlier, 0.3 s sooner on the bench, but on the
-    # KUKA KR300's axis 3 A with a held-out gap of 0.0614 against 0.0535
+    # white residuals: in the rounds' units (inflated by the first solve's autocorrelation
+    # time) it stops earlier and can leave a worse base
     current = settle(ws, current, max_steps=cfg.max_steps * 2)
     if not (math.isfinite(current.gap_test) and math.isfinite(current.rss)):
         raise ValueError(
@@ -333,9 +332,8 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
             break
         # the effect must still be significant at the polished optimum, against the base
         # refitted from there without it: a candidate's fit can carry the shared parameters
-        # out of a local minimum of the base and then let the effect go (measured: after a
-        # joint damping, a gravity fit moved Fs from 0.26 to the true 0.14 N m, the held-out
-        # gap fell by 17%, and the polished mgl was 0.2 standard errors from zero)
+        # out of a local minimum of the base and then let the effect go (its polished
+        # magnitude within a standard error of zero)
         run.stage = f"round {len(rounds)}: the refit of the base without {winner}"
         reduced = without_effect(ws, polished, winner, max_steps=cfg.max_steps,
                                  tau_int=tau_int)

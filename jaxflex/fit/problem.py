@@ -58,9 +58,8 @@ def savgol_coeffs(window: int, order: int, deriv: int = 0, delta: float = 1.0) -
     with the window's samples in time order (scipy's ``savgol_coeffs(..., use="dot")``; a test
     checks equality with scipy).
 
-    Written here, not imported: importing ``scipy.signal`` costs every command 0.55 s of its
-    start (it imports ``scipy.stats`` and all its own submodules; measured with and without
-    it, ``import jaxflex.cli, jaxflex.identify, jaxflex.discover`` 1.50 -> 0.95 s)."""
+    Written here, not imported: importing ``scipy.signal`` imports ``scipy.stats`` and all
+    its submodules, a large share of every command's start."""
     if window % 2 != 1 or not 0 <= deriv <= order < window:
         raise ValueError(f"savgol: need an odd window > order >= deriv >= 0, got window "
                          f"{window}, order {order}, deriv {deriv}")
@@ -273,9 +272,7 @@ def dynamic_substeps(n: int) -> Array:
     """``n`` integrator substeps per sample as a ``Problem.substeps`` that the compiled
     programs take as an argument (a 0-d int32 array, a traced loop count): problems that
     differ only in their substeps then share every compiled program. Per substep on a CPU
-    the loop costs what the compiled-in count does from 8 substeps on, and 1.4-2x at 1-4
-    (measured: a solver step on a 3 s log, 6 segments of 500 samples, 1 / 4 / 8 / 16
-    substeps: 6.2 / 15.8 / 26.5 / 58.8 ms against 3.2 / 11-16 / 27.4 / 62.4 ms)."""
+    the loop costs what the compiled-in count does from 8 substeps on, and 1.4-2x at 1-4."""
     if not (isinstance(n, (int, np.integer)) and n >= 1):
         raise ValueError(f"fit: substeps must be an integer >= 1, got {n!r}")
     return jnp.asarray(int(n), dtype=jnp.int32)
@@ -308,11 +305,9 @@ class Problem(eqx.Module):
     ``rolled_stages``: the Jacobian blocks (``segment_jacobians``) replay with the RK4 stages
     as a loop (``jaxflex.step.rk4``'s ``rolled``: the same to rounding, one copy of the
     vector field instead of four per substep). It pays where the model is large and XLA's
-    small-loop option is on (``discover``'s gated universe of candidates: its training solver
-    22,973 -> 15,713 XLA instructions, the first ``jaxflex discover`` on the 20 s bench log
-    37 -> 29-32 s, its second-run compile 2.2-2.5 -> 1.7-1.9 s, the warm run unchanged
-    within noise) and costs where not (``identify``'s solver step on a 20 s log, XLA's
-    default options: 30 -> 46 ms), so it is off by default.
+    small-loop option is on (``discover``'s gated universe of candidates: a program about a
+    third smaller, which compiles and loads faster) and costs run time where not
+    (``identify``'s solver under XLA's default options), so it is off by default.
     """
 
     space: ParamSpace
@@ -490,8 +485,8 @@ class Problem(eqx.Module):
         against theta, ``Jx`` (S, my + d, d) against its own start, ``Jn`` (S, d, d) its
         defect against the next start (d = n_state n). The same numbers as linearising
         ``residuals`` and probing it with k + 2 d directions (``shooting_blocks``; a test
-        checks this), without tracing a linearisation or the probes (measured on identify's
-        3 s log: the solver's program traced 0.5 s and compiled 0.5 s faster). Rows of a
+        checks this), without tracing a linearisation or the probes, so the solver's
+        program traces and compiles faster. Rows of a
         blown residual (``BLOWN_RESIDUAL``) get zero derivatives, as in ``residuals``.
         Needs free starts (``ValueError`` otherwise)."""
         if not self.free_starts:
