@@ -162,7 +162,7 @@ BELOW_PRESETS = ("controller", "effects", "friction", "observer", "params", "pla
                  "simulate", "state", "step", "trajectory", "validation", "fit/__init__",
                  "fit/space", "fit/problem", "fit/solve", "fit/normal",
                  "fit/levenberg_marquardt", "fit/padding", "fit/uncertainty", "fit/replay",
-                 "fit/discretisation")
+                 "fit/discretisation", "fit/signal")
 
 
 def _modules() -> dict[str, ast.Module]:

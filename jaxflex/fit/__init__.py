@@ -4,6 +4,7 @@ constraint vocabulary, one solver path (optimistix Levenberg-Marquardt), one cov
 ``jaxflex.identify``, ``jaxflex.discover`` (and any validation) are thin workflows on it:
 
 - ``ParamSpace``: free parameters and their reparametrisation (``space``);
+- ``savgol``, ``noise_level``: Savitzky-Golay and the noise of a logged angle (``signal``);
 - ``Segments``, ``make_segments``, ``Problem``: data and residuals (``problem``);
 - ``least_squares``, ``cost``, ``Solution``: the step loop and its stops (``solve``), built
   from a Levenberg-Marquardt descent and trust region (``levenberg_marquardt``) over structured
@@ -20,16 +21,12 @@ from jaxflex.fit.problem import (
     Segments,
     dynamic_substeps,
     make_segments,
-    noise_level,
     output_columns,
     pack_state,
-    savgol,
-    savgol_coeffs,
     on_slot_rows,
     segment_slots,
     slot_rows,
     unpack_state,
-    white_noise_std,
 )
 from jaxflex.fit.discretisation import (
     discretisation_bias,
@@ -39,6 +36,7 @@ from jaxflex.fit.discretisation import (
 )
 from jaxflex.fit.padding import Padding
 from jaxflex.fit.replay import gap, residuals, simulated_outputs
+from jaxflex.fit.signal import noise_level, savgol, savgol_coeffs, white_noise_std
 from jaxflex.fit.solve import (
     CostBound,
     Solution,
