@@ -63,6 +63,8 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
             raise ValueError(f"fit: structure must be 'dense' or 'shooting', got {self.structure!r}")
 
     def init(self, y: Any, f_info_struct: Any) -> _ScaledDescentState:
+        """Zero normal equations of the shapes ``query`` forms, from the unknowns ``y`` and the
+        residual's shape (``f_info_struct``): no linearisation is traced."""
         template = jax.tree_util.tree_map(jnp.zeros_like, y)
         dt = jax.tree_util.tree_leaves(template)[0].dtype
         m = f_info_struct.residual.shape[0]
@@ -81,6 +83,8 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
         return _ScaledDescentState({k: jnp.zeros(v, dt) for k, v in shapes.items()}, template)
 
     def query(self, y: Any, f_info: Any, state: _ScaledDescentState) -> _ScaledDescentState:
+        """The undamped normal equations at an accepted point, from its residual and Jacobian
+        (``f_info``: a ``BlockJacobian`` or a linear operator)."""
         if self.structure == "shooting":
             # the residual's own Jacobian blocks where it has them (``residual_blocks``),
             # else probed from its linear operator
@@ -93,6 +97,8 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
         return _ScaledDescentState(normal, state.template)
 
     def step(self, step_size: jax.Array, state: _ScaledDescentState) -> tuple[Any, optx.RESULTS]:
+        """The damped step for the trust region's ``step_size`` (lambda = 1 / step_size), zero
+        and ``RESULTS.singular`` where the solve is not finite."""
         lam = 1.0 / jnp.maximum(step_size, 1e-30)
         solve = shooting_damped_solve if self.structure == "shooting" else dense_damped_solve
         dy = solve(state.normal, lam, self.scaling, state.template)

@@ -14,6 +14,7 @@ takes; they hold no loop, no stop and no compilation policy.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -95,11 +96,19 @@ def shooting_newton_step(jac: Any, r: jax.Array, lam: jax.Array, scaling: str) -
     return shooting_damped_solve(shooting_blocks(jac, r), lam, scaling, template)
 
 
-def arrow_solve(Ntt, Nxt, Dx, U, gt, gx, unravel, x_shape):
+def arrow_solve(Ntt: jax.Array, Nxt: jax.Array, Dx: jax.Array, U: jax.Array, gt: jax.Array,
+                gx: jax.Array, unravel: Callable[[jax.Array], Any] | None,
+                x_shape: tuple[int, ...] | None) -> Any:
     """Solve the arrow system [[Ntt, Nxt^T], [Nxt, T]] (dth, dx) = (gt, gx), T block
     tridiagonal with diagonal blocks Dx and upper blocks U, by block Thomas elimination of the
-    starts and the Schur complement in theta; with ``unravel`` None, return the Schur
-    complement (theta's information with the starts eliminated) instead."""
+    starts and the Schur complement in theta.
+
+    **Arguments**: ``Ntt`` (k, k), ``Nxt`` (S, d, k), ``Dx`` and ``U`` (S, d, d), ``gt`` (k,),
+    ``gx`` (S, d) (the blocks of ``shooting_normal``, damped or not); ``unravel`` maps a flat
+    theta step to the unknowns' structure; ``x_shape`` the shape of the starts.
+
+    **Returns**: (theta step, start steps of ``x_shape``); with ``unravel`` None, the Schur
+    complement (k, k) instead (theta's information with the starts eliminated)."""
     d = Dx.shape[1]
     k = Ntt.shape[0]
     dt = Ntt.dtype
