@@ -52,7 +52,7 @@ MODERATE: dict[str, dict[str, tuple[float, float]]] = {
     "encoder_skew": {"skew": (0.001, 0.003), "offset": (2e-4, 5e-4)},
 }
 #: Gentler gains than Table 3 for the identification experiment: with L1 = 200 1/s the loop
-#: chatters at the 2 N m limit on a 0.15 rad multisine (measured: 99% of samples saturated).
+#: chatters at the 2 N m limit on a 0.15 rad multisine (nearly every sample saturated).
 IDENT_GAINS = CascadeGains(Ke=0.001, KD1=0.5, KD2=0.5, kv=2.0, L1=15.0, L2=6.0)
 
 _simulate = eqx.filter_jit(simulate_sampled)

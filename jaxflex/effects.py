@@ -455,8 +455,8 @@ class Gated(AbstractEffect):
 
     def _switched(self, on: Callable[[], Any], off: Callable[[], Any]) -> Any:
         # a gate that is data but not batched (the discrepancy workflow's) is a run-time
-        # branch: an inactive effect costs nothing per substep (measured: the workflow's eleven
-        # gated candidates made one replay 13x dearer than the nominal model); a batched gate
+        # branch: an inactive effect costs nothing per substep (computed and masked, the
+        # gated candidates would make a replay many times dearer); a batched gate
         # (vmap over models) falls back to computing both (lax.cond becomes a select)
         return jax.lax.cond(self.gate != 0, on, off)
 
@@ -578,12 +578,8 @@ def effect_torque(effects: Sequence[AbstractEffect], hook: str, *args: Any) -> A
     one run-time branch, entered when any of them is on; inside it each contributes only
     when its own gate is on (``jnp.where``, so an inactive effect's value never enters). One
     branch per hook instead of one per effect: each branch is a kernel boundary in every
-    evaluation, and the per-effect branches were 44 per substep of the plant, now 16
-    (measured, float64, in one process: the Jacobian blocks of discover's 46 training
-    segments of 300 samples with every candidate gated in took 23.3 -> 18.1 ms with all
-    off, 23.6 -> 22.7 ms with a joint damping on, 25.4 -> 22.2 ms with a cogging on; the
-    nominal model without candidates takes 8.7 ms). The numbers are those of the effects
-    taken one by one (a test checks)."""
+    evaluation, so one per hook keeps their count per substep small whatever the number of
+    candidates. The numbers are those of the effects taken one by one (a test checks)."""
     if not _one_branch(effects, hook):
         return sum((getattr(e, hook)(*args) for e in effects), 0.0)
     # effects without the hook contribute nothing (AbstractEffect's default)
@@ -641,7 +637,7 @@ def unwrap(effect: AbstractEffect) -> AbstractEffect:
 @register_effect
 class EncoderSkew(AbstractEffect):
     """Link-encoder reading relative to the motor encoder: a time skew and an offset, the
-    per-log sensor nuisances of real two-encoder logs (issue 14; KUKA KR300: about 3 ms).
+    per-log sensor nuisances of real two-encoder logs (a KUKA KR300 axis: about 3 ms).
     First order in the skew ``skew`` [s] (skew > 0: the link encoder reads late), both ways:
 
     - where a model takes the *measured* link motion as an input (the "rotor" model kind of
@@ -678,7 +674,7 @@ class EncoderSkew(AbstractEffect):
 @register_effect
 class EncoderScale(AbstractEffect):
     """Scale error of the link encoder relative to the motor encoder, a per-log sensor nuisance
-    of two-encoder logs (issue 14): the link encoder reads the angle ``q1`` as
+    of two-encoder logs: the link encoder reads the angle ``q1`` as
     ``q1 / (1 + scale)``, so a deflection read from the encoders carries ``scale q1`` beside the
     spring's. Exact inverses both ways (``EncoderSkew``'s two directions):
 

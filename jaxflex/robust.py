@@ -1,4 +1,4 @@
-"""Robust gain tuning over a batch of plausible plants, certified on the whole box (issue 18).
+"""Robust gain tuning over a batch of plausible plants, certified on the whole box.
 
 A spread (``jaxflex.sweep.spec``: hand-written distributions and/or an identification's own
 posterior, ``"identified"``) says which plants the data allow. ``tune_robust`` chooses the

@@ -260,7 +260,7 @@ def simulate_sampled(
     # The reference's derivatives ride in the carry, one sample ahead: each sample evaluates
     # them once for the next, and the controller reads them through a Taylor reference at
     # the sample time (exactly the same values; otherwise XLA repeats a sinusoid's sine and
-    # cosine in every kernel that uses a derivative, issue 17)
+    # cosine in every kernel that uses a derivative)
     def reference(t):
         return controller.trajectory.derivatives(t, order=REFERENCE_ORDER)
 

@@ -19,7 +19,7 @@ Two model structures share that step (``ModelKind``):
   through their link, rotor and input hooks; spring effects have no meaning there.
 - ``"rotor"``: the rotor subsystem alone, ``J q2'' + K (q2 - q1) - rotor effects = tau_a``
   (the rotor line of eq. 3), driven by the *measured* link motion: no model of the link side
-  is needed (the paper's cascade idea applied to fitting; issue 14). Its input per sample is
+  is needed (the paper's cascade idea applied to fitting). Its input per sample is
   an array (4, n): tau [N m], q1 [rad], q1' [rad/s], q1'' [rad/s^2] measured; within a sample
   q1 follows the measured velocity and acceleration. Friction on the motor side is the
   ``motor_friction`` effect (the plant's LuGre acts on the link and is not used); a link
@@ -166,7 +166,7 @@ def model_step(
     10-20% faster under ``vmap`` (batched sweeps) when ``tau`` is cheap to compute, slower
     when it is not (XLA copies its computation into every unrolled substep; the sweep engine
     decides per controller: ``jaxflex.sweep.engine.loop_unrolls``), about 1.4x slower
-    for a single run (measured in one process, issue 17). The numbers are the same either
+    for a single run. The numbers are the same either
     way. ``rolled``: the RK4 stages as a loop (``rk4``; the same to rounding).
     """
     f = _vector_field(kind, plant)
@@ -193,7 +193,7 @@ def model_step(
         return eqx.tree_at(lambda s: s.z, xx, fr.step_z(xx.dq1, xx.z, hz))
 
     # the loop carries the state as one flat array: a pytree of (n,)-arrays as the carry costs
-    # a copy per leaf and a kernel per field each substep on a CPU (issue 17)
+    # a copy per leaf and a kernel per field each substep on a CPU
     flat, unravel = ravel_pytree(x)
     if fr is None:
         flat = _substeps(substeps, unroll, hs, flat, lambda hz, s: ravel_pytree(
@@ -275,10 +275,8 @@ def warm_effects(
     RK4 steps per sample of period ``dt`` [s], the mechanical state frozen). Exact for
     input-path effects up to the RK4 error; a plant without effects is returned unchanged.
     States that cannot act are left at equilibrium without the W x ``substeps`` steps
-    (``jaxflex.effects.state_in_use``: gated-off candidates of the discrepancy workflow;
-    measured, the Jacobian blocks of its 46 training segments with every candidate gated in
-    and all off, one process, min of 30: 19.8 -> 17.1 ms; without the lag and the delay in
-    the model 13.5 ms)."""
+    (``jaxflex.effects.state_in_use``: gated-off candidates of the discrepancy workflow,
+    whose states then cost no integration)."""
     if not plant.effects:
         return x0
     aux0 = tuple(e.aux_steady(tau_pre[0]) for e in plant.effects)

@@ -4,8 +4,8 @@ lowered program (StableHLO, through ``jax.export``) is stored on disk.
 JAX's persistent compilation cache (``jaxflex.cli.enable_compilation_cache``) keeps XLA's
 compiled executables, but the key of that cache is the lowered program, so every new process
 still traces the Python function and lowers it before it can look there. For the engine's
-solver step that is most of a second run's compile time (issue 17: a second ``identify`` on
-a 3 s log spent 1.7 s tracing and 0.9 s lowering against 0.9 s reading XLA's cache). The
+solver step that is most of a second run's compile time (tracing and lowering take longer
+than reading XLA's cache). The
 fitting engine (``jaxflex.fit``), the paper's closed loop (``jaxflex.experiments``), the
 loop Jacobian (``jaxflex.analyse``), the Kalman design (``jaxflex.estimator``), the tuner,
 the robust tuner, the certificate and ``validate``'s loops compile through it. The command
@@ -230,10 +230,9 @@ def _rebuild(program: _Program, flat: list) -> Any:
 #: XLA options of a program compiled for compile speed (``persistent_jit(...,
 #: fast_compile=True)``): XLA CPU's older LLVM emitters instead of its fusion emitters, which
 #: compile every fused kernel as a module of its own (8-20 ms each; identify's solver loop
-#: holds about 225). Measured on the 2-core machine: the static map's solver loop and the programs a fit
-#: runs once (replay, covariance, discretisation check, constraint maps) compile about twice
-#: as fast, and run slower (``identify``'s solver loop on a 20 s log: 4.4 -> 6.9 s warm,
-#: which is why the loops where a fit spends its time keep XLA's defaults).
+#: holds about 225). The static map's solver loop and the programs a fit runs once (replay,
+#: covariance, discretisation check, constraint maps) compile about twice as fast and run
+#: slower, which is why the loops where a fit spends its time keep XLA's defaults.
 FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 
 
@@ -303,7 +302,7 @@ def _signature(treedef: Any, leaves: list) -> Any:
     other leaf by type and value (floats by ``repr``, so that 0.0 and -0.0 differ); None when
     some part cannot be hashed or compared. Two calls with equal signatures have equal
     canonical forms, so the key of the first serves the second without walking the arguments
-    again (measured: ``canonical`` took 2.0 s over the 1,241 calls of a 20 s discover). A
+    again (``canonical`` is a large share of a call's host time). A
     function leaf compares by identity, so its closure cells are read once per process: the
     module-level functions jaxflex passes have none that change."""
     def leaf(x: Any) -> Any:
@@ -348,8 +347,7 @@ def _committed(arrays: list) -> list:
     lowers (and fetches from XLA's cache) the program once more. The leaves still to move go
     in one transfer, and a ``jax.Array``'s committed copy is remembered while it lives (a
     problem's data are passed again at every step; numpy arrays can change in place and are
-    moved every time). Measured over the 1,241 calls of a 20 s discover: one ``device_put``
-    per leaf took 2.5 s (110,000 leaves)."""
+    moved every time): one ``device_put`` per leaf would cost more than the call."""
     out = list(arrays)
     todo = []
     for i, x in enumerate(out):

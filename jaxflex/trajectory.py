@@ -49,7 +49,7 @@ class Taylor(Trajectory):
     the reference at each sample this way (``jaxflex.simulate.simulate_sampled``): the
     reference's derivatives are evaluated once per sample, where XLA would otherwise copy a
     sinusoid's sine and cosine into every kernel that uses one of its derivatives (17 float64
-    evaluations per sample, most of a batched sweep's time on a CPU; issue 17).
+    evaluations per sample, most of a batched sweep's time on a CPU).
     """
 
     derivs: Float[Array, "k n"]

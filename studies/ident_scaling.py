@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> dict:
     import lineax as lx
 
     from jaxflex.datagen import generate_log
-    from jaxflex.fit.solve import dense_newton_step, shooting_newton_step
+    from jaxflex.fit.normal import dense_newton_step, shooting_newton_step
     from jaxflex.identify import DEFAULT_FREE, IdentificationWarning, identify, make_problem, perturb
     from jaxflex.params import Params
 

@@ -160,7 +160,9 @@ EDGE_PACKAGES = ("cli", "plots")
 # below ``presets``: these build nothing from presets and must not import it
 BELOW_PRESETS = ("controller", "effects", "friction", "observer", "params", "plant", "sensing",
                  "simulate", "state", "step", "trajectory", "validation", "fit/__init__",
-                 "fit/space", "fit/problem", "fit/solve")
+                 "fit/space", "fit/problem", "fit/solve", "fit/normal",
+                 "fit/levenberg_marquardt", "fit/padding", "fit/uncertainty", "fit/replay",
+                 "fit/discretisation", "fit/signal")
 
 
 def _modules() -> dict[str, ast.Module]:

@@ -499,7 +499,8 @@ def test_cogging_start_finds_the_ripple_behind_a_mismatched_nominal():
     Coulomb, deflection, acceleration) and looks for at least two periods over the travel: on
     a PD-loop log with a motor ripple of N = 60 1/rad and the paper's nominal 10% off, the raw
     residual's best fit was N = 4.5 (a trend) and discover answered "unexplained"."""
-    from jaxflex.discover import _cogging_start, localise
+    from jaxflex.discover import localise
+    from jaxflex.discover.localisation import _cogging_start
 
     g = generate_log(("motor_cogging",), seed=107, t_final=12.0, loop="pd_rotor")
     nominal = paper_params()
@@ -516,7 +517,8 @@ def test_cogging_start_sees_past_a_static_friction_that_absorbed_the_ripple():
     refit's residual was N = 13.8 1/rad, so discover answered "unexplained". With the
     Stribeck term at the model's vs among the cleared columns, it is the ripple (and, since
     only sliding samples are fitted, ``_cleared``, also without it)."""
-    from jaxflex.discover import _cogging_start, localise
+    from jaxflex.discover import localise
+    from jaxflex.discover.localisation import _cogging_start
 
     g = generate_log(("cogging",), seed=116, t_final=12.0, loop="pd_rotor",
                      excitation="multisine_ramp")
@@ -536,7 +538,7 @@ def test_cogging_start_on_an_angle_that_barely_travels():
     ripple of N <= 80 1/rad that completes two periods: the start is the typical one, not
     a crash on an empty grid (measured: discover raised numpy's "need at least one array to
     concatenate")."""
-    from jaxflex.discover import _cogging_start
+    from jaxflex.discover.localisation import _cogging_start
 
     t = np.arange(5000) * 1e-3
     q = 0.05 * np.sin(2 * np.pi * 0.5 * t)
@@ -555,7 +557,7 @@ def test_grid_fits_are_the_least_squares_fits_of_a_sine_and_a_cosine():
     its grid, the least-squares fit of the residual by a sine and a cosine cleared of the
     nuisance span: the same explained sum of squares and coefficients as a plain fit of the
     cleared columns, also across its chunks of 64 frequencies."""
-    from jaxflex.discover import _grid_fits
+    from jaxflex.discover.localisation import _grid_fits
 
     rng = np.random.default_rng(3)
     q = np.cumsum(rng.normal(0.0, 0.01, 3000))
@@ -577,7 +579,7 @@ def test_gravity_start_from_the_link_residual():
     plus what the base absorbs (a Coulomb and a viscous term, an inertia error) and junk while
     the link rests (the steady-state friction it does not follow): the start is the gravity,
     from the sliding samples; a residual of noise alone gives the typical start."""
-    from jaxflex.discover import _gravity_start
+    from jaxflex.discover.localisation import _gravity_start
 
     t = np.arange(8000) * 1e-3
     q = 0.15 * np.sin(2 * np.pi * 0.4 * t) + 0.1 * np.sin(2 * np.pi * 1.3 * t)

@@ -101,13 +101,13 @@ def test_a_solver_crash_is_a_solver_failure_naming_the_fit(emps_log, tmp_path, c
     """A numpy LinAlgError inside a fit is a ``SolverFailure`` naming the fit (the nominal
     model's refit here), not a bad input: the command exits 1 (not 2) and report.json records
     the failure."""
-    import jaxflex.discover as d
+    import jaxflex.discover.fitting as fitting
     from jaxflex.cli import main
 
     def broken(*a, **k):
         raise np.linalg.LinAlgError("Eigenvalues did not converge")
 
-    monkeypatch.setattr(d, "covariance", broken)
+    monkeypatch.setattr(fitting, "covariance", broken)
     with pytest.raises(SolverFailure, match="nominal model's refit.*Eigenvalues") as e:
         discover(emps_log, _rigid(), DiscoverConfig(candidates=("torque_offset",),
                                                     model="rigid"))
@@ -217,7 +217,7 @@ def test_a_declared_vertical_axis_leaves_gravity_untried(monkeypatch):
     """A parameter file that declares its axis vertical (top-level ``axis``, as KUKA's axis
     1) or prismatic: gravity cannot act there and is not tried; asked for by name it is
     refused, naming the declaration; a bad declaration is refused naming its values."""
-    import jaxflex.discover as dm
+    import jaxflex.discover.workflow as dm
     from jaxflex.datagen import generate_log
     from jaxflex.discover import cannot_act, declared_axes
     from jaxflex.effects import candidate_effects

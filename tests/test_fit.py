@@ -298,7 +298,7 @@ def test_shooting_solve_equals_dense_solve(scaling):
     import lineax as lx
     from jax.flatten_util import ravel_pytree
 
-    from jaxflex.fit.solve import dense_newton_step, shooting_newton_step
+    from jaxflex.fit.normal import dense_newton_step, shooting_newton_step
     from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
 
     p = paper_params()
@@ -461,7 +461,7 @@ def test_covariance_from_the_solvers_normal_equations_equals_a_fresh_one(monkeyp
     for k in prob.space.names:
         np.testing.assert_allclose(reused["stderr"][k], fresh["stderr"][k], rtol=1e-10)
     # the static map's fit takes that route (no second linearisation)
-    import jaxflex.fit.solve as solve_module
+    import jaxflex.fit.uncertainty as uncertainty_module
     from jaxflex.identify.static import STATIC_NAMES, StaticMap, fit_static_map
 
     v = np.concatenate([-np.geomspace(2.0, 0.01, 20), np.geomspace(0.01, 2.0, 20)])
@@ -469,14 +469,14 @@ def test_covariance_from_the_solvers_normal_equations_equals_a_fresh_one(monkeyp
     F = np.asarray(jax.vmap(lambda vi: lug.steady_state(vi[None])[0])(jnp.asarray(v))).ravel()
     F = F + 1e-3 * np.random.default_rng(0).standard_normal(v.size)
     start = {k: 1.2 * float(p.friction[k][0]) for k in STATIC_NAMES}
-    fresh_route = solve_module._jacobian
+    fresh_route = uncertainty_module._jacobian
     reused = []
 
     def linearised_again(*a, **k):
         reused.append(False)
         return fresh_route(*a, **k)
 
-    monkeypatch.setattr(solve_module, "_jacobian", linearised_again)
+    monkeypatch.setattr(uncertainty_module, "_jacobian", linearised_again)
     fit = fit_static_map(StaticMap(v=v, F=F), start)
     assert reused == [] and all(np.isfinite(se) and se > 0 for _, se in fit.values()), fit
 
@@ -509,7 +509,7 @@ def test_shooting_solve_equals_dense_solve_for_two_joints():
     import lineax as lx
     from jax.flatten_util import ravel_pytree
 
-    from jaxflex.fit.solve import dense_newton_step, shooting_newton_step
+    from jaxflex.fit.normal import dense_newton_step, shooting_newton_step
     from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
     from jaxflex.params import Params
 
@@ -698,7 +698,7 @@ def test_shooting_jacobian_blocks_give_J_and_J_transpose():
     import lineax as lx
     from jax.flatten_util import ravel_pytree
 
-    from jaxflex.fit.solve import shooting_blocks, shooting_mv, shooting_tmv
+    from jaxflex.fit.normal import shooting_blocks, shooting_mv, shooting_tmv
     from jaxflex.identify import DEFAULT_FREE, make_problem
 
     p = paper_params()
@@ -728,7 +728,7 @@ def test_problem_residual_blocks_equal_the_probed_linearisation():
     coupling to the next start is wrong."""
     import lineax as lx
 
-    from jaxflex.fit.solve import shooting_blocks
+    from jaxflex.fit.normal import shooting_blocks
     from jaxflex.identify import DEFAULT_FREE, make_problem
 
     p = paper_params()

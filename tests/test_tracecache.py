@@ -18,7 +18,7 @@ from jaxflex import tracecache
 from jaxflex.fit import least_squares
 # the compiled program itself (``jaxflex.fit.residuals`` moves a problem into its bucket of
 # segment slots around it)
-from jaxflex.fit.solve import _replay as _fast_replay
+from jaxflex.fit.replay import _replay as _fast_replay
 from jaxflex.identify import DEFAULT_FREE, excitation_torque, make_problem, perturb, synthetic_log
 from jaxflex.presets import paper_params
 

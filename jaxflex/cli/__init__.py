@@ -150,9 +150,8 @@ def enable_compilation_cache(traces: bool = True) -> Path | None:
 
 
 #: Commands that run faster with XLA's small-loop option (``jaxflex.sweep.engine.
-#: SMALL_LOOP_XLA_CPU_FLAGS``, measured there: discover 10-20%, tune 2.3x (1.4x with a
-#: spread); identify on a long log and batched sweeps were slower with it, so they keep XLA's
-#: default).
+#: SMALL_LOOP_XLA_CPU_FLAGS``); identify on a long log and batched sweeps are slower with it,
+#: so they keep XLA's default).
 SMALL_LOOP_COMMANDS = ("discover", "tune")
 
 
@@ -294,9 +293,9 @@ def main(argv: list[str] | None = None) -> int:
 def console() -> None:
     """The ``jaxflex`` command (``python -m jaxflex`` too): ``main`` on ``sys.argv``, then a
     quick exit once it has returned: the exit handlers run (logging, child processes) and the
-    standard streams are flushed, but the interpreter's own teardown is skipped. That teardown
-    (unloading XLA's compiled programs and every module) took 0.7-0.8 s after each command
-    (measured: ``identify`` on a 3 s log, 14.4 against 13.6 s). Every file a command writes is
+    standard streams are flushed, but the interpreter's own teardown is skipped: unloading
+    XLA's compiled programs and every module adds most of a second to each command. Every
+    file a command writes is
     closed before ``main`` returns. An exception out of ``main`` exits the usual way."""
     rc = main()
     run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)

@@ -4,8 +4,13 @@ constraint vocabulary, one solver path (optimistix Levenberg-Marquardt), one cov
 ``jaxflex.identify``, ``jaxflex.discover`` (and any validation) are thin workflows on it:
 
 - ``ParamSpace``: free parameters and their reparametrisation (``space``);
+- ``savgol``, ``noise_level``: Savitzky-Golay and the noise of a logged angle (``signal``);
 - ``Segments``, ``make_segments``, ``Problem``: data and residuals (``problem``);
-- ``least_squares``, ``covariance``, ``cost``: solve and judge (``solve``);
+- ``least_squares``, ``cost``, ``Solution``: the step loop and its stops (``solve``), built
+  from a Levenberg-Marquardt descent and trust region (``levenberg_marquardt``) over structured
+  normal-equation solves (``normal``);
+- ``covariance`` and the robust covariances (``uncertainty``); ``simulated_outputs``,
+  ``residuals``, ``gap`` (``replay``); ``discretisation_bias`` (``discretisation``);
 - ``segment_slots``, ``slot_rows``, ``on_slot_rows``, ``Padding``: the buckets of segment
   counts a problem is compiled for, so that logs of other lengths reuse the programs.
 """
@@ -16,37 +21,36 @@ from jaxflex.fit.problem import (
     Segments,
     dynamic_substeps,
     make_segments,
-    noise_level,
     output_columns,
     pack_state,
-    savgol,
-    savgol_coeffs,
     on_slot_rows,
     segment_slots,
     slot_rows,
     unpack_state,
-    white_noise_std,
 )
-from jaxflex.fit.solve import (
-    CostBound,
-    Padding,
-    Solution,
-    cost,
-    covariance,
-    cluster_robust_covariance,
-    segment_robust_covariance,
+from jaxflex.fit.discretisation import (
     discretisation_bias,
-    induced_shift,
     integration_error,
-    remaining_step,
     refined,
     step_doubling_error,
-    gap,
+)
+from jaxflex.fit.padding import Padding
+from jaxflex.fit.replay import gap, residuals, simulated_outputs
+from jaxflex.fit.signal import noise_level, savgol, savgol_coeffs, white_noise_std
+from jaxflex.fit.solve import (
+    CostBound,
+    Solution,
+    cost,
     least_squares,
     problem_residuals,
-    residuals,
-    simulated_outputs,
     trace_solver,
+)
+from jaxflex.fit.uncertainty import (
+    cluster_robust_covariance,
+    covariance,
+    induced_shift,
+    remaining_step,
+    segment_robust_covariance,
 )
 from jaxflex.fit.space import (
     NOMINAL_CONSTRAINTS,

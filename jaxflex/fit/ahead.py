@@ -4,16 +4,15 @@ works on something else (``identify``: the solver while the static map is fitted
 ``discover``: the held-out fits and the replays while the nominal model is fitted).
 
 On the project's two-core machine a fit runs its compiled loop on one core, and reading a
-large program from JAX's persistent cache (XLA deserialises and links its object code:
-0.7-1.0 s for a solver of a 20 s log) takes the other. A call made ahead computes something
+large program from JAX's persistent cache (XLA deserialises and links its object code)
+takes the other. A call made ahead computes something
 small (one solver step) and throws it away; a failure there is left for the real call to
 meet and report.
 
 Work side by side (``side_by_side``): independent calls whose results are all needed (the
 candidates' screens and full fits of ``discover``, its held-out start fits from two first
-guesses, the floor's draws) run in worker threads, one compiled loop on each core. Measured
-on the bench's 20 s discover log (``studies/bench_compile_cache.py --command discover``,
-warm caches, paired runs against the serial version): 0.87-0.91 x the wall time.
+guesses, the floor's draws) run in worker threads, one compiled loop on each core; the
+results do not depend on the number of workers.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The identification's uncertainty as a distribution of plants (issue 18).
+"""The identification's uncertainty as a distribution of plants.
 
 ``jaxflex identify`` writes, beside the estimates, their Gaussian posterior in the
 unconstrained coordinates theta of ``jaxflex.fit.space`` (``extra["identification"]

@@ -24,7 +24,6 @@ tangents per segment, vmapped over segments, whatever the number of segments.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -36,6 +35,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
 from jaxflex.effects import link_input, link_measurement
+from jaxflex.fit.signal import savgol
 from jaxflex.fit.space import ParamSpace
 from jaxflex.friction import LuGre
 from jaxflex.logs import Log
@@ -49,53 +49,6 @@ from jaxflex.validation import to_device
 BLOWN_RESIDUAL = 1e8
 #: Most substeps a segment replay unrolls (``Problem._segment``).
 UNROLL_SUBSTEPS = 4
-
-
-def savgol_coeffs(window: int, order: int, deriv: int = 0, delta: float = 1.0) -> np.ndarray:
-    """Savitzky-Golay weights (window,) that give the ``deriv``-th derivative [units / s^deriv
-    for ``delta`` in s] at the centre of ``window`` (odd) samples of period ``delta``, from
-    the least-squares polynomial of degree ``order`` through them, applied as a dot product
-    with the window's samples in time order (scipy's ``savgol_coeffs(..., use="dot")``; a test
-    checks equality with scipy).
-
-    Written here, not imported: importing ``scipy.signal`` costs every command 0.55 s of its
-    start (it imports ``scipy.stats`` and all its own submodules; measured with and without
-    it, ``import jaxflex.cli, jaxflex.identify, jaxflex.discover`` 1.50 -> 0.95 s)."""
-    if window % 2 != 1 or not 0 <= deriv <= order < window:
-        raise ValueError(f"savgol: need an odd window > order >= deriv >= 0, got window "
-                         f"{window}, order {order}, deriv {deriv}")
-    half = window // 2
-    vander = np.arange(-half, half + 1, dtype=float)[None, :] ** np.arange(order + 1)[:, None]
-    unit = np.zeros(order + 1)
-    unit[deriv] = math.factorial(deriv) / delta**deriv
-    return np.linalg.lstsq(vander, unit, rcond=None)[0]
-
-
-def savgol(x: np.ndarray, dt: float, deriv: int = 0, window: int = 31, order: int = 3) -> np.ndarray:
-    """Savitzky-Golay smoothing (``deriv`` = 0) or derivative of order ``deriv`` of samples
-    ``x`` (along axis 0) with period ``dt`` [s]: the one numerical differentiation of logs.
-    ``window`` samples (made odd and at most the log's length), polynomials of degree
-    ``order``; the first and last half windows take the derivative of the polynomial fitted to
-    the first and last whole window (scipy's ``savgol_filter(..., mode="interp")``, to which a
-    test holds it; ``savgol_coeffs`` says why it is not imported)."""
-    x = np.asarray(x, float)
-    N = x.shape[0]
-    window = min(window, N - (1 - N % 2))
-    flat = x.reshape(N, -1)
-    out = np.empty_like(flat)
-    half = window // 2
-    # inside: one weighted sum per sample over its centred window
-    views = np.lib.stride_tricks.sliding_window_view(flat, window, axis=0)  # (N-w+1, m, w)
-    out[half:N - half] = views @ savgol_coeffs(window, order, deriv, dt)
-    # the edges: the polynomial through the first (last) whole window and its derivative
-    t = np.arange(window, dtype=float)
-    for rows, at in ((slice(0, window), slice(0, half)), (slice(N - window, N), slice(N - half, N))):
-        poly = np.polynomial.polynomial.polyfit(t, flat[rows], order)  # (order + 1, m)
-        for _ in range(deriv):
-            poly = np.polynomial.polynomial.polyder(poly)
-        edge = t[:half] if at.start == 0 else t[window - half:]
-        out[at] = np.polynomial.polynomial.polyval(edge, poly).T / dt**deriv
-    return out.reshape(x.shape)
 
 
 class Segments(eqx.Module):
@@ -273,9 +226,7 @@ def dynamic_substeps(n: int) -> Array:
     """``n`` integrator substeps per sample as a ``Problem.substeps`` that the compiled
     programs take as an argument (a 0-d int32 array, a traced loop count): problems that
     differ only in their substeps then share every compiled program. Per substep on a CPU
-    the loop costs what the compiled-in count does from 8 substeps on, and 1.4-2x at 1-4
-    (measured: a solver step on a 3 s log, 6 segments of 500 samples, 1 / 4 / 8 / 16
-    substeps: 6.2 / 15.8 / 26.5 / 58.8 ms against 3.2 / 11-16 / 27.4 / 62.4 ms)."""
+    the loop costs what the compiled-in count does from 8 substeps on, and 1.4-2x at 1-4."""
     if not (isinstance(n, (int, np.integer)) and n >= 1):
         raise ValueError(f"fit: substeps must be an integer >= 1, got {n!r}")
     return jnp.asarray(int(n), dtype=jnp.int32)
@@ -308,11 +259,9 @@ class Problem(eqx.Module):
     ``rolled_stages``: the Jacobian blocks (``segment_jacobians``) replay with the RK4 stages
     as a loop (``jaxflex.step.rk4``'s ``rolled``: the same to rounding, one copy of the
     vector field instead of four per substep). It pays where the model is large and XLA's
-    small-loop option is on (``discover``'s gated universe of candidates: its training solver
-    22,973 -> 15,713 XLA instructions, the first ``jaxflex discover`` on the 20 s bench log
-    37 -> 29-32 s, its second-run compile 2.2-2.5 -> 1.7-1.9 s, the warm run unchanged
-    within noise) and costs where not (``identify``'s solver step on a 20 s log, XLA's
-    default options: 30 -> 46 ms), so it is off by default.
+    small-loop option is on (``discover``'s gated universe of candidates: a program about a
+    third smaller, which compiles and loads faster) and costs run time where not
+    (``identify``'s solver under XLA's default options), so it is off by default.
     """
 
     space: ParamSpace
@@ -490,8 +439,8 @@ class Problem(eqx.Module):
         against theta, ``Jx`` (S, my + d, d) against its own start, ``Jn`` (S, d, d) its
         defect against the next start (d = n_state n). The same numbers as linearising
         ``residuals`` and probing it with k + 2 d directions (``shooting_blocks``; a test
-        checks this), without tracing a linearisation or the probes (measured on identify's
-        3 s log: the solver's program traced 0.5 s and compiled 0.5 s faster). Rows of a
+        checks this), without tracing a linearisation or the probes, so the solver's
+        program traces and compiles faster. Rows of a
         blown residual (``BLOWN_RESIDUAL``) get zero derivatives, as in ``residuals``.
         Needs free starts (``ValueError`` otherwise)."""
         if not self.free_starts:
@@ -622,31 +571,3 @@ def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
 
     out, jac_th, jac_v = jax.vmap(seg_and_jac)(v0s, prob.segs.tau, prob.segs.tau_pre)
     return out, jac_th, jac_v, basis
-
-
-def white_noise_std(q: np.ndarray, orders: Sequence[int] = (2, 3, 4, 5, 6)) -> float:
-    """White measurement noise [rad] of a sampled angle by differencing: the k-th difference
-    of white noise has variance C(2k, k) sigma^2, a smooth motion's is attenuated by
-    (2 sin(w dt / 2))^k; the smallest estimate over ``orders`` bounds sigma from above with
-    the least motion left in it (quantisation included, where the motion makes it white)."""
-    q = np.asarray(q, float).reshape(len(q), -1)[:, 0]
-    est = [math.sqrt(np.var(np.diff(q, k)) / math.comb(2 * k, k)) for k in orders]
-    return float(min(est))
-
-
-def noise_level(q: np.ndarray) -> dict[str, float]:
-    """Angle measurement noise of a logged channel [rad]: the quantisation step (the smallest
-    increment above floating-point rounding: one count, which a quantised channel shows
-    wherever it moves slowly or its noise toggles a count; a percentile of the increments
-    reads several counts on a channel that moves fast), its step^2/12 standard deviation, and
-    the total standard deviation: the white noise by differencing (``white_noise_std``,
-    quantisation included), at least the quantisation's (a channel that stands still leaves
-    no white quantisation error to difference). A smoothing residual, the estimate before,
-    keeps part of the motion: on a 20-bit encoder at 1 kHz it read 2x the noise, and every
-    cost in units of it looked 4x smaller than it is."""
-    q = np.asarray(q, float).reshape(q.shape[0], -1)[:, 0]
-    d = np.abs(np.diff(q))
-    d = d[d > 1e-12 * max(1.0, float(np.max(np.abs(q))))]
-    step = float(np.min(d)) if d.size else 0.0
-    return {"step": step, "quantisation_std": step / math.sqrt(12.0),
-            "total_std": max(white_noise_std(q), step / math.sqrt(12.0))}

@@ -53,9 +53,8 @@ from jaxflex.validation import to_device
 _FLOOR = 1e-12
 
 #: The lowest coordinate of a positive parameter (p = exp(u) >= 1e-300): below it exp
-#: underflows to 0 in float64 and the plant refuses the parameter (measured: KUKA axis 2 B,
-#: discover's nominal refit drove Fc through a flat direction to exactly 0, and the run
-#: stopped on "Fc must be > 0"). Below it the coordinate has no slope and stays.
+#: underflows to 0 in float64 and the plant refuses the parameter (a refit can drive Fc
+#: through a flat direction that far). Below it the coordinate has no slope and stays.
 LOG_TINY = -690.0
 
 #: Constraint of each nominal parameter (Fs: "ordered" with respect to Fc).
@@ -327,8 +326,8 @@ class ParamSpace(eqx.Module):
             phys = self.physical(theta)
         else:  # concrete: one kept program, not eager operations (its device arrays)
             phys = _physical_on_host(self, theta)[0]
-        # one ``tree_at`` for all the names (each call walks the whole plant: one per name
-        # cost 38 ms a call with discover's twelve gated effects)
+        # one ``tree_at`` for all the names: each call walks the whole plant, which holds
+        # every gated effect in discover
         wheres = [_where(name, idx) for name, idx in zip(self.names, self.effect_index)]
         p = eqx.tree_at(lambda q: tuple(w(q) for w in wheres), self.base,
                         tuple(phys[name] for name in self.names))

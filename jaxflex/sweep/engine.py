@@ -86,11 +86,9 @@ def use_all_cores(n: int | None = None) -> int:
 
 
 #: XLA CPU options for jaxflex's loops of many small kernels (a sampled-data loop runs 10-70
-#: kernels per sample). Measured on the 2-core machine, one 10 s closed loop of the paper plant
-#: (``studies/bench_simulate.py``): 68 -> 60 ms wall and 135 -> 60 ms CPU (XLA's concurrent
-#: scheduler keeps a second thread busy for nothing in a sequential loop); the sweep target
-#: 9.9e6 -> 1.01e7 controller steps/s. Numbers are unchanged (both are scheduling and buffer
-#: options).
+#: kernels per sample): XLA's concurrent scheduler keeps a second thread busy for nothing in a
+#: sequential loop (speeds in ``docs/performance.md``). Numbers are unchanged (both are
+#: scheduling and buffer options).
 LEAN_XLA_CPU_FLAGS: tuple[str, ...] = (
     "--xla_cpu_enable_concurrency_optimized_scheduler=false",
     "--xla_cpu_copy_insertion_use_region_analysis=true",
@@ -101,17 +99,10 @@ LEAN_XLA_CPU_FLAGS: tuple[str, ...] = (
 #: ``small_while_loop_byte_threshold``, a backend option; its default hoists none of jaxflex's
 #: loops: one closed loop is hoisted from a threshold of 1e4 bytes, in part at 3e3) as one
 #: compiled function instead of one runtime thunk per kernel, so an iteration no longer pays a
-#: dispatch per kernel and per branch. Measured on the 2-core machine, warm, with and without
-#: it in the same conditions: one 10 s closed loop of the paper plant (``studies/
-#: bench_simulate.py --part single``) 59 -> 24 ms (numba 19 ms; the hand-written JAX scan
-#: 81 -> 23 ms); the Jacobian blocks of ``discover``'s 46 training segments with every
-#: candidate gated in 17 -> 10.5 ms, and ``jaxflex discover`` on the 20 s log 27-29 -> 22-25 s;
-#: ``jaxflex tune`` (93 closed loops of the paper's sinusoid) 13.6 -> 5.9 s, with a spread of
-#: 64 plants over 2 s (batched) 54.4 -> 37.7 s; the tuned gains equal to 1e-14 relative.
-#: It is not a general gain: ``jaxflex identify`` on a 20 s log (segments of 1000 samples, a
-#: traced substep loop) solved in 6.8 s against 3.2 s without it (a 3 s log: no change), and a
-#: sweep chunk of 256 closed loops (q2d "model", float64) ran 20% slower (7.8e6 -> 6.3e6
-#: controller steps/s at 2 substeps). So it is opt-in (``use_lean_xla_cpu(small_loops=True)``),
+#: dispatch per kernel and per branch. It speeds up single closed loops, ``discover`` and
+#: ``tune`` (the same numbers to rounding), but it is not a general gain: ``identify`` on a long
+#: log (a traced substep loop) and batched sweep chunks run slower with it
+#: (``docs/performance.md``). So it is opt-in (``use_lean_xla_cpu(small_loops=True)``),
 #: and the command line turns it on for ``discover`` and ``tune``
 #: (``jaxflex.cli.SMALL_LOOP_COMMANDS``).
 #: The same operations run, in another code generator: results agree to rounding (discover's

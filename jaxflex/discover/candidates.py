@@ -1,0 +1,297 @@
+"""The candidates' shared ground: a ``Model`` (nominal parameters plus named effects), the
+``Workspace`` whose plant holds every candidate effect behind a gate (so every candidate shares
+one compiled program), the log's segments and their first start states (``bristle_entries``),
+and a ``CandidateFit``, the outcome of fitting one model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflex.effects import AbstractEffect, EFFECTS, Gated
+from jaxflex.fit import ParamSpace, Problem, is_fitted, make_segments, on_slot_rows, savgol
+from jaxflex.logs import Log
+from jaxflex.params import Params
+from jaxflex.plant import FlexibleJointPlant
+from jaxflex.tracecache import persistent_jit
+from jaxflex.validation import to_device
+
+
+#: Nominal parameters refitted with every model.
+NOMINAL_FIT: tuple[str, ...] = ("I", "J", "K", "Fc", "Fs", "sigma2")
+
+
+def fitted_names(name: str) -> tuple[str, ...]:
+    """The parameters the fit adjusts for effect ``name``, as ``"<effect>.<param>"``."""
+    return tuple(f"{name}.{k}" for k, c in EFFECTS[name].constraints.items() if is_fitted(c))
+
+
+def fitted_count(name: str) -> int:
+    """Number of parameters the fit adjusts for effect ``name``."""
+    return len(fitted_names(name))
+
+
+# --------------------------------------------------------------------------- the model
+
+
+@dataclasses.dataclass
+class Model:
+    """A one-joint model to fit: nominal ``Params`` plus the active effects (instances, in the
+    order added); ``starts`` gives start instances for inactive candidates (e.g. cogging with
+    its frequency from the residual spectrum)."""
+
+    params: Params
+    effects: list[AbstractEffect]
+    starts: dict[str, AbstractEffect] = dataclasses.field(default_factory=dict)
+
+    @property
+    def active(self) -> dict[str, AbstractEffect]:
+        """Active effects by name."""
+        return {e.name: e for e in self.effects}
+
+    def plant(self) -> FlexibleJointPlant:
+        """The plant with the active effects only (what params.json describes)."""
+        return self.params.to_plant(with_effects=False).with_effects(*self.effects)
+
+
+@functools.lru_cache(maxsize=2)
+def _gate(on: bool) -> jax.Array:
+    """A gate (``Gated``) as one strongly typed array per value, made once: a weakly typed
+    one is converted at every compiled call that receives it, most of a solver step's host
+    time."""
+    return to_device(1.0 if on else 0.0)
+
+
+class Workspace(eqx.Module):
+    """The compiled shape of one discovery run: the gated universal parameter space (every
+    candidate effect present, gated), the training and held-out problems."""
+
+    space: ParamSpace
+    train: Problem
+    test: Problem
+    universe: tuple[str, ...] = eqx.field(static=True)
+
+    @property
+    def step(self) -> float:
+        """The replay's integration step [s]: the sample period over the substeps."""
+        return self.train.dt / self.train.substeps
+
+    def for_model(self, model: Model) -> tuple[Problem, Problem, dict[str, jax.Array]]:
+        """Training and held-out problems of ``model`` (gates and mask set) and its start
+        coordinates."""
+        act = model.active
+        effs = []
+        for name in self.universe:
+            e = act.get(name) or model.starts.get(name) or typical_effect(name, self.step)
+            effs.append(Gated(e, _gate(name in act)))
+        base = model.params.to_plant(with_effects=False).with_effects(*effs)
+        space = eqx.tree_at(lambda s: s.base, self.space, base)
+        theta0 = space.theta0()
+        fitted = NOMINAL_FIT + tuple(k for name in act for k in fitted_names(name))
+        if len(fitted) > self.train.jac_columns:
+            raise ValueError(f"discover: {len(fitted)} fitted parameters exceed the "
+                             f"{self.train.jac_columns} the workspace was built for")
+        space = space.with_mask(fitted, theta0)
+        train = eqx.tree_at(lambda p: p.space, self.train, space)
+        test = eqx.tree_at(lambda p: p.space, self.test, space)
+        return train, test, theta0
+
+
+def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: float,
+              train_frac: float, substeps: int, max_effects: int) -> Workspace:
+    """Cut ``log`` into training and held-out segments [s] and build the gated universal
+    space (Jacobians over the most entries a model with ``max_effects`` effects fits: the
+    last round fits the ``max_effects`` - 1 added and one candidate).
+    The space bounds the Stribeck excess Fs - Fc by the largest logged torque |tau| [N m]
+    (``ParamSpace.friction_cap``): a static friction the actuator could never have broken is
+    not physical (identify marks one as unidentified), and a nominal refit that misses an
+    effect could otherwise turn the bristles into a spring to ground (Fs far above any
+    logged torque with Fc at zero), after which every candidate of the next round seems to
+    gain."""
+    dt = log.dt
+    L = int(round(segment / dt))
+    N = log.N
+    split = int(train_frac * N)
+    for a, b, what in ((0, split, "training"), (split, N, "held-out")):
+        if (b - a) // max(L, 1) < 2:
+            raise ValueError(
+                f"log too short: the {what} part ({b - a} samples) needs at least 2 segments of "
+                f"{L} samples ({segment} s); use a longer log or a shorter --segment"
+            )
+    universe = tuple(sorted(universe))
+    # the most entries a model fits: the nominal ones and the largest max_effects effects
+    # (``discover`` adds at most max_effects; a tie's rivals are swapped in, not added)
+    sizes = sorted((fitted_count(n) for n in universe), reverse=True)
+    jac_columns = len(NOMINAL_FIT) + sum(sizes[:max_effects])
+    h = dt / substeps
+    effs = [Gated(typical_effect(n, h), to_device(0.0)) for n in universe]
+    base = nominal.to_plant(with_effects=False).with_effects(*effs)
+    space = ParamSpace.build(base, NOMINAL_FIT + tuple(k for n in universe for k in fitted_names(n)))
+    for k in STEP_BOUNDED:
+        if k in space.names:  # time constants the replay's step keeps stable (STEP_FLOOR)
+            space = space.with_lower_bound(k, STEP_FLOOR * h)
+    top = float(np.max(np.abs(np.asarray(log.tau))))
+    if not (math.isfinite(top) and top > 0):
+        raise ValueError(f"discover: the log's torque column has largest |tau| = {top}: "
+                         "nothing drives the motion the workflow replays")
+    space = eqx.tree_at(lambda s: s.friction_cap, space, to_device(top))
+    # start estimates (the solver's first guess of each segment's start state): angles and
+    # Savitzky-Golay velocities from the log, the bristle load that balances the link's
+    # inverse dynamics there (``bristle_entries``; the start z is bounded, Problem.bounded_z)
+    plant = nominal.to_plant(with_effects=False)
+    kw = dict(kind="flexible", outputs=("q1", "q2"), length=L)
+
+    def segments(a, b):
+        segs = make_segments(log, start=a, stop=b, **kw)
+        u = bristle_entries(log, plant, a + L * np.arange(segs.count))
+        x0 = np.array(segs.x0)  # on the host: op by op, each update would compile anew
+        x0[:, 4, 0] = u
+        return eqx.tree_at(lambda s: s.x0, segs, to_device(x0))
+
+    train_segs, test_segs = segments(0, split), segments(split, N)
+
+    def problem(segs, columns):
+        m = np.asarray(segs.y_meas)[..., :1]
+        scale = float(np.sqrt(np.mean((m - m[:, :1]) ** 2)))
+        # free starts without continuity (w_def 0): every segment's start state is fitted
+        # from the segment's own samples, so no estimate error is left for the parameters to
+        # absorb; the start z is fitted within the friction's capacity (bounded_z): a
+        # segment that starts in stick carries a bristle load between the steady states
+        return Problem(space=space, segs=segs, w_y=to_device(1.0 / scale),
+                       w_def=to_device(np.zeros(5)), dt=dt, kind="flexible", substeps=substeps,
+                       outputs=("q1", "q2"), free_starts=True, bounded_z=True,
+                       jac_columns=columns, rolled_stages=True)
+
+    # no parameter is fitted on the held-out segments (only their starts): no theta tangents
+    return Workspace(space=space, train=problem(train_segs, jac_columns),
+                     test=problem(test_segs, 0),
+                     universe=universe)
+
+
+@persistent_jit(fast_compile=True)
+def _bristle_residuals(plant: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
+                       q2: jax.Array, v2: jax.Array, a2: jax.Array,
+                       u: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(capacity g(q1') / sigma0 [rad], link residual at z = 0, at z = capacity [N m]) at each
+    sample of ``bristle_entries`` (the residual is affine in z: F = sigma0 z + sigma1 z' +
+    sigma2 q1'), in one compiled program."""
+    fr = plant.friction
+    cap = fr.g(v1) / fr.sigma0[0]
+
+    def r_link(z):
+        def one(q1_, v1_, a1_, q2_, v2_, a2_, u_, z_):
+            x = plant.init_state(q1=q1_, dq1=v1_, q2=q2_, dq2=v2_)
+            x = eqx.tree_at(lambda s: s.z, x, jnp.atleast_1d(z_))
+            return plant.torque_residuals(x, jnp.atleast_1d(a1_), jnp.atleast_1d(a2_),
+                                          jnp.atleast_1d(u_))[0][0]
+        return jax.vmap(one)(q1, v1, a1, q2, v2, a2, u, z)
+
+    return cap, r_link(jnp.zeros_like(cap)), r_link(cap)
+
+
+def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
+                    window: int = 31, bound: float = 0.995) -> np.ndarray:
+    """First guesses of the bounded start z [rad] (``Problem.bounded_z``) at samples ``idx``
+    of a one-joint log: the bristle deflection at which the link's inverse dynamics
+    (``FlexibleJointPlant.torque_residuals``, angles and their derivatives by Savitzky-Golay
+    over ``window`` samples) leave no residual, within +-``bound`` x the friction's capacity
+    g(q1') / sigma0. While
+    sliding this is (near) the steady state; in stick, or just after a reversal, the load
+    lies between +-capacity and has either sign, where the steady state of the velocity
+    (only 0 or +-capacity at rest) puts the start in another basin of the fit (a segment
+    that starts just after a reversal is then fitted to the opposite load, and replays
+    several times worse than the noise)."""
+    dt = log.dt
+    q1s, q2s, taus = (np.asarray(c, float)[:, 0] for c in (log.q1, log.q2, log.tau))
+    q1, q2 = (savgol(q, dt, 0, window)[idx] for q in (q1s, q2s))
+    v1, v2 = (savgol(q, dt, 1, window)[idx] for q in (q1s, q2s))
+    a1, a2 = (savgol(q, dt, 2, window)[idx] for q in (q1s, q2s))
+    # in the segment count's bucket: one program per bucket
+    cap, r0, r1 = on_slot_rows(functools.partial(_bristle_residuals, plant),
+                               q1, v1, a1, q2, v2, a2, taus[idx])
+    frac = -r0 / np.where(r1 != r0, r1 - r0, 1.0)
+    return cap * np.clip(frac, -bound, bound)
+
+
+@dataclasses.dataclass
+class CandidateFit:
+    """One fitted model: the model, engine coordinates ``theta``, the fitted start states of
+    the training segments ``starts`` and of the held-out segments ``test_starts`` (S,
+    n_state, 1) (q1 [rad], q1' [rad/s], q2 [rad], q2' [rad/s], z [rad]), fitted physical
+    ``values`` and their standard errors (name -> float), training residual sum of squares
+    ``rss`` (residuals in units of the segments' RMS motion), their count ``n_res``, fitted
+    parameter count ``n_par`` (start states included), training and held-out gaps, solver
+    steps, whether the solver met its tolerance, and wall time [s]."""
+
+    model: Model
+    theta: dict[str, jax.Array]
+    starts: jax.Array
+    test_starts: jax.Array
+    values: dict[str, float]
+    stderr: dict[str, float]
+    rss: float
+    n_res: int
+    n_par: int
+    gap_train: float
+    gap_test: float
+    steps: int
+    converged: bool
+    seconds: float
+
+    @property
+    def y_train(self) -> tuple[dict[str, jax.Array], jax.Array]:
+        """The training problem's unknowns (theta, starts)."""
+        return self.theta, self.starts
+
+    @property
+    def y_test(self) -> tuple[dict[str, jax.Array], jax.Array]:
+        """The held-out problem's unknowns (theta, held-out starts)."""
+        return self.theta, self.test_starts
+
+
+def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
+                    bound: float = 0.995) -> jax.Array:
+    """Start states (S, n_state, 1) with their bounded z entries [rad] (``Problem.bounded_z``)
+    brought back within ``bound`` x the friction's capacity g(q1') / sigma0 of ``plant``. An
+    entry a long solver step pushed past the capacity stops moving there (the clip has no
+    slope); from just inside, a further solve can bring it back when the data want a partial
+    load (a second solve from the entries brought back reaches the fit the true parameters
+    give). Compiled (one program per bucket of segment counts, ``on_slot_rows``, kept
+    by ``jaxflex.tracecache``): run op by op it cost a dozen small compilations per shape on
+    every run."""
+    return to_device(on_slot_rows(lambda x: _within_capacity(x, plant, bound), x0s))
+
+
+@persistent_jit(fast_compile=True)
+def _within_capacity(x0s: jax.Array, plant: FlexibleJointPlant, bound: float) -> jax.Array:
+    fr = plant.friction
+    cap = bound * fr.g(x0s[:, 1]) / fr.sigma0
+    return x0s.at[:, 4].set(jnp.clip(x0s[:, 4], -cap, cap))
+
+
+#: Time constants [s] whose lower bound scales with the replay's integration step h = dt /
+#: substeps: T >= STEP_FLOOR h. RK4 keeps the delay's Pade poles (-3 +- j sqrt(3)) / T stable
+#: for T > 1.22 h and the lag's -1 / T for T > 0.36 h. The classes' own bound, 1.5 ms, is
+#: this at 1 ms samples; at the KUKA KR300's 4 ms the delay's typical start (3 ms) replayed
+#: unstably and every screen of it read a blown residual (predicted dAIC +61194 on axis 2 B).
+STEP_BOUNDED: tuple[str, ...] = ("actuator_lag.T", "time_delay.T")
+STEP_FLOOR: float = 1.5
+
+
+def typical_effect(name: str, h: float) -> AbstractEffect:
+    """``EFFECTS[name].typical(1)``, a time constant in ``STEP_BOUNDED`` at twice its bound at
+    the integration step ``h`` [s] (a start on the bound has a dead coordinate; a start far
+    above a short delay does not reach it in a screen's few steps): 3 ms at 1 ms samples
+    (the classes' own start), 12 ms at 4 ms, 1.5 ms at 1 ms with 2 substeps."""
+    e = EFFECTS[name].typical(1)
+    if f"{name}.T" in STEP_BOUNDED:
+        e = type(e)(T=np.full_like(np.asarray(e.T), 2.0 * STEP_FLOOR * h))
+    return e

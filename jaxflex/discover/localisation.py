@@ -1,0 +1,289 @@
+"""Where model and log disagree: inverse-dynamics torque residuals binned against the
+quantities an effect depends on, their spectra and worst windows (``localise``), and the first
+guesses of candidate effects drawn from those residuals (``start_effect``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflex.discover.candidates import Model, typical_effect
+from jaxflex.effects import AbstractEffect, EFFECTS
+from jaxflex.fit import noise_level, on_slot_rows, savgol, savgol_coeffs
+from jaxflex.logs import Log
+from jaxflex.params import Params
+from jaxflex.plant import FlexibleJointPlant
+from jaxflex.tracecache import persistent_jit
+
+
+# ---------------------------------------------------------------------------- localisation
+
+
+def _bin(x: np.ndarray, y: np.ndarray, bins: int = 15) -> dict[str, list[float]]:
+    lo, hi = np.quantile(x, [0.01, 0.99])
+    edges = np.linspace(lo, hi, bins + 1)
+    k = np.clip(np.digitize(x, edges) - 1, 0, bins - 1)
+    mean, se, centre = [], [], []
+    for b in range(bins):
+        m = k == b
+        if m.sum() < 5:
+            continue
+        centre.append(float(0.5 * (edges[b] + edges[b + 1])))
+        mean.append(float(y[m].mean()))
+        se.append(float(y[m].std() / math.sqrt(m.sum())))
+    return {"x": centre, "mean": mean, "se": se}
+
+
+@dataclasses.dataclass
+class Localisation:
+    """Where the nominal model's inverse-dynamics residuals lie (module docstring, step 4):
+    ``summary`` (JSON-ready: RMS residuals and noise floors [N m], side, signatures, spectra,
+    worst windows) and ``series`` (per-sample arrays for plots and effect starts)."""
+
+    summary: dict[str, Any]
+    series: dict[str, np.ndarray]
+
+
+@persistent_jit
+def inverse_dynamics(plant: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
+                     q2: jax.Array, v2: jax.Array, a2: jax.Array,
+                     tau: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Link and rotor torque residuals [N m], (N, 1) each, of ``plant`` at the measured motion
+    (samples (N,): angles [rad], velocities [rad/s], accelerations [rad/s^2], torque [N m])
+    with z at its steady state (``FlexibleJointPlant.torque_residuals``; F = F_ss, eq. 35)."""
+    def resid(q1_, v1_, a1_, q2_, v2_, a2_, u):
+        x = plant.init_state(q1=q1_, dq1=v1_, q2=q2_, dq2=v2_)
+        x = eqx.tree_at(lambda s: s.z, x, plant.friction.z_steady(x.dq1))
+        return plant.torque_residuals(x, jnp.atleast_1d(a1_), jnp.atleast_1d(a2_),
+                                      jnp.atleast_1d(u))
+
+    return jax.vmap(resid)(q1, v1, a1, q2, v2, a2, tau)
+
+
+def welch(x: np.ndarray, dt: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
+    """Welch's power spectral density of ``x`` sampled every ``dt`` [s]: frequencies [Hz] and
+    one-sided density [units^2 / Hz], from periodic-Hann-windowed segments of ``nperseg``
+    samples overlapping by half, each less its mean, averaged (scipy's ``signal.welch``
+    defaults, to which a test holds it; written here because importing ``scipy.signal``
+    costs every command 0.55 s, ``jaxflex.fit.savgol_coeffs``)."""
+    x = np.asarray(x, float)
+    nperseg = min(int(nperseg), x.size)
+    step = nperseg - nperseg // 2
+    segs = np.lib.stride_tricks.sliding_window_view(x, nperseg)[::step]
+    win = 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(nperseg) / nperseg)
+    spec = np.abs(np.fft.rfft((segs - segs.mean(axis=1, keepdims=True)) * win, axis=1)) ** 2
+    spec *= dt / np.sum(win**2)
+    spec[:, 1:nperseg // 2 + (nperseg % 2)] *= 2.0  # one-sided: all but DC (and Nyquist)
+    return np.fft.rfftfreq(nperseg, dt), spec.mean(axis=0)
+
+
+def localise(log: Log, params: Params, window: int = 41) -> Localisation:
+    """Inverse-dynamics torque residuals [N m] of the nominal model on the link and rotor sides
+    (``FlexibleJointPlant.torque_residuals`` with z at its steady state, so F = F_ss of
+    eq. 35) from Savitzky-Golay derivatives; binned against link velocity (and its sign),
+    position, deflection, deflection rate and rotor velocity; their spectra; the worst 1 s
+    windows; and the noise floor (encoder quantisation and measured noise propagated through
+    the same differentiation)."""
+    dt = log.dt
+    plant = params.to_plant(with_effects=False)
+    q1s, q2s, taus = log.q1[:, 0], log.q2[:, 0], log.tau[:, 0]
+    q1, q2 = (savgol(q, dt, 0, window) for q in (q1s, q2s))
+    v1, v2 = (savgol(q, dt, 1, window) for q in (q1s, q2s))
+    a1, a2 = (savgol(q, dt, 2, window) for q in (q1s, q2s))
+    tau = savgol(taus, dt, 0, window)
+
+    # on the samples padded to their bucket: one program per bucket
+    r_link, r_rot = (a[:, 0] for a in on_slot_rows(functools.partial(inverse_dynamics, plant),
+                                                   q1, v1, a1, q2, v2, a2, tau))
+    K, I, J = (float(np.ravel(a)[0]) for a in (plant.K, plant.links.I, plant.J))
+    d, dd = q2 - q1, v2 - v1
+    nf1, nf2 = noise_level(q1s), noise_level(q2s)
+    c2 = savgol_coeffs(window, 3, deriv=2, delta=dt)
+    c0 = savgol_coeffs(window, 3, deriv=0)
+    g2, g0 = float(np.sqrt(np.sum(c2**2))), float(np.sqrt(np.sum(c0**2)))
+    floor_link = math.sqrt((I * g2 * nf1["total_std"]) ** 2 + (K * g0 * nf2["total_std"]) ** 2)
+    floor_rot = math.sqrt((J * g2 * nf2["total_std"]) ** 2 + (K * g0 * nf1["total_std"]) ** 2)
+    fr, P1 = welch(r_link, dt, min(4096, len(r_link)))
+    _, P2 = welch(r_rot, dt, min(4096, len(r_rot)))
+    w = int(round(1.0 / dt))
+    win = [
+        (float(log.t[i * w]), float(np.sqrt(np.mean(r_link[i * w:(i + 1) * w] ** 2))),
+         float(np.sqrt(np.mean(r_rot[i * w:(i + 1) * w] ** 2))))
+        for i in range(len(r_link) // w)
+    ]
+    worst = sorted(win, key=lambda x: -(x[1] ** 2 + x[2] ** 2))[:3]
+    moving = np.abs(v1) > 0.02
+    mean_if = lambda m: float(r_link[m].mean()) if np.any(m) else 0.0
+    summary = {
+        "r_link_rms": float(np.sqrt(np.mean(r_link**2))),
+        "r_rotor_rms": float(np.sqrt(np.mean(r_rot**2))),
+        "noise_floor_link": floor_link, "noise_floor_rotor": floor_rot,
+        "side": "link" if np.mean(r_link**2) > np.mean(r_rot**2) else "rotor",
+        "mean_link_moving_pos": mean_if(moving & (v1 > 0)),
+        "mean_link_moving_neg": mean_if(moving & (v1 < 0)),
+        "mean_rotor": float(r_rot.mean()),
+        "encoder_q1": nf1, "encoder_q2": nf2,
+        "worst_windows": [{"t0": a, "link_rms": b, "rotor_rms": c} for a, b, c in worst],
+        "signatures": {
+            "link velocity": _bin(v1, r_link), "position": _bin(q1, r_link),
+            "deflection": _bin(d, r_link), "deflection rate": _bin(dd, r_link),
+            "rotor velocity": _bin(v2, r_rot),
+            "link velocity (rotor side)": _bin(v1, r_rot), "deflection (rotor side)": _bin(d, r_rot),
+        },
+        "spectrum": {"f": fr.tolist(), "link": P1.tolist(), "rotor": P2.tolist()},
+    }
+    series = {"t": log.t, "r_link": r_link, "r_rotor": r_rot, "q1": q1, "v1": v1, "d": d,
+              "dd": dd, "v2": v2, "q2": q2}
+    return Localisation(summary=summary, series=series)
+
+
+def _cleared(series: dict[str, np.ndarray], rotor: bool, vs: float | None,
+             angle: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The angle [rad], the torque residual [N m] cleared of what a refit of the nominal model
+    absorbs anyway, and the orthonormal basis Q of what was cleared, for a linear start
+    (``_cogging_start``, ``_gravity_start``): the link's (q1, r_link) or the rotor's (q2,
+    r_rotor). Cleared: the velocity, a Coulomb term, the deflection, the acceleration, given
+    the model's ``vs`` [rad/s] the Stribeck term, a constant and, with ``angle``, the angle (a
+    ripple is not a trend; a gravity is nearly one over a small travel). The link's residual
+    holds the friction at its steady state (``localise``), which a link at rest does not
+    follow: only its sliding samples are kept (a drive's point-to-point moves with dwells on
+    the MuJoCo rig, a cogging of N = 45 1/rad: all samples gave N = 58.2, sliding ones
+    45.0)."""
+    q, r = (series["q2"], series["r_rotor"]) if rotor else (series["q1"], series["r_link"])
+    v = series["v2"] if rotor else series["v1"]
+    columns = [np.ones_like(q), v, np.tanh(v / 0.01), series["d"], np.gradient(v, series["t"])]
+    if angle:
+        columns.append(q)
+    if vs is not None:  # a static friction off: the Stribeck term at the model's vs [rad/s]
+        columns.append(np.tanh(v / 0.01) * np.exp(-((v / vs) ** 2)))
+    if not rotor:
+        sliding = np.abs(v) > 2.0 * (vs if vs is not None else 0.05)
+        if np.mean(sliding) > 0.1:
+            q, r = q[sliding], r[sliding]
+            columns = [c[sliding] for c in columns]
+    Q, _ = np.linalg.qr(np.column_stack(columns))
+    return q, r - Q @ (Q.T @ r), Q
+
+
+def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
+                   min_periods: float = 2.0, vs: float | None = None) -> AbstractEffect:
+    """Cogging start: the spatial frequency N [1/rad] and phase that best explain the link
+    residual against q1 ("cogging") or the rotor residual against q2 ("motor_cogging") by
+    linear least squares over a grid (gradient cannot find a frequency), a coarse one, then a
+    fine one about its best. The residual is first cleared (``_cleared``) of what a refit of
+    the nominal model absorbs anyway, the Stribeck term at the model's ``vs`` included, and
+    the grid starts at ``min_periods`` periods over the angle's travel: a slower "ripple" is a
+    smooth trend, not cogging (with a nominal model a little off, the raw residual's best
+    fit is half a period over the travel; cleared, the true ripple). The Stribeck term,
+    since a nominal refit can raise Fs to absorb a ripple, after which the residual peaks
+    at other frequencies than the ripple's."""
+    rotor = name == "motor_cogging"
+    q, r, Q = _cleared(series, rotor, vs)
+    lowest = max(5.0, 2.0 * math.pi * min_periods / max(float(np.ptp(q)), 1e-9))
+    coarse = np.arange(lowest, 400.0 if rotor else 80.0, 0.5)
+    # an angle that travels less than min_periods periods of the finest ripple searched (a
+    # link hanging under gravity in a MuJoCo rig's open-loop log: 0.1 rad) has no grid to
+    # search; a grid that explains nothing has no ripple: the typical start either way
+    if not coarse.size:
+        return EFFECTS[name].typical(1)
+    expl, a_s, a_c = _grid_fits(q, r, Q, coarse, 0.5)
+    j = int(np.argmax(expl))
+    if not expl[j] > 0:
+        return EFFECTS[name].typical(1)
+    N, s_, c_ = float(coarse[j]), a_s[j], a_c[j]
+    fine = N + np.arange(-0.5, 0.51, 0.02)
+    e, fs, fc = _grid_fits(q, r, Q, fine, 0.02)
+    k = int(np.argmax(e))
+    if e[k] > expl[j]:
+        N, s_, c_ = float(fine[k]), fs[k], fc[k]
+    A, phi = max(math.hypot(s_, c_), 1e-3), math.atan2(c_, s_)
+    # the residual equals the missing torque A sin(N q + phi); both residuals carry it with
+    # its own sign (torque_residuals)
+    return EFFECTS[name](A=np.full(1, A), N=np.full(1, N), phi=np.full(1, phi))
+
+
+def _gravity_start(series: dict[str, np.ndarray], vs: float | None = None) -> AbstractEffect:
+    """Gravity start: -mgl sin(q1 - q0) = mgl sin(q1 + pi - q0) is a link ripple of N = 1, so
+    mgl [N m] and q0 [rad] from the linear least-squares fit of a sine and a cosine of q1 to
+    the link residual, cleared (``_cleared``) of all but the angle: from how the missing torque
+    varies with the angle, not from its mean. The typical start (mgl = 0.05 N m hanging at 0)
+    where the fit explains nothing or puts the hanging angle farther from the travel's middle
+    than the travel is wide: over the travel such a sine is a constant-like torque, which an
+    asymmetric friction on a link that is always moving also is, and a gravity started far
+    from the travel can beat the asymmetric friction it mimics. From the typical start alone,
+    a gravity that the nominal refit held with its bristles (a raised Fs) stops far short of
+    its magnitude and the log is answered "unexplained"."""
+    q, r, Q = _cleared(series, False, vs, angle=False)
+    e, a_s, a_c = _grid_fits(q, r, Q, np.ones(1), 0.0)
+    if not e[0] > 0:
+        return EFFECTS["gravity"].typical(1)
+    q0 = math.remainder(math.pi - math.atan2(a_c[0], a_s[0]), 2.0 * math.pi)
+    if abs(q0 - float(np.median(q))) > float(np.ptp(q)):
+        # hanging far outside the travel: over it, the sine is a constant-like torque that the
+        # residual's variation cannot tell from an asymmetric friction or an offset
+        return EFFECTS["gravity"].typical(1)
+    return EFFECTS["gravity"](mgl=np.full(1, max(math.hypot(a_s[0], a_c[0]), 1e-3)),
+                              q0=np.full(1, q0))
+
+
+def _grid_fits(q: np.ndarray, r: np.ndarray, Q: np.ndarray, grid: np.ndarray,
+               step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every spatial frequency of the evenly spaced ``grid`` (spacing ``step``, 1/rad) the
+    least-squares fit of r ~ a_s sin(N q) + a_c cos(N q), both columns cleared of the span of
+    the orthonormal ``Q`` (r is cleared already): (explained ||X c||^2, -1 where the fit cannot
+    be solved; a_s; a_c)."""
+    turn = np.exp(1j * step * q)
+    n = q.size
+    out = []
+    for k in range(0, grid.size, 64):  # 64 frequencies at a time, each a 2-column fit
+        Ns = grid[k:k + 64]
+        # E = exp(i N q), a row per N of the chunk, by repeated turns (3x faster than a sine
+        # and a cosine each); its real part is the cosine column C, its imaginary part S
+        E = np.empty((Ns.size, n), complex)
+        E[0] = np.exp(1j * Ns[0] * q)
+        for j in range(1, Ns.size):
+            np.multiply(E[j - 1], turn, out=E[j])
+        # the Gram entries of the columns cleared of the nuisance span, without clearing
+        # them: ||P x||^2 = ||x||^2 - ||Q^T x||^2 (Q orthonormal), the plain ones from the
+        # double angle (sum sin^2 = (n - Re z2) / 2, sum sin cos = Im z2 / 2, z2 = sum E^2):
+        # complex products instead of a sine and a cosine block each (faster, the same fits
+        # to rounding)
+        z2 = np.einsum("ji,ji->j", E, E)
+        W = E @ Q  # Q^T C + i Q^T S, (m, p)
+        ss = 0.5 * (n - z2.real) - np.einsum("ij,ij->i", W.imag, W.imag)
+        cc = 0.5 * (n + z2.real) - np.einsum("ij,ij->i", W.real, W.real)
+        sc = 0.5 * z2.imag - np.einsum("ij,ij->i", W.imag, W.real)
+        b = E @ r  # C^T r + i S^T r
+        bs, bc = b.imag, b.real
+        det = ss * cc - sc * sc
+        ok = det > 1e-12 * np.maximum(ss * cc, 1e-300)  # a fit that can be solved
+        det = np.where(ok, det, 1.0)
+        a_s, a_c = (cc * bs - sc * bc) / det, (ss * bc - sc * bs) / det
+        out.append((np.where(ok, a_s * bs + a_c * bc, -1.0), a_s, a_c))
+    return tuple(np.concatenate([o[i] for o in out]) for i in range(3))  # type: ignore[return-value]
+
+
+def start_effect(name: str, model: Model, series: dict[str, np.ndarray],
+                  h: float) -> AbstractEffect:
+    """First guess of candidate ``name`` added to ``model``: a cogging from the residual's
+    spectrum (``_cogging_start``, with the Stribeck term at the model's vs), a gravity from a
+    sine and a cosine of the link angle (``_gravity_start``), else the typical
+    instance at the integration step ``h`` [s] (``typical_effect``; a backlash with the
+    model's stiffness)."""
+    vs = float(np.ravel(model.params.friction["vs"])[0])
+    if name in ("cogging", "motor_cogging"):
+        return _cogging_start(series, name, vs=vs)
+    if name == "gravity":
+        return _gravity_start(series, vs=vs)
+    e = typical_effect(name, h)
+    if name == "backlash":
+        e = EFFECTS[name](b=e.b, K=model.params.plant["K"], w=e.w)
+    return e
