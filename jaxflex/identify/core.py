@@ -38,7 +38,6 @@ from jaxflex.fit import (
     discretisation_bias,
     dynamic_substeps,
     get_value,
-    integration_error,
     least_squares,
     make_segments,
     noise_level,
@@ -377,27 +376,6 @@ class _Search:
                   f"{self.good:.3e}); {sol.reason}")
         return sol
 
-    def settled_discretisation(self, prob: Problem, sol: Solution, label: dict[str, Any],
-                               max_steps: int, refine: bool, most: int = MAX_SUBSTEPS,
-                               ) -> tuple[Problem, Solution]:
-        """``sol`` continued with twice the substeps, level by level, until the replay at its
-        own end point is within ``OUTPUT_TOL`` of the noise of its finer replay
-        (``integration_error``) or ``most``: every attempt is judged at a discretisation its
-        own solution holds, not at the one its start needed (a fit can move into parameters,
-        stiff bristles, that the start's step does not integrate, and then exploit the
-        integrator's error). Without ``refine`` (substeps given), ``prob`` and ``sol``
-        unchanged. Each level is recorded as an attempt ("substeps")."""
-        while refine and prob.n_substeps * 2 <= most and sol.normal is not None:
-            err = integration_error(prob, sol.y)
-            if err <= OUTPUT_TOL:
-                break
-            finer = refined(prob)
-            more = self.run(finer, sol.y, {**label, "substeps": finer.n_substeps,
-                                           "output_error_before": err}, max_steps)
-            prob, sol = finer, dataclasses.replace(
-                more, steps=sol.steps + more.steps, seconds=sol.seconds + more.seconds)
-        return prob, sol
-
 
 @requires_float64
 def identify(
@@ -545,7 +523,6 @@ def identify(
                           full=False).y
 
     ahead.wait(0)
-    best_prob = prob
     for origin, y_start in starts:
         for factor in schedules:
             y = warmed(prob, y_start, factor, origin)
@@ -556,9 +533,8 @@ def identify(
                 more = search.run(prob, sol.y, {"start": f"{origin}, continued"}, max_steps)
                 sol = dataclasses.replace(more, steps=sol.steps + more.steps,
                                           seconds=sol.seconds + more.seconds)
-            a_prob, sol = search.settled_discretisation(prob, sol, label, max_steps, auto)
             if best is None or sol.cost < best.cost:
-                best, best_factor, best_prob = sol, factor, a_prob
+                best, best_factor = sol, factor
             if _settled(sol, good):
                 break
         if _settled(best, good):
@@ -574,13 +550,11 @@ def identify(
             y = warmed(prob, (th, x0), schedules[0], f"{origin}, vs x{f:g}")
             label = {"start": f"{origin}, vs x{f:g}", "warm_start": schedules[0]}
             sol = search.run(prob, y, label, max_steps)
-            a_prob, sol = search.settled_discretisation(prob, sol, label, max_steps, auto)
             if sol.cost < best.cost:
-                best, best_factor, best_prob = sol, schedules[0], a_prob
+                best, best_factor = sol, schedules[0]
             if _settled(sol, good):
                 break
     ahead.join()
-    prob = best_prob
     first = finish(prob, init, best.y, steps=best.steps, converged=best.converged,
                    wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                    reason=_reason(best, good), noise_cost=good, log=log, solution=best)
