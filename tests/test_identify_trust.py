@@ -4,7 +4,6 @@ fit, and Ctrl-C that stops."""
 
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -16,7 +15,8 @@ import pytest
 
 from jaxflex.data import load_emps, load_named
 from jaxflex.identify import DEFAULT_FREE, IdentificationWarning, identify
-from jaxflex.identify.core import relative_shift, start_hints
+from jaxflex.identify.discretisation import relative_shift
+from jaxflex.identify.problem import start_hints
 from jaxflex.identify.start import StartError, start_from_data, suggest_model
 from jaxflex.logs import Log, save_log
 from jaxflex.params import Params, load_params, save_params

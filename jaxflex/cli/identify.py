@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
 
     from jaxflex.data import is_named, load_named
     from jaxflex.identify import IdentificationWarning, choose_segment_length, identify
-    from jaxflex.identify.core import SEGMENT_TIME_CONSTANTS, default_free, start_hints
+    from jaxflex.identify.problem import SEGMENT_TIME_CONSTANTS, default_free, start_hints
     from jaxflex.identify.start import StartError, check_model, start_from_data
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params

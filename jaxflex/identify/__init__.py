@@ -20,25 +20,22 @@ Public API (a workflow on the fitting engine ``jaxflex.fit``):
 """
 
 from jaxflex.fit import ParamSpace, Problem, covariance, get_value, set_values
-from jaxflex.identify.core import (
+from jaxflex.identify.core import DECREMENT_TOL, GEODESIC, identify, simulate_log
+from jaxflex.identify.discretisation import (
     BIAS_TOL,
-    DECREMENT_TOL,
-    DEFAULT_FREE,
-    GEODESIC,
     MAX_SUBSTEPS,
     OUTPUT_TOL,
-    IdentificationWarning,
-    IdentResult,
-    choose_segment_length,
     choose_substeps,
+    refine_fit,
+)
+from jaxflex.identify.problem import (
+    DEFAULT_FREE,
+    choose_segment_length,
     default_free,
-    finish,
-    identify,
     make_problem,
     noise_cost,
-    refine_fit,
-    simulate_log,
 )
+from jaxflex.identify.result import IdentificationWarning, IdentResult, finish
 from jaxflex.identify.experiments import (
     TwoStepResult,
     excitation_torque,

@@ -25,7 +25,8 @@ import numpy as np
 from jaxtyping import PRNGKeyArray
 
 from jaxflex.fit import get_value, set_values
-from jaxflex.identify.core import IdentResult, identify
+from jaxflex.identify.core import identify
+from jaxflex.identify.result import IdentResult
 from jaxflex.identify.static import STATIC_NAMES, StaticMap, fit_static_map
 from jaxflex.logs import Log
 from jaxflex.params import Params
