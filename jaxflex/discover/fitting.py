@@ -307,8 +307,8 @@ def settle(ws: Workspace, fit: CandidateFit, *, max_steps: int, tau_int: float =
 
 
 #: ``released``: a static friction is pinned when Fs - Fc or Fc is within PINNED of the
-#: space's cap on them (``ParamSpace.friction_cap``: the sigmoid's slope is then below 2% of the excess),
-#: or Fc below PINNED_FC of Fs (Fc = exp(u): its Jacobian column is Fc itself).
+#: space's cap on them (``ParamSpace.friction_cap``: the sigmoid's slope is then below 2% of
+#: the level), or Fc below PINNED_FC of Fs (Fc = exp(u): its Jacobian column is Fc itself).
 PINNED: float = 0.02
 PINNED_FC: float = 1e-6
 
