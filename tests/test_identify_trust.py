@@ -16,9 +16,9 @@ import pytest
 from jaxflex.data import load_emps, load_named
 from jaxflex.identify import DEFAULT_FREE, IdentificationWarning, identify
 from jaxflex.identify.discretisation import relative_shift
-from jaxflex.identify.problem import start_hints
+from jaxflex.identify.problem import FRICTION_CAP_FACTOR, start_hints
 from jaxflex.identify.start import StartError, start_from_data, suggest_model
-from jaxflex.logs import Log, save_log
+from jaxflex.logs import Log, load_log, save_log
 from jaxflex.params import Params, load_params, save_params
 from jaxflex.presets import paper_params
 
@@ -256,3 +256,30 @@ def test_a_flipped_torque_sign_gets_a_hint_and_no_crash_from_the_command_line(tm
     assert "sign may be flipped" in out.stderr
     assert out.returncode in (0, 3), out.stderr
     assert "internal error" not in out.stderr
+
+
+@pytest.mark.slow
+def test_no_friction_level_above_the_largest_logged_torque(tmp_path):
+    """A 250 Hz rig log whose 0.05 N m torque offset the start file and the default free set
+    lack (the six LuGre parameters): a fit that misses the offset can turn the bristles into
+    a spring to ground by raising Fc without bound (Fc = Fs -> 1e144 N m). The file never
+    holds a friction level above ``FRICTION_CAP_FACTOR`` times the largest torque the log
+    applies, and never says "adequate"."""
+    p = paper_params()
+    save_params(p, tmp_path / "paper.json")
+    d = json.loads((tmp_path / "paper.json").read_text())
+    d["friction"]["Fc"], d["friction"]["Fs"] = [0.14], [0.19]
+    d["effects"] = {"torque_offset": {"offset": 0.05}}
+    (tmp_path / "rig.json").write_text(json.dumps(d))
+    run = _cli("run-loop", "--rig-params", str(tmp_path / "rig.json"), "--duration", "20",
+               "--lockstep", "--rate", "250", "--log", str(tmp_path / "run.csv"))
+    assert run.returncode == 0, run.stderr
+    out = _cli("identify", str(tmp_path / "run.csv"), "--params", str(tmp_path / "paper.json"),
+               "--out", str(tmp_path / "r.json"), "--quiet")
+    assert out.returncode in (0, 3), out.stderr
+    r = json.loads((tmp_path / "r.json").read_text())
+    top = float(np.max(np.abs(load_log(tmp_path / "run.csv").tau)))
+    cap = FRICTION_CAP_FACTOR * top
+    assert r["friction"]["Fc"][0] <= cap and r["friction"]["Fs"][0] <= 2 * cap
+    assert r["identification"]["model"]["verdict"] == "model-limited"
+

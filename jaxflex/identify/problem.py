@@ -28,6 +28,12 @@ from jaxflex.validation import to_device
 from jaxflex.step import MODEL_KINDS, ModelKind
 
 DEFAULT_FREE: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")
+#: The friction levels Fc and Fs - Fc of a fit stay below this many times the largest torque
+#: the log applies (``ParamSpace.friction_cap``): a level the actuator could never break is not
+#: one the log can show, and a fit that misses an effect could otherwise raise it without
+#: bound (the bristles then act as a spring to ground). Far above the cap's own scale the map
+#: is exp(u) to within a tenth, so the levels a log does show are fitted as without it.
+FRICTION_CAP_FACTOR: float = 10.0
 #: Automatic segment length (``choose_segment_length``, ``identify(segment_length="auto")``):
 #: SEGMENT_TIME_CONSTANTS mechanical time constants of the start model (inertia over viscous
 #: friction of what the replay simulates), within [SEGMENT_MIN_S, SEGMENT_MAX_S] seconds, on
@@ -72,10 +78,11 @@ def make_problem(
         raise ValueError(f"identify: segment_length must be in [2, {N}], got {segment_length}")
     plant = init.to_plant()
     space = ParamSpace.build(plant, free)
-    # no friction level above the largest torque the log applies (``ParamSpace.friction_cap``)
+    # no friction level the log could never show (``ParamSpace.friction_cap``)
     top = float(np.max(np.abs(np.asarray(log.tau, float))))
     if math.isfinite(top) and top > 0:
-        space = eqx.tree_at(lambda s: s.friction_cap, space, to_device(top))
+        space = eqx.tree_at(lambda s: s.friction_cap, space,
+                            to_device(FRICTION_CAP_FACTOR * top))
     outputs = output_columns(log, model, outputs)
     n = log.n
     if output_scale is None:  # each joint's own noise level: joints may move very differently
