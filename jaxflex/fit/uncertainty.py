@@ -294,10 +294,14 @@ def remaining_step(prob: Problem, solution: Solution) -> float:
     the log has the segments for it), that a full Gauss-Newton step from ``solution`` would
     make: the statistical stop judged at the standard errors the fit reports, which a
     model's mismatch on a real log makes far larger than the white noise's. inf without
-    normal equations or for a non-finite step."""
+    normal equations, for a non-finite step, or for normal equations whose covariance cannot
+    be formed (non-finite entries: the step cannot be judged)."""
     if solution.normal is None or solution.residual is None:
         return math.inf
-    shift, se, *_ = induced_shift(prob, solution, solution.residual)
+    try:
+        shift, se, *_ = induced_shift(prob, solution, solution.residual)
+    except np.linalg.LinAlgError:
+        return math.inf
     if not shift.size:
         return 0.0
     return float(np.max(np.abs(shift) / se)) if np.all(np.isfinite(shift)) else math.inf
