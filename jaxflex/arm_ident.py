@@ -254,7 +254,8 @@ class ArmFit:
     Attributes:
         chain: the chain (kinematics, gravity, and the prior inertial parameters ``phi`` that
             give the fixed base parameters their values).
-        base: the base parameters the driven joints' torques determine.
+        base: the base parameters the driven joints' torques determine (None when
+            ``free`` is empty and none were given).
         free: the base parameters estimated (the others held at the prior's values).
         joints: the driven joints' chain indices.
         names: the estimated parameters: ``free``, then ``JOINT_TERMS`` per driven joint
@@ -267,7 +268,7 @@ class ArmFit:
     """
 
     chain: SerialChain
-    base: BaseParameters
+    base: BaseParameters | None
     free: tuple[str, ...]
     joints: tuple[int, ...]
     names: list[str]
@@ -288,7 +289,12 @@ class ArmFit:
         return float(s[0] / s[-1])
 
     def base_values(self) -> np.ndarray:
-        """All r base parameters: the estimated ones and the prior's values of the others."""
+        """All r base parameters: the estimated ones and the prior's values of the others.
+
+        **Raises:** ``ValueError`` when the fit was made without a base set."""
+        if self.base is None:
+            raise ValueError("ArmFit.base_values: the fit held all inertias at the prior "
+                             "without a base set; pass base= to identify_arm")
         beta = self.base.values(self.chain.phi)
         for k, b in enumerate(self.free):
             beta[self.base.base.index(b)] = self.values[k]
@@ -308,7 +314,8 @@ class ArmFit:
                                for k, v, s in zip(self.names, self.values, self.stderr)},
                 "free_base": {b: self.base.combinations[self.base.base.index(b)]
                               for b in self.free},
-                "rank": self.base.rank, "condition": self.condition,
+                "rank": None if self.base is None else self.base.rank,
+                "condition": self.condition,
                 "sigma": [float(s) for s in self.sigma]}
 
 
@@ -333,7 +340,7 @@ def identify_arm(chain: SerialChain, motion: ArmMotion, known: ArrayLike | None 
     - ``free``: the base parameters to estimate (names in ``base.base``); None: all of them
       (plain IDIM-LS), ``()``: none (the prior's inertias, only the per-joint terms fitted).
     - ``base``: the base parameters; default ``arm_base`` (the structural set, not one
-      log's excitation).
+      log's excitation; not computed when ``free`` is empty).
 
     **Returns:** an ``ArmFit``.
 
@@ -343,7 +350,7 @@ def identify_arm(chain: SerialChain, motion: ArmMotion, known: ArrayLike | None 
     if motion.q.shape[1] != chain.n or max(motion.joints) >= chain.n:
         raise ValueError(f"identify_arm: motion has {motion.q.shape[1]} joints, driven "
                          f"{motion.joints}; the chain has {chain.n}")
-    if base is None:
+    if base is None and free != ():
         base = arm_base(chain, motion.joints)
     free = tuple(base.base) if free is None else tuple(free)
     unknown = [b for b in free if b not in base.base]
@@ -452,7 +459,7 @@ def _regularise(phi: np.ndarray, eps: float = 1e-4) -> np.ndarray:
 
 def consistent_fit(fit: ArmFit, motion: ArmMotion, known: ArrayLike | None = None,
                    phi0: ArrayLike | None = None, prior: float = 1e-3,
-                   max_nfev: int = 200) -> ConsistentFit:
+                   max_nfev: int = 500) -> ConsistentFit:
     """Refit ``fit``'s model on ``motion`` with physically consistent links (module
     docstring): the standard parameters in log-Cholesky coordinates, the per-joint terms
     free, the same weights, by trust-region least squares (``scipy.optimize.least_squares``).
@@ -469,7 +476,8 @@ def consistent_fit(fit: ArmFit, motion: ArmMotion, known: ArrayLike | None = Non
 
     **Returns:** a ``ConsistentFit``.
 
-    **Raises:** ``ValueError`` for a ``fit`` that held some base parameters at the prior.
+    **Raises:** ``ValueError`` for a ``fit`` that held some base parameters at the prior, or
+    a start that is not physical.
     """
     import scipy.optimize
     import scipy.stats
@@ -491,6 +499,10 @@ def consistent_fit(fit: ArmFit, motion: ArmMotion, known: ArrayLike | None = Non
     n = chain.n
     start = _regularise(np.asarray(chain.phi if phi0 is None else phi0, float))
     th0 = np.asarray(log_cholesky_from_phi(jnp.asarray(start)))
+    if not np.all(np.isfinite(th0)):
+        bad = [i + 1 for i in range(n) if not np.all(np.isfinite(th0[i]))]
+        raise ValueError(f"consistent_fit: the start's links {bad} are not physically "
+                         "consistent (pass a physical phi0)")
     z0 = np.concatenate([th0.ravel(), fit.values[r_b:]])
 
     def data_residual(z: Array) -> Array:
@@ -501,9 +513,17 @@ def consistent_fit(fit: ArmFit, motion: ArmMotion, known: ArrayLike | None = Non
         return jnp.concatenate([data_residual(z), prior * (z[:10 * n] - th0.ravel())])
 
     res = jax.jit(residual)
-    jac = jax.jit(jax.jacfwd(residual))
-    sol = scipy.optimize.least_squares(lambda z: np.asarray(res(jnp.asarray(z))), z0,
-                                       jac=lambda z: np.asarray(jac(jnp.asarray(z))),
+    # the chain rule by hand: d(Yw phi)/dtheta = Yw dphi/dtheta, with the small (10 n, 10 n)
+    # Jacobian of the log-Cholesky map from jax
+    dphi = jax.jit(jax.jacfwd(lambda th: phi_from_log_cholesky(th.reshape(n, 10)).ravel()))
+    Yw_np, Xw_np = np.asarray(Yw), np.asarray(Xw)
+    eye = prior * np.eye(10 * n, 10 * n + Xw_np.shape[1])
+
+    def jac(z: np.ndarray) -> np.ndarray:
+        top = np.concatenate([Yw_np @ np.asarray(dphi(jnp.asarray(z[:10 * n]))), Xw_np], 1)
+        return np.concatenate([top, eye], 0)
+
+    sol = scipy.optimize.least_squares(lambda z: np.asarray(res(jnp.asarray(z))), z0, jac=jac,
                                        method="trf", x_scale="jac", max_nfev=max_nfev)
     z = sol.x
     phi = np.asarray(phi_from_log_cholesky(jnp.asarray(z[:10 * n].reshape(n, 10))))
