@@ -43,7 +43,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike
 
 from jaxflex.chain import SerialChain
 from jaxflex.fit import savgol

@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import numpy as np
 
 TRAJ = ("A", "B", "C")
 
@@ -114,7 +113,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for ax in (1, 2, 3):
         logs = {k: load_kuka(k, ax) for k in TRAJ}
         coef = rigid_torque_fit(logs["A"])
-        per_axis[f"axis{ax}"] = {k: rel_error_pct(lg.tau, rigid_torque(coef, lg))
+        per_axis[f"axis{ax}"] = {k: rel_error_pct(lg.tau[:, 0], rigid_torque(coef, lg))
                                  for k, lg in logs.items()}
     res["per_axis"] = per_axis
     res["beats_per_axis"] = {a: {k: res["coupled"][a][k] < per_axis[a][k] for k in TRAJ}

@@ -87,7 +87,7 @@ def test_kuka_coupled_fit_on_A_beats_the_per_axis_rigid_baseline_on_B():
     for ax in (2, 3):
         coef = rigid_torque_fit(load_kuka("A", ax))
         logB = load_kuka("B", ax)
-        rigid = rel_error_pct(logB.tau, rigid_torque(coef, logB))
+        rigid = rel_error_pct(logB.tau[:, 0], rigid_torque(coef, logB))
         assert err[ax - 1] < rigid, (ax, err, rigid)
     # friction and rotor inertias come out positive
     assert all(fit.value(f"{k}{j}") > 0 for k in ("Ja", "Fv", "Fc") for j in (1, 2, 3))
