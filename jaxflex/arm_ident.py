@@ -420,8 +420,10 @@ class ConsistentFit:
         cost, cost_ls: weighted data cost (sum of squared weighted residuals) of this fit and
             of the plain least squares, with the plain fit's weights.
         threshold: the 95 % chi-square quantile of the base-parameter count.
-        ls_physical: whether cost - cost_ls <= threshold (the plain estimate's confidence
-            region holds a physical arm).
+        ls_physical: True when a physical arm with cost - cost_ls <= threshold was found
+            (the plain estimate's confidence region holds one), False when the optimiser
+            converged above it, None when it stopped above it unconverged (undecided: the
+            found cost bounds the constrained minimum from above only).
         converged: the optimiser's status.
     """
 
@@ -430,7 +432,7 @@ class ConsistentFit:
     cost: float
     cost_ls: float
     threshold: float
-    ls_physical: bool
+    ls_physical: bool | None
     converged: bool
 
     def predict(self, fit: ArmFit, motion: ArmMotion, known: ArrayLike | None = None
@@ -531,8 +533,10 @@ def consistent_fit(fit: ArmFit, motion: ArmMotion, known: ArrayLike | None = Non
     r_ls = (A @ fit.values - y) * w[None, :]
     cost_ls = float(np.sum(r_ls**2))
     thr = float(scipy.stats.chi2.ppf(0.95, r_b))
+    converged = bool(sol.status > 0)
+    physical = True if cost - cost_ls <= thr else (False if converged else None)
     return ConsistentFit(phi=phi, extras=z[10 * n:], cost=cost, cost_ls=cost_ls, threshold=thr,
-                         ls_physical=bool(cost - cost_ls <= thr), converged=bool(sol.status > 0))
+                         ls_physical=physical, converged=converged)
 
 
 __all__ = ["ArmFit", "ArmMotion", "ConsistentFit", "JOINT_TERMS", "KNOWN_SCALE",
