@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -167,10 +168,20 @@ def _format(name: str, coefs: dict[str, float]) -> str:
                                for k, c in coefs.items()])
 
 
-def stacked_regressor(chain: SerialChain, states: Float[Array, "N 3 n"]) -> np.ndarray:
-    """The regressors at ``states`` (each (q, q', q'')) stacked into (N n, 10 n)."""
-    Y = jax.jit(jax.vmap(lambda s: regressor(chain, s[0], s[1], s[2])))(jnp.asarray(states))
+def stacked_regressor(chain: SerialChain, states: Float[Array, "N 3 n"],
+                      joints: tuple[int, ...] | None = None) -> np.ndarray:
+    """The regressors at ``states`` (each (q, q', q'')) stacked into (N n_j, 10 n): the rows
+    of the torques of ``joints`` (indices; default all n joints)."""
+    rows = tuple(range(chain.n)) if joints is None else tuple(int(j) for j in joints)
+    Y = _regressors(chain, jnp.asarray(states), rows)
     return np.asarray(Y).reshape(-1, 10 * chain.n)
+
+
+@eqx.filter_jit
+def _regressors(chain: SerialChain, states: Array, rows: tuple[int, ...]) -> Array:
+    """The rows ``rows`` of the regressors at ``states`` (N, 3, n), compiled once per chain
+    structure and shape (``rows`` static)."""
+    return jax.vmap(lambda s: regressor(chain, s[0], s[1], s[2])[jnp.asarray(rows)])(states)
 
 
 def random_states(n: int, num: int, seed: int = 0, q_range: float = np.pi,
@@ -183,7 +194,8 @@ def random_states(n: int, num: int, seed: int = 0, q_range: float = np.pi,
 
 
 def base_parameters(chain: SerialChain, states: ArrayLike | None = None, num: int = 200,
-                    seed: int = 0, rtol: float = RANK_RTOL) -> BaseParameters:
+                    seed: int = 0, rtol: float = RANK_RTOL,
+                    joints: tuple[int, ...] | None = None) -> BaseParameters:
     """The base parameters of ``chain``'s inertial parameters (module docstring).
 
     **Arguments:**
@@ -193,6 +205,9 @@ def base_parameters(chain: SerialChain, states: ArrayLike | None = None, num: in
       ``num`` random states (``random_states``; pass the states of a trajectory to ask what
       *that* excitation determines).
     - ``rtol``: rank tolerance relative to the largest pivot.
+    - ``joints``: the joints whose torques are measured (indices; default all): with a subset
+      (the driven axes of an arm whose other joints move without torque sensing), the base
+      parameters are those the torques of ``joints`` determine.
 
     **Returns:** a ``BaseParameters``.
     """
@@ -200,7 +215,7 @@ def base_parameters(chain: SerialChain, states: ArrayLike | None = None, num: in
     names = parameter_names(n)
     if states is None:
         states = random_states(n, num, seed)
-    W = stacked_regressor(chain, np.asarray(states, float))
+    W = stacked_regressor(chain, np.asarray(states, float), joints)
     norms = np.linalg.norm(W, axis=0)
     # a column at rounding level (an angle's sine at 0 or pi, ...) is a zero column: unscaled
     # it would become a unit column of noise and a pivot
