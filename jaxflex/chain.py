@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jaxflex.plant import AbstractLinkDynamics
@@ -222,6 +223,21 @@ class SerialChain(AbstractLinkDynamics):
             Ts.append(T)
         Ts = jnp.stack(Ts)
         return Ts[:, :3, :3], Ts[:, :3, 3]
+
+    def axis_kinds(self, q: ArrayLike) -> list[str]:
+        """What gravity can do on each joint at the pose ``q`` [rad or m], in the words a
+        parameter file declares (``jaxflex.discover.config.AXES``): "prismatic" for a
+        prismatic joint, "vertical" for a revolute joint whose axis is parallel to gravity
+        (no gravity moment about it, whatever the pose of the joints beyond it), else
+        "horizontal" (gravity can act). The axis of joint i is frame i-1's z axis."""
+        R, _ = self.frames(jnp.asarray(q, self.g.dtype))
+        z = np.asarray(R[:-1, :, 2])
+        g = np.asarray(self.g, float)
+        g_dir = g / max(float(np.linalg.norm(g)), 1e-300)
+        rev = np.asarray(self.revolute) > 0.5
+        return ["prismatic" if not rev[i] else
+                "vertical" if abs(float(z[i] @ g_dir)) >= 1.0 - 1e-6 else "horizontal"
+                for i in range(self.n)]
 
     def jacobians(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n 3 n"],
                                                         Float[Array, "n 3 n"]]:

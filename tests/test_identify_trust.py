@@ -77,6 +77,10 @@ def test_shipped_data_sets_by_name():
     assert d.log.N == 24841 and d.loop_controller["type"] == "pp_cascade"
     assert load_named("jaxflex:kuka/B/2").log.n == 1
     assert load_named("jaxflex:kuka/C").log.n == 3
+    # what gravity can do on each axis, from the data set's kinematics
+    assert d.axis == ["prismatic"]
+    assert load_named("jaxflex:kuka/A/1").axis == ["vertical"]
+    assert load_named("jaxflex:kuka/C").axis == ["vertical", "horizontal", "horizontal"]
     with pytest.raises(ValueError, match="known"):
         load_named("jaxflex:kuka/D")
 
@@ -108,6 +112,7 @@ def test_identify_without_a_start_file_on_the_shipped_emps(tmp_path):
     ident = d["identification"]
     assert ident["start"]["kind"] == "rigid" and not ident["start"]["user"]
     assert "torque_offset.offset" in ident["free"] and "I" in ident["free"]
+    assert d["axis"] == "prismatic"  # the data set's axis, for discover
     assert ident["model"]["verdict"] == "model-limited"  # a real rig: far above the noise
     assert ident["solver"]["converged"] == (out.returncode == 0)
     finals = [a["cost_final"] for a in ident["attempts"] if "cost_final" in a]

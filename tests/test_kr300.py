@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxflex.chain import SerialChain
 from jaxflex.data import load_kuka
 from jaxflex.data.kr300 import (
     hydraulic_counterbalance,
@@ -53,6 +54,22 @@ def test_kr300_gravity_acts_on_axes_2_and_3_not_on_axis_1():
     ch = kuka_kr300_chain()
     np.testing.assert_allclose(arm.mass_matrix(q), ch.mass_matrix(full)[:3, :3], rtol=1e-12)
     np.testing.assert_allclose(arm.gravity(q), ch.gravity(full)[:3], rtol=1e-12)
+
+
+def test_axis_kinds_follow_the_kinematics():
+    """Axis 1 of the KR300 is parallel to gravity at any pose (no gravity moment: "vertical"),
+    axes 2-6 are not; a prismatic joint is "prismatic"; tilting a base axis away from gravity
+    makes it "horizontal"."""
+    chain = kuka_kr300_chain()
+    rng = np.random.default_rng(0)
+    for q in (np.zeros(6), rng.uniform(-1.0, 1.0, 6)):
+        assert chain.axis_kinds(q) == ["vertical"] + ["horizontal"] * 5
+    lift = SerialChain.from_dh(a=[0.0], d=[0.0], alpha=[0.0], mass=[1.0], com=[[0, 0, 0]],
+                               inertia=[np.eye(3) * 0.01], joints="P")
+    assert lift.axis_kinds([0.1]) == ["prismatic"]
+    tilted = SerialChain.from_dh(a=[0.5], d=[0.0], alpha=[0.0], mass=[1.0], com=[[0.2, 0, 0]],
+                                 inertia=[np.eye(3) * 0.01], gravity=(0.0, -9.81, 0.0))
+    assert tilted.axis_kinds([0.0]) == ["horizontal"]
 
 
 def test_kr300_model_explains_the_measured_gravity_load():

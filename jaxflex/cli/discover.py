@@ -101,10 +101,19 @@ def run(args: argparse.Namespace) -> int:
     if model not in DISCOVER_MODELS:  # e.g. a link subsystem's identification
         print(f"note: the identification's model {model!r} is replayed as a flexible joint")
         model = "flexible"
+    joint_axes = None
     if is_named(args.log):  # a shipped data set by name, as identify takes it
         if args.map:
             raise ValueError(f"--map applies to files; {args.log} is a shipped data set")
-        log = load_named(args.log).log
+        named = load_named(args.log)
+        log = named.log
+        if named.axis is not None and "axis" not in nominal.extra:
+            # what gravity can do on the shipped data set's axes (its kinematics): declared
+            # in the file's words, or joint by joint for one joint's file over an n-axis log
+            if nominal.n == log.n:
+                nominal.extra["axis"] = named.axis[0] if log.n == 1 else list(named.axis)
+            else:
+                joint_axes = list(named.axis)
     else:
         required = ("t", "tau", "q1") if model == "rigid" else None
         log = load_log(args.log, parse_mapping(args.map), **({"required": required}
@@ -117,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     )
     out = Path(args.out)  # created once there is a result to write (no empty folder on Ctrl-C)
     if log.n > 1:
-        return _run_joints(args, log, nominal, cfg, out)
+        return _run_joints(args, log, nominal, cfg, out, joint_axes)
     # matplotlib is imported beside the fits (0.4 s), not after them
     plots = None if args.no_plots else Ahead(
         [lambda: importlib.import_module("jaxflex.plots.discover")])
@@ -174,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
+def _run_joints(args: argparse.Namespace, log, nominal, cfg, out,
+                joint_axes: list[str] | None = None) -> int:
     """An n-joint log: ``discover_joints``; report.json holds one report per joint (and the
     answers side by side), params_joint<j>.json each joint's final parameters."""
     import json
@@ -185,7 +195,8 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out) -> int:
     from jaxflex.cli.outputs import interrupts_stop, writing
 
     with interrupts_stop() as check:  # a fit ends on Ctrl-C; the command stops too
-        results = discover_joints(log, nominal, cfg, progress=lambda m: (check(), print(m)))
+        results = discover_joints(log, nominal, cfg, progress=lambda m: (check(), print(m)),
+                                  axes=joint_axes)
     reps = []
     with writing():  # the whole result or nothing, Ctrl-C included
         out.mkdir(parents=True, exist_ok=True)

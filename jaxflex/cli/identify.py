@@ -147,12 +147,12 @@ def run(args: argparse.Namespace) -> int:
 
     check_outputs(args.force, files=[args.out, args.figure or Path(args.out).with_suffix(".png")])
     pins = _pins(args.fix)
-    loop = None
+    loop, axis = None, None
     if is_named(args.log):
         if args.mapping:
             raise ValueError("--map is for files; a shipped data set has its own columns")
         named = load_named(args.log)
-        log, loop = named.log, named.loop_controller
+        log, loop, axis = named.log, named.loop_controller, named.axis
     else:
         required = REQUIRED_COLUMNS if args.model not in ("rigid", "auto") else ("t", "tau", "q1")
         log = load_log(args.log, parse_mapping(args.mapping), required=required)
@@ -222,6 +222,10 @@ def run(args: argparse.Namespace) -> int:
             return 3
     if args.closed_loop:
         _closed_loop(res, log, loop, model, args.max_steps, say)
+    if axis is not None and "axis" not in res.params.extra:
+        # a shipped data set knows its axes (what gravity can do there): the file says it,
+        # so that discover does not try an effect that cannot act
+        res.params.extra["axis"] = axis[0] if len(axis) == 1 else axis
     out = Path(args.out)
     save_params(res.params, out)
     fig = Path(args.figure) if args.figure else out.with_suffix(".png")

@@ -320,11 +320,26 @@ class NamedData:
         loop_controller: the controller that ran while it was recorded, as a parameter
             file's ``loop_controller`` section (EMPS: its P/P cascade), or None.
         name: the name as given.
+        axis: what gravity can do on each joint, as a parameter file declares it
+            (``jaxflex.discover.config.AXES``: EMPS's prismatic axis; the KUKA axes from the
+            arm's kinematics, ``jaxflex.chain.SerialChain.axis_kinds``), or None.
     """
 
     log: Log
     loop_controller: dict[str, Any] | None
     name: str
+    axis: list[str] | None = None
+
+
+def _kuka_axis_kinds(trajectory: str, axes: Sequence[int]) -> list[str]:
+    """What gravity can do on the KUKA ``axes`` (1-3) at the first sample of ``trajectory``,
+    from the arm's kinematics (``jaxflex.data.kr300``)."""
+    from jaxflex.data.kr300 import kuka_kr300_chain
+
+    q = np.zeros(6)
+    q[:3] = np.asarray(load_kuka(trajectory, KUKA_AXES).q1, float)[0]
+    kinds = kuka_kr300_chain().axis_kinds(q)
+    return [kinds[a - 1] for a in axes]
 
 
 def is_named(spec: str) -> bool:
@@ -356,10 +371,13 @@ def load_named(spec: str) -> NamedData:
             rec = emps_record(parts[1])
             loop = {"type": "pp_cascade", "kp": float(rec.kp), "kv": float(rec.kv),
                     "gtau": float(rec.gtau), "vmax": 10.0}
-            return NamedData(log=load_emps(parts[1]), loop_controller=loop, name=spec)
+            return NamedData(log=load_emps(parts[1]), loop_controller=loop, name=spec,
+                             axis=["prismatic"])
         if parts[0] == "kuka" and len(parts) in (2, 3) and parts[1] in KUKA_TRAJECTORIES:
             axis = KUKA_AXES if len(parts) == 2 else int(parts[2])
-            return NamedData(log=load_kuka(parts[1], axis), loop_controller=None, name=spec)
+            axes = [axis] if isinstance(axis, int) else list(axis)
+            return NamedData(log=load_kuka(parts[1], axis), loop_controller=None, name=spec,
+                             axis=_kuka_axis_kinds(parts[1], axes))
     except ValueError:
         pass
     raise ValueError(f"unknown shipped data set {spec!r}; known: {known}")

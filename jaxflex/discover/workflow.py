@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -77,23 +77,29 @@ MAX_REBASE = 1
 @requires_float64
 def discover_joints(
     log: Log, nominal: Params | None = None, config: DiscoverConfig | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Callable[[str], None] | None = None, axes: Sequence[str] | None = None,
 ) -> list[DiscoverResult]:
     """``discover`` on each joint of an n-joint log, with that joint's parameters (a
     parameter file describes independent joints, ``Params.joint``): one answer per joint. A
     coupling between joints that the file does not describe shows up in the joints it
-    couples, as an effect or as ``unexplained``."""
+    couples, as an effect or as ``unexplained``. ``axes``: what gravity can do on each of
+    the log's joints (``declared_axes``' words, one per joint), where ``nominal`` declares
+    nothing (a shipped data set's kinematics)."""
     nominal = nominal or paper_params()
     if nominal.n not in (1, log.n):
         raise ValueError(f"discover: the parameters have {nominal.n} joints, the log {log.n}")
+    if axes is not None and len(axes) != log.n:
+        raise ValueError(f"discover: {len(axes)} axis kinds for a {log.n}-joint log")
     say = progress or (lambda s: None)
     out = []
     for j in range(log.n):
         say(f"joint {j}")
         one = nominal.joint(j if nominal.n > 1 else 0)
-        axes = declared_axes(nominal)
-        if axes:  # the declaration of this joint (``joint`` drops the extra keys)
-            one.extra = {"axis": axes[j if nominal.n > 1 else 0]}
+        declared = declared_axes(nominal)
+        if declared:  # the declaration of this joint (``joint`` drops the extra keys)
+            one.extra = {"axis": declared[j if nominal.n > 1 else 0]}
+        elif axes is not None:
+            one.extra = {"axis": axes[j]}
         out.append(discover(log.joint(j), one, config, progress))
     return out
 
