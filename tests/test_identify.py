@@ -361,6 +361,10 @@ def test_an_unconverged_fit_is_reported_and_refused_downstream(tmp_path):
                      static_start=False, warm_start=(1e-3,), vs_restarts=(), data_start=False,
                      decrement_tol=None)
     assert not r.converged and "above what the measurement noise explains" in r.reason
+    table = r.table()  # says which were fixed at their start and which are marked
+    for k in r.unidentifiable:
+        assert k in table.split("unidentified, fixed at their start values:")[-1] or (
+            k in table.split("not determined by the data, at the values fitted:")[-1])
     ident = r.params.extra["identification"]
     assert ident["converged"] is False
     for k in r.unidentifiable:

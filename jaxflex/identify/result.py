@@ -89,7 +89,7 @@ class IdentResult:
 
     def table(self) -> str:
         """A short text table: name, value, standard error, relative standard error (or
-        "unidentified", with the value kept at its initial guess)."""
+        "unidentified": fixed at its start value, or at its fitted value and marked)."""
         rows = [f"{'param':<24}{'value':>14}{'stderr':>12}{'rel':>12}"]
         for name in self.stderr:
             vals = get_value(self.params, name).tolist()
@@ -116,8 +116,14 @@ class IdentResult:
         if g.get("samples"):
             rows.append(f"segments: {g['segments']} of {g['samples']} samples "
                         f"({g['seconds']:.3g} s, {g['mode']})")
-        if self.unidentifiable:
-            rows.append(f"unidentified (kept at their initial values): {self.unidentifiable}")
+        fitted = set(self.problem.space.names) if self.problem is not None else set()
+        fixed = [k for k in self.unidentifiable if k not in fitted]
+        marked = [k for k in self.unidentifiable if k in fitted]
+        if fixed:
+            rows.append(f"unidentified, fixed at their start values: {fixed}")
+        if marked:
+            rows.append(f"not determined by the data, at the values fitted: {marked} "
+                        "(identification.parameters gives each one's reason)")
         return "\n".join(rows)
 
 
