@@ -287,4 +287,23 @@ def test_no_friction_level_above_the_largest_logged_torque(tmp_path):
     cap = FRICTION_CAP_FACTOR * top
     assert r["friction"]["Fc"][0] <= cap and r["friction"]["Fs"][0] <= 2 * cap
     assert r["identification"]["model"]["verdict"] == "model-limited"
+    assert r["identification"]["model"]["friction_never_slides"]  # the spring to ground named
 
+
+
+def test_a_friction_that_never_slides_is_named_in_the_verdict():
+    """The model's verdict names a fitted LuGre friction whose presliding range Fs / sigma0
+    is wider than the log's travel (the bristles then act as a spring to ground), and not
+    the paper's friction (0.15 N m / 100 N m/rad = 1.5 mrad) on the same log."""
+    from jaxflex.identify import excitation_torque, make_problem, synthetic_log
+    from jaxflex.identify.verdict import model_verdict
+
+    p = paper_params()
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=1.0), substeps=2)
+    prob, y0 = make_problem(log, p, DEFAULT_FREE, segment_length=250, substeps=2)
+    ok = model_verdict(prob, y0, 1e6, 1.0, 4.0)
+    assert ok["friction_never_slides"] == []
+    th = prob.space.theta_of({"sigma0": 1e-4})
+    spring = model_verdict(prob, (th, y0[1]), 1e6, 1.0, 4.0)
+    assert len(spring["friction_never_slides"]) == 1
+    assert "never slides" in spring["summary"]

@@ -40,10 +40,13 @@ def model_verdict(prob: Problem, y: Any, cost: float, noise_cost: float, accept_
     Returns:
         ``{"verdict": "adequate" | "model-limited", "cost_over_noise", "channels": {label:
         {"rms", "white", "p_white", "correlation_time", "input_lag", "input_peak"}},
-        "where": [{"t0", "t1", "share"}], "summary"}``: ``input_lag`` [samples] is the lag
+        "where": [{"t0", "t1", "share"}], "summary", "friction_never_slides"}``:
+        ``input_lag`` [samples] is the lag
         of the largest cross-correlation of the residual with the joint's input (positive:
         the input leads) and ``input_peak`` its value, None where it lies within the band;
-        ``where`` the segments holding the largest shares of the squared output residual.
+        ``where`` the segments holding the largest shares of the squared output residual;
+        ``friction_never_slides`` a sentence per joint whose fitted friction never leaves
+        its presliding regime over the log (``_never_slides``), also in the summary.
     """
     from jaxflex.fit.residual_analysis import analyse_residual  # scipy.stats: loaded here
 
@@ -83,6 +86,7 @@ def model_verdict(prob: Problem, y: Any, cost: float, noise_cost: float, accept_
     order = np.argsort(per_seg)[::-1][:WORST_SEGMENTS]
     where = [{"t0": float(t0[i]), "t1": float(t0[i] + span), "share": float(per_seg[i] / total)}
              for i in order]
+    sticking = _never_slides(prob, y, meas)
     if adequate:
         summary = f"adequate: the noise explains the cost ({ratio:.3g} x what it gives)"
     else:
@@ -95,5 +99,33 @@ def model_verdict(prob: Problem, y: Any, cost: float, noise_cost: float, accept_
         summary = (f"model-limited: cost {ratio:.3g} x what the noise gives; residual {colour}"
                    + (f"; largest share {100 * seg['share']:.0f}% in {seg['t0']:.3g}-"
                       f"{seg['t1']:.3g} s" if seg else ""))
+    if sticking:
+        summary += "; " + "; ".join(sticking)
     return {"verdict": "adequate" if adequate else "model-limited", "cost_over_noise": ratio,
-            "channels": channels, "where": where, "summary": summary}
+            "channels": channels, "where": where, "summary": summary,
+            "friction_never_slides": sticking}
+
+
+def _never_slides(prob: Problem, y: Any, meas: np.ndarray) -> list[str]:
+    """One sentence per joint whose fitted LuGre friction never leaves its presliding
+    regime over the log (eq. 5: the bristle deflection reaches Fs / sigma0 [rad] before the
+    friction slides): a presliding range wider than the measured link travel means the
+    bristles act as a spring to ground, the fit's stand-in for an effect the model lacks."""
+    base = prob.space.base
+    if base.friction is None or "q1" not in prob.outputs:
+        return []
+    phys = prob.space.physical_values(prob.split(y)[0])
+    fs = np.broadcast_to(np.asarray(phys.get("Fs", base.friction.Fs), float), (base.n,))
+    s0 = np.broadcast_to(np.asarray(phys.get("sigma0", base.friction.sigma0), float), (base.n,))
+    c0 = prob.outputs.index("q1") * base.n
+    out = []
+    for j in range(base.n):
+        travel = float(np.ptp(meas[:, :, c0 + j]))
+        reach = float(fs[j] / s0[j])
+        if reach > travel:
+            who = "" if base.n == 1 else f"joint {j}: "
+            out.append(f"{who}the fitted friction never slides (presliding range Fs / sigma0 = "
+                       f"{reach:.3g} rad > the log's travel {travel:.3g} rad): its bristles act "
+                       "as a spring to ground, a stand-in for an effect the model lacks (a "
+                       "torque offset, gravity, a spring)")
+    return out
