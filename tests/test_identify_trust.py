@@ -215,6 +215,21 @@ def test_ctrl_c_stops_identify_within_a_second(tmp_path):
     assert not path.exists()
 
 
+def _rig_log(tmp_path, rate):
+    """A 20 s `run-loop --lockstep` log (tmp_path/run.csv) at ``rate`` [Hz] of the simulated
+    rig whose plant differs from the start file tmp_path/paper.json (the paper's parameters):
+    Fc 0.14, Fs 0.19 and a 0.05 N m torque offset. Returns the rig's parameter file."""
+    save_params(paper_params(), tmp_path / "paper.json")
+    d = json.loads((tmp_path / "paper.json").read_text())
+    d["friction"]["Fc"], d["friction"]["Fs"] = [0.14], [0.19]
+    d["effects"] = {"torque_offset": {"offset": 0.05}}
+    (tmp_path / "rig.json").write_text(json.dumps(d))
+    run = _cli("run-loop", "--rig-params", str(tmp_path / "rig.json"), "--duration", "20",
+               "--lockstep", "--rate", str(rate), "--log", str(tmp_path / "run.csv"))
+    assert run.returncode == 0, run.stderr
+    return d
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("rate,free", [(250, "Fc,Fs,sigma2,torque_offset.offset"),
                                        (4000, None)])
@@ -224,15 +239,7 @@ def test_rig_logs_at_other_rates_with_an_offset_the_start_lacks(tmp_path, rate, 
     (Fc, Fs, sigma2 and the offset free) and 4 kHz (the defaults: the six LuGre parameters,
     and the offset the log shows), identified from the command line with the start file:
     every fitted parameter within 2% and the verdict adequate."""
-    p = paper_params()
-    save_params(p, tmp_path / "paper.json")
-    d = json.loads((tmp_path / "paper.json").read_text())
-    d["friction"]["Fc"], d["friction"]["Fs"] = [0.14], [0.19]
-    d["effects"] = {"torque_offset": {"offset": 0.05}}
-    (tmp_path / "rig.json").write_text(json.dumps(d))
-    run = _cli("run-loop", "--rig-params", str(tmp_path / "rig.json"), "--duration", "20",
-               "--lockstep", "--rate", str(rate), "--log", str(tmp_path / "run.csv"))
-    assert run.returncode == 0, run.stderr
+    d = _rig_log(tmp_path, rate)
     out = _cli("identify", str(tmp_path / "run.csv"), "--params", str(tmp_path / "paper.json"),
                "--out", str(tmp_path / "r.json"), "--quiet", *(["--free", free] if free else []))
     assert out.returncode == 0, out.stderr
@@ -270,15 +277,7 @@ def test_no_friction_level_above_the_largest_logged_torque(tmp_path):
     a spring to ground by raising Fc without bound (Fc = Fs -> 1e144 N m). The file never
     holds a friction level above ``FRICTION_CAP_FACTOR`` times the largest torque the log
     applies, and never says "adequate"."""
-    p = paper_params()
-    save_params(p, tmp_path / "paper.json")
-    d = json.loads((tmp_path / "paper.json").read_text())
-    d["friction"]["Fc"], d["friction"]["Fs"] = [0.14], [0.19]
-    d["effects"] = {"torque_offset": {"offset": 0.05}}
-    (tmp_path / "rig.json").write_text(json.dumps(d))
-    run = _cli("run-loop", "--rig-params", str(tmp_path / "rig.json"), "--duration", "20",
-               "--lockstep", "--rate", "250", "--log", str(tmp_path / "run.csv"))
-    assert run.returncode == 0, run.stderr
+    _rig_log(tmp_path, 250)
     out = _cli("identify", str(tmp_path / "run.csv"), "--params", str(tmp_path / "paper.json"),
                "--out", str(tmp_path / "r.json"), "--quiet")
     assert out.returncode in (0, 3), out.stderr
