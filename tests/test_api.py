@@ -16,7 +16,7 @@ def test_top_level_names_leave_the_workflow_packages_importable():
     assert jaxflex.identify.core.identify is jaxflex.identify.identify
     assert hasattr(jaxflex.data, "load_emps")
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
-        jaxflex.nothing
+        _ = jaxflex.nothing
 
 
 def test_certification_is_numbers_with_a_figure_and_a_file(tmp_path):
