@@ -10,7 +10,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from jaxflex.api.result import Result, plant_of
-from jaxflex.certificate import DEFAULT_NUM, DEFAULT_VMAX, certify, ultimate_bound
+from jaxflex.certificate import (
+    DEFAULT_NUM, DEFAULT_VMAX, CertificateResult, certify, ultimate_bound,
+)
 from jaxflex.controller import CascadeGains
 from jaxflex.params import Params
 from jaxflex.plant import FlexibleJointPlant
@@ -21,22 +23,16 @@ if TYPE_CHECKING:
 
 
 @dataclasses.dataclass(frozen=True)
-class Certification(Result):
-    """The outcome of ``certify_gains`` (eq. 29-33).
+class Certification(CertificateResult, Result):
+    """The outcome of ``certify_gains`` (eq. 29-33): ``CertificateResult``'s grid and
+    certified range, and the ultimate bound of eq. 32-33 over the same speeds.
 
     velocities [rad/s]: the grid from 0 to vmax; lambda_min: the smallest eigenvalue of N2
     on it; certified_up_to [rad/s]: the largest speed up to which lambda_min > margin on the
     whole range; certified: the whole grid passes; margin; eps [rad/s]; D_bar, rho_bound,
-    e1_bound [rad]: the ultimate bound of eq. 32-33 over the same speeds (rho_bound inf where
-    N2 is not positive definite).
+    e1_bound [rad]: the ultimate bound (rho_bound inf where N2 is not positive definite).
     """
 
-    velocities: np.ndarray
-    lambda_min: np.ndarray
-    certified_up_to: float
-    certified: bool
-    margin: float
-    eps: float
     D_bar: float
     rho_bound: float
     e1_bound: float
@@ -87,11 +83,9 @@ def certify_gains(model: Params | FlexibleJointPlant, gains: CascadeGains | None
     c = certify(plant, gains, vmax, num=num, margin=margin, **options)
     b = ultimate_bound(plant, gains, vmax, num=num,
                        **{k: v for k, v in options.items() if k == "eps"})
-    return Certification(
-        velocities=np.asarray(c.velocities), lambda_min=np.asarray(c.lambda_min),
-        certified_up_to=float(c.certified_up_to), certified=bool(c.certified),
-        margin=float(c.margin), eps=float(c.eps), D_bar=float(b["D_bar"]),
-        rho_bound=float(b["rho_bound"]), e1_bound=float(b["e1_bound"]))
+    return Certification(**{f.name: getattr(c, f.name) for f in dataclasses.fields(c)},
+                         D_bar=float(b["D_bar"]), rho_bound=float(b["rho_bound"]),
+                         e1_bound=float(b["e1_bound"]))
 
 
 @dataclasses.dataclass(frozen=True)
