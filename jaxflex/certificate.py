@@ -33,6 +33,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -42,7 +43,6 @@ from jaxflex.controller import CascadeGains
 from jaxflex.friction import smooth_abs_observer
 from jaxflex.observer import FrictionObserver
 from jaxflex.plant import FlexibleJointPlant
-from jaxflex.tracecache import persistent_jit
 from jaxflex.trajectory import Trajectory
 from jaxflex.validation import requires_float64
 
@@ -155,8 +155,8 @@ def lambda_min_curve(plant: FlexibleJointPlant, gains: CascadeGains, velocities:
 
 
 # compiled once per shape (plant and gains are array leaves, eps static)
-_curve_jit = persistent_jit(lambda_min_curve)
-_lambda_min_jit = persistent_jit(lambda_min)
+_curve_jit = eqx.filter_jit(lambda_min_curve)
+_lambda_min_jit = eqx.filter_jit(lambda_min)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -331,8 +331,8 @@ def box_lambda_min_curve(box: dict[str, tuple[Array, Array]], gains: CascadeGain
     return jax.vmap(lambda s: box_lambda_min(box, gains, s, eps))(vs)
 
 
-_box_curve_jit = persistent_jit(box_lambda_min_curve)
-_box_point_jit = persistent_jit(box_lambda_min)
+_box_curve_jit = eqx.filter_jit(box_lambda_min_curve)
+_box_point_jit = eqx.filter_jit(box_lambda_min)
 
 
 @requires_float64

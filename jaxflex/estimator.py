@@ -47,7 +47,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxflex.plant import FlexibleJointPlant
-from jaxflex.tracecache import persistent_jit
 from jaxflex.validation import as_param, check_nonnegative
 
 NX: int = 5
@@ -156,7 +155,7 @@ def solve_filter_riccati(A: Array, C: Array, Q: Array, R: Array,
     return P
 
 
-@persistent_jit
+@eqx.filter_jit
 def _filter_design(I: Array, J: Array, K: Array, q1_var: Array, q2_var: Array, tau_var: Array,
                    rate: Array, tn: Array, floor: Array, dt: float) -> tuple[Array, ...]:
     """Per joint (all (n,)): transition A, torque column B, gain L and prediction covariance P

@@ -13,6 +13,7 @@ from typing import Any
 
 from jaxflex.experiments import PaperExperiments
 from jaxflex.params import save_params
+from jaxflex.plots import save_figure
 from jaxflex.plots.tracking import plot_q2d_comparison, plot_torque_friction, plot_tracking
 from jaxflex.plots.tune import plot_history, plot_lambda_min, plot_tracking_comparison
 from jaxflex.tune import TuneComparison, TuneResult, TuneTask
@@ -32,10 +33,11 @@ def write_tune_report(result: TuneResult, task: TuneTask, comparison: TuneCompar
     out.mkdir(parents=True, exist_ok=True)
     report = comparison.summary(result, task)
     report["figures"] = [
-        plot_lambda_min({k: e["certificate"] for k, e in comparison.evaluations.items()},
-                        out / "lambda_min.png", v_task=result.v_task, margin=result.margin),
-        plot_tracking_comparison(comparison.runs, out / "tracking.png"),
-        plot_history(report["search"]["starts"], out / "history.png"),
+        save_figure(plot_lambda_min({k: e["certificate"] for k, e in comparison.evaluations.items()},
+                                    v_task=result.v_task, margin=result.margin),
+                    out / "lambda_min.png"),
+        save_figure(plot_tracking_comparison(comparison.runs), out / "tracking.png"),
+        save_figure(plot_history(report["search"]["starts"]), out / "history.png"),
     ]
     write_json(report, out / "report.json")
     return report
@@ -55,24 +57,25 @@ def write_paper_experiments(results: PaperExperiments, out: str | Path) -> dict[
     doc = results.to_dict()
     label = results.config.get("label", "")
     for name, e in results.experiments.items():
-        figs = plot_tracking(e.runs, e.title, out / f"{name}_tracking.png")
+        figs = [save_figure(plot_tracking(e.runs, e.title), out / f"{name}_tracking.png")]
         if name == "sinusoid":
-            figs += plot_torque_friction(e.runs["with_compensation"],
-                                         out / "sinusoid_torque_friction.png", config=label)
+            figs.append(save_figure(plot_torque_friction(e.runs["with_compensation"], config=label),
+                                    out / "sinusoid_torque_friction.png"))
         doc["experiments"][name]["figures"] = figs
     if results.paper_own_runs:
         own = doc["paper_own_observer"]
         for name, r in results.paper_own_runs.items():
-            own["experiments"][name]["figures"] = plot_tracking(
-                {"with_compensation": r}, f"{TRAJECTORY_DESCRIPTIONS[name]}\n{own['label']}",
-                out / f"{name}_paper_own_observer.png")
+            own["experiments"][name]["figures"] = [save_figure(plot_tracking(
+                {"with_compensation": r}, f"{TRAJECTORY_DESCRIPTIONS[name]}\n{own['label']}"),
+                out / f"{name}_paper_own_observer.png")]
     save_params(results.params(), out / "params.json")
     doc["params_file"] = "params.json"
     if results.q2d_comparison is not None:
         leak = results.config.get("observer_leak", [0.0])
         obs = label.split("; ", 1)[1] if "; " in label else ""
-        plot_q2d_comparison(results.q2d_comparison, out / "q2d_comparison.png",
-                            config=f"each sensing's own velocities (dirty derivative; exact for "
-                            f"ideal); {obs or f'observer leak {leak}'}")
+        save_figure(plot_q2d_comparison(
+            results.q2d_comparison,
+            config=f"each sensing's own velocities (dirty derivative; exact for ideal); "
+                   f"{obs or f'observer leak {leak}'}"), out / "q2d_comparison.png")
     write_json(doc, out / "results.json")
     return doc

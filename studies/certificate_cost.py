@@ -55,6 +55,7 @@ def main(argv: list[str] | None = None) -> dict:
     jax.config.update("jax_enable_x64", True)
 
     from jaxflex.certificate import certify
+    from jaxflex.plots import save_figure
     from jaxflex.plots.tune import plot_lambda_min, plot_tracking_comparison, plot_tradeoff
     from jaxflex.presets import paper_gains, paper_plant, paper_sensing, paper_sinusoid
     from jaxflex.tune import TuneTask, evaluate, simulate_task, tune
@@ -142,13 +143,16 @@ def main(argv: list[str] | None = None) -> dict:
     }
 
     figs = [
-        plot_tradeoff([p for p in trade if p["rms_error"] is not None], out / "tradeoff.png",
-                      unconstrained=results["uncertified"], paper=results["paper"]),
-        plot_lambda_min({k: results[k]["certificate"] for k in ("paper", "certified", "uncertified")},
-                        out / "lambda_min.png", v_task=v_task, margin=args.margin),
-        plot_tracking_comparison({k: simulate_task(plant, g, task) for k, g in
-                                  (("paper", paper), ("certified", cert_res.gains),
-                                   ("uncertified", unc_res.gains))}, out / "tracking.png"),
+        save_figure(plot_tradeoff([p for p in trade if p["rms_error"] is not None],
+                                  unconstrained=results["uncertified"], paper=results["paper"]),
+                    out / "tradeoff.png"),
+        save_figure(plot_lambda_min({k: results[k]["certificate"]
+                                     for k in ("paper", "certified", "uncertified")},
+                                    v_task=v_task, margin=args.margin), out / "lambda_min.png"),
+        save_figure(plot_tracking_comparison({k: simulate_task(plant, g, task) for k, g in
+                                              (("paper", paper), ("certified", cert_res.gains),
+                                               ("uncertified", unc_res.gains))}),
+                    out / "tracking.png"),
     ]
     for k in ("paper", "certified", "uncertified"):
         c = results[k].pop("certificate")

@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> dict:
     jax.config.update("jax_enable_x64", True)
     from jaxflex.data import emps_record, load_emps
     from jaxflex.identify import IdentificationWarning, identify
+    from jaxflex.plots import save_figure
     from jaxflex.plots.validate import plot_validation_log
     from jaxflex.validate import PPCascade, closed_loop_fit, validate
 
@@ -125,9 +126,11 @@ def main(argv: list[str] | None = None) -> dict:
             results[name][which] = {"position_pct": cl["position_pct"],
                                     "velocity_pct": cl["velocity_pct"],
                                     "force_pct": cl["torque_pct"]}
-            plot_validation_log(v["series"], out / f"{name}_{which}.png", units=("m", "N"),
-                                title=f"EMPS {name}, {which}: closed-loop position error "
-                                      f"{cl['position_pct']:.4f}%, force {cl['torque_pct']:.2f}%")
+            save_figure(plot_validation_log(
+                v["series"], units=("m", "N"),
+                title=f"EMPS {name}, {which}: closed-loop position error "
+                      f"{cl['position_pct']:.4f}%, force {cl['torque_pct']:.2f}%"),
+                out / f"{name}_{which}.png")
     ident = {"M": p.plant["I"][0] + p.plant["J"][0], "Fv": p.friction["sigma2"][0],
              "Fc": p.friction["Fc"][0], "Fs": p.friction["Fs"][0], "vs": p.friction["vs"][0],
              "offset": -p.effects["torque_offset"]["offset"][0]}

@@ -40,6 +40,7 @@ def main(argv=None) -> dict:
         two_step,
     )
     from jaxflex.presets import paper_params
+    from jaxflex.plots import save_figure
     from jaxflex.plots.identify import plot_fit, plot_static_map
     from jaxflex.sensing import Sensing
 
@@ -68,9 +69,10 @@ def main(argv=None) -> dict:
         warnings.simplefilter("ignore", IdentificationWarning)
         ts = two_step(static, log, init, segment_length=250, substeps=2, max_steps=steps)
     lg = ts.params.to_lugre()
-    plot_static_map(static.v, static.F, lambda x: np.asarray(lg.steady_state(jnp.asarray(x))),
-                    out / "static_map.png",
-                    true_curve=lambda x: np.asarray(truth.to_lugre().steady_state(jnp.asarray(x))))
+    save_figure(plot_static_map(
+        static.v, static.F, lambda x: np.asarray(lg.steady_state(jnp.asarray(x))),
+        true_curve=lambda x: np.asarray(truth.to_lugre().steady_state(jnp.asarray(x)))),
+        out / "static_map.png")
     plot_fit(ts.dynamic, out / "two_step_fit.png")
     rel = lambda p: {k: p.friction[k][0] / truth.friction[k][0] - 1 for k in LUGRE_NAMES}
     results = {

@@ -192,22 +192,22 @@ def test_rest_damping_constraint_is_enforced_and_reached_from_an_undamped_start(
     gradient) to certified gains whose rest modes are damped."""
     import dataclasses
 
-    from jaxflex.tune import _damping_value, _rest_map
+    from jaxflex.tune import damping_value, task_rest_map
 
     plant = paper_plant()
     task = dataclasses.replace(_task(), sensing=Sensing(), min_rest_damping=-0.45)
     res = tune(plant, paper_gains(), task, margin=0.05, iterations=2, starts=1)
-    rest = _rest_map(plant, plant, paper_gains(), task)
-    z0 = float(_damping_value(jnp.log(paper_gains().to_vector()), rest))
+    rest = task_rest_map(plant, plant, paper_gains(), task)
+    z0 = float(damping_value(jnp.log(paper_gains().to_vector()), rest))
     assert -0.45 < z0 < 0
-    assert float(_damping_value(jnp.log(res.gains.to_vector()), rest)) >= -0.45
+    assert float(damping_value(jnp.log(res.gains.to_vector()), rest)) >= -0.45
     assert all(c >= 0 for s in res.starts for c in s.constraint)
     # from the paper's undamped gains, a first phase ascends the damping; the result tracks,
     # is certified and every rest mode has damping >= 0.05 (exact velocities)
     damped = tune(plant, paper_gains(), dataclasses.replace(task, min_rest_damping=0.05),
                   margin=0.05, iterations=1, starts=1)
     assert damped.certificate is not None and damped.certificate.certified
-    assert float(_damping_value(jnp.log(damped.gains.to_vector()), rest)) >= 0.05
+    assert float(damping_value(jnp.log(damped.gains.to_vector()), rest)) >= 0.05
     assert np.isfinite(damped.cost)
     with pytest.raises(ValueError, match="min_rest_damping"):
         dataclasses.replace(task, min_rest_damping=2.0)
@@ -219,14 +219,14 @@ def test_tune_keeps_the_observer_leak_and_its_damped_rest():
     (docs/spec.md section 3, 'Leakage')."""
     import dataclasses
 
-    from jaxflex.tune import _damping_value, _rest_map
+    from jaxflex.tune import damping_value, task_rest_map
 
     plant = paper_plant()
     leaky = eqx.tree_at(lambda g: g.leak, paper_gains(), jnp.full(1, 0.2))
     task = dataclasses.replace(_task(), sensing=Sensing(), min_rest_damping=0.05)
-    rest = _rest_map(plant, plant, leaky, task)
-    assert float(_damping_value(jnp.log(leaky.to_vector()), rest)) >= 0.05
+    rest = task_rest_map(plant, plant, leaky, task)
+    assert float(damping_value(jnp.log(leaky.to_vector()), rest)) >= 0.05
     res = tune(plant, leaky, task, margin=0.05, iterations=1, starts=1)
     assert res.gains.to_dict()["leak"] == [0.2]
     assert res.certificate is not None and res.certificate.certified
-    assert float(_damping_value(jnp.log(res.gains.to_vector()), rest)) >= 0.05
+    assert float(damping_value(jnp.log(res.gains.to_vector()), rest)) >= 0.05

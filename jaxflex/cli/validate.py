@@ -109,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
                            substeps=args.substeps, disturbance=d)
             results.append((name, which, res))
 
+    from jaxflex.plots import save_figure
     from jaxflex.plots.validate import plot_table, plot_validation_log
 
     with writing():  # the whole result or nothing, Ctrl-C included
@@ -117,11 +118,11 @@ def run(args: argparse.Namespace) -> int:
         report = {"model": args.model, "logs": {},
                   "units": {"position": units[0], "torque": units[1]}}
         for name, which, res in results:
-            fig = plot_validation_log(
-                res["series"], out / f"{name}_{which}.png", units=units,
+            fig = save_figure(plot_validation_log(
+                res["series"], units=units,
                 title=f"{name}: {which} ({args.model} model); torque error "
                       f"{res['torque_pct']:.2f}% (noise alone {res['torque_noise_pct']:.2f}%), "
-                      f"replay gap {res['gap']:.3f}")
+                      f"replay gap {res['gap']:.3f}"), out / f"{name}_{which}.png")
             row = {k: v for k, v in res.items() if k != "series"}
             row["figure"] = fig
             ra = res["residual_analysis"]
@@ -129,8 +130,9 @@ def run(args: argparse.Namespace) -> int:
                 from jaxflex.plots.discover import plot_residual_analysis
 
                 resid_fig = out / f"{name}_{which}_residuals.png"
-                plot_residual_analysis(ra, resid_fig, f"{name}: {which} ({args.model} model), "
-                                                      "residual of the segment replay")
+                save_figure(plot_residual_analysis(ra, f"{name}: {which} ({args.model} model), "
+                                                       "residual of the segment replay"),
+                            resid_fig)
                 row["residual_figure"] = resid_fig.name
                 white = ", ".join(f"{c} p {v['p_white']:.2g} (correlation time "
                                   f"{v['correlation_time']:.3g} samples)"
@@ -139,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
                       f"{white}")
             report["logs"].setdefault(name, {})[which] = row
             rows.append({"log": name, "params": which, **row})
-        report["figures"] = [plot_table(rows, out / "torque_errors.png")]
+        report["figures"] = [save_figure(plot_table(rows), out / "torque_errors.png")]
         lines = ["| log | params | replay gap | torque % | CL position % | CL velocity % | "
                  "CL torque % |", "|---|---|---|---|---|---|---|"]
         for r in rows:

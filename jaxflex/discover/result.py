@@ -12,6 +12,7 @@ import numpy as np
 
 from jaxflex.discover.candidates import CandidateFit, Workspace
 from jaxflex.discover.config import DiscoverConfig
+from jaxflex.discover.fitting import held_out_traces
 from jaxflex.discover.localisation import Localisation
 from jaxflex.params import Params
 
@@ -100,6 +101,21 @@ class DiscoverResult:
     def params(self) -> Params:
         """The final model's parameters (nominal refitted, effects added)."""
         return self.after.model.params
+
+    def held_out_replay(self) -> dict[str, Any]:
+        """The link angle q1 on the held-out segments, measured and replayed by the refit
+        nominal and the final model (each from its own fitted starts).
+
+        **Returns:**
+
+        ``{"t0": (S,) segment starts [s], "dt": sample time [s], "measured", "before",
+        "after": (S, L) q1 [rad]}`` as numpy arrays.
+        """
+        ws = self.workspace
+        return {"t0": np.asarray(ws.test.segs.t0), "dt": float(ws.test.dt),
+                "measured": np.asarray(ws.test.segs.y_meas)[..., 0],
+                "before": held_out_traces(ws, self.before)[..., 0],
+                "after": held_out_traces(ws, self.after)[..., 0]}
 
     @property
     def candidate_scores(self) -> dict[str, dict[str, Any]]:

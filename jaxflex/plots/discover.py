@@ -7,12 +7,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.ticker import FuncFormatter  # noqa: E402
+from jaxflex.plots import new_figure, save_figure
 
 #: Tick labels of the log axes as plain numbers (1e-05, 0.1, 10): matplotlib's default writes
 #: them in mathtext, whose parser costs 0.2-0.3 s to build on a run's first figure.
@@ -23,21 +22,32 @@ NO_TICKS = FuncFormatter(lambda v, _: "")
 MARGINS = dict(left=0.09, right=0.98, bottom=0.12, top=0.9, wspace=0.25, hspace=0.15)
 
 
-def plot_signature(loc: Any, quantity: str, path: Path) -> None:
-    """Binned inverse-dynamics residuals (link and rotor side) of a ``Localisation`` against
-    ``quantity``, with the noise floor band; plus their spectra."""
-    sig = loc.summary["signatures"]
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+def plot_signature(summary: dict[str, Any], samples: int, quantity: str) -> Figure:
+    """Binned inverse-dynamics residuals (link and rotor side) against ``quantity``, with the
+    noise floor band; plus their spectra.
+
+    **Arguments:**
+
+    - `summary`: a ``Localisation.summary`` (signatures, spectrum, noise floor).
+    - `samples`: the number of samples the localisation binned (sets the bin mean's floor).
+    - `quantity`: the signature to draw ("link velocity", "position", ...).
+
+    **Returns:**
+
+    The figure.
+    """
+    sig = summary["signatures"]
+    fig, ax = new_figure(1, 2, figsize=(10, 4))
     keys = [k for k in (quantity, f"{quantity} (rotor side)") if k in sig] or ["link velocity"]
     for k in keys:
         b = sig[k]
         ax[0].errorbar(b["x"], b["mean"], yerr=b["se"], marker="o", ms=3, label=k)
-    fl = loc.summary["noise_floor_link"] / np.sqrt(max(len(loc.series["t"]) / 15, 1))
+    fl = summary["noise_floor_link"] / np.sqrt(max(samples / 15, 1))
     ax[0].axhspan(-fl, fl, color="0.85", label="noise floor (bin mean)")
     ax[0].set_xlabel(quantity)
     ax[0].set_ylabel("torque residual [N m]")
     ax[0].legend(fontsize=7)
-    sp = loc.summary["spectrum"]
+    sp = summary["spectrum"]
     ax[1].loglog(sp["f"][1:], sp["link"][1:], label="link side")
     ax[1].loglog(sp["f"][1:], sp["rotor"][1:], label="rotor side")
     ax[1].set_xlabel("frequency [Hz]")
@@ -48,23 +58,27 @@ def plot_signature(loc: Any, quantity: str, path: Path) -> None:
         axis.set_minor_formatter(NO_TICKS)
     fig.suptitle(f"Residual signature against {quantity}", fontsize=10)
     fig.subplots_adjust(**MARGINS)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
-def plot_replay(result: Any, path: Path, count: int = 4) -> None:
-    """Measured against simulated q1 on a few held-out segments, before and after (a
-    ``DiscoverResult``)."""
-    from jaxflex.discover import held_out_traces
+def plot_replay(replay: dict[str, np.ndarray], count: int = 4) -> Figure:
+    """Measured against simulated q1 on a few held-out segments, before and after.
 
-    ws = result.workspace
-    dt = ws.test.dt
-    b1 = held_out_traces(ws, result.before)[..., 0]
-    a1 = held_out_traces(ws, result.after)[..., 0]
-    q1 = np.asarray(ws.test.segs.y_meas)[..., 0]
-    t0 = np.asarray(ws.test.segs.t0)
+    **Arguments:**
+
+    - `replay`: ``DiscoverResult.held_out_replay()``: ``t0`` (S,) segment starts [s], ``dt``
+      [s], and (S, L) arrays of q1 [rad] ``measured``, ``before`` (the refit nominal model)
+      and ``after`` (the final model).
+    - `count`: how many segments to draw.
+
+    **Returns:**
+
+    The figure.
+    """
+    q1, b1, a1 = replay["measured"], replay["before"], replay["after"]
+    t0, dt = np.asarray(replay["t0"]), float(replay["dt"])
     L = q1.shape[1]
-    fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    fig, ax = new_figure(2, 1, figsize=(10, 6), sharex=True)
     for i in range(min(count, q1.shape[0])):
         t = t0[i] + np.arange(L) * dt
         ax[0].plot(t, q1[i], "k", lw=1.2, label="measured" if i == 0 else None)
@@ -78,16 +92,16 @@ def plot_replay(result: Any, path: Path, count: int = 4) -> None:
     ax[1].set_xlabel("t [s] (held-out segments, each replayed from its measured start)")
     fig.suptitle("Held-out replay: nominal against augmented model", fontsize=10)
     fig.subplots_adjust(**MARGINS)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
-def plot_scores(scores: dict[str, dict[str, Any]], base_gap: float, path: Path) -> None:
-    """Held-out gap of every candidate fitted in round 1 against the refit nominal model
-    (those the screen left out have no held-out gap and are not drawn)."""
+def plot_scores(scores: dict[str, dict[str, Any]], base_gap: float) -> Figure:
+    """Held-out gap of every candidate fitted in round 1 (``candidate_scores``) against the
+    refit nominal model's ``base_gap`` (those the screen left out have no held-out gap and
+    are not drawn); returns the figure."""
     scores = {k: s for k, s in scores.items() if s.get("gap_test") is not None}
     names = sorted(scores, key=lambda k: scores[k]["gap_test"])
-    fig, ax = plt.subplots(figsize=(8, 4))
+    fig, ax = new_figure(figsize=(8, 4))
     gaps = [scores[k]["gap_test"] for k in names]
     colors = ["C2" if scores[k]["significant"] else "C7" for k in names]
     ax.barh(names, gaps, color=colors)
@@ -96,19 +110,18 @@ def plot_scores(scores: dict[str, dict[str, Any]], base_gap: float, path: Path) 
     ax.legend(fontsize=8)
     ax.set_title("Candidate effects: held-out gap after adding each", fontsize=10)
     fig.subplots_adjust(**(MARGINS | dict(left=0.22)))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
-def plot_residual_analysis(analysis: dict[str, Any], path: Path, title: str) -> None:
+def plot_residual_analysis(analysis: dict[str, Any], title: str) -> Figure:
     """MATLAB ``resid``'s figure of a residual analysis (``jaxflex.discover.residual_analysis``
     or ``jaxflex.validate.replay_residual_analysis``): per output channel (columns), the
     residual's autocorrelation (top) and its cross-correlation with the input (bottom),
     each with its confidence band (shaded: a residual that explains nothing more stays
-    inside)."""
+    inside); returns the figure."""
     chans = analysis["channels"]
     names = list(chans)
-    fig, ax = plt.subplots(2, len(names), figsize=(5 * len(names), 5.5), squeeze=False)
+    fig, ax = new_figure(2, len(names), figsize=(5 * len(names), 5.5), squeeze=False)
     conf = 100 * analysis.get("confidence", 0.99)
     for j, name in enumerate(names):
         c = chans[name]
@@ -132,24 +145,49 @@ def plot_residual_analysis(analysis: dict[str, Any], path: Path, title: str) -> 
         ax[1, j].set_xlabel("lag [samples] (positive: input leads)")
     fig.suptitle(title, fontsize=10)
     fig.subplots_adjust(**(MARGINS | dict(hspace=0.45, top=0.88)))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
-def plot_report(result: Any, out: Path) -> list[str]:
-    """All figures of one ``DiscoverResult`` into ``out``; returns their file names."""
-    out = Path(out)
-    q = result.to_json().get("telling_quantity") or "link velocity"
+def report_figures(report: dict[str, Any], localisation: dict[str, Any], samples: int,
+                   replay: dict[str, np.ndarray]) -> dict[str, Figure]:
+    """The figures of one discovery run, by file stem.
+
+    **Arguments:**
+
+    - `report`: ``DiscoverResult.to_json()``.
+    - `localisation`: the refit nominal model's ``Localisation.summary``.
+    - `samples`: the samples it binned.
+    - `replay`: ``DiscoverResult.held_out_replay()``.
+
+    **Returns:**
+
+    ``{"signature", "replay"}`` and, where the run has them, ``"scores"`` and
+    ``"residuals"``: name -> figure.
+    """
+    q = report.get("telling_quantity") or "link velocity"
     if q in ("frequency", "time"):
         q = "link velocity"
-    plot_signature(result.localisation, q, out / "signature.png")
-    plot_replay(result, out / "replay.png")
-    names = ["signature.png", "replay.png"]
-    if result.candidate_scores:
-        plot_scores(result.candidate_scores, result.gap_before, out / "scores.png")
-        names.append("scores.png")
-    if result.residuals.get("channels"):
-        plot_residual_analysis(result.residuals, out / "residuals.png",
-                               "Residual analysis of the final model (held-out segments)")
-        names.append("residuals.png")
-    return names
+    figs = {"signature": plot_signature(localisation, samples, q), "replay": plot_replay(replay)}
+    if report.get("candidate_scores"):
+        figs["scores"] = plot_scores(report["candidate_scores"], report["gap_before"])
+    if (report.get("residual_analysis") or {}).get("channels"):
+        figs["residuals"] = plot_residual_analysis(
+            report["residual_analysis"], "Residual analysis of the final model (held-out segments)")
+    return figs
+
+
+def plot_report(result: Any, out: str | Path) -> list[str]:
+    """Write every figure of one ``DiscoverResult`` into the folder ``out`` as PNGs.
+
+    **Arguments:**
+
+    - `result`: the ``DiscoverResult``.
+    - `out`: an existing folder.
+
+    **Returns:**
+
+    The file names written.
+    """
+    figs = report_figures(result.to_json(), result.localisation.summary,
+                          len(result.localisation.series["t"]), result.held_out_replay())
+    return [save_figure(f, Path(out) / f"{k}.png") for k, f in figs.items()]

@@ -9,8 +9,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
+
+from jaxflex.plots import new_figure, save_figure
 
 if TYPE_CHECKING:
     from jaxflex.sweep.summary import SweepResult
@@ -20,14 +22,14 @@ def _as_runs(results: SweepResult | dict[str, SweepResult]) -> dict[str, SweepRe
     return results if isinstance(results, dict) else {"sweep": results}
 
 
-def plot_error_histograms(results, path: str | Path) -> str:
+def plot_error_histograms(results) -> Figure:
     """Histograms of RMS and max link tracking error [rad] (log axis), non-diverged samples.
 
     From the kept samples when there are (log-spaced bins over the joint range of all runs,
     as many as Rice's rule 2 n^(1/3) gives for n samples, 10 to 60), else from the fixed-grid
-    histograms of the summary (40 bins per decade)."""
+    histograms of the summary (40 bins per decade). Returns the figure."""
     runs = _as_runs(results)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, axes = new_figure(1, 2, figsize=(10, 3.6))
     for ax, m, title in zip(axes, ("rms_error", "max_error"), ("RMS link error", "max link error")):
         kept = [r.samples[m][~r.samples["diverged"]] for r in runs.values() if r.samples is not None]
         kept = [v[v > 0] for v in kept]
@@ -55,15 +57,14 @@ def plot_error_histograms(results, path: str | Path) -> str:
     n = next(iter(runs.values())).summary["samples"]
     fig.suptitle(f"Tracking error over {n} samples", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return str(path)
+    return fig
 
 
-def plot_error_bands(results, path: str | Path, joint: int = 0, nominal: dict | None = None) -> str:
-    """Link error e1 [rad] over time: median, 25-75 % and 5-95 % bands across samples."""
+def plot_error_bands(results, joint: int = 0, nominal: dict | None = None) -> Figure:
+    """Link error e1 [rad] of ``joint`` over time: median, 25-75 % and 5-95 % bands across
+    samples (and the ``nominal`` run's, when given); returns the figure."""
     runs = _as_runs(results)
-    fig, ax = plt.subplots(figsize=(9, 3.8))
+    fig, ax = new_figure(figsize=(9, 3.8))
     for k, (label, r) in enumerate(runs.items()):
         c = f"C{k}"
         q = r.band_q[joint]
@@ -78,18 +79,16 @@ def plot_error_bands(results, path: str | Path, joint: int = 0, nominal: dict | 
     ax.legend(fontsize=8, loc="upper right")
     ax.set_title("Link error bands over the sweep", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return str(path)
+    return fig
 
 
-def plot_sensitivity(results, path: str | Path, top: int = 12) -> str:
+def plot_sensitivity(results, top: int = 12) -> Figure:
     """Bars of each parameter's Shapley share of the RMS error's variance (valid under
     correlated draws) beside its correlation with the RMS error (and Spearman's rho when the
     samples were kept), largest share first; a parameter too collinear with others to be
-    separated is marked with an asterisk."""
+    separated is marked with an asterisk. Returns the figure."""
     runs = _as_runs(results)
-    fig, axes = plt.subplots(1, len(runs), figsize=(5 * len(runs), 0.35 * top + 1.5), squeeze=False)
+    fig, axes = new_figure(1, len(runs), figsize=(5 * len(runs), 0.35 * top + 1.5), squeeze=False)
     for ax, (label, r) in zip(axes[0], runs.items()):
         rows = r.summary["sensitivity"][:top][::-1]
         if not rows:
@@ -111,17 +110,27 @@ def plot_sensitivity(results, path: str | Path, top: int = 12) -> str:
         ax.legend(fontsize=8)
     fig.suptitle("Sensitivity of RMS link error to each sampled parameter", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return str(path)
+    return fig
 
 
 def plot_sweep(results, out: str | Path, nominal: dict | None = None) -> list[str]:
-    """All three figures into folder ``out``; returns the file names."""
+    """Write the three figures into the folder ``out`` (made if missing) as PNGs.
+
+    **Arguments:**
+
+    - `results`: one ``SweepResult`` or labelled ones.
+    - `out`: the folder.
+    - `nominal`: the nominal plant's run (``nominal_run``) for the error bands.
+
+    **Returns:**
+
+    The paths written.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    return [
-        plot_error_histograms(results, out / "error_histograms.png"),
-        plot_error_bands(results, out / "error_bands.png", nominal=nominal),
-        plot_sensitivity(results, out / "sensitivity.png"),
-    ]
+    figs = {"error_histograms": plot_error_histograms(results),
+            "error_bands": plot_error_bands(results, nominal=nominal),
+            "sensitivity": plot_sensitivity(results)}
+    for name, fig in figs.items():
+        save_figure(fig, out / f"{name}.png", dpi=120)
+    return [str(out / f"{name}.png") for name in figs]

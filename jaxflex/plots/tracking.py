@@ -2,23 +2,23 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
+
+from jaxflex.plots import new_figure
 
 from jaxflex.simulate import SimResult
 
 
-def plot_tracking(runs: dict[str, SimResult], title: str, path: str | Path) -> list[str]:
+def plot_tracking(runs: dict[str, SimResult], title: str) -> Figure:
     """Desired and actual link position for each run, and the tracking errors (Fig. 9/10/12-15).
 
     ``runs`` maps a label (e.g. 'with_compensation') to a saved ``SimResult``. Returns the
-    written file names.
+    figure.
     """
-    path = Path(path)
-    fig, axes = plt.subplots(len(runs) + 1, 1, figsize=(8, 2.4 * (len(runs) + 1)), sharex=True)
+    fig, axes = new_figure(len(runs) + 1, 1, figsize=(8, 2.4 * (len(runs) + 1)), sharex=True)
     for ax, (label, r) in zip(axes, runs.items()):
         t = np.asarray(r.t)
         ax.plot(t, np.asarray(r.q1d)[:, 0], "k--", lw=1.0, label="desired")
@@ -33,17 +33,14 @@ def plot_tracking(runs: dict[str, SimResult], title: str, path: str | Path) -> l
     axes[-1].legend(loc="upper right", fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [path.name]
+    return fig
 
 
-def plot_torque_friction(r: SimResult, path: str | Path, config: str = "") -> list[str]:
+def plot_torque_friction(r: SimResult, config: str = "") -> Figure:
     """Control torque (top) and estimated against true friction torque (bottom) (Fig. 11);
     separate panels, since the control torque's chatter would hide the friction traces.
     ``config``: a second title line (the velocity estimator and observer shown)."""
-    path = Path(path)
-    fig, (ax0, ax) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    fig, (ax0, ax) = new_figure(2, 1, figsize=(8, 5), sharex=True)
     t = np.asarray(r.t)
     ax0.plot(t, np.asarray(r.tau)[:, 0], lw=0.6, color="0.3", label="control torque tau")
     ax0.set_ylabel("control torque [N m]")
@@ -56,17 +53,14 @@ def plot_torque_friction(r: SimResult, path: str | Path, config: str = "") -> li
     fig.suptitle("Control torque and friction, compensated sinusoid (paper Fig. 11)"
                  + (f"\n{config}" if config else ""), fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [path.name]
+    return fig
 
 
-def plot_q2d_comparison(table: dict[str, Any], path: str | Path, config: str = "") -> list[str]:
+def plot_q2d_comparison(table: dict[str, Any], config: str = "") -> Figure:
     """Bar chart of RMS tracking error per q2d option and sensing (log scale; hatched bars
     diverged or saturated most of the time)."""
-    path = Path(path)
     sensings = list(table)
-    fig, axes = plt.subplots(1, len(sensings), figsize=(4.2 * len(sensings), 3.6), sharey=True)
+    fig, axes = new_figure(1, len(sensings), figsize=(4.2 * len(sensings), 3.6), sharey=True)
     axes = np.atleast_1d(axes)
     for ax, s in zip(axes, sensings):
         labels = list(table[s])
@@ -92,6 +86,4 @@ def plot_q2d_comparison(table: dict[str, Any], path: str | Path, config: str = "
     fig.suptitle("q2d derivative options: RMS link error by sensing"
                  + (f"\n{config}" if config else ""), fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [path.name]
+    return fig

@@ -2,21 +2,21 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any, Sequence
 
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
+
+from jaxflex.plots import new_figure
 
 from jaxflex.simulate import SimResult
 
 
-def plot_lambda_min(curves: dict[str, dict[str, Any]], path: str | Path,
-                    v_task: float | None = None, margin: float | None = None) -> str:
+def plot_lambda_min(curves: dict[str, dict[str, Any]],
+                    v_task: float | None = None, margin: float | None = None) -> Figure:
     """lambda_min(N2) [-] against link speed [rad/s] for each labelled certificate dict
     (``CertificateResult.to_dict()``), with the task speed and the margin marked."""
-    path = Path(path)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = new_figure(figsize=(7, 4))
     for label, c in curves.items():
         v, lam = np.asarray(c["velocities"]), np.asarray(c["lambda_min"])
         ax.plot(v, lam, lw=1.3, label=f"{label} (certified to {c['certified_up_to']:.3g} rad/s)")
@@ -35,16 +35,13 @@ def plot_lambda_min(curves: dict[str, dict[str, Any]], path: str | Path,
     ax.set_title("N2 certificate (paper eq. 29-31)", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
+    return fig
 
 
-def plot_tracking_comparison(runs: dict[str, Sequence[SimResult]], path: str | Path) -> str:
+def plot_tracking_comparison(runs: dict[str, Sequence[SimResult]]) -> Figure:
     """Link tracking error e1 [rad] and torque [N m] against time for each labelled gain set
     (first joint, every trajectory of the task one after another)."""
-    path = Path(path)
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    fig, (ax1, ax2) = new_figure(2, 1, figsize=(8, 5), sharex=True)
     for label, rs in runs.items():
         t0 = 0.0
         for i, r in enumerate(rs):
@@ -59,15 +56,12 @@ def plot_tracking_comparison(runs: dict[str, Sequence[SimResult]], path: str | P
     ax1.legend(fontsize=8)
     fig.suptitle("Initial against tuned gains on the task", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
+    return fig
 
 
-def plot_history(starts: Sequence[dict[str, Any]], path: str | Path) -> str:
+def plot_history(starts: Sequence[dict[str, Any]]) -> Figure:
     """RMS tracking error [rad] per iteration of each start of the multi-start search."""
-    path = Path(path)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = new_figure(figsize=(7, 4))
     for i, s in enumerate(starts):
         ax.semilogy(np.asarray(s["rms_error"]), marker=".", lw=1.0, label=f"start {i}")
     ax.set_xlabel("iteration")
@@ -75,18 +69,15 @@ def plot_history(starts: Sequence[dict[str, Any]], path: str | Path) -> str:
     ax.set_title("certified search (every iterate certified)", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
+    return fig
 
 
-def plot_tradeoff(points: Sequence[dict[str, Any]], path: str | Path,
+def plot_tradeoff(points: Sequence[dict[str, Any]],
                   unconstrained: dict[str, Any] | None = None,
-                  paper: dict[str, Any] | None = None) -> str:
+                  paper: dict[str, Any] | None = None) -> Figure:
     """RMS tracking error [rad] of the best gains against the certified speed they were
     required to reach [rad/s] (the cost of the certificate)."""
-    path = Path(path)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = new_figure(figsize=(7, 4))
     v = [p["required_speed"] for p in points]
     e = [p["rms_error"] for p in points]
     ax.semilogx(v, e, "o-", label="certified search")
@@ -100,6 +91,4 @@ def plot_tradeoff(points: Sequence[dict[str, Any]], path: str | Path,
     ax.legend(fontsize=8)
     ax.set_title("Tracking error against torque (certified gains)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
+    return fig

@@ -2,25 +2,23 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from jaxflex.plots import new_figure
 
 
-def plot_validation_log(series: dict[str, Any], path: str | Path, title: str,
-                        units: tuple[str, str] = ("rad", "N m")) -> str:
+def plot_validation_log(series: dict[str, Any], title: str,
+                        units: tuple[str, str] = ("rad", "N m")) -> Figure:
     """Torque measured against predicted from measured motion, and (if present) the closed
     loop's position and torque against the measurement, with residuals. ``units``:
-    (position unit, torque unit) for the axis labels. Returns the file name written."""
+    (position unit, torque unit) for the axis labels. Returns the figure."""
     pu, tu = units
     cl = series.get("closed_loop")
     rows = 2 if cl is None else 4
-    fig, ax = plt.subplots(rows, 1, figsize=(9, 2.2 * rows), sharex=True)
+    fig, ax = new_figure(rows, 1, figsize=(9, 2.2 * rows), sharex=True)
     t = series["t"]
     tau, tau_hat = series["tau"][:, 0], series["tau_hat"][:, 0]
     ax[0].plot(t, tau, lw=0.7, label="measured")
@@ -40,15 +38,13 @@ def plot_validation_log(series: dict[str, Any], path: str | Path, title: str,
     ax[-1].set_xlabel("time [s]")
     ax[0].set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path).name
+    return fig
 
 
-def plot_table(rows: list[dict[str, Any]], path: str | Path) -> str:
+def plot_table(rows: list[dict[str, Any]]) -> Figure:
     """Bar chart of the torque prediction error [%] per log and parameter set, each bar with
     its noise floor (the error the log's noise alone gives, ``torque_noise_pct``) marked."""
-    fig, ax = plt.subplots(figsize=(7, 3))
+    fig, ax = new_figure(figsize=(7, 3))
     labels = [f"{r['log']}\n{r['params']}" for r in rows]
     x = np.arange(len(rows))
     ax.bar(x, [r["torque_pct"] for r in rows], color="C0", label="torque prediction error")
@@ -60,6 +56,4 @@ def plot_table(rows: list[dict[str, Any]], path: str | Path) -> str:
     ax.set_ylabel("torque prediction error [%]")
     ax.set_title("validation: 100 ||tau - tau_hat|| / ||tau|| per log", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path).name
+    return fig

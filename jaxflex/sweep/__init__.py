@@ -4,7 +4,7 @@
     res = run_sweep(spec, samples=10_000, chunk_size=512)
     res.summary["metrics"]["rms_error"]["q95"], res.summary["sensitivity"][0]
 
-See ``spec`` (file format), ``engine`` (sampling, vmap, chunks, sharding, jax.distributed) and
+See ``spec`` (file format), ``distributions`` (its distributions), ``engine`` (sampling, vmap, chunks, sharding, jax.distributed) and
 ``summary`` (fixed-size mergeable summaries).
 """
 
@@ -15,9 +15,8 @@ from jaxflex.sweep.engine import (
     sample_parameters,
     simulate_sample,
 )
+from jaxflex.sweep.distributions import Distribution, SpreadError, parse_distribution
 from jaxflex.sweep.spec import (
-    Distribution,
-    SpreadError,
     SweepSpec,
     load_spread,
     parse_spread,
@@ -27,6 +26,6 @@ from jaxflex.sweep.summary import Accumulator, SweepResult, spearman
 
 __all__ = [
     "Accumulator", "Distribution", "SpreadError", "SweepResult", "SweepSpec", "build_models",
-    "load_spread", "nominal_run", "parse_spread", "run_sweep", "sample_parameters",
+    "load_spread", "nominal_run", "parse_distribution", "parse_spread", "run_sweep", "sample_parameters",
     "simulate_sample", "spearman", "uniform_spread",
 ]

@@ -51,17 +51,20 @@ import os
 from pathlib import Path
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.controller import Q2D_METHODS
-from jaxflex.errors import InputError
 from jaxflex.fit.posterior import Posterior
 from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
 from jaxflex.presets import SENSING_PRESETS, TRAJECTORIES, paper_params, sensing_of
 from jaxflex.sensing import SENSING_FIELDS
+from jaxflex.sweep.distributions import (
+    Distribution,
+    SpreadError,
+    parse_distribution,
+    spread_number,
+)
 from jaxflex.validation import check_keys, did_you_mean
 
 SENSING_NAMES: tuple[str, ...] = ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")
@@ -75,157 +78,6 @@ _POSITIVE = {f"plant.{k}" for k in PLANT_NAMES} | {
     "friction.Fc", "friction.Fs", "friction.vs", "friction.sigma0", "limits.tau_max"
 }
 _NONNEG = {"friction.sigma1", "friction.sigma2"} | {f"sensing.{k}" for k in SENSING_NAMES}
-
-_DIST_FIELDS: dict[str, tuple[set[str], ...]] = {
-    # each tuple entry is one accepted set of fields (besides 'dist')
-    "fixed": ({"value"},),
-    "uniform": ({"low", "high"}, {"rel"}),
-    "normal": ({"mean", "std"}, {"std"}, {"rel_std"}),
-    "lognormal": ({"median", "sigma"}, {"sigma"}),
-    "loguniform": ({"low", "high"}, {"factor"}),
-}
-_TRUNC = {"normal"}
-
-
-class SpreadError(InputError):
-    """A spread file that does not follow the format of ``jaxflex.sweep.spec``."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Distribution:
-    """One scalar distribution, already resolved against its nominal value.
-
-    kind: 'fixed' | 'uniform' | 'normal' | 'lognormal' | 'loguniform' | 'posterior'; a, b: its
-    two numbers (value/-, low/high, mean/std, log-median/sigma, log-low/log-high; posterior:
-    the entry's index in ``SweepSpec.posterior.labels``/its estimate); low, high: truncation
-    of 'normal' (+-inf if none), the 1 - 1e-9 confidence box of a 'posterior' entry (drawn
-    jointly with the other entries of the identification's posterior).
-    """
-
-    kind: str
-    a: float
-    b: float = 0.0
-    low: float = -math.inf
-    high: float = math.inf
-
-    def support(self) -> tuple[float, float]:
-        """Smallest interval holding every draw."""
-        if self.kind == "fixed":
-            return self.a, self.a
-        if self.kind == "uniform":
-            return self.a, self.b
-        if self.kind == "normal":
-            return self.low, self.high
-        if self.kind == "lognormal":
-            return 0.0, math.inf  # open at 0
-        if self.kind == "posterior":
-            return self.low, self.high
-        return math.exp(self.a), math.exp(self.b)
-
-    def center_scale(self) -> tuple[float, float]:
-        """A centre and scale used to standardise the column (numerics only)."""
-        if self.kind == "fixed":
-            return self.a, 1.0
-        if self.kind in ("uniform",):
-            return 0.5 * (self.a + self.b), max(0.5 * (self.b - self.a), 1e-300)
-        if self.kind == "normal":
-            return self.a, max(self.b, 1e-300)
-        if self.kind == "posterior":
-            return self.b, max(0.5 * (self.high - self.low), 1e-300)
-        if self.kind == "lognormal":
-            return math.exp(self.a), max(math.exp(self.a) * self.b, 1e-300)
-        lo, hi = math.exp(self.a), math.exp(self.b)
-        return 0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-300)
-
-    def sample(self, key: jax.Array) -> jax.Array:
-        """One draw (a scalar in the default float dtype).
-
-        The random variate is drawn in float32 and then cast, so that a sample's parameters
-        are the same in float64 and float32 runs (24-bit resolution is far below any spread).
-        """
-        if self.kind == "posterior":
-            raise ValueError("a posterior column is drawn jointly (Posterior.sample), not alone")
-        dt = jnp.result_type(float)
-        f32 = jnp.float32
-        if self.kind == "fixed":
-            return jnp.asarray(self.a, dt)
-        if self.kind == "uniform":
-            return self.a + (self.b - self.a) * jax.random.uniform(key, (), f32).astype(dt)
-        if self.kind == "normal":
-            if math.isinf(self.low) and math.isinf(self.high):
-                return self.a + self.b * jax.random.normal(key, (), f32).astype(dt)
-            lo, hi = (self.low - self.a) / self.b, (self.high - self.a) / self.b
-            x = self.a + self.b * jax.random.truncated_normal(key, lo, hi, (), f32).astype(dt)
-            return jnp.clip(x, self.low, self.high)  # float32 rounding at the bounds
-        if self.kind == "lognormal":
-            return jnp.exp(self.a + self.b * jax.random.normal(key, (), f32).astype(dt))
-        return jnp.exp(self.a + (self.b - self.a) * jax.random.uniform(key, (), f32).astype(dt))
-
-
-def _num(where: str, field: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise SpreadError(f"{where}: '{field}' must be a finite number, got {v!r}")
-    return float(v)
-
-
-def parse_distribution(where: str, d: Any, nominal: float | None) -> Distribution:
-    """A ``Distribution`` from its JSON entry; ``nominal`` resolves rel/rel_std/factor/median."""
-    if not isinstance(d, dict):
-        raise SpreadError(f"{where}: expected an object like {{\"dist\": \"uniform\", \"rel\": 0.2}}, got {d!r}")
-    kind = d.get("dist")
-    if kind not in _DIST_FIELDS:
-        raise SpreadError(f"{where}: 'dist' must be one of {sorted(_DIST_FIELDS)}, got {kind!r}")
-    fields = set(d) - {"dist"}
-    trunc = {"low", "high"} & fields if kind in _TRUNC else set()
-    core = fields - trunc
-    if kind in _TRUNC and {"mean", "std"} <= fields:
-        core = fields - trunc
-    if core not in _DIST_FIELDS[kind]:
-        want = " or ".join("/".join(sorted(s)) for s in _DIST_FIELDS[kind])
-        extra = " (+ optional low/high truncation)" if kind in _TRUNC else ""
-        raise SpreadError(f"{where}: a '{kind}' distribution takes {want}{extra}, got {sorted(fields)}")
-    g = {k: _num(where, k, d[k]) for k in fields}
-    needs_nominal = core & {"rel", "rel_std", "factor"} or (kind == "normal" and "mean" not in core) or (
-        kind == "lognormal" and "median" not in core
-    )
-    if needs_nominal and nominal is None:
-        raise SpreadError(f"{where}: no nominal value to scale; give absolute bounds")
-    if kind == "fixed":
-        return Distribution("fixed", g["value"])
-    if kind == "uniform":
-        if "rel" in g:
-            if g["rel"] < 0:
-                raise SpreadError(f"{where}: 'rel' must be >= 0, got {g['rel']}")
-            lo, hi = sorted((nominal * (1 - g["rel"]), nominal * (1 + g["rel"])))
-        else:
-            lo, hi = g["low"], g["high"]
-        if not hi > lo:
-            raise SpreadError(f"{where}: uniform needs low < high, got low={lo}, high={hi}")
-        return Distribution("uniform", lo, hi)
-    if kind == "normal":
-        mean = g.get("mean", nominal)
-        std = g["std"] if "std" in g else abs(nominal) * g["rel_std"]
-        if not std > 0:
-            raise SpreadError(f"{where}: the standard deviation must be > 0, got {std}")
-        lo, hi = g.get("low", -math.inf), g.get("high", math.inf)
-        if not hi > lo:
-            raise SpreadError(f"{where}: truncation needs low < high, got low={lo}, high={hi}")
-        return Distribution("normal", mean, std, lo, hi)
-    if kind == "lognormal":
-        med = g.get("median", nominal)
-        if not med > 0 or not g["sigma"] > 0:
-            raise SpreadError(f"{where}: lognormal needs median > 0 and sigma > 0, got {med}, {g['sigma']}")
-        return Distribution("lognormal", math.log(med), g["sigma"])
-    if "factor" in g:
-        if not g["factor"] > 1 or not nominal > 0:
-            raise SpreadError(f"{where}: loguniform needs factor > 1 and a nominal > 0")
-        lo, hi = nominal / g["factor"], nominal * g["factor"]
-    else:
-        lo, hi = g["low"], g["high"]
-    if not (lo > 0 and hi > lo):
-        raise SpreadError(f"{where}: loguniform needs 0 < low < high, got low={lo}, high={hi}")
-    return Distribution("loguniform", math.log(lo), math.log(hi))
-
 
 @dataclasses.dataclass(frozen=True)
 class Column:
@@ -364,7 +216,7 @@ def _identified(d: Any, base: Path | None) -> tuple[Params | None, Posterior | N
         raise SpreadError("identified: expected a parameter-file path written by 'jaxflex "
                           f"identify', or {{\"file\": path, \"inflate\": 1.0}}, got {d!r}")
     check_keys(d, ("file", "inflate"), where="identified: ", what="field", error=SpreadError)
-    inflate = _num("identified", "inflate", d.get("inflate", 1.0))
+    inflate = spread_number("identified", "inflate", d.get("inflate", 1.0))
     params = _nominal(d["file"], base)
     try:
         return params, Posterior.from_params(params, inflate=inflate)
