@@ -57,7 +57,9 @@ def _kuka_file(trajectory: str) -> Path:
     return DATA_DIR / f"kuka_kr300_traj_{trajectory}.npz"
 
 
-def _check_choice(what: str, value: Any, choices: Sequence[Any]) -> None:
+def check_choice(what: str, value: Any, choices: Sequence[Any]) -> None:
+    """Raise ``ValueError`` naming ``what`` and the valid ``choices`` when ``value`` is not
+    one of them."""
     if value not in choices:
         raise ValueError(f"unknown {what} {value!r}; choices: {list(choices)}")
 
@@ -138,7 +140,7 @@ def emps_record(name: str = "DATA_EMPS") -> EmpsRecord:
     """
     import scipy.io
 
-    _check_choice("EMPS data set", name, EMPS_NAMES)
+    check_choice("EMPS data set", name, EMPS_NAMES)
     d = scipy.io.loadmat(DATA_DIR / f"{name}.mat")
     col = {k: np.asarray(d[k], dtype=float).reshape(-1) for k in ("t", "qm", "qg", "vir")}
     pulses = d.get("pulses_N")
@@ -210,7 +212,7 @@ class KukaRecord:
 def kuka_record(trajectory: str = "A") -> KukaRecord:
     """The shipped variables of a KUKA recording (``"A"`` identification, ``"B"``, ``"C"``
     validation). Raises ``ValueError`` naming the choices for an unknown trajectory."""
-    _check_choice("KUKA trajectory", trajectory, KUKA_TRAJECTORIES)
+    check_choice("KUKA trajectory", trajectory, KUKA_TRAJECTORIES)
     with np.load(_kuka_file(trajectory), allow_pickle=False) as z:
         kw = {k: z[k] for k in z.files}
     kw["traj_name"] = str(kw["traj_name"])
@@ -242,12 +244,12 @@ def load_kuka(trajectory: str = "A", axis: int | Sequence[int] = 1) -> Log:
     ``axis``: 1, 2 or 3, or a sequence of them for an n-joint log (columns (N, n) in the given
     order). Raises ``ValueError`` naming the choices for an unknown trajectory or axis.
     """
-    _check_choice("KUKA trajectory", trajectory, KUKA_TRAJECTORIES)
+    check_choice("KUKA trajectory", trajectory, KUKA_TRAJECTORIES)
     axes = [axis] if isinstance(axis, (int, np.integer)) else list(axis)
     if not axes:
         raise ValueError(f"no KUKA axis given; choices: {list(KUKA_AXES)}")
     for a in axes:
-        _check_choice("KUKA axis", a, KUKA_AXES)
+        check_choice("KUKA axis", a, KUKA_AXES)
     r = kuka_record(trajectory)
     rows = [int(a) - 1 for a in axes]
 

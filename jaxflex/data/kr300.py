@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxflex.chain import LockedJoints, SerialChain
-from jaxflex.data import DATA_DIR, KUKA_TRAJECTORIES, _check_choice
+from jaxflex.data import DATA_DIR, KUKA_TRAJECTORIES, check_choice
 from jaxflex.plant import FlexibleJointPlant
 
 #: Standard DH parameters of axes 1-6: a [m], d [m], alpha [rad].
@@ -132,7 +132,7 @@ def load_kuka_wrist(trajectory: str) -> dict[str, np.ndarray]:
     """The measured wrist motion of a KUKA trajectory: t [s] (L,); q [rad] (L, 3) motor
     angles of axes 4-6 referred to the link (no link encoders there); tau [N m] (L, 3)
     motor torques referred to the link (u tau_m); q_ref [rad] (L, 3) references."""
-    _check_choice("trajectory", trajectory, KUKA_TRAJECTORIES)
+    check_choice("trajectory", trajectory, KUKA_TRAJECTORIES)
     z = np.load(_wrist_file(trajectory))
     t = np.load(DATA_DIR / f"kuka_kr300_traj_{trajectory}.npz")["time_cont"]
     return {"t": t, "q": np.deg2rad(z["act_pos_mot_deg"]).T,

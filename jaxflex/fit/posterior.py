@@ -28,6 +28,7 @@ from jaxtyping import Array, Float
 
 from jaxflex.fit.space import ParamSpace
 from jaxflex.params import Params
+from jaxflex.validation import to_device
 
 
 class Posterior(eqx.Module):
@@ -65,6 +66,9 @@ class Posterior(eqx.Module):
         if not names:
             raise ValueError("posterior: the identification identified no parameter")
         space = ParamSpace.build(params.to_plant(), names)
+        cap = rec.get("friction_cap")
+        if cap is not None:  # the coordinates of a fit whose friction levels were bounded
+            space = eqx.tree_at(lambda s: s.friction_cap, space, to_device(float(cap)))
         theta0 = space.theta0()
         flat0, _ = ravel_pytree(theta0)
         n = params.n

@@ -255,7 +255,8 @@ def posterior_record(prob: Problem, theta: dict[str, Any], cov: dict[str, Any],
     """The identification's Gaussian posterior in the unconstrained coordinates theta
     (``jaxflex.fit.space``), for the file: ``parameters`` (names in the space's order, those
     in ``exclude`` left out: their rows are dropped, i.e. marginalised), ``labels`` (one per
-    flattened entry, "name[j]"), ``theta`` (the estimate) and ``matrix`` (its covariance).
+    flattened entry, "name[j]"), ``theta`` (the estimate), ``matrix`` (its covariance) and
+    ``friction_cap`` (the space's bound on the friction levels [N m], None: none).
     ``jaxflex.robust.Posterior`` draws from it; every draw maps to physical values that keep
     the constraints (positivity, Fs >= Fc)."""
     fitted = prob.space.fitted_flat()
@@ -266,8 +267,10 @@ def posterior_record(prob: Problem, theta: dict[str, Any], cov: dict[str, Any],
     kept = {entries[i][0] for i in keep}
     params = [k for k in prob.space.names if k in kept]
     C = np.asarray(cov["cov_theta"])[np.ix_(keep, keep)]
+    cap = float(np.ravel(np.asarray(prob.space.friction_cap))[0])
     return {
         "space": "theta", "parameters": params,
         "labels": [f"{entries[i][0]}[{entries[i][1]}]" for i in keep],
         "theta": [float(flat[i]) for i in keep], "matrix": C.tolist(),
+        "friction_cap": cap if math.isfinite(cap) else None,
     }
