@@ -23,15 +23,24 @@ integrator stable), "free": identity, "fixed": not fitted, e.g. a smoothing widt
 structural frequency, "tied:K": copied from the plant's K), and ``typical(n)`` gives a small instance to start a
 fit from. ``Params.to_plant`` rebuilds an effect as ``EFFECTS[name](**params)``.
 
+Discovery and synthetic-log metadata live on the class too, so that a new effect needs only
+its class: ``telling`` (the quantity its residual signature shows against), ``step_bounded``
+(time constants bounded by a replay's step), ``cannot_act_on`` (declared axes it cannot act
+on), ``start_from_residual`` (discovery's first guess), and ``moderate`` / ``signed`` /
+``draw`` / ``recording`` (how ``jaxflex.datagen`` hides it in a synthetic log).
+
 Concrete effects register themselves by their docs/spec.md section 8 name in ``EFFECTS``; the
 discrepancy workflow looks them up there. Every effect's parameters are array leaves so that
-``grad`` reaches them.
+``grad`` reaches them. More effects of real joints are in ``jaxflex.effects_extra`` (registered
+when ``jaxflex`` is imported).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal, Protocol
 
 import equinox as eqx
 import jax
@@ -43,6 +52,41 @@ from jaxflex.state import PlantState
 from jaxflex.validation import as_param, check_nonnegative, check_positive, is_concrete
 
 EFFECTS: dict[str, type[AbstractEffect]] = {}
+
+#: The lower bound of a step-bounded time constant (``AbstractEffect.step_bounded``) as a
+#: multiple of a replay's integration step h = dt / substeps: T >= STEP_FLOOR h. RK4 keeps the
+#: delay's Pade poles (-3 +- j sqrt(3)) / T stable for T > 1.22 h and the lag's pole -1 / T
+#: for T > 0.36 h; the classes' own bound, 1.5 ms, is this at 1 ms samples.
+STEP_FLOOR: float = 1.5
+
+
+class ResidualStart(Protocol):
+    """What a discovery run offers an effect class for its first guess
+    (``AbstractEffect.start_from_residual``): the replay's step, the model's nominal values
+    and linear least-squares fits of a position ripple to the inverse-dynamics torque residual
+    of the model the effect is added to (``jaxflex.discover.localisation`` implements it)."""
+
+    @property
+    def h(self) -> float:
+        """The replay's integration step [s] (dt / substeps)."""
+        ...
+
+    def nominal(self, name: str) -> np.ndarray:
+        """The model's nominal plant or friction parameter ``name`` (e.g. ``"K"``), per joint."""
+        ...
+
+    def angle(self, side: Literal["link", "rotor"]) -> np.ndarray:
+        """The angle samples [rad] the ripple fits use: q1 for ``"link"``, q2 for ``"rotor"``."""
+        ...
+
+    def ripple_fits(self, side: Literal["link", "rotor"], grid: np.ndarray, step: float,
+                    trend: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For every spatial frequency N [1/rad] of the evenly spaced ``grid`` (spacing
+        ``step``), the least-squares fit r ~ a_s sin(N q) + a_c cos(N q) of the ``side``'s
+        torque residual r [N m] against its angle q, both cleared of what a refit of the
+        nominal model absorbs anyway (with ``trend``, a term linear in q too): the explained
+        sum of squares (-1 where the fit cannot be solved), a_s and a_c [N m]."""
+        ...
 
 
 def candidate_effects() -> list[str]:
@@ -69,11 +113,77 @@ class AbstractEffect(eqx.Module):
     constraints: ClassVar[dict[str, str]] = {}
     #: Whether the discrepancy workflow tries it by default.
     candidate: ClassVar[bool] = True
+    #: The quantity against which its residual signature is most telling (discover's report,
+    #: ``telling_quantity``); None where none stands out.
+    telling: ClassVar[str | None] = None
+    #: Time constants [s] whose lower bound scales with a replay's integration step h:
+    #: T >= ``STEP_FLOOR`` h (discover's workspace bounds them so; ``typical_at_step``).
+    step_bounded: ClassVar[tuple[str, ...]] = ()
+    #: Axis kinds a parameter file may declare (its ``axis``) on which the effect cannot act;
+    #: discover does not try it there.
+    cannot_act_on: ClassVar[tuple[str, ...]] = ()
+    #: Ranges (low, high) of the moderate magnitudes a synthetic log draws (``draw``,
+    #: ``jaxflex.datagen``); None: the generator cannot hide this effect.
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = None
+    #: Parameters of ``moderate`` drawn with a random sign.
+    signed: ClassVar[tuple[str, ...]] = ()
+    #: An effect of the logging, not of the plant: a synthetic log applies it to its recorded
+    #: link channel (``recorded_link``) and never simulates it.
+    recording: ClassVar[bool] = False
 
     @classmethod
     def typical(cls, n: int) -> AbstractEffect:
         """A small instance to start a fit from (all parameters within their constraints)."""
         raise NotImplementedError(f"effect {cls.name!r} has no typical() start")
+
+    @classmethod
+    def typical_at_step(cls, n: int, h: float) -> AbstractEffect:
+        """``typical(n)`` with each ``step_bounded`` time constant at twice its bound at the
+        integration step ``h`` [s], 2 ``STEP_FLOOR`` h (a start on the bound has a dead
+        coordinate; a start far above a short delay does not reach it in a screen's few
+        steps): 3 ms at 1 ms samples, 12 ms at 4 ms."""
+        e = cls.typical(n)
+        if not cls.step_bounded:
+            return e
+        return dataclasses.replace(e, **{  # type: ignore[type-var]
+            p: np.full_like(np.asarray(getattr(e, p)), 2.0 * STEP_FLOOR * h)
+            for p in cls.step_bounded})
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> AbstractEffect:
+        """Discovery's first guess of this effect (one joint) added to a model, from that
+        model's torque residual (``ResidualStart``). By default ``typical_at_step(1, h)`` with
+        each ``tied:X`` parameter at the model's nominal X (a backlash on the model's own
+        spring); an effect whose parameters a residual shows directly overrides it."""
+        e = cls.typical_at_step(1, data.h)
+        tied = {p: data.nominal(c.removeprefix("tied:")) for p, c in cls.constraints.items()
+                if c.startswith("tied:")}
+        return dataclasses.replace(e, **tied) if tied else e  # type: ignore[type-var]
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """Keyword arguments of a moderate instance for a synthetic log: each ``moderate``
+        parameter uniform in its range times ``scale`` (with a random sign if ``signed``), each
+        ``tied:X`` parameter None (the generator sets it from the true plant).
+
+        **Raises:** ``ValueError`` for an effect without ``moderate`` ranges."""
+        if cls.moderate is None:
+            raise ValueError(f"effect {cls.name!r} has no moderate magnitudes to draw")
+        kw: dict[str, Any] = {}
+        for p, (lo, hi) in cls.moderate.items():
+            v = scale * rng.uniform(lo, hi)
+            if p in cls.signed:
+                v *= rng.choice([-1.0, 1.0])
+            kw[p] = v
+        kw.update({p: None for p, c in cls.constraints.items() if c.startswith("tied:")})
+        return kw
+
+    @classmethod
+    def recorded_link(cls, t: np.ndarray, q1: np.ndarray, kw: dict[str, Any]) -> np.ndarray:
+        """A ``recording`` effect's link channel [rad] (N, n): what the recorder reads of the
+        true link angle ``q1`` (N, n) sampled at ``t`` [s] (N,), with the effect's parameters
+        ``kw``, before the encoder's noise and quantisation."""
+        raise NotImplementedError(f"effect {cls.name!r} is not an effect of the recording")
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"] | float:
         """Torque added to the link equation's right-hand side [N m]."""
@@ -135,6 +245,9 @@ class Gravity(AbstractEffect):
     name: ClassVar[str] = "gravity"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"mgl": "positive", "q0": "free"}
+    telling: ClassVar[str | None] = "position"
+    cannot_act_on: ClassVar[tuple[str, ...]] = ("vertical", "prismatic")
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"mgl": (0.3, 0.6)}
     mgl: Float[Array, " n"] = eqx.field(converter=as_param)
     q0: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
@@ -144,6 +257,32 @@ class Gravity(AbstractEffect):
     @classmethod
     def typical(cls, n: int) -> Gravity:
         return cls(mgl=np.full(n, 0.05), q0=np.zeros(n))
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> Gravity:
+        """-mgl sin(q1 - q0) = mgl sin(q1 + pi - q0) is a link ripple of N = 1: mgl [N m] and
+        q0 [rad] from the fit of a sine and a cosine of q1 to the link residual, cleared of all
+        but the angle (no ``trend``): from how the missing torque varies with the angle, not
+        from its mean. The typical start where the fit explains nothing, or puts the hanging
+        angle farther from the travel's middle than the travel is wide: over the travel such
+        a sine is a constant-like torque, which the residual's variation cannot tell from an
+        asymmetric friction or an offset, and a gravity started there can beat the effect it
+        mimics."""
+        q = data.angle("link")
+        e, a_s, a_c = data.ripple_fits("link", np.ones(1), 0.0, trend=False)
+        if not e[0] > 0:
+            return cls.typical(1)
+        q0 = math.remainder(math.pi - math.atan2(a_c[0], a_s[0]), 2.0 * math.pi)
+        if abs(q0 - float(np.median(q))) > float(np.ptp(q)):
+            return cls.typical(1)
+        return cls(mgl=np.full(1, max(math.hypot(a_s[0], a_c[0]), 1e-3)), q0=np.full(1, q0))
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """``AbstractEffect.draw`` plus a hanging angle q0 uniform in +-0.2 rad."""
+        kw = super().draw(rng, scale)
+        kw["q0"] = rng.uniform(-0.2, 0.2)
+        return kw
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
         return -self.mgl * jnp.sin(x.q1 - self.q0)
@@ -156,6 +295,9 @@ class TorqueOffset(AbstractEffect):
     name: ClassVar[str] = "torque_offset"
     where: ClassVar[str] = "input (applied torque)"
     constraints: ClassVar[dict[str, str]] = {"offset": "free"}
+    telling: ClassVar[str | None] = "time"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"offset": (0.03, 0.06)}
+    signed: ClassVar[tuple[str, ...]] = ("offset",)
     offset: Float[Array, " n"] = eqx.field(converter=as_param)
 
     @classmethod
@@ -176,6 +318,40 @@ def _softplus(x: Array, w: Array) -> Array:
     return w * jnp.logaddexp(0.0, x / w)
 
 
+#: A ripple start searches spatial frequencies from this many periods over the angle's travel:
+#: a slower "ripple" is a smooth trend, not cogging.
+RIPPLE_MIN_PERIODS: float = 2.0
+
+
+def _ripple_start(cls: type[Cogging] | type[MotorCogging], data: ResidualStart,
+                  side: Literal["link", "rotor"], highest: float) -> Any:
+    """A ripple A sin(N q + phi) [N m] fitted to the ``side``'s residual against its angle by
+    linear least squares over a grid of N [1/rad] (gradient cannot find a frequency): a coarse
+    one from ``RIPPLE_MIN_PERIODS`` periods over the travel to ``highest``, then a fine one
+    about its best. The residual is cleared of what a refit of the nominal model absorbs
+    anyway (``ResidualStart.ripple_fits``), the Stribeck term included: a nominal refit can
+    raise Fs to absorb a ripple, after which the raw residual peaks elsewhere. The typical
+    start where the angle travels too little for the grid, or the grid explains nothing."""
+    q = data.angle(side)
+    lowest = max(5.0, 2.0 * math.pi * RIPPLE_MIN_PERIODS / max(float(np.ptp(q)), 1e-9))
+    coarse = np.arange(lowest, highest, 0.5)
+    if not coarse.size:
+        return cls.typical(1)
+    expl, a_s, a_c = data.ripple_fits(side, coarse, 0.5)
+    j = int(np.argmax(expl))
+    if not expl[j] > 0:
+        return cls.typical(1)
+    N, s_, c_ = float(coarse[j]), a_s[j], a_c[j]
+    fine = N + np.arange(-0.5, 0.51, 0.02)
+    e, fs, fc = data.ripple_fits(side, fine, 0.02)
+    k = int(np.argmax(e))
+    if e[k] > expl[j]:
+        N, s_, c_ = float(fine[k]), fs[k], fc[k]
+    # the residual equals the missing torque A sin(N q + phi), on either side with its own sign
+    A, phi = max(math.hypot(s_, c_), 1e-3), math.atan2(c_, s_)
+    return cls(A=np.full(1, A), N=np.full(1, N), phi=np.full(1, phi))
+
+
 @register_effect
 class AsymmetricFriction(AbstractEffect):
     """Direction-dependent Coulomb level on the link: the Coulomb level is Fc + dF when moving
@@ -190,6 +366,9 @@ class AsymmetricFriction(AbstractEffect):
     name: ClassVar[str] = "asymmetric_friction"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"dF": "free", "width": "fixed"}
+    telling: ClassVar[str | None] = "link velocity"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"dF": (0.03, 0.06)}
+    signed: ClassVar[tuple[str, ...]] = ("dF",)
     dF: Float[Array, " n"] = eqx.field(converter=as_param)
     width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
 
@@ -215,6 +394,8 @@ class Cogging(AbstractEffect):
     name: ClassVar[str] = "cogging"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free"}
+    telling: ClassVar[str | None] = "position"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"A": (0.03, 0.06)}
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
@@ -226,6 +407,20 @@ class Cogging(AbstractEffect):
     @classmethod
     def typical(cls, n: int) -> Cogging:
         return cls(A=np.full(n, 0.01), N=np.full(n, 25.0), phi=np.zeros(n))
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> Cogging:
+        """N, A, phi from the link residual's best ripple against q1 (``_ripple_start``, N
+        below 80 1/rad)."""
+        return _ripple_start(cls, data, "link", 80.0)
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """``AbstractEffect.draw`` plus N one of 20, 30, 45 1/rad and a uniform phase."""
+        kw = super().draw(rng, scale)
+        kw["N"] = float(rng.choice([20.0, 30.0, 45.0]))
+        kw["phi"] = rng.uniform(-math.pi, math.pi)
+        return kw
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
         return self.A * jnp.sin(self.N * x.q1 + self.phi)
@@ -244,6 +439,8 @@ class MotorCogging(AbstractEffect):
     name: ClassVar[str] = "motor_cogging"
     where: ClassVar[str] = "rotor torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free"}
+    telling: ClassVar[str | None] = "rotor position"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"A": (0.02, 0.04)}
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
@@ -255,6 +452,20 @@ class MotorCogging(AbstractEffect):
     @classmethod
     def typical(cls, n: int) -> MotorCogging:
         return cls(A=np.full(n, 0.01), N=np.full(n, 60.0), phi=np.zeros(n))
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> MotorCogging:
+        """N, A, phi from the rotor residual's best ripple against q2 (``_ripple_start``, N
+        below 400 1/rad: a motor's periods times the gear ratio)."""
+        return _ripple_start(cls, data, "rotor", 400.0)
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """``AbstractEffect.draw`` plus N one of 60, 90, 150 1/rad and a uniform phase."""
+        kw = super().draw(rng, scale)
+        kw["N"] = float(rng.choice([60.0, 90.0, 150.0]))
+        kw["phi"] = rng.uniform(-math.pi, math.pi)
+        return kw
 
     def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
         return self.A * jnp.sin(self.N * x.q2 + self.phi)
@@ -273,6 +484,8 @@ class Backlash(AbstractEffect):
     name: ClassVar[str] = "backlash"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"b": "positive", "K": "tied:K", "w": "fixed"}
+    telling: ClassVar[str | None] = "deflection"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"b": (0.004, 0.01)}
     b: Float[Array, " n"] = eqx.field(converter=as_param)
     K: Float[Array, " n"] = eqx.field(converter=as_param)
     w: Float[Array, " n"] = eqx.field(converter=as_param, default=2e-4)
@@ -299,6 +512,8 @@ class HardeningSpring(AbstractEffect):
     name: ClassVar[str] = "hardening_spring"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"K3": "positive"}
+    telling: ClassVar[str | None] = "deflection"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"K3": (300.0, 800.0)}
     K3: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -320,6 +535,8 @@ class JointDamping(AbstractEffect):
     name: ClassVar[str] = "joint_damping"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"D": "positive"}
+    telling: ClassVar[str | None] = "deflection rate"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"D": (0.02, 0.05)}
     D: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -344,6 +561,9 @@ class MotorFriction(AbstractEffect):
     name: ClassVar[str] = "motor_friction"
     where: ClassVar[str] = "rotor torque"
     constraints: ClassVar[dict[str, str]] = {"Fm": "positive", "bm": "positive", "width": "fixed"}
+    telling: ClassVar[str | None] = "rotor velocity"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"Fm": (0.02, 0.04),
+                                                                  "bm": (0.01, 0.03)}
     Fm: Float[Array, " n"] = eqx.field(converter=as_param)
     bm: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
     width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
@@ -368,6 +588,9 @@ class ActuatorLag(AbstractEffect):
     name: ClassVar[str] = "actuator_lag"
     where: ClassVar[str] = "input (applied torque, internal state)"
     constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3"}
+    telling: ClassVar[str | None] = "frequency"
+    step_bounded: ClassVar[tuple[str, ...]] = ("T",)
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"T": (0.002, 0.004)}
     T: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -407,6 +630,9 @@ class TimeDelay(AbstractEffect):
     name: ClassVar[str] = "time_delay"
     where: ClassVar[str] = "input (applied torque, internal state)"
     constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3"}
+    telling: ClassVar[str | None] = "frequency"
+    step_bounded: ClassVar[tuple[str, ...]] = ("T",)
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"T": (0.002, 0.004)}
     T: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -655,12 +881,24 @@ class EncoderSkew(AbstractEffect):
     name: ClassVar[str] = "encoder_skew"
     where: ClassVar[str] = "link encoder reading"
     constraints: ClassVar[dict[str, str]] = {"skew": "free", "offset": "free"}
+    recording: ClassVar[bool] = True
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"skew": (0.001, 0.003),
+                                                                  "offset": (2e-4, 5e-4)}
+    signed: ClassVar[tuple[str, ...]] = ("offset",)
     skew: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
     offset: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
     @classmethod
     def typical(cls, n: int) -> EncoderSkew:
         return cls(skew=np.zeros(n), offset=np.zeros(n))
+
+    @classmethod
+    def recorded_link(cls, t: np.ndarray, q1: np.ndarray, kw: dict[str, Any]) -> np.ndarray:
+        """The true link angle at t - skew (linear interpolation of the samples: the exact
+        delay, not the first-order map a fit uses) minus the offset [rad]."""
+        skew, offset = float(np.ravel(kw["skew"])[0]), float(np.ravel(kw["offset"])[0])
+        late = np.stack([np.interp(t - skew, t, q1[:, j]) for j in range(q1.shape[1])], axis=1)
+        return late - offset
 
     def link_measured(self, q1: Array, dq1: Array) -> Array:
         """q1 - skew q1' - offset [rad]: the late link encoder's reading of the motion."""
