@@ -5,6 +5,7 @@ An effect says where it acts by overriding one or more hooks; the defaults do no
 - ``link_torque(x)``   torque added to the right-hand side of the link equation [N m]
 - ``rotor_torque(x)``  torque added to the right-hand side of the rotor equation [N m]
 - ``spring_torque(d, dd)`` extra elastic torque added to K (q2 - q1) (acts on both sides) [N m]
+- ``spring_state_torque(aux, d, dd)`` the same from the effect's internal state (a hysteresis)
 - ``applied_torque(tau, aux)`` maps the commanded motor torque to the applied one [N m]
 - ``aux_init(n)``, ``aux_rhs(aux, tau, x)``  internal states (e.g. an actuator lag), if any
 - ``link_measured(q1, dq1)`` the link encoder's reading of the link motion [rad] (a sensor
@@ -15,7 +16,7 @@ Plant equations with effects (docs/spec.md section 1 plus effects):
 
     M q1'' + C q1' + G + F = T_s + sum link_torque
     J q2''                 = tau_a - T_s + sum rotor_torque
-    T_s = K (q2 - q1) + sum spring_torque,  tau_a = applied_torque(tau)
+    T_s = K (q2 - q1) + sum spring_torque + sum spring_state_torque,  tau_a = applied_torque(tau)
 
 Fitting metadata: each concrete effect lists in ``constraints`` how the discrepancy workflow
 reparametrises each parameter ("positive": exp, "positive>=m": m + exp (keeps a fixed-step
@@ -195,6 +196,12 @@ class AbstractEffect(eqx.Module):
 
     def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"] | float:
         """Extra elastic torque [N m] given deflection d = q2 - q1 [rad] and its rate dd."""
+        return 0.0
+
+    def spring_state_torque(self, aux: Any, d: Array, dd: Array) -> Float[Array, " n"] | float:
+        """Extra elastic torque [N m] from the effect's internal state ``aux`` (a hysteresis in
+        the spring) at deflection d = q2 - q1 [rad] and its rate dd [rad/s]; acts on both
+        sides like ``spring_torque``."""
         return 0.0
 
     def applied_torque(self, tau: Array, aux: Any) -> Float[Array, " n"]:
@@ -703,6 +710,9 @@ class Gated(AbstractEffect):
     def spring_torque(self, d: Array, dd: Array):
         return self._gated("spring_torque", d, dd)
 
+    def spring_state_torque(self, aux: Any, d: Array, dd: Array):
+        return self._gated("spring_state_torque", aux, d, dd)
+
     def applied_torque(self, tau: Array, aux: Any):
         return self._switched(lambda: tau + self.gate * (self.inner.applied_torque(tau, aux) - tau),
                               lambda: jnp.asarray(tau))
@@ -754,7 +764,8 @@ def _overrides(effect: AbstractEffect, hook: str) -> bool:
 #: that ``jaxflex.discover`` fits): the motion, or the link encoder's reading of it
 #: (``link_measured``); ``link_reading`` is not one (a sensor map of a measured *input*).
 REPLAY_HOOKS: tuple[str, ...] = ("link_torque", "rotor_torque", "spring_torque",
-                                 "applied_torque", "aux_rhs", "link_measured")
+                                 "spring_state_torque", "applied_torque", "aux_rhs",
+                                 "link_measured")
 
 
 def acts_on_replay(name: str) -> bool:
@@ -817,6 +828,18 @@ def effect_torque(effects: Sequence[AbstractEffect], hook: str, *args: Any) -> A
 
     out = jax.eval_shape(on)
     return jax.lax.cond(_any_on(gated), on, lambda: jnp.zeros(out.shape, out.dtype))
+
+
+def spring_state_torque(effects: Sequence[AbstractEffect], aux: Sequence[Any] | None,
+                        d: Array, dd: Array) -> Array | None:
+    """The sum of the effects' ``spring_state_torque`` contributions [N m] from their internal
+    states ``aux`` at deflection ``d`` [rad] and rate ``dd`` [rad/s]; None (no operation
+    traced) when no effect has one or there are no states."""
+    if aux is None:
+        return None
+    terms = [e.spring_state_torque(a, d, dd) for e, a in zip(effects, aux)
+             if _overrides(e, "spring_state_torque")]
+    return sum(terms[1:], terms[0]) if terms else None
 
 
 def applied_torque(effects: Sequence[AbstractEffect], tau: Array, aux: Sequence[Any]) -> Array:
@@ -954,3 +977,8 @@ class EncoderScale(AbstractEffect):
     def link_reading(self, q1: Array, dq1: Array, ddq1: Array) -> tuple[Array, Array]:
         """((1 + scale) q1 [rad], (1 + scale) q1' [rad/s])."""
         return (1.0 + self.scale) * q1, (1.0 + self.scale) * dq1
+
+
+# the effects of jaxflex.effects_extra register with the rest (imported last: they derive from
+# the classes above)
+from jaxflex import effects_extra  # noqa: E402,F401
