@@ -36,31 +36,12 @@ from jaxflex.plant import FlexibleJointPlant, PlantState
 from jaxflex.trajectory import Multisine, Trajectory
 from jaxflex.validation import as_param, requires_float64
 
-#: Moderate magnitude ranges per effect (uniform draws; a sign is drawn for signed ones).
-MODERATE: dict[str, dict[str, tuple[float, float]]] = {
-    "asymmetric_friction": {"dF": (0.03, 0.06)},
-    "gravity": {"mgl": (0.3, 0.6)},
-    "cogging": {"A": (0.03, 0.06)},
-    "motor_cogging": {"A": (0.02, 0.04)},
-    "backlash": {"b": (0.004, 0.01)},
-    "hardening_spring": {"K3": (300.0, 800.0)},
-    "joint_damping": {"D": (0.02, 0.05)},
-    "motor_friction": {"Fm": (0.02, 0.04), "bm": (0.01, 0.03)},
-    "actuator_lag": {"T": (0.002, 0.004)},
-    "torque_offset": {"offset": (0.03, 0.06)},
-    "time_delay": {"T": (0.002, 0.004)},
-    "encoder_skew": {"skew": (0.001, 0.003), "offset": (2e-4, 5e-4)},
-}
 #: Gentler gains than Table 3 for the identification experiment: with L1 = 200 1/s the loop
 #: chatters at the 2 N m limit on a 0.15 rad multisine (nearly every sample saturated).
 IDENT_GAINS = CascadeGains(Ke=0.001, KD1=0.5, KD2=0.5, kv=2.0, L1=15.0, L2=6.0)
 
 _simulate = eqx.filter_jit(simulate_sampled)
 
-_SIGNED = {("asymmetric_friction", "dF"), ("torque_offset", "offset"), ("encoder_skew", "offset")}
-#: Effects of the logging, not of the plant: applied to the recorded channels
-#: (``_recorded_link``), never simulated.
-_SENSOR_EFFECTS = ("encoder_skew",)
 
 
 LOOPS: tuple[str, ...] = ("cascade", "pd_rotor", "open_loop")
@@ -139,27 +120,12 @@ class GeneratedLog:
 
 
 def draw_effect(name: str, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
-    """Keyword arguments of an effect ``name`` with magnitudes drawn from ``MODERATE`` times
-    ``scale`` (backlash's K is left None, to be set to the true plant's K)."""
+    """Keyword arguments of an effect ``name`` with moderate magnitudes times ``scale``
+    (``AbstractEffect.draw``, from the class's ``moderate`` ranges; a parameter tied to the
+    plant, backlash's K, is left None, to be set from the true plant)."""
     if name not in EFFECTS:
         raise ValueError(f"unknown effect {name!r}; known: {sorted(EFFECTS)}")
-    kw: dict[str, Any] = {}
-    for p, (lo, hi) in MODERATE[name].items():
-        v = scale * rng.uniform(lo, hi)
-        if (name, p) in _SIGNED:
-            v *= rng.choice([-1.0, 1.0])
-        kw[p] = v
-    if name == "cogging":
-        kw["N"] = float(rng.choice([20.0, 30.0, 45.0]))
-        kw["phi"] = rng.uniform(-math.pi, math.pi)
-    if name == "motor_cogging":
-        kw["N"] = float(rng.choice([60.0, 90.0, 150.0]))
-        kw["phi"] = rng.uniform(-math.pi, math.pi)
-    if name == "backlash":
-        kw["K"] = None  # filled with the true plant's K by generate_log
-    if name == "gravity":
-        kw["q0"] = rng.uniform(-0.2, 0.2)
-    return kw
+    return EFFECTS[name].draw(rng, scale)
 
 
 @requires_float64
@@ -214,8 +180,9 @@ def generate_log(
     effect_kw: dict[str, dict[str, Any]] = {}
     for name in effects:
         kw = draw_effect(name, rng, scale)
-        if name == "backlash":
-            kw["K"] = true.plant["K"][0]
+        for p, c in EFFECTS[name].constraints.items():
+            if c.startswith("tied:"):  # on the true plant's own parameter (backlash's K)
+                kw[p] = true.plant[c.removeprefix("tied:")][0]
         effect_kw[name] = kw
     extra = []
     if disturbance == "friction_bump":
@@ -223,7 +190,8 @@ def generate_log(
                    "w": float(rng.uniform(0.01, 0.03))}
         extra.append(FrictionBump(**dist_kw))
     plant = true.to_plant(with_effects=False).with_effects(
-        *(EFFECTS[k](**kw) for k, kw in effect_kw.items() if k not in _SENSOR_EFFECTS), *extra
+        *(EFFECTS[k](**kw) for k, kw in effect_kw.items() if not EFFECTS[k].recording),
+        *extra
     )
     count = 6  # fixed so that every case shares one compiled simulation
     f_max = rng.uniform(1.0, 2.0)
@@ -269,27 +237,28 @@ def generate_log(
                    float(jnp.ravel(r.metrics.saturation_fraction)[0]), loop, excitation,
                    disturbance, extra)
     q1_log = np.asarray(r.q1_meas)
-    if "encoder_skew" in effect_kw:
+    recorded = [k for k in effect_kw if EFFECTS[k].recording]
+    if recorded:
         q1_log = _recorded_link(np.asarray(r.t), np.asarray(r.q1), sensing,
-                                effect_kw["encoder_skew"], rng)
+                                {k: effect_kw[k] for k in recorded}, rng)
     log = Log.from_arrays(t=np.asarray(r.t), tau=np.asarray(r.tau), q1=q1_log,
                           q2=np.asarray(r.q2_meas), q1d=np.asarray(r.q1d),
                           source=f"generate_log(effects={list(effects)}, seed={seed})")
     return GeneratedLog(log=log, effects=list(effects), truth=truth)
 
 
-def _recorded_link(t: np.ndarray, q1: np.ndarray, sensing: Sensing, kw: dict[str, Any],
-                   rng: np.random.Generator) -> np.ndarray:
-    """The link channel [rad] (N, n) of a recorder whose link encoder reads ``kw["skew"]``
-    [s] late and ``kw["offset"]`` [rad] low: the true link angle ``q1`` (N, n) at t - skew
-    (linear interpolation of the simulated samples, the exact delay, not the first-order
-    map the workflow fits), minus the offset, with its own white noise and quantisation
-    (``sensing``'s link encoder). The loop's controller still reads the unskewed encoder,
-    as on a rig where the link encoder is logged by a separate recorder (KUKA KR300)."""
-    skew, offset = float(np.ravel(kw["skew"])[0]), float(np.ravel(kw["offset"])[0])
-    late = np.stack([np.interp(t - skew, t, q1[:, j]) for j in range(q1.shape[1])], axis=1)
+def _recorded_link(t: np.ndarray, q1: np.ndarray, sensing: Sensing,
+                   effects: dict[str, dict[str, Any]], rng: np.random.Generator) -> np.ndarray:
+    """The link channel [rad] (N, n) of a recorder with the ``recording`` effects ``effects``
+    (name: keyword arguments, applied in order, ``AbstractEffect.recorded_link``) on the true
+    link angle ``q1`` (N, n) sampled at ``t`` [s], with its own white noise and quantisation
+    (``sensing``'s link encoder). The loop's controller still reads the true encoder, as on a
+    rig where the link encoder is logged by a separate recorder (KUKA KR300)."""
+    late = q1
+    for name, kw in effects.items():
+        late = EFFECTS[name].recorded_link(t, late, kw)
     noise = float(np.ravel(sensing.q1_noise)[0]) * rng.standard_normal(late.shape)
-    return np.asarray(sensing.measure(jnp.asarray(late - offset), sensing.q1_resolution,
+    return np.asarray(sensing.measure(jnp.asarray(late), sensing.q1_resolution,
                                       jnp.asarray(noise)))
 
 

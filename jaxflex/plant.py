@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.effects import AbstractEffect, applied_torque, effect_torque
+from jaxflex.effects import AbstractEffect, applied_torque, effect_torque, spring_state_torque
 from jaxflex.friction import LuGre
 from jaxflex.state import PlantState
 from jaxflex.validation import as_param, check_positive
@@ -187,9 +187,12 @@ class FlexibleJointPlant(eqx.Module):
         return self.friction.force(x.dq1, x.z)
 
     def spring_torque(self, x: PlantState) -> Float[Array, " n"]:
-        """Elastic joint torque K (q2 - q1) plus effects' spring terms [N m] (eq. 3)."""
+        """Elastic joint torque K (q2 - q1) plus effects' spring terms [N m] (eq. 3), those of
+        their internal states (a hysteresis) included."""
         d, dd = x.q2 - x.q1, x.dq2 - x.dq1
-        return self.K * d + effect_torque(self.effects, "spring_torque", d, dd)
+        Ts = self.K * d + effect_torque(self.effects, "spring_torque", d, dd)
+        extra = spring_state_torque(self.effects, x.aux, d, dd)
+        return Ts if extra is None else Ts + extra
 
     def applied_torque(self, x: PlantState, tau: Array) -> Float[Array, " n"]:
         """Motor torque reaching the rotor after input-path effects [N m]."""

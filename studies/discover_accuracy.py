@@ -2,8 +2,8 @@
 data, and how much does the named effect close the held-out gap?
 
 Generated cases (``jaxflex.datagen.generate_log``): each docs/spec.md section 8 effect hidden at
-moderate magnitude (``MODERATE``) in a closed-loop identification experiment with encoder
-quantisation, noise and a random nominal-parameter mismatch, plus clean cases (no effect).
+moderate magnitude (the class's ``moderate``) in a closed-loop identification experiment with
+encoder quantisation, noise and a random nominal-parameter mismatch, plus clean cases (no effect).
 Reports the confusion matrix (true effect -> first effect named, or none), accuracy on effect
 cases, false-positive rate on clean cases, and held-out gap before/after for named effects.
 With ``--grown`` the cases go beyond the workflow's own assumptions (issue 15): the experiment
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="comma-separated effects to hide (all candidates are still tried)")
     ap.add_argument("--seed", type=int, default=100)
     ap.add_argument("--scale", type=float, default=1.0,
-                    help="multiplies the hidden effects' magnitudes (MODERATE x scale; 0.5: "
+                    help="multiplies the hidden effects' magnitudes (moderate ranges x scale; 0.5: "
                          "nearer detectability)")
     ap.add_argument("--grown", action="store_true",
                     help="the generator beyond the workflow's assumptions: loops cycle through "

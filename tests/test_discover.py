@@ -790,3 +790,24 @@ def test_a_partial_explanation_is_not_the_answer():
     assert final_answer(added, ["motor_cogging", "cogging"], True, 0.3, 0.75) == "unexplained"
     assert final_answer([], [], True, 0.0, 0.75) == "unexplained"
     assert final_answer([], [], False, 0.0, 0.75) == "none"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,rivals,param,rel", [
+    ("actuator_dead_zone", ("torque_offset", "actuator_lag", "motor_friction"), "b", 0.05),
+    ("load_friction", ("motor_friction", "joint_damping", "torque_offset"), "mu", 0.05),
+    ("spring_hysteresis", ("backlash", "joint_damping", "hardening_spring"), "Th", 0.15),
+])
+def test_an_effect_of_real_joints_is_named_when_it_is_a_candidate(name, rivals, param, rel):
+    """The effects of real joints beyond the paper's model (``jaxflex.effects.extra``), not
+    tried by default, are named when given as candidates beside the effects they resemble
+    (a dead band beside an offset, a lag and a rotor friction; a load-dependent friction
+    beside a rotor friction; a hysteresis beside the other spring effects), on a log that
+    ``generate_log`` hides one in, with its parameter recovered and the gap at least halved."""
+    g = generate_log((name,), seed=3, t_final=8.0)
+    cfg = DiscoverConfig(candidates=(name, *rivals), max_effects=1)
+    rep = discover(g.log, config=cfg).to_json()
+    assert rep["effect"] == name, (rep["effect"], rep["tied"])
+    assert rep["effect_params"][name][param]["value"] == pytest.approx(
+        g.truth["effects"][name][param], rel=rel)
+    assert rep["gap_after"] <= 0.5 * rep["gap_before"]

@@ -17,7 +17,11 @@ from jaxflex.presets import paper_plant
 SPEC_NAMES = {
     "asymmetric_friction", "gravity", "cogging", "backlash", "hardening_spring",
     "joint_damping", "motor_friction", "actuator_lag", "torque_offset", "time_delay",
+    "load_friction", "spring_hysteresis", "actuator_dead_zone",
 }
+#: Effects of real joints beyond the paper's model (``jaxflex.effects.extra``), opt-in
+#: discovery candidates.
+EXTRA_NAMES = ("load_friction", "spring_hysteresis", "actuator_dead_zone")
 
 
 def test_all_spec_names_registered_with_metadata():
@@ -132,7 +136,8 @@ def test_gradient_reaches_effect_parameters():
     assert float(g) == pytest.approx(0.05**3 / 0.07, rel=1e-9)
 
 
-@pytest.mark.parametrize("name", sorted(n for n, e in EFFECTS.items() if e.candidate))
+@pytest.mark.parametrize("name", sorted(n for n, e in EFFECTS.items() if e.candidate)
+                         + list(EXTRA_NAMES))
 def test_gated_effect_equals_the_effect_or_nothing(name):
     """A gated effect (``Gated``: the discrepancy workflow's switch, a run-time branch when the
     gate is not batched) gives the plant's accelerations and link reading with the effect
@@ -301,3 +306,129 @@ def test_encoder_scale_maps_invert_and_a_rotor_fit_recovers_it():
         5e-4, rel=1e-6)
     sol0, p0 = fitted(["K"], 0.0)  # without the scale the same data give another K
     assert abs(p0["K"] / 4e6 - 1) > 0.05, p0
+
+
+def test_extra_effects_carry_their_discovery_metadata_and_are_opt_in():
+    """The three effects of real joints are registered with their fitting and discovery
+    metadata on the class, and tried by discover only when named (not ``candidate``)."""
+    from jaxflex.effects import acts_on_replay, candidate_effects
+    from jaxflex.fit import is_fitted
+
+    for name in EXTRA_NAMES:
+        cls = EFFECTS[name]
+        assert cls.name == name and cls.where and cls.telling
+        assert name not in candidate_effects() and acts_on_replay(name)
+        assert any(is_fitted(c) for c in cls.constraints.values())
+        kw = cls.draw(np.random.default_rng(0))
+        assert set(kw) <= set(cls.constraints) and set(cls.moderate) <= set(kw)
+        e = cls.typical(2)
+        assert all(np.shape(v) == (2,) for v in e.params().values())
+
+
+def test_load_friction_is_a_share_of_the_transmitted_torque_against_the_rotor_motion():
+    """rotor_torque = -mu |K (q2 - q1)| tanh(q2' / width): on the rotor only, proportional to
+    the spring torque's magnitude whatever its sign, opposing the rotor's motion, zero with
+    the spring unloaded."""
+    e = EFFECTS["load_friction"](mu=0.08, K=6.77, width=0.01)
+    for d, v in ((0.05, 2.0), (-0.05, 2.0), (0.02, -1.0), (0.0, 1.0)):
+        dl, dr = _acc(e, q1=0.1, q2=0.1 + d, dq1=0.0, dq2=v)
+        assert dl == 0.0
+        assert dr == pytest.approx(-0.08 * abs(6.77 * d) * math.tanh(v / 0.01), rel=1e-9,
+                                   abs=1e-15)
+    assert _acc(e, q1=0.1, q2=0.15, dq2=2.0)[1] < 0 < _acc(e, q1=0.1, q2=0.15, dq2=-2.0)[1]
+    with pytest.raises(ValueError, match="mu"):
+        EFFECTS["load_friction"](mu=-0.1, K=6.77)
+
+
+def _dahl_path(e, d):
+    """The hysteresis state z [N m] along a deflection path ``d`` (T,) [rad] at 1 ms steps
+    (RK4 of ``aux_rhs`` with the rate of the path's linear pieces)."""
+    from jaxflex.state import PlantState
+
+    h = 1e-3
+
+    def step(z, seg):
+        d0, d1 = seg
+        rate = (d1 - d0) / h
+        x = PlantState(q1=jnp.zeros(1), dq1=jnp.zeros(1), q2=d0 * jnp.ones(1),
+                       dq2=rate * jnp.ones(1), z=jnp.zeros(1))
+        f = lambda zz: e.aux_rhs(zz, jnp.zeros(1), x)
+        k1 = f(z)
+        k2 = f(z + 0.5 * h * k1)
+        k3 = f(z + 0.5 * h * k2)
+        k4 = f(z + h * k3)
+        z = z + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return z, z[0]
+
+    _, zs = jax.lax.scan(step, e.aux_init(1), (d[:-1], d[1:]))
+    return np.concatenate([[0.0], np.asarray(zs)])
+
+
+def test_spring_hysteresis_traces_a_dahl_loop_on_both_sides_of_the_spring():
+    """Dahl's model on the deflection: z stays within +-Th, saturates at Th while the
+    deflection grows, leaves a reversal from there with slope 2 Kh, and a deflection cycle dissipates
+    (loop area > 0); the torque z acts in the spring (both sides, opposite signs)."""
+    e = EFFECTS["spring_hysteresis"](Kh=3.0, Th=0.04)
+    up = np.linspace(0.0, 0.1, 1001)
+    d = np.concatenate([up, up[::-1][1:], -up[1:], -up[::-1][1:]])  # 0 -> 0.1 -> -0.1 -> 0
+    z = _dahl_path(e, d)
+    assert np.all(np.abs(z) <= 0.04 + 1e-12)
+    assert z[1000] == pytest.approx(0.04, rel=1e-3)  # saturated at the top of the sweep
+    # leaving the reversal from saturation at the slope Kh (1 + z / Th) = 2 Kh
+    assert (z[1000] - z[1001]) / (d[1000] - d[1001]) == pytest.approx(6.0, rel=0.01)
+    up_branch, down_branch = z[500], z[1500]  # the same deflection 0.05 rad, both ways
+    assert up_branch > down_branch + 0.05  # a loop, not a curve
+    area = float(np.sum(0.5 * (z[1:] + z[:-1]) * np.diff(d)))
+    assert area > 0.0
+    x = paper_plant().with_effects(e).init_state(q1=0.0, q2=0.01)
+    x = dataclasses.replace(x, aux=(jnp.array([0.03]),))
+    a1, a2 = paper_plant().with_effects(e).accelerations(x, jnp.zeros(1))
+    b1, b2 = paper_plant().accelerations(paper_plant().init_state(q1=0.0, q2=0.01), jnp.zeros(1))
+    assert float((a1 - b1)[0]) * 0.07 == pytest.approx(0.03)
+    assert float((a2 - b2)[0]) * 0.005 == pytest.approx(-0.03)
+
+
+def test_actuator_dead_zone_removes_a_band_of_the_commanded_torque():
+    """tau_a ~ sign(u) max(|u| - b, 0), odd and monotone, within the corner width of it."""
+    e = EFFECTS["actuator_dead_zone"](b=0.1, w=1e-3)
+    u = jnp.array([-0.5, -0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.5])
+    want = np.sign(np.asarray(u)) * np.maximum(np.abs(np.asarray(u)) - 0.1, 0.0)
+    got = np.asarray(e.applied_torque(u, None))
+    np.testing.assert_allclose(got, want, atol=1e-3)
+    np.testing.assert_allclose(got, -got[::-1], atol=1e-15)
+    assert np.all(np.diff(got) >= 0) and got[4] == 0.0
+    assert got[-1] == pytest.approx(0.4, abs=1e-12)
+    dl, dr = _acc(e)  # the default test torque 0.3 N m: 0.2 N m reaches the rotor
+    assert dl == 0.0 and dr == pytest.approx(-0.1, rel=1e-6)
+
+
+@pytest.mark.parametrize("name", EXTRA_NAMES)
+def test_a_plant_with_an_extra_effect_simulates_and_its_gradient_is_finite(name):
+    """A 1 s replay of the plant with the effect under a torque multisine (RK4, 1 ms, 4
+    substeps) stays finite and differs from the plant without it, and the gradient of its
+    link motion with respect to every fitted parameter is finite and not zero (also through
+    the smoothed kinks: a reversal of the rotor, the deflection or the torque)."""
+    from jaxflex.fit import is_fitted
+    from jaxflex.step import replay
+
+    cls = EFFECTS[name]
+    eff = cls(**{k: np.asarray(v, float) for k, v in cls.draw(np.random.default_rng(1)).items()
+                 if v is not None} | ({"K": 6.77} if "K" in cls.constraints else {}))
+    t = np.arange(1000) * 1e-3
+    tau = jnp.asarray(0.4 * np.sin(2 * np.pi * 1.5 * t) + 0.2 * np.sin(2 * np.pi * 4.0 * t)
+                      ).reshape(-1, 1)
+
+    def motion(e):
+        plant = paper_plant().with_effects(e) if e is not None else paper_plant()
+        x0 = plant.init_state(q1=0.0, q2=0.0)
+        xs, _ = replay("flexible", plant, x0, tau, 1e-3, 4)
+        return xs.q1[:, 0]
+
+    q_with, q_without = np.asarray(motion(eff)), np.asarray(motion(None))
+    assert np.all(np.isfinite(q_with))
+    assert np.max(np.abs(q_with - q_without)) > 1e-4
+    fitted = [k for k, c in cls.constraints.items() if is_fitted(c)]
+    for k in fitted:
+        g = jax.grad(lambda v: jnp.sum(motion(dataclasses.replace(eff, **{k: v})) ** 2))(
+            getattr(eff, k))
+        assert np.all(np.isfinite(np.asarray(g))) and float(jnp.abs(g).max()) > 0, (k, g)

@@ -101,7 +101,6 @@ from jaxflex.discover.candidates import (
     fitted_names,
     Model,
     NOMINAL_FIT,
-    STEP_BOUNDED,
     STEP_FLOOR,
     typical_effect,
     within_capacity,
@@ -187,7 +186,6 @@ from jaxflex.discover.result import (
     effect_ties,
     explained_fraction,
     final_answer,
-    TELLING,
     unexplained_limit,
 )
 from jaxflex.discover.workflow import (
@@ -210,7 +208,7 @@ __all__ = [
     "revisit_tie", "RIGID_MODE_STEP", "score", "screen", "screened_out", "segment_errors",
     "select", "settle", "settle_side_by_side", "shortlist", "SolverFailure", "spring_mode",
     "STABLE_MODE_STEP", "STALL", "STALL_WINDOW", "start_effect", "start_residuals",
-    "STEP_BOUNDED", "STEP_FLOOR", "TELLING", "tie_by_output", "tied", "trace_fit",
+    "STEP_FLOOR", "tie_by_output", "tied", "trace_fit",
     "training_evidence", "typical_effect", "unexplained_limit", "unresolved", "welch",
     "with_held_out", "within_capacity", "without_effect", "Workspace", "workspace",
 ]

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.effects import AbstractEffect, EFFECTS, Gated
+from jaxflex.effects import STEP_FLOOR, AbstractEffect, EFFECTS, Gated
 from jaxflex.fit import ParamSpace, Problem, is_fitted, make_segments, on_slot_rows, savgol
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -135,7 +135,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     effs = [Gated(typical_effect(n, h), to_device(0.0)) for n in universe]
     base = nominal.to_plant(with_effects=False).with_effects(*effs)
     space = ParamSpace.build(base, NOMINAL_FIT + tuple(k for n in universe for k in fitted_names(n)))
-    for k in STEP_BOUNDED:
+    for k in (f"{n}.{p}" for n in universe for p in EFFECTS[n].step_bounded):
         if k in space.names:  # time constants the replay's step keeps stable (STEP_FLOOR)
             space = space.with_lower_bound(k, STEP_FLOOR * h)
     top = float(np.max(np.abs(np.asarray(log.tau))))
@@ -277,21 +277,7 @@ def _within_capacity(x0s: jax.Array, plant: FlexibleJointPlant, bound: float) ->
     return x0s.at[:, 4].set(jnp.clip(x0s[:, 4], -cap, cap))
 
 
-#: Time constants [s] whose lower bound scales with the replay's integration step h = dt /
-#: substeps: T >= STEP_FLOOR h. RK4 keeps the delay's Pade poles (-3 +- j sqrt(3)) / T stable
-#: for T > 1.22 h and the lag's -1 / T for T > 0.36 h. The classes' own bound, 1.5 ms, is
-#: this at 1 ms samples; at the KUKA KR300's 4 ms the delay's typical start (3 ms) replayed
-#: unstably and every screen of it read a blown residual (predicted dAIC +61194 on axis 2 B).
-STEP_BOUNDED: tuple[str, ...] = ("actuator_lag.T", "time_delay.T")
-STEP_FLOOR: float = 1.5
-
-
 def typical_effect(name: str, h: float) -> AbstractEffect:
-    """``EFFECTS[name].typical(1)``, a time constant in ``STEP_BOUNDED`` at twice its bound at
-    the integration step ``h`` [s] (a start on the bound has a dead coordinate; a start far
-    above a short delay does not reach it in a screen's few steps): 3 ms at 1 ms samples
-    (the classes' own start), 12 ms at 4 ms, 1.5 ms at 1 ms with 2 substeps."""
-    e = EFFECTS[name].typical(1)
-    if f"{name}.T" in STEP_BOUNDED:
-        e = type(e)(T=np.full_like(np.asarray(e.T), 2.0 * STEP_FLOOR * h))
-    return e
+    """``EFFECTS[name].typical_at_step(1, h)``: the effect's typical one-joint start with its
+    step-bounded time constants at twice their bound at the integration step ``h`` [s]."""
+    return EFFECTS[name].typical_at_step(1, h)

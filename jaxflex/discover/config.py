@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from jaxflex.effects import EFFECTS
 from jaxflex.logs import Log
 from jaxflex.params import Params
 
@@ -32,12 +33,10 @@ STABLE_MODE_STEP: float = 0.9 * 2.0 * math.sqrt(2.0)
 
 
 #: What a parameter file may declare of its axis (top-level ``axis``: one value, or one per
-#: joint; docs/spec.md section 7) and the candidate effects that then cannot act: about a
-#: vertical rotation axis gravity has no moment, and on a prismatic axis no angle for its
-#: sine (a weight along an inclined prismatic axis is a constant force: ``torque_offset``).
-AXES: dict[str, tuple[str, ...]] = {
-    "horizontal": (), "vertical": ("gravity",), "prismatic": ("gravity",),
-}
+#: joint; docs/spec.md section 7). The effects that then cannot act say so themselves
+#: (``AbstractEffect.cannot_act_on``): about a vertical rotation axis gravity has no moment,
+#: and on a prismatic axis no angle for its sine.
+AXES: tuple[str, ...] = ("horizontal", "vertical", "prismatic")
 
 
 def declared_axes(params: Params) -> list[str] | None:
@@ -70,14 +69,14 @@ def declared_axes(params: Params) -> list[str] | None:
 
 
 def cannot_act(params: Params) -> dict[str, str]:
-    """The candidate effects that cannot act on a one-joint ``params``'s axis as it declares
-    it (``declared_axes``, ``AXES``), each with the reason in words; empty when it declares
-    nothing."""
+    """The effects that cannot act on a one-joint ``params``'s axis as it declares it
+    (``declared_axes``; each effect's ``cannot_act_on``), each with the reason in words;
+    empty when it declares nothing."""
     axes = declared_axes(params)
     if not axes:
         return {}
     return {name: f"the parameter file declares the axis {axes[0]!r}: {name} cannot act"
-            for name in AXES[axes[0]]}
+            for name, cls in EFFECTS.items() if axes[0] in cls.cannot_act_on}
 
 
 class SolverFailure(RuntimeError):

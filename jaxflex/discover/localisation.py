@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.discover.candidates import Model, typical_effect
+from jaxflex.discover.candidates import Model
 from jaxflex.effects import AbstractEffect, EFFECTS
 from jaxflex.fit import noise_level, on_slot_rows, savgol, savgol_coeffs
 from jaxflex.logs import Log
@@ -149,7 +149,7 @@ def _cleared(series: dict[str, np.ndarray], rotor: bool, vs: float | None,
              angle: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The angle [rad], the torque residual [N m] cleared of what a refit of the nominal model
     absorbs anyway, and the orthonormal basis Q of what was cleared, for a linear start
-    (``_cogging_start``, ``_gravity_start``): the link's (q1, r_link) or the rotor's (q2,
+    (``_ResidualStart.ripple_fits``): the link's (q1, r_link) or the rotor's (q2,
     r_rotor). Cleared: the velocity, a Coulomb term, the deflection, the acceleration, given
     the model's ``vs`` [rad/s] the Stribeck term, a constant and, with ``angle``, the angle (a
     ripple is not a trend; a gravity is nearly one over a small travel). The link's residual
@@ -173,65 +173,55 @@ def _cleared(series: dict[str, np.ndarray], rotor: bool, vs: float | None,
     return q, r - Q @ (Q.T @ r), Q
 
 
+class _ResidualStart:
+    """The ``jaxflex.effects.ResidualStart`` of one model in one round: its localisation's
+    residual ``series``, the Stribeck velocity ``vs`` [rad/s] of its friction (None: no
+    Stribeck column), its ``params`` and the replay's step ``h`` [s]; each side's cleared
+    residual is computed once."""
+
+    def __init__(self, series: dict[str, np.ndarray], vs: float | None,
+                 params: Params | None = None, h: float = float("nan")) -> None:
+        self._series, self._vs, self._params, self._h = series, vs, params, h
+        self._cache: dict[tuple[str, bool], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    @property
+    def h(self) -> float:
+        return self._h
+
+    def nominal(self, name: str) -> np.ndarray:
+        if self._params is None:
+            raise ValueError(f"no nominal parameters to read {name!r} from")
+        sec = self._params.plant if name in self._params.plant else self._params.friction
+        return np.asarray(sec[name], float)
+
+    def _side(self, side: str, trend: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if side not in ("link", "rotor"):
+            raise ValueError(f"side must be 'link' or 'rotor', got {side!r}")
+        if (side, trend) not in self._cache:
+            self._cache[side, trend] = _cleared(self._series, side == "rotor", self._vs,
+                                                angle=trend)
+        return self._cache[side, trend]
+
+    def angle(self, side: str) -> np.ndarray:
+        return self._side(side, True)[0]
+
+    def ripple_fits(self, side: str, grid: np.ndarray, step: float,
+                    trend: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q, r, Q = self._side(side, trend)
+        return _grid_fits(q, r, Q, grid, step)
+
+
 def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
-                   min_periods: float = 2.0, vs: float | None = None) -> AbstractEffect:
-    """Cogging start: the spatial frequency N [1/rad] and phase that best explain the link
-    residual against q1 ("cogging") or the rotor residual against q2 ("motor_cogging") by
-    linear least squares over a grid (gradient cannot find a frequency), a coarse one, then a
-    fine one about its best. The residual is first cleared (``_cleared``) of what a refit of
-    the nominal model absorbs anyway, the Stribeck term at the model's ``vs`` included, and
-    the grid starts at ``min_periods`` periods over the angle's travel: a slower "ripple" is a
-    smooth trend, not cogging (with a nominal model a little off, the raw residual's best
-    fit is half a period over the travel; cleared, the true ripple). The Stribeck term,
-    since a nominal refit can raise Fs to absorb a ripple, after which the residual peaks
-    at other frequencies than the ripple's."""
-    rotor = name == "motor_cogging"
-    q, r, Q = _cleared(series, rotor, vs)
-    lowest = max(5.0, 2.0 * math.pi * min_periods / max(float(np.ptp(q)), 1e-9))
-    coarse = np.arange(lowest, 400.0 if rotor else 80.0, 0.5)
-    # an angle that travels less than min_periods periods of the finest ripple searched (a
-    # link hanging under gravity in a MuJoCo rig's open-loop log: 0.1 rad) has no grid to
-    # search; a grid that explains nothing has no ripple: the typical start either way
-    if not coarse.size:
-        return EFFECTS[name].typical(1)
-    expl, a_s, a_c = _grid_fits(q, r, Q, coarse, 0.5)
-    j = int(np.argmax(expl))
-    if not expl[j] > 0:
-        return EFFECTS[name].typical(1)
-    N, s_, c_ = float(coarse[j]), a_s[j], a_c[j]
-    fine = N + np.arange(-0.5, 0.51, 0.02)
-    e, fs, fc = _grid_fits(q, r, Q, fine, 0.02)
-    k = int(np.argmax(e))
-    if e[k] > expl[j]:
-        N, s_, c_ = float(fine[k]), fs[k], fc[k]
-    A, phi = max(math.hypot(s_, c_), 1e-3), math.atan2(c_, s_)
-    # the residual equals the missing torque A sin(N q + phi); both residuals carry it with
-    # its own sign (torque_residuals)
-    return EFFECTS[name](A=np.full(1, A), N=np.full(1, N), phi=np.full(1, phi))
+                   vs: float | None = None) -> AbstractEffect:
+    """The start ``Cogging`` ("cogging") or ``MotorCogging`` ("motor_cogging") draws from a
+    localisation's ``series`` with the model's Stribeck velocity ``vs`` [rad/s]."""
+    return EFFECTS[name].start_from_residual(_ResidualStart(series, vs))
 
 
 def _gravity_start(series: dict[str, np.ndarray], vs: float | None = None) -> AbstractEffect:
-    """Gravity start: -mgl sin(q1 - q0) = mgl sin(q1 + pi - q0) is a link ripple of N = 1, so
-    mgl [N m] and q0 [rad] from the linear least-squares fit of a sine and a cosine of q1 to
-    the link residual, cleared (``_cleared``) of all but the angle: from how the missing torque
-    varies with the angle, not from its mean. The typical start (mgl = 0.05 N m hanging at 0)
-    where the fit explains nothing or puts the hanging angle farther from the travel's middle
-    than the travel is wide: over the travel such a sine is a constant-like torque, which an
-    asymmetric friction on a link that is always moving also is, and a gravity started far
-    from the travel can beat the asymmetric friction it mimics. From the typical start alone,
-    a gravity that the nominal refit held with its bristles (a raised Fs) stops far short of
-    its magnitude and the log is answered "unexplained"."""
-    q, r, Q = _cleared(series, False, vs, angle=False)
-    e, a_s, a_c = _grid_fits(q, r, Q, np.ones(1), 0.0)
-    if not e[0] > 0:
-        return EFFECTS["gravity"].typical(1)
-    q0 = math.remainder(math.pi - math.atan2(a_c[0], a_s[0]), 2.0 * math.pi)
-    if abs(q0 - float(np.median(q))) > float(np.ptp(q)):
-        # hanging far outside the travel: over it, the sine is a constant-like torque that the
-        # residual's variation cannot tell from an asymmetric friction or an offset
-        return EFFECTS["gravity"].typical(1)
-    return EFFECTS["gravity"](mgl=np.full(1, max(math.hypot(a_s[0], a_c[0]), 1e-3)),
-                              q0=np.full(1, q0))
+    """The start ``Gravity`` draws from a localisation's ``series`` with the model's Stribeck
+    velocity ``vs`` [rad/s]."""
+    return EFFECTS["gravity"].start_from_residual(_ResidualStart(series, vs))
 
 
 def _grid_fits(q: np.ndarray, r: np.ndarray, Q: np.ndarray, grid: np.ndarray,
@@ -272,18 +262,9 @@ def _grid_fits(q: np.ndarray, r: np.ndarray, Q: np.ndarray, grid: np.ndarray,
 
 
 def start_effect(name: str, model: Model, series: dict[str, np.ndarray],
-                  h: float) -> AbstractEffect:
-    """First guess of candidate ``name`` added to ``model``: a cogging from the residual's
-    spectrum (``_cogging_start``, with the Stribeck term at the model's vs), a gravity from a
-    sine and a cosine of the link angle (``_gravity_start``), else the typical
-    instance at the integration step ``h`` [s] (``typical_effect``; a backlash with the
-    model's stiffness)."""
+                 h: float) -> AbstractEffect:
+    """First guess of candidate ``name`` added to ``model``: the effect class's own
+    (``AbstractEffect.start_from_residual``) from the model's residual ``series``, its
+    Stribeck velocity and the integration step ``h`` [s]."""
     vs = float(np.ravel(model.params.friction["vs"])[0])
-    if name in ("cogging", "motor_cogging"):
-        return _cogging_start(series, name, vs=vs)
-    if name == "gravity":
-        return _gravity_start(series, vs=vs)
-    e = typical_effect(name, h)
-    if name == "backlash":
-        e = EFFECTS[name](b=e.b, K=model.params.plant["K"], w=e.w)
-    return e
+    return EFFECTS[name].start_from_residual(_ResidualStart(series, vs, model.params, h))

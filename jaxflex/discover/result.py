@@ -14,17 +14,8 @@ from jaxflex.discover.candidates import CandidateFit, Workspace
 from jaxflex.discover.config import DiscoverConfig
 from jaxflex.discover.fitting import held_out_traces
 from jaxflex.discover.localisation import Localisation
+from jaxflex.effects import EFFECTS
 from jaxflex.params import Params
-
-
-#: The quantity against which each effect's residual signature is most telling.
-TELLING: dict[str, str] = {
-    "asymmetric_friction": "link velocity", "gravity": "position", "cogging": "position",
-    "motor_cogging": "rotor position",
-    "backlash": "deflection", "hardening_spring": "deflection",
-    "joint_damping": "deflection rate", "motor_friction": "rotor velocity",
-    "actuator_lag": "frequency", "torque_offset": "time", "time_delay": "frequency",
-}
 
 
 @dataclasses.dataclass
@@ -181,7 +172,8 @@ class DiscoverResult:
             "rounds": self.rounds, "candidate_scores": self.candidate_scores,
             "localisation": self.localisation.summary,
             "localisation_final": self.localisation_after.summary,
-            "telling_quantity": TELLING.get(self.effect) if self.effects else None,
+            "telling_quantity": (EFFECTS[self.effect].telling
+                                 if self.effects and self.effect in EFFECTS else None),
             "config": dataclasses.asdict(self.config) | {"candidates": self.candidates},
             "log": self.log_info, "seconds": self.seconds,
             "residual_analysis": self.residuals, "not_tried": dict(self.not_tried or {}),

@@ -5,6 +5,7 @@ An effect says where it acts by overriding one or more hooks; the defaults do no
 - ``link_torque(x)``   torque added to the right-hand side of the link equation [N m]
 - ``rotor_torque(x)``  torque added to the right-hand side of the rotor equation [N m]
 - ``spring_torque(d, dd)`` extra elastic torque added to K (q2 - q1) (acts on both sides) [N m]
+- ``spring_state_torque(aux, d, dd)`` the same from the effect's internal state (a hysteresis)
 - ``applied_torque(tau, aux)`` maps the commanded motor torque to the applied one [N m]
 - ``aux_init(n)``, ``aux_rhs(aux, tau, x)``  internal states (e.g. an actuator lag), if any
 - ``link_measured(q1, dq1)`` the link encoder's reading of the link motion [rad] (a sensor
@@ -15,7 +16,7 @@ Plant equations with effects (docs/spec.md section 1 plus effects):
 
     M q1'' + C q1' + G + F = T_s + sum link_torque
     J q2''                 = tau_a - T_s + sum rotor_torque
-    T_s = K (q2 - q1) + sum spring_torque,  tau_a = applied_torque(tau)
+    T_s = K (q2 - q1) + sum spring_torque + sum spring_state_torque,  tau_a = applied_torque(tau)
 
 Fitting metadata: each concrete effect lists in ``constraints`` how the discrepancy workflow
 reparametrises each parameter ("positive": exp, "positive>=m": m + exp (keeps a fixed-step
@@ -23,18 +24,28 @@ integrator stable), "free": identity, "fixed": not fitted, e.g. a smoothing widt
 structural frequency, "tied:K": copied from the plant's K), and ``typical(n)`` gives a small instance to start a
 fit from. ``Params.to_plant`` rebuilds an effect as ``EFFECTS[name](**params)``.
 
-Modules: ``base`` (``AbstractEffect`` and the registry), ``library`` (the named effects),
-``compose`` (the hooks summed over a plant's effects, ``Gated``).
+Discovery and synthetic-log metadata live on the class too, so that a new effect needs only
+its class: ``telling`` (the quantity its residual signature shows against), ``step_bounded``
+(time constants bounded by a replay's step), ``cannot_act_on`` (declared axes it cannot act
+on), ``start_from_residual`` (discovery's first guess), and ``moderate`` / ``signed`` /
+``draw`` / ``recording`` (how ``jaxflex.datagen`` hides it in a synthetic log).
+
+Modules: ``base`` (``AbstractEffect``, ``ResidualStart`` and the registry), ``library`` (the
+paper's named effects), ``extra`` (effects of real joints beyond the paper's model, opt-in
+discovery candidates), ``compose`` (the hooks summed over a plant's effects, ``Gated``).
 
 Concrete effects register themselves by their docs/spec.md section 8 name in ``EFFECTS``; the
-discrepancy workflow looks them up there. Every effect's parameters are array leaves so that
-``grad`` reaches them.
+discrepancy workflow looks them up there (importing this package registers those of
+``library`` and ``extra``). Every effect's parameters are array leaves so that ``grad``
+reaches them.
 """
 
 
 from jaxflex.effects.base import (
     AbstractEffect,
     EFFECTS,
+    ResidualStart,
+    STEP_FLOOR,
     candidate_effects,
     register_effect,
 )
@@ -53,6 +64,11 @@ from jaxflex.effects.library import (
     TimeDelay,
     TorqueOffset,
 )
+from jaxflex.effects.extra import (
+    ActuatorDeadZone,
+    LoadFriction,
+    SpringHysteresis,
+)
 from jaxflex.effects.compose import (
     Gated,
     REPLAY_HOOKS,
@@ -61,12 +77,14 @@ from jaxflex.effects.compose import (
     effect_torque,
     link_input,
     link_measurement,
+    spring_state_torque,
     state_in_use,
     unwrap,
 )
 
 __all__ = [
     "AbstractEffect",
+    "ActuatorDeadZone",
     "ActuatorLag",
     "AsymmetricFriction",
     "Backlash",
@@ -78,9 +96,13 @@ __all__ = [
     "Gravity",
     "HardeningSpring",
     "JointDamping",
+    "LoadFriction",
     "MotorCogging",
     "MotorFriction",
     "REPLAY_HOOKS",
+    "ResidualStart",
+    "SpringHysteresis",
+    "STEP_FLOOR",
     "TimeDelay",
     "TorqueOffset",
     "acts_on_replay",
@@ -90,6 +112,7 @@ __all__ = [
     "link_input",
     "link_measurement",
     "register_effect",
+    "spring_state_torque",
     "state_in_use",
     "unwrap",
 ]

@@ -1,9 +1,11 @@
-"""The interface of an effect (``AbstractEffect``: its hooks, constraints and typical
-values) and the registry of effects by name (``EFFECTS``, ``register_effect``)."""
+"""The interface of an effect (``AbstractEffect``: its hooks, constraints, typical values and
+its discovery and synthetic-log metadata), what discovery offers it for a first guess
+(``ResidualStart``) and the registry of effects by name (``EFFECTS``, ``register_effect``)."""
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+import dataclasses
+from typing import Any, ClassVar, Literal, Protocol
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -13,6 +15,41 @@ from jaxtyping import Array, Float
 from jaxflex.state import PlantState
 
 EFFECTS: dict[str, type[AbstractEffect]] = {}
+
+#: The lower bound of a step-bounded time constant (``AbstractEffect.step_bounded``) as a
+#: multiple of a replay's integration step h = dt / substeps: T >= STEP_FLOOR h. RK4 keeps the
+#: delay's Pade poles (-3 +- j sqrt(3)) / T stable for T > 1.22 h and the lag's pole -1 / T
+#: for T > 0.36 h; the classes' own bound, 1.5 ms, is this at 1 ms samples.
+STEP_FLOOR: float = 1.5
+
+
+class ResidualStart(Protocol):
+    """What a discovery run offers an effect class for its first guess
+    (``AbstractEffect.start_from_residual``): the replay's step, the model's nominal values
+    and linear least-squares fits of a position ripple to the inverse-dynamics torque residual
+    of the model the effect is added to (``jaxflex.discover.localisation`` implements it)."""
+
+    @property
+    def h(self) -> float:
+        """The replay's integration step [s] (dt / substeps)."""
+        ...
+
+    def nominal(self, name: str) -> np.ndarray:
+        """The model's nominal plant or friction parameter ``name`` (e.g. ``"K"``), per joint."""
+        ...
+
+    def angle(self, side: Literal["link", "rotor"]) -> np.ndarray:
+        """The angle samples [rad] the ripple fits use: q1 for ``"link"``, q2 for ``"rotor"``."""
+        ...
+
+    def ripple_fits(self, side: Literal["link", "rotor"], grid: np.ndarray, step: float,
+                    trend: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For every spatial frequency N [1/rad] of the evenly spaced ``grid`` (spacing
+        ``step``), the least-squares fit r ~ a_s sin(N q) + a_c cos(N q) of the ``side``'s
+        torque residual r [N m] against its angle q, both cleared of what a refit of the
+        nominal model absorbs anyway (with ``trend``, a term linear in q too): the explained
+        sum of squares (-1 where the fit cannot be solved), a_s and a_c [N m]."""
+        ...
 
 
 def candidate_effects() -> list[str]:
@@ -39,11 +76,77 @@ class AbstractEffect(eqx.Module):
     constraints: ClassVar[dict[str, str]] = {}
     #: Whether the discrepancy workflow tries it by default.
     candidate: ClassVar[bool] = True
+    #: The quantity against which its residual signature is most telling (discover's report,
+    #: ``telling_quantity``); None where none stands out.
+    telling: ClassVar[str | None] = None
+    #: Time constants [s] whose lower bound scales with a replay's integration step h:
+    #: T >= ``STEP_FLOOR`` h (discover's workspace bounds them so; ``typical_at_step``).
+    step_bounded: ClassVar[tuple[str, ...]] = ()
+    #: Axis kinds a parameter file may declare (its ``axis``) on which the effect cannot act;
+    #: discover does not try it there.
+    cannot_act_on: ClassVar[tuple[str, ...]] = ()
+    #: Ranges (low, high) of the moderate magnitudes a synthetic log draws (``draw``,
+    #: ``jaxflex.datagen``); None: the generator cannot hide this effect.
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = None
+    #: Parameters of ``moderate`` drawn with a random sign.
+    signed: ClassVar[tuple[str, ...]] = ()
+    #: An effect of the logging, not of the plant: a synthetic log applies it to its recorded
+    #: link channel (``recorded_link``) and never simulates it.
+    recording: ClassVar[bool] = False
 
     @classmethod
     def typical(cls, n: int) -> AbstractEffect:
         """A small instance to start a fit from (all parameters within their constraints)."""
         raise NotImplementedError(f"effect {cls.name!r} has no typical() start")
+
+    @classmethod
+    def typical_at_step(cls, n: int, h: float) -> AbstractEffect:
+        """``typical(n)`` with each ``step_bounded`` time constant at twice its bound at the
+        integration step ``h`` [s], 2 ``STEP_FLOOR`` h (a start on the bound has a dead
+        coordinate; a start far above a short delay does not reach it in a screen's few
+        steps): 3 ms at 1 ms samples, 12 ms at 4 ms."""
+        e = cls.typical(n)
+        if not cls.step_bounded:
+            return e
+        return dataclasses.replace(e, **{  # type: ignore[type-var]
+            p: np.full_like(np.asarray(getattr(e, p)), 2.0 * STEP_FLOOR * h)
+            for p in cls.step_bounded})
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> AbstractEffect:
+        """Discovery's first guess of this effect (one joint) added to a model, from that
+        model's torque residual (``ResidualStart``). By default ``typical_at_step(1, h)`` with
+        each ``tied:X`` parameter at the model's nominal X (a backlash on the model's own
+        spring); an effect whose parameters a residual shows directly overrides it."""
+        e = cls.typical_at_step(1, data.h)
+        tied = {p: data.nominal(c.removeprefix("tied:")) for p, c in cls.constraints.items()
+                if c.startswith("tied:")}
+        return dataclasses.replace(e, **tied) if tied else e  # type: ignore[type-var]
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """Keyword arguments of a moderate instance for a synthetic log: each ``moderate``
+        parameter uniform in its range times ``scale`` (with a random sign if ``signed``), each
+        ``tied:X`` parameter None (the generator sets it from the true plant).
+
+        **Raises:** ``ValueError`` for an effect without ``moderate`` ranges."""
+        if cls.moderate is None:
+            raise ValueError(f"effect {cls.name!r} has no moderate magnitudes to draw")
+        kw: dict[str, Any] = {}
+        for p, (lo, hi) in cls.moderate.items():
+            v = scale * rng.uniform(lo, hi)
+            if p in cls.signed:
+                v *= rng.choice([-1.0, 1.0])
+            kw[p] = v
+        kw.update({p: None for p, c in cls.constraints.items() if c.startswith("tied:")})
+        return kw
+
+    @classmethod
+    def recorded_link(cls, t: np.ndarray, q1: np.ndarray, kw: dict[str, Any]) -> np.ndarray:
+        """A ``recording`` effect's link channel [rad] (N, n): what the recorder reads of the
+        true link angle ``q1`` (N, n) sampled at ``t`` [s] (N,), with the effect's parameters
+        ``kw``, before the encoder's noise and quantisation."""
+        raise NotImplementedError(f"effect {cls.name!r} is not an effect of the recording")
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"] | float:
         """Torque added to the link equation's right-hand side [N m]."""
@@ -55,6 +158,12 @@ class AbstractEffect(eqx.Module):
 
     def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"] | float:
         """Extra elastic torque [N m] given deflection d = q2 - q1 [rad] and its rate dd."""
+        return 0.0
+
+    def spring_state_torque(self, aux: Any, d: Array, dd: Array) -> Float[Array, " n"] | float:
+        """Extra elastic torque [N m] from the effect's internal state ``aux`` (a hysteresis in
+        the spring) at deflection d = q2 - q1 [rad] and its rate dd [rad/s]; acts on both
+        sides like ``spring_torque``."""
         return 0.0
 
     def applied_torque(self, tau: Array, aux: Any) -> Float[Array, " n"]:

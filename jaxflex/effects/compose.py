@@ -1,7 +1,7 @@
 """How a plant composes its effects: every hook summed over the effects that define it
-(``effect_torque``, ``applied_torque``, ``link_input``, ``link_measurement``), effects behind a
-run-time gate (``Gated``) so that candidates share one program, and which hooks change a
-replay (``REPLAY_HOOKS``, ``acts_on_replay``)."""
+(``effect_torque``, ``spring_state_torque``, ``applied_torque``, ``link_input``,
+``link_measurement``), effects behind a run-time gate (``Gated``) so that candidates share one
+program, and which hooks change a replay (``REPLAY_HOOKS``, ``acts_on_replay``)."""
 
 from __future__ import annotations
 
@@ -60,6 +60,9 @@ class Gated(AbstractEffect):
     def spring_torque(self, d: Array, dd: Array):
         return self._gated("spring_torque", d, dd)
 
+    def spring_state_torque(self, aux: Any, d: Array, dd: Array):
+        return self._gated("spring_state_torque", aux, d, dd)
+
     def applied_torque(self, tau: Array, aux: Any):
         return self._switched(lambda: tau + self.gate * (self.inner.applied_torque(tau, aux) - tau),
                               lambda: jnp.asarray(tau))
@@ -111,7 +114,8 @@ def _overrides(effect: AbstractEffect, hook: str) -> bool:
 #: that ``jaxflex.discover`` fits): the motion, or the link encoder's reading of it
 #: (``link_measured``); ``link_reading`` is not one (a sensor map of a measured *input*).
 REPLAY_HOOKS: tuple[str, ...] = ("link_torque", "rotor_torque", "spring_torque",
-                                 "applied_torque", "aux_rhs", "link_measured")
+                                 "spring_state_torque", "applied_torque", "aux_rhs",
+                                 "link_measured")
 
 
 def acts_on_replay(name: str) -> bool:
@@ -174,6 +178,18 @@ def effect_torque(effects: Sequence[AbstractEffect], hook: str, *args: Any) -> A
 
     out = jax.eval_shape(on)
     return jax.lax.cond(_any_on(gated), on, lambda: jnp.zeros(out.shape, out.dtype))
+
+
+def spring_state_torque(effects: Sequence[AbstractEffect], aux: Sequence[Any] | None,
+                        d: Array, dd: Array) -> Array | None:
+    """The sum of the effects' ``spring_state_torque`` contributions [N m] from their internal
+    states ``aux`` at deflection ``d`` [rad] and rate ``dd`` [rad/s]; None (no operation
+    traced) when no effect has one or there are no states."""
+    if aux is None:
+        return None
+    terms = [e.spring_state_torque(a, d, dd) for e, a in zip(effects, aux)
+             if _overrides(e, "spring_state_torque")]
+    return sum(terms[1:], terms[0]) if terms else None
 
 
 def applied_torque(effects: Sequence[AbstractEffect], tau: Array, aux: Sequence[Any]) -> Array:

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+import math
+from typing import Any, ClassVar, Literal
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxflex.effects.base import AbstractEffect, register_effect
+from jaxflex.effects.base import AbstractEffect, ResidualStart, register_effect
 from jaxflex.state import PlantState
 from jaxflex.validation import as_param, check_nonnegative, check_positive, is_concrete
 
@@ -25,6 +26,9 @@ class Gravity(AbstractEffect):
     name: ClassVar[str] = "gravity"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"mgl": "positive", "q0": "free"}
+    telling: ClassVar[str | None] = "position"
+    cannot_act_on: ClassVar[tuple[str, ...]] = ("vertical", "prismatic")
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"mgl": (0.3, 0.6)}
     mgl: Float[Array, " n"] = eqx.field(converter=as_param)
     q0: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
@@ -34,6 +38,32 @@ class Gravity(AbstractEffect):
     @classmethod
     def typical(cls, n: int) -> Gravity:
         return cls(mgl=np.full(n, 0.05), q0=np.zeros(n))
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> Gravity:
+        """-mgl sin(q1 - q0) = mgl sin(q1 + pi - q0) is a link ripple of N = 1: mgl [N m] and
+        q0 [rad] from the fit of a sine and a cosine of q1 to the link residual, cleared of all
+        but the angle (no ``trend``): from how the missing torque varies with the angle, not
+        from its mean. The typical start where the fit explains nothing, or puts the hanging
+        angle farther from the travel's middle than the travel is wide: over the travel such
+        a sine is a constant-like torque, which the residual's variation cannot tell from an
+        asymmetric friction or an offset, and a gravity started there can beat the effect it
+        mimics."""
+        q = data.angle("link")
+        e, a_s, a_c = data.ripple_fits("link", np.ones(1), 0.0, trend=False)
+        if not e[0] > 0:
+            return cls.typical(1)
+        q0 = math.remainder(math.pi - math.atan2(a_c[0], a_s[0]), 2.0 * math.pi)
+        if abs(q0 - float(np.median(q))) > float(np.ptp(q)):
+            return cls.typical(1)
+        return cls(mgl=np.full(1, max(math.hypot(a_s[0], a_c[0]), 1e-3)), q0=np.full(1, q0))
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """``AbstractEffect.draw`` plus a hanging angle q0 uniform in +-0.2 rad."""
+        kw = super().draw(rng, scale)
+        kw["q0"] = rng.uniform(-0.2, 0.2)
+        return kw
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
         return -self.mgl * jnp.sin(x.q1 - self.q0)
@@ -46,6 +76,9 @@ class TorqueOffset(AbstractEffect):
     name: ClassVar[str] = "torque_offset"
     where: ClassVar[str] = "input (applied torque)"
     constraints: ClassVar[dict[str, str]] = {"offset": "free"}
+    telling: ClassVar[str | None] = "time"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"offset": (0.03, 0.06)}
+    signed: ClassVar[tuple[str, ...]] = ("offset",)
     offset: Float[Array, " n"] = eqx.field(converter=as_param)
 
     @classmethod
@@ -56,14 +89,48 @@ class TorqueOffset(AbstractEffect):
         return tau + self.offset
 
 
-def _smooth_sign(v: Array, width: Array) -> Array:
+def smooth_sign(v: Array, width: Array) -> Array:
     """tanh(v / width): a differentiable sign(v) for Coulomb-type terms."""
     return jnp.tanh(v / width)
 
 
-def _softplus(x: Array, w: Array) -> Array:
+def softplus(x: Array, w: Array) -> Array:
     """w log(1 + exp(x / w)), a smooth max(x, 0) with corner width w."""
     return w * jnp.logaddexp(0.0, x / w)
+
+
+#: A ripple start searches spatial frequencies from this many periods over the angle's travel:
+#: a slower "ripple" is a smooth trend, not cogging.
+RIPPLE_MIN_PERIODS: float = 2.0
+
+
+def _ripple_start(cls: type[Cogging] | type[MotorCogging], data: ResidualStart,
+                  side: Literal["link", "rotor"], highest: float) -> Any:
+    """A ripple A sin(N q + phi) [N m] fitted to the ``side``'s residual against its angle by
+    linear least squares over a grid of N [1/rad] (gradient cannot find a frequency): a coarse
+    one from ``RIPPLE_MIN_PERIODS`` periods over the travel to ``highest``, then a fine one
+    about its best. The residual is cleared of what a refit of the nominal model absorbs
+    anyway (``ResidualStart.ripple_fits``), the Stribeck term included: a nominal refit can
+    raise Fs to absorb a ripple, after which the raw residual peaks elsewhere. The typical
+    start where the angle travels too little for the grid, or the grid explains nothing."""
+    q = data.angle(side)
+    lowest = max(5.0, 2.0 * math.pi * RIPPLE_MIN_PERIODS / max(float(np.ptp(q)), 1e-9))
+    coarse = np.arange(lowest, highest, 0.5)
+    if not coarse.size:
+        return cls.typical(1)
+    expl, a_s, a_c = data.ripple_fits(side, coarse, 0.5)
+    j = int(np.argmax(expl))
+    if not expl[j] > 0:
+        return cls.typical(1)
+    N, s_, c_ = float(coarse[j]), a_s[j], a_c[j]
+    fine = N + np.arange(-0.5, 0.51, 0.02)
+    e, fs, fc = data.ripple_fits(side, fine, 0.02)
+    k = int(np.argmax(e))
+    if e[k] > expl[j]:
+        N, s_, c_ = float(fine[k]), fs[k], fc[k]
+    # the residual equals the missing torque A sin(N q + phi), on either side with its own sign
+    A, phi = max(math.hypot(s_, c_), 1e-3), math.atan2(c_, s_)
+    return cls(A=np.full(1, A), N=np.full(1, N), phi=np.full(1, phi))
 
 
 @register_effect
@@ -80,6 +147,9 @@ class AsymmetricFriction(AbstractEffect):
     name: ClassVar[str] = "asymmetric_friction"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"dF": "free", "width": "fixed"}
+    telling: ClassVar[str | None] = "link velocity"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"dF": (0.03, 0.06)}
+    signed: ClassVar[tuple[str, ...]] = ("dF",)
     dF: Float[Array, " n"] = eqx.field(converter=as_param)
     width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
 
@@ -91,7 +161,7 @@ class AsymmetricFriction(AbstractEffect):
         return cls(dF=np.zeros(n))
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return -self.dF * jnp.abs(_smooth_sign(x.dq1, self.width))
+        return -self.dF * jnp.abs(smooth_sign(x.dq1, self.width))
 
 
 @register_effect
@@ -105,6 +175,8 @@ class Cogging(AbstractEffect):
     name: ClassVar[str] = "cogging"
     where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free"}
+    telling: ClassVar[str | None] = "position"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"A": (0.03, 0.06)}
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
@@ -116,6 +188,20 @@ class Cogging(AbstractEffect):
     @classmethod
     def typical(cls, n: int) -> Cogging:
         return cls(A=np.full(n, 0.01), N=np.full(n, 25.0), phi=np.zeros(n))
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> Cogging:
+        """N, A, phi from the link residual's best ripple against q1 (``_ripple_start``, N
+        below 80 1/rad)."""
+        return _ripple_start(cls, data, "link", 80.0)
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """``AbstractEffect.draw`` plus N one of 20, 30, 45 1/rad and a uniform phase."""
+        kw = super().draw(rng, scale)
+        kw["N"] = float(rng.choice([20.0, 30.0, 45.0]))
+        kw["phi"] = rng.uniform(-math.pi, math.pi)
+        return kw
 
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
         return self.A * jnp.sin(self.N * x.q1 + self.phi)
@@ -134,6 +220,8 @@ class MotorCogging(AbstractEffect):
     name: ClassVar[str] = "motor_cogging"
     where: ClassVar[str] = "rotor torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free"}
+    telling: ClassVar[str | None] = "rotor position"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"A": (0.02, 0.04)}
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
@@ -145,6 +233,20 @@ class MotorCogging(AbstractEffect):
     @classmethod
     def typical(cls, n: int) -> MotorCogging:
         return cls(A=np.full(n, 0.01), N=np.full(n, 60.0), phi=np.zeros(n))
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> MotorCogging:
+        """N, A, phi from the rotor residual's best ripple against q2 (``_ripple_start``, N
+        below 400 1/rad: a motor's periods times the gear ratio)."""
+        return _ripple_start(cls, data, "rotor", 400.0)
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """``AbstractEffect.draw`` plus N one of 60, 90, 150 1/rad and a uniform phase."""
+        kw = super().draw(rng, scale)
+        kw["N"] = float(rng.choice([60.0, 90.0, 150.0]))
+        kw["phi"] = rng.uniform(-math.pi, math.pi)
+        return kw
 
     def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
         return self.A * jnp.sin(self.N * x.q2 + self.phi)
@@ -163,6 +265,8 @@ class Backlash(AbstractEffect):
     name: ClassVar[str] = "backlash"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"b": "positive", "K": "tied:K", "w": "fixed"}
+    telling: ClassVar[str | None] = "deflection"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"b": (0.004, 0.01)}
     b: Float[Array, " n"] = eqx.field(converter=as_param)
     K: Float[Array, " n"] = eqx.field(converter=as_param)
     w: Float[Array, " n"] = eqx.field(converter=as_param, default=2e-4)
@@ -176,7 +280,7 @@ class Backlash(AbstractEffect):
 
     def dead_zone(self, d: Array) -> Array:
         """Smooth dead zone of the deflection d [rad]."""
-        return _softplus(d - self.b, self.w) - _softplus(-d - self.b, self.w)
+        return softplus(d - self.b, self.w) - softplus(-d - self.b, self.w)
 
     def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"]:
         return self.K * (self.dead_zone(d) - d)
@@ -189,6 +293,8 @@ class HardeningSpring(AbstractEffect):
     name: ClassVar[str] = "hardening_spring"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"K3": "positive"}
+    telling: ClassVar[str | None] = "deflection"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"K3": (300.0, 800.0)}
     K3: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -210,6 +316,8 @@ class JointDamping(AbstractEffect):
     name: ClassVar[str] = "joint_damping"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"D": "positive"}
+    telling: ClassVar[str | None] = "deflection rate"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"D": (0.02, 0.05)}
     D: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -234,6 +342,9 @@ class MotorFriction(AbstractEffect):
     name: ClassVar[str] = "motor_friction"
     where: ClassVar[str] = "rotor torque"
     constraints: ClassVar[dict[str, str]] = {"Fm": "positive", "bm": "positive", "width": "fixed"}
+    telling: ClassVar[str | None] = "rotor velocity"
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"Fm": (0.02, 0.04),
+                                                                  "bm": (0.01, 0.03)}
     Fm: Float[Array, " n"] = eqx.field(converter=as_param)
     bm: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
     width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
@@ -247,7 +358,7 @@ class MotorFriction(AbstractEffect):
         return cls(Fm=np.full(n, 2e-3), bm=np.full(n, 1e-3))
 
     def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return -(self.Fm * _smooth_sign(x.dq2, self.width) + self.bm * x.dq2)
+        return -(self.Fm * smooth_sign(x.dq2, self.width) + self.bm * x.dq2)
 
 
 @register_effect
@@ -258,6 +369,9 @@ class ActuatorLag(AbstractEffect):
     name: ClassVar[str] = "actuator_lag"
     where: ClassVar[str] = "input (applied torque, internal state)"
     constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3"}
+    telling: ClassVar[str | None] = "frequency"
+    step_bounded: ClassVar[tuple[str, ...]] = ("T",)
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"T": (0.002, 0.004)}
     T: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -297,6 +411,9 @@ class TimeDelay(AbstractEffect):
     name: ClassVar[str] = "time_delay"
     where: ClassVar[str] = "input (applied torque, internal state)"
     constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3"}
+    telling: ClassVar[str | None] = "frequency"
+    step_bounded: ClassVar[tuple[str, ...]] = ("T",)
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"T": (0.002, 0.004)}
     T: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -344,12 +461,24 @@ class EncoderSkew(AbstractEffect):
     name: ClassVar[str] = "encoder_skew"
     where: ClassVar[str] = "link encoder reading"
     constraints: ClassVar[dict[str, str]] = {"skew": "free", "offset": "free"}
+    recording: ClassVar[bool] = True
+    moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"skew": (0.001, 0.003),
+                                                                  "offset": (2e-4, 5e-4)}
+    signed: ClassVar[tuple[str, ...]] = ("offset",)
     skew: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
     offset: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
     @classmethod
     def typical(cls, n: int) -> EncoderSkew:
         return cls(skew=np.zeros(n), offset=np.zeros(n))
+
+    @classmethod
+    def recorded_link(cls, t: np.ndarray, q1: np.ndarray, kw: dict[str, Any]) -> np.ndarray:
+        """The true link angle at t - skew (linear interpolation of the samples: the exact
+        delay, not the first-order map a fit uses) minus the offset [rad]."""
+        skew, offset = float(np.ravel(kw["skew"])[0]), float(np.ravel(kw["offset"])[0])
+        late = np.stack([np.interp(t - skew, t, q1[:, j]) for j in range(q1.shape[1])], axis=1)
+        return late - offset
 
     def link_measured(self, q1: Array, dq1: Array) -> Array:
         """q1 - skew q1' - offset [rad]: the late link encoder's reading of the motion."""
@@ -405,3 +534,4 @@ class EncoderScale(AbstractEffect):
     def link_reading(self, q1: Array, dq1: Array, ddq1: Array) -> tuple[Array, Array]:
         """((1 + scale) q1 [rad], (1 + scale) q1' [rad/s])."""
         return (1.0 + self.scale) * q1, (1.0 + self.scale) * dq1
+

@@ -207,7 +207,7 @@ def simulate_rig(
     for k in ("Fc", "Fs", "sigma2"):
         fr[k] *= math.exp(mismatch * rng.standard_normal())
     fr["Fs"] = max(fr["Fs"], 1.05 * fr["Fc"])
-    # the magnitudes of jaxflex's generator (``MODERATE`` x scale, the same draws)
+    # the magnitudes of jaxflex's generator (each class's ``moderate`` x scale, the same draws)
     eff = {name: draw_effect(name, rng, scale) for name in effects}
     if "backlash" in eff:
         eff["backlash"]["K"] = plant["K"]
