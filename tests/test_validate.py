@@ -247,3 +247,14 @@ def test_rigid_torque_fit_recovers_a_rigid_axis_and_names_bad_input():
     assert rel_error_pct(tau, rigid_torque(got, log)) < 1.0
     with pytest.raises(ValueError, match="joint 1"):
         rigid_torque_fit(log, joint=1)
+
+
+def test_shipped_data_sets_get_distinct_names_in_validate():
+    """`jaxflex validate jaxflex:kuka/B/2 jaxflex:kuka/C/2`: the two logs' figures take the
+    data sets' names with their folders, not a shared stem "2"."""
+    from jaxflex.cli.validate import log_name, output_files
+
+    assert log_name("jaxflex:kuka/B/2") == "kuka_B_2"
+    assert log_name("runs/run.csv") == "run"
+    files = output_files(["jaxflex:kuka/B/2", "jaxflex:kuka/C/2"], against=False)
+    assert "kuka_B_2_params.png" in files and "kuka_C_2_params.png" in files

@@ -51,13 +51,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def output_files(logs: list[str], against: bool) -> list[str]:
-    """Every file ``validate`` writes in its output folder for these logs."""
+def log_name(f: str) -> str:
+    """The name a log's figures and report entries take: a file's stem, or a shipped data
+    set's name with its folders ("jaxflex:kuka/B/2" -> "kuka_B_2")."""
     from pathlib import Path
 
+    from jaxflex.data import NAMED_PREFIX, is_named
+
+    if is_named(f):
+        return f[len(NAMED_PREFIX):].strip("/").replace("/", "_")
+    return Path(f).stem
+
+
+def output_files(logs: list[str], against: bool) -> list[str]:
+    """Every file ``validate`` writes in its output folder for these logs."""
     which = ("params", "against") if against else ("params",)
     return (["report.json", "table.md", "torque_errors.png"]
-            + [f"{Path(f).stem}_{w}.png" for f in logs for w in which])
+            + [f"{log_name(f)}_{w}.png" for f in logs for w in which])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -66,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from jaxflex.cli.outputs import OutputError, check_outputs, writing
+    from jaxflex.data import is_named, load_named
     from jaxflex.errors import InputError
     from jaxflex.logs import LogError, axis_units, evaluate, load_log, parse_mapping, read_variables
     from jaxflex.params import load_params
@@ -75,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--segment must be at least 2 samples, got {args.segment}")
     if args.substeps < 1:
         raise InputError(f"--substeps must be an integer >= 1, got {args.substeps}")
-    stems = [Path(f).stem for f in args.logs]
+    stems = [log_name(f) for f in args.logs]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
         raise OutputError(f"logs: two logs share the name {dup[0]!r}; their figures would "
@@ -92,7 +103,13 @@ def run(args: argparse.Namespace) -> int:
     units = axis_units(mapping, args.linear)
     logs = []
     for f in args.logs:
-        log = load_log(f, mapping, required=("t", "tau", "q1"))
+        if is_named(f):  # a shipped data set by name, as identify takes it
+            if args.map or args.disturbance:
+                raise InputError(f"--map and --disturbance read a file's variables; {f} is a "
+                                 "shipped data set: give its file (jaxflex.data.available())")
+            log = load_named(f).log
+        else:
+            log = load_log(f, mapping, required=("t", "tau", "q1"))
         d = None
         if args.disturbance:
             try:
@@ -101,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
                 if "not in the file" not in str(e):
                     raise
                 print(f"note: {f} has no '{args.disturbance}'; no disturbance for it")
-        logs.append((Path(f).stem, log, d))
+        logs.append((log_name(f), log, d))
     results = []  # everything is computed before the folder is created
     for name, log, d in logs:
         for which, p in sets.items():
