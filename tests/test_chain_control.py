@@ -5,6 +5,7 @@ joints (eq. 29-31)."""
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxflex.certificate import certify, lambda_min
 from jaxflex.chain import SerialChain
@@ -33,6 +34,7 @@ GAINS = CascadeGains(Ke=[1e-3] * 3, KD1=[1.0] * 3, KD2=[1.0] * 3, kv=[2.0] * 3,
                      L1=[50.0] * 3, L2=[6.0] * 3)
 
 
+@pytest.mark.slow
 def test_cascade_tracks_on_a_coupled_three_axis_arm():
     p = three_axis_arm()
     q_start = jnp.array([0.0, 0.3, -0.6])
