@@ -263,7 +263,12 @@ def test_kalman_and_leak_exported_as_certified(kalman_export):
     mod.Controller(params={"gains.L1": 150.0})
 
 
-@pytest.mark.parametrize("experiment", ["sinusoid", "polynomial", "fast"])
+@pytest.mark.parametrize("experiment", [
+    "sinusoid",
+    # the C test runs these too, equal bit for bit to the Python export of the same program
+    pytest.param("polynomial", marks=pytest.mark.slow),
+    pytest.param("fast", marks=pytest.mark.slow),
+])
 def test_parity_kalman_leak_under_paper_sensing(kalman_export, experiment):
     """reproduce's full 10 s closed loop of each of the paper's experiments under the paper's
     sensing (0.72 deg encoder, 12-bit DAC) with the Kalman filter and the leak. Replayed on
