@@ -62,22 +62,27 @@ def test_a_late_link_encoder_is_named_with_its_skew():
     assert rep["gap_after"] <= 0.5 * rep["gap_before"]
 
 
-def test_clean_log_gives_none():
-    g = generate_log((), seed=4, t_final=8.0)
-    rep = discover(g.log, config=CFG).to_json()
+@pytest.fixture(scope="module")
+def clean_report():
+    """discover's report on a clean log (seed 4), shared by the tests that read it."""
+    return discover(generate_log((), seed=4, t_final=8.0).log, config=CFG).to_json()
+
+
+def test_clean_log_gives_none(clean_report):
+    rep = clean_report
     assert rep["effect"] == "none" and rep["effects"] == []
     assert rep["gap_after"] == rep["gap_before"]
     assert not any(s["significant"] for s in rep["candidate_scores"].values())
 
 
-def test_floor_is_honest_and_an_effect_outside_the_library_is_unexplained():
+def test_floor_is_honest_and_an_effect_outside_the_library_is_unexplained(clean_report):
     """The gap floor (bootstrap of a correct model through the workflow's steps) sits at the
     clean log's final gap: above half of it and at most 10% above it (a three-draw estimate;
     measured 0.3% above once the floor's synthetic angles got the encoder's true one-count
     quantisation step, ``fit.noise_level``); a hidden effect that no candidate describes (joint
     damping, not among CANDS) leaves the gap far above the floor: answer "unexplained"; the
     report carries evidence weights that sum to one."""
-    clean = discover(generate_log((), seed=4, t_final=8.0).log, config=CFG).to_json()
+    clean = clean_report
     assert clean["effect"] == "none" and not clean["unexplained"]
     assert 0.5 * clean["gap_after"] < clean["gap_floor"] <= 1.1 * clean["gap_after"]
     w = clean["evidence"]["rounds"][0]["aic_weights"]
@@ -671,6 +676,7 @@ def test_an_effect_that_only_lifted_the_base_out_of_a_local_minimum_is_not_named
     assert res.gap_after <= 1.5 * res.gap_floor
 
 
+@pytest.mark.slow
 def test_kuka_logs_get_an_answer_never_a_nan(tmp_path):
     """Real data no one on the project made (issue 14): discover on the KUKA KR300 axis-1
     recording C, every candidate, from the nominal a user has before identifying (datasheet J

@@ -68,18 +68,29 @@ def test_compiles_cleanly_as_c99(exported, tmp_path):
 
 
 @needs_cc
-def test_c_parity_with_jax_and_python(exported):
-    """The C controller in reproduce's full 10 s closed loop under the paper's sensing, with
-    the Kalman filter and the leak: equal to the jitted JAX controller to 1e-12 N m, and bit
+@pytest.mark.parametrize("experiment", ["sinusoid", "polynomial", "fast"])
+def test_c_parity_with_jax_and_python(exported, experiment, tmp_path):
+    """The C controller in reproduce's full 10 s closed loop of each of the paper's
+    experiments under the paper's sensing, with the Kalman filter and the leak: equal to the
+    JAX controller compiled without XLA's fusion (each carrying its own state) to 1e-12 N m,
+    to the jitted one within what XLA's two compilations differ by (plus 1e-12), and bit
     for bit to the Python export of the same traced program."""
     sc, folder, _, _, py = exported
+    if experiment != "sinusoid":
+        sc = rig_controller(_reproduce_params(), experiment,
+                            sensing=with_estimator(paper_sensing(), "kalman"))
+        tr = trace(sc)
+        folder = tmp_path
+        export_c(sc, folder / "controller.c", traced=tr)
+        py = load_module(generate_source(sc, traced=tr))
     cmod = load_c(folder / "controller.c")
     assert cmod.VELOCITY == "kalman" and cmod.N_JOINTS == 1 and cmod.DT == 1e-3
     assert cmod.STATE_NAMES == py.STATE_NAMES
     assert cmod.DEFAULT_PARAMS == py.DEFAULT_PARAMS and cmod.SPEC_MAP == py.SPEC_MAP
     r = check_parity(sc, cmod, t_final=10.0)
-    assert r.max_abs_diff <= 1e-12, str(r)
-    assert r.eager_diff <= 1e-14, str(r)
+    assert r.unfused_diff <= 1e-12, str(r)
+    assert r.max_abs_diff <= float(np.max(np.abs(r.tau_unfused - r.tau_jax))) + 1e-12, str(r)
+    assert r.eager_diff <= 1e-14 and parity_ok(r), str(r)
     ctrl = py.Controller()
     tau_py = [ctrl.step(k * 1e-3, r.q1_meas[k, 0], r.q2_meas[k, 0]) for k in range(10_000)]
     np.testing.assert_array_equal(r.tau_export[:, 0], np.array(tau_py))

@@ -14,6 +14,9 @@ import pytest
 
 STUDY = Path(__file__).parent.parent / "studies" / "kuka_flexible.py"
 
+# the full study on all three axes (about 40 s alone, several minutes on a shared machine)
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):

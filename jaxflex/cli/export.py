@@ -168,13 +168,14 @@ def run(args: argparse.Namespace) -> int:
         for reference in modes:
             r = check_parity(sc, module, t_final=args.check_duration, reference=reference)
             print(r)
-            print(f"largest difference: {r.max_abs_diff:.3e} N m")
-            if r.max_abs_diff <= 1e-12:
+            print(f"largest difference: {r.unfused_diff:.3e} N m against the JAX controller "
+                  f"compiled un-fused, {r.max_abs_diff:.3e} N m against the jitted loop")
+            if parity_ok(r) and r.max_abs_diff <= 1e-12:
                 print("check passed (<= 1e-12 N m)")
             elif parity_ok(r):
-                print("check passed: above 1e-12 N m against the jitted JAX loop, but the "
-                      "export equals JAX evaluated op by op to 1e-12 at the worst samples, and "
-                      "XLA's compilation itself moves the torque as much (JAX against itself)")
+                print("check passed: the export equals the JAX controller compiled un-fused "
+                      "to 1e-12 N m over the run; against the jitted loop it is above 1e-12 "
+                      "N m, as XLA's compilation itself moves the torque (JAX against itself)")
             else:
                 print("check FAILED: exported torques differ from JAX by more than 1e-12 N m")
                 return 1
