@@ -224,8 +224,6 @@ def _trace(sc: SampledController) -> Traced:
     flat, st_def = jax.tree_util.tree_flatten_with_path(state0)
     st_leaves = [x for _, x in flat]
     state_names = [jax.tree_util.keystr(path).lstrip(".") for path, _ in flat]
-    t0 = jnp.asarray(0.0, f64)
-    R0 = jnp.zeros((REFERENCE_ROWS, n), f64)
     k = len(leaves)
 
     def rebuild(args):
