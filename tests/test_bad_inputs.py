@@ -322,6 +322,7 @@ def test_run_loop_interrupted_writes_log_and_summary(tmp_path, sig):
     assert rows[0] == "t,tau,q1,q2,q1d" and len(rows) - 1 == summary["samples"] >= 2
 
 
+@pytest.mark.slow
 def test_sweep_interrupted_keeps_chunks_and_resumes(tmp_path):
     spread = tmp_path / "spread.json"
     spread.write_text(json.dumps({"t_final": 0.2, "samples": 800,

@@ -146,6 +146,7 @@ def test_accuracy_study_small(tmp_path):
     assert res["summary"]["cases"] == 2
 
 
+@pytest.mark.slow
 def test_a_nominal_model_that_does_not_describe_the_log_is_an_error_not_an_answer():
     """The paper's link on the KUKA KR300 axis-1 log (4 ms samples, torques of thousands of
     N m): no refit of the nominal model replays it, so discover refuses instead of naming an
@@ -158,6 +159,7 @@ def test_a_nominal_model_that_does_not_describe_the_log_is_an_error_not_an_answe
                                             max_steps=5))
 
 
+@pytest.mark.slow
 def test_motor_cogging_is_told_from_link_cogging():
     """Cogging on the rotor (the motor's magnets) is named as such, not as link cogging, with
     its spatial frequency in the rotor angle within 1% and its amplitude within 15%."""
@@ -215,6 +217,7 @@ def test_generator_goes_beyond_the_workflows_assumptions():
         gen((), disturbance="wind")
 
 
+@pytest.mark.slow
 def test_delay_and_lag_are_named_when_the_log_tells_them_apart():
     """A transport delay (unit gain, phase -w T) and a first-order lag (gain 1/sqrt(1 + w^2
     T^2), phase -atan(w T)) agree to first order in w T. A lag of 3.6 ms in the cascade loop

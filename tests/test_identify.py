@@ -399,6 +399,7 @@ def test_the_logs_static_map_start_converges_on_a_closed_loop_log():
     _converges_from_fifty_percent_off(3.0)
 
 
+@pytest.mark.slow
 def test_unidentifiable_vs_is_marked_and_keeps_its_prior():
     """A log that never dwells at low speed (a biased torque keeps the link spinning one way)
     cannot determine vs: it is marked unidentified and keeps its initial value."""
@@ -641,6 +642,7 @@ def test_discretisation_bias_predicts_how_far_a_finer_fit_moves():
     assert 0.7 < chk["bias_se"] / largest < 2.5, (chk["bias_se"], largest)
 
 
+@pytest.mark.slow
 def test_auto_substeps_refine_until_the_integrator_does_not_move_the_fit(tmp_path):
     """identify(substeps="auto") ends with a discretisation that moves no fitted parameter by
     more than half a standard error, recorded in the file; one substep given by hand is kept

@@ -185,6 +185,7 @@ def test_certificate_cost_study_small(tmp_path):
     assert saved["paper_encoder"]["paper_gains"]["saturation_fraction"] > 0.3
 
 
+@pytest.mark.slow
 def test_rest_damping_constraint_is_enforced_and_reached_from_an_undamped_start():
     """With ``min_rest_damping`` every iterate keeps the rest modes' damping (jaxflex.analyse)
     at or above it; the paper's gains have a growing rest mode (damping about -0.3 with exact
