@@ -16,8 +16,8 @@ length (2.6 s, 18 s: a user's next log, with other shapes); twice with ``--no-tr
 another empty folder (what the kept traces save: there only XLA's executables are reused);
 and with ``--no-cache``. In each process a
 ``jax.monitoring`` listener sums the seconds spent tracing, lowering and compiling (XLA
-backend) and reading the cache, and counts cache hits; wall time is also recorded. Target
-(issue 17): the second run spends under 2 s compiling.
+backend) and reading the cache, and counts cache hits; wall time is also recorded. Target:
+the second run spends under 2 s compiling.
 
     python studies/bench_compile_cache.py [--command reproduce|identify|discover|...|all]
         [--small] [--out out/bench_compile_cache]

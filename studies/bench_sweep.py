@@ -24,13 +24,13 @@ The spread's controller estimates velocities from the angles (``sensing.velocity
 Devices: the same sweep in subprocesses with 1 and 2 host devices
 (``XLA_FLAGS=--xla_force_host_platform_device_count``), in alternating pairs.
 
-Target (``--target``; issue 17): 1000 samples x 10 s, float64, at a stated accuracy: the
+Target (``--target``): 1000 samples x 10 s, float64, at a stated accuracy: the
 fewest plant substeps whose per-sample RMS-error metric is within 1e-5 (relative) of a fine
 reference (the first 100 samples at 100 substeps), then controller steps/s on one core (one
 host device pinned to one core), one device (free to use every core) and two host devices, in
 alternating rounds (best and median).
 
-GPU (``--gpu``; issue 17): the target's spread on an NVIDIA GPU in float64 and float32 beside
+GPU (``--gpu``): the target's spread on an NVIDIA GPU in float64 and float32 beside
 the same machine's CPU (every core as a host device), accuracy first (``gpu``'s docstring);
 on a machine without a GPU it writes ``gpu.json`` saying so. Measured 2026-11-26 on one H100
 80GB (JAX 0.11.2; its host: 16 cores), 1000 x 10 s, float64 at 3 substeps (RMS metric within
@@ -395,7 +395,7 @@ def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
 
 def gpu(out: Path, small: bool = False, tol: float = 1e-5, platform: str = "cuda",
         budget_s: float = 300.0) -> dict:
-    """Sweep throughput on a GPU (issue 17), float64 and float32, beside this machine's CPU.
+    """Sweep throughput on a GPU, float64 and float32, beside this machine's CPU.
 
     Every run is a fresh process on JAX platform ``platform``, timed three times after a
     warm-up chunk that compiles (its time is ``first_chunk_s``). Accuracy first: a fine

@@ -6,7 +6,7 @@ moderate magnitude (the class's ``moderate``) in a closed-loop identification ex
 encoder quantisation, noise and a random nominal-parameter mismatch, plus clean cases (no effect).
 Reports the confusion matrix (true effect -> first effect named, or none), accuracy on effect
 cases, false-positive rate on clean cases, and held-out gap before/after for named effects.
-With ``--grown`` the cases go beyond the workflow's own assumptions (issue 15): the experiment
+With ``--grown`` the cases go beyond the workflow's own assumptions: the experiment
 loop cycles through the paper's cascade, a PD loop on the rotor angle and open-loop torque, the
 excitation through a multisine and one with a slow large swing; cases with a disturbance
 outside the effect library (truth "unexplained") and with two effects (right when both are

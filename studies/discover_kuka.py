@@ -79,7 +79,7 @@ def nominal_params(axis: int) -> tuple[Any, dict[str, float]]:
 
 
 def rule_holds(rep: dict[str, Any]) -> bool:
-    """Issue 14's rule on one report: finite gaps, and either an effect added that lowered the
+    """The rule on one report: finite gaps, and either an effect added that lowered the
     held-out gap, or the answer none / unexplained with nothing added."""
     gaps = (rep["gap_before"], rep["gap_after"], rep["gap_floor"])
     if not all(isinstance(g, float) and math.isfinite(g) for g in gaps):

@@ -1,5 +1,5 @@
 """Question: which q2d-derivative method and which velocity estimator make the paper's friction
-compensation help under the ideal, rig and paper sensing presets (issue 19, coarse encoders)?
+compensation help under the ideal, rig and paper sensing presets (coarse encoders)?
 
 Method: the paper's sinusoid experiment (Fig. 9-11; ``jaxflex.presets.paper_sinusoid``) on the
 paper's plant and gains (Tables 1-3, corrected Table 2; ``paper_params``), closed by

@@ -1,6 +1,6 @@
 """Benchmark: is gradient identification through the JAX simulator faster than scipy?
 
-Question (issue 13): on the same least-squares residual (``Problem.residuals``: the
+Question: on the same least-squares residual (``Problem.residuals``: the
 multiple-shooting output error of a flexible-joint log, residuals in units of the log's
 encoder noise, all six LuGre parameters free plus the segment start states), from the same
 start, through the same stages, with the same tolerances and iteration caps, in the same
@@ -18,7 +18,7 @@ take, and to what final cost 0.5 ||r||^2 and parameter errors?
 
 Logs (``--log``):
 
-- ``closed-loop`` (default; issue 13's target logs): ``jaxflex.datagen.generate_log((),
+- ``closed-loop`` (default; the target logs): ``jaxflex.datagen.generate_log((),
   seed=--seed, t_final=T, bits=20, noise_counts=0.5)``: the cascade controller tracking a
   multisine, a 20-bit link encoder (rotor 50x finer) with half a count of white noise, 1 kHz.
   Initial guess: the six LuGre parameters 50% off (``--factors``, default
@@ -68,7 +68,7 @@ explains (``noise_cost``), the chi-square difference, iterations (JAX steps; sci
 njev, i.e. finite-difference Jacobians, per stage) and residual evaluations, relative
 parameter errors against the truth (value / true - 1), and the ratios scipy / JAX of the
 wall times (min over min, median over median, scipy min over JAX's cold call). Timing habits
-(issue 17, ``benchkit``): BLAS limited to one thread (threadpoolctl when installed, else the
+(``benchkit``): BLAS limited to one thread (threadpoolctl when installed, else the
 environment variables, set before numpy is imported; what was in force is recorded), the
 two solvers take turns in paired rounds (``benchkit.paired``; ``--scipy-repeat`` caps
 scipy's rounds where one run takes many minutes), min and median of each, the load average
@@ -112,7 +112,7 @@ CHI2_EQUAL: float = 0.1
 #: Iteration caps of the two stages (those of ``identify``: warm_steps, max_steps).
 WARM_STEPS: int = 40
 MAX_STEPS: int = 200
-#: The closed-loop logs (issue 13's targets): encoder bits and white noise in counts.
+#: The closed-loop logs (the targets): encoder bits and white noise in counts.
 BITS: int = 20
 NOISE_COUNTS: float = 0.5
 #: --substeps values taken from ``identify(substeps="auto")`` on the log (``identify_choice``)
@@ -131,7 +131,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="1 s log, segments of 250 samples, 2 substeps, warm factor 1e-2 "
                          "(closed loop; no identify run), 2 repeats: a quick check")
     ap.add_argument("--log", choices=tuple(DEFAULTS), default="closed-loop",
-                    help="closed-loop: datagen logs (issue 13's targets, static-map start); "
+                    help="closed-loop: datagen logs (the targets, static-map start); "
                          "open-loop: the earlier synthetic torque log (2x-off start)")
     ap.add_argument("--seed", type=int, default=None,
                     help="closed-loop: the datagen seed (default 7); open-loop: the sensor-"
@@ -162,7 +162,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--factors", default=None,
                     help="the initial guess: factors on the true Fc, Fs, vs, sigma0, sigma1, "
                          "sigma2 (default closed-loop 1.5,1.5,0.5,1.5,0.5,1.5, 50%% off as "
-                         "issue 13; open-loop 2,0.6,2,0.5,2,0.5 as the acceptance test)")
+                         "the closed-loop target; open-loop 2,0.6,2,0.5,2,0.5 as the acceptance "
+                         "test)")
     ap.add_argument("--no-lean-xla", action="store_true",
                     help="keep XLA's default CPU options (otherwise LEAN_XLA_CPU_FLAGS)")
     ap.add_argument("--identify-choice", default=None, help=argparse.SUPPRESS)
@@ -291,7 +292,7 @@ def setup_open_loop(t_final: float, args: argparse.Namespace) -> Setup:
 
 
 def setup_closed_loop(t_final: float, args: argparse.Namespace) -> Setup:
-    """Issue 13's log: ``generate_log((), seed, t_final, bits=20, noise_counts=0.5)``; initial
+    """The log: ``generate_log((), seed, t_final, bits=20, noise_counts=0.5)``; initial
     guess ``args.factors`` x the truth; the common start from the log's static map, as
     ``identify`` takes it; substeps and warm factor given or identify's (``identify_choice``)."""
     from jaxflex.datagen import generate_log

@@ -2,7 +2,7 @@
 flexible rotor model predict the motor torque better than a rigid model?
 
 Question: on axes 1-3 of the KUKA KR300 recordings (``jaxflex.data.load_kuka``; motor- and
-link-side encoders), fit the rotor subsystem (model kind "rotor", issue 14)
+link-side encoders), fit the rotor subsystem (model kind "rotor")
 
     J q2'' + K (q2 - q1c) + Fm tanh(q2'/w) + bm q2' - c = tau,
     q1c = (1 + scale) (q1 + skew q1' + off)

@@ -1,7 +1,7 @@
 """Question: can the paper's loop keep its friction-compensation benefit without the persistent
 ~3-4 Hz oscillation at rest, and with which observer leakage?
 
-Background (issue 19, ``studies/rig_oscillation.py``): at rest the paper's observer has
+Background (``studies/rig_oscillation.py``): at rest the paper's observer has
 Psi_hat(0) = m(0)/g(0) = 0 (eq. 19, 21), so eq. 20 reads z_hat' = q1' - Ke sigma0 s1: it
 integrates the tracking error with no leakage. Against the real friction's pre-sliding spring
 sigma0 this integral action gives the loop linearised at rest a growing mode (spectral radius

@@ -1,4 +1,4 @@
-"""Question: where does the ~3.6 Hz oscillation of the compensated loop (issue 19) come from:
+"""Question: where does the ~3.6 Hz oscillation of the compensated loop come from:
 the observer's Ke sigma0 s1 term acting as integral action, the model-based q2d' and q2d''
 (docs/spec.md section 3, correction 2), or a defect?
 

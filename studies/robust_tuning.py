@@ -1,5 +1,5 @@
 """Study: what does robustness cost, and what does it buy? Paper gains, nominally tuned gains
-and robustly tuned gains on 1,000 held-out plausible plants (issue 18).
+and robustly tuned gains on 1,000 held-out plausible plants.
 
 1. Identification: all six LuGre parameters from a 10 s synthetic log of the paper's link
    (16-bit encoders, 20 % off start); its posterior (``jaxflex.fit.posterior``) is reported.

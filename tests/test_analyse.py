@@ -1,4 +1,4 @@
-"""Closed-loop analysis (issue 19): the autodiff Jacobian of the one-sample loop map against
+"""Closed-loop analysis: the autodiff Jacobian of the one-sample loop map against
 finite differences, the rest modes of the paper's loop, the divergence flag, the bound in rad."""
 
 import equinox as eqx
@@ -46,7 +46,7 @@ def test_jacobian_and_eigenvalues_match_finite_differences(sensing):
 
 def test_rest_modes_of_the_paper_loop():
     """Table 3 gains with model-based q2d derivatives: a growing ~4.5 Hz mode at rest with
-    compensation (the limit cycle of issue 19), none without; filtered q2d derivatives with
+    compensation (the limit cycle), none without; filtered q2d derivatives with
     exact velocities are stable with compensation."""
     on = analyse_loop(paper_plant(), paper_gains(), q2d_method="model")
     off = analyse_loop(paper_plant(), paper_gains(), q2d_method="model", compensation=False)
@@ -79,7 +79,7 @@ def _run(method, comp, T):
 def test_divergence_flag_trips_on_a_lost_run_not_on_a_tracking_one():
     ok = _run("model", False, 2.0)
     assert not bool(ok.diverged) and int(ok.diverged_at) == -1
-    # the reference-only q2d derivatives lose the link (issue 19): error far beyond the
+    # the reference-only q2d derivatives lose the link: error far beyond the
     # 0.05 rad amplitude, but no state near the old 1e3 bound
     lost = _run("reference", False, 4.0)
     assert bool(lost.diverged) and int(lost.diverged_at) > 0

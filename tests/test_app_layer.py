@@ -1,4 +1,4 @@
-"""The app layer (issue 12): one table of presets behind every choice list, the controller
+"""The app layer: one table of presets behind every choice list, the controller
 configuration carried from a parameter file into export and run-loop, the rig's plant apart
 from the controller's, and the import graph (edges at the edges, no private names across
 modules, nothing below ``presets`` imports it)."""

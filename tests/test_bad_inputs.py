@@ -1,4 +1,4 @@
-"""Bad inputs through the public command line (issue 16): parameter files, spread files,
+"""Bad inputs through the public command line: parameter files, spread files,
 output paths, controller files, log files and interrupts.
 
 Every case asserts a non-zero exit, a message on stderr that names the problem, no traceback,

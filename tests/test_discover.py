@@ -1,4 +1,4 @@
-"""Discrepancy discovery (issue 7): a hidden effect is named and the held-out gap shrinks; a
+"""Discrepancy discovery: a hidden effect is named and the held-out gap shrinks; a
 clean log gives ``none``; the log reader and CLI refuse bad input. The accuracy over many
 cases is ``studies/discover_accuracy.py`` (slow test below runs it small)."""
 
@@ -681,7 +681,7 @@ def test_an_effect_that_only_lifted_the_base_out_of_a_local_minimum_is_not_named
 
 @pytest.mark.slow
 def test_kuka_logs_get_an_answer_never_a_nan(tmp_path):
-    """Real data no one on the project made (issue 14): discover on the KUKA KR300 axis-1
+    """Real data no one on the project made: discover on the KUKA KR300 axis-1
     recording C, every candidate, from the nominal a user has before identifying (datasheet J
     and K, a rigid least-squares fit on trajectory A; ``studies/discover_kuka.py``), either
     names an effect that lowers the held-out gap or answers none / unexplained, with finite

@@ -1,4 +1,4 @@
-"""The model-based velocity estimator (issue 19, coarse encoders): the steady-state Kalman
+"""The model-based velocity estimator (coarse encoders): the steady-state Kalman
 filter of ``jaxflex.estimator`` against the dirty derivative on quantised angles, its
 convergence on exact measurements of a linear plant, its Riccati solution, its place in the
 closed loop and the closed-loop Jacobian, and the errors for bad settings."""

@@ -1,4 +1,4 @@
-"""All cores by default (issue 17): ``use_all_cores`` exposes the CPU cores as host devices
+"""All cores by default: ``use_all_cores`` exposes the CPU cores as host devices
 before JAX starts, the ``jaxflex`` command calls it, and a sweep sharded over two host
 devices gives the numbers of a run on one device (separate processes, as a user would run)."""
 

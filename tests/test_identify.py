@@ -423,7 +423,7 @@ def test_twenty_second_closed_loop_log_converges_from_fifty_percent_off():
     _converges_from_fifty_percent_off(20.0)
 
 
-# ----- several joints of one log, fitted jointly (issue 13) -----------------------------------
+# ----- several joints of one log, fitted jointly -----------------------------------
 
 def _two_joint_params():
     """Two independent joints: the paper's link and a lighter one with its own friction."""
@@ -476,7 +476,7 @@ def _two_joints_converge(off):
 
 
 def test_two_joint_log_converges_from_thirty_percent_off():
-    """Acceptance (issue 13): the six LuGre parameters of both joints of one noise-free 2-joint
+    """Acceptance: the six LuGre parameters of both joints of one noise-free 2-joint
     log, fitted jointly from 30% off: converged (cost explained by the noise, solver settled)
     and all twelve within 2%."""
     _two_joints_converge(0.3)
@@ -605,7 +605,7 @@ def test_noise_cost_counts_each_channels_own_noise():
     assert noise_cost(noisy, prob) == pytest.approx(expected, rel=1e-9)
 
 
-# ----- the integrator's discretisation (issue 13: substeps chosen from the log) ---------------
+# ----- the integrator's discretisation (substeps chosen from the log) ---------------
 
 def _fine_encoder_log():
     """A 1.5 s slice of the closed-loop 3 s log (20-bit link encoder, rotor 50x finer): fine
@@ -684,7 +684,7 @@ def test_a_local_minimum_from_every_start_is_rescued_by_the_vs_restart():
     assert any("vs x3" in str(a.get("start")) for a in r.attempts), r.attempts
 
 
-# ----- the segment length, and what the data cannot determine, on real data (issue 13) -------
+# ----- the segment length, and what the data cannot determine, on real data -------
 
 def _emps_start():
     """EMPS (DATA_EMPS) and the rigid start of ``studies/emps_benchmark.py`` (60 kg, Fc 10 N,

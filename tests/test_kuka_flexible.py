@@ -1,4 +1,4 @@
-"""Issue 14's KUKA KR300 targets on the shipped recordings (``studies/kuka_flexible.py``, all
+"""The KUKA KR300 targets on the shipped recordings (``studies/kuka_flexible.py``, all
 three axes, about 40 s): the rotor model identified on trajectory A predicts the motor torque
 on B and C better than the rigid baseline on every axis, K is identifiable with a standard
 error that survives restarts from 0.3x and 3x, and the encoder skew comes with its standard

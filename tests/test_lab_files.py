@@ -1,6 +1,6 @@
-"""Loaders for lab files as they are (issue 14; docs/spec.md section 6.4): struct paths,
+"""Loaders for lab files as they are (docs/spec.md section 6.4): struct paths,
 selections, unit suffixes, products with factors from the file, row vectors, map files, and
-the log traps of issue 16 (row vectors, milliseconds, header-only files, structs)."""
+the common log traps (row vectors, milliseconds, header-only files, structs)."""
 
 import json
 import subprocess
@@ -79,7 +79,7 @@ def test_map_file(tmp_path):
 
 
 def test_row_vector_mat_is_accepted(tmp_path):
-    """Issue 16: a .mat saved from 1-D numpy arrays holds (1, N) rows."""
+    """A .mat saved from 1-D numpy arrays holds (1, N) rows."""
     t = np.arange(N) * 1e-3
     p = tmp_path / "rows.mat"
     scipy.io.savemat(p, {"t": t, "tau": np.sin(t), "q1": t, "q2": t})

@@ -1,4 +1,4 @@
-"""The observer's leakage (``CascadeGains.leak``, issue 19): the paper's observer is leak = 0
+"""The observer's leakage (``CascadeGains.leak``): the paper's observer is leak = 0
 and unchanged; a leak removes the growing rest mode; files, certificate and search carry it."""
 
 import equinox as eqx

@@ -1,4 +1,4 @@
-"""Robust tuning (issue 18): risk measures, spreads from an identification, the box
+"""Robust tuning: risk measures, spreads from an identification, the box
 certificate and the robust search on a small batch."""
 
 import dataclasses

@@ -189,7 +189,7 @@ def test_simulate_bad_arguments(bad):
 @pytest.mark.parametrize("method", ["model", "reference"])
 def test_taylor_reference_hands_the_controller_the_same_law(traj, method):
     """The sampled loop hands the controller the reference through ``Taylor`` at each sample
-    time (derivatives evaluated once per sample, issue 17): the derivatives and the law's
+    time (derivatives evaluated once per sample): the derivatives and the law's
     torque must be those of the trajectory itself, to rounding."""
     t = jnp.asarray(1.2345)
     d = traj.derivatives(t, order=REFERENCE_ORDER)

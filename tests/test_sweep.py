@@ -1,4 +1,4 @@
-"""Monte Carlo sweeps (issue 5): spread validation, vmap against a loop, divergence as data,
+"""Monte Carlo sweeps: spread validation, vmap against a loop, divergence as data,
 chunk/shard/process invariance, summaries (quantiles, SRC, Spearman), CLI and figures."""
 
 import dataclasses

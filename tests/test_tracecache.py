@@ -1,4 +1,4 @@
-"""Traces kept across processes (``jaxflex.tracecache``, issue 17 "a second run of any
+"""Traces kept across processes (``jaxflex.tracecache``, "a second run of any
 command compiles under 2 s"): a kept program gives the same numbers without tracing, the key
 changes with everything that shapes the trace, and code the key cannot cover is never kept."""
 

@@ -1,4 +1,4 @@
-"""Validation workflow and the rotor model kind (issue 14): known answers on synthetic data."""
+"""Validation workflow and the rotor model kind: known answers on synthetic data."""
 
 import jax
 import numpy as np
@@ -230,7 +230,7 @@ def test_declared_cascade_reproduces_a_cascade_log_and_wrong_parameters_do_not()
 
 
 def test_rigid_torque_fit_recovers_a_rigid_axis_and_names_bad_input():
-    """The rigid baseline's regression (issue 14): a torque that obeys tau = Jt q'' + Fv q' +
+    """The rigid baseline's regression: a torque that obeys tau = Jt q'' + Fv q' +
     Fc sign(q') + offset exactly for a smooth motion gives back its four coefficients, and
     ``rigid_torque`` its torque; a missing joint is refused by name."""
     dt = 2e-3

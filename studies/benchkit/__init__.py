@@ -1,4 +1,4 @@
-"""Shared habits of the benchmark studies (issue 17): one BLAS thread unless stated, the
+"""Shared habits of the benchmark studies: one BLAS thread unless stated, the
 machine's load and thread settings recorded with every timing, paired repeated runs (the
 methods take turns within each repeat, so a change in the shared machine's load hits all of
 them alike), min and median reported, ratios against a named baseline printed side by side.
