@@ -99,20 +99,23 @@ def test_a_rigid_axis_under_the_flexible_model_is_refused_with_a_hint(tmp_path):
 
 
 def test_identify_without_a_start_file_on_the_shipped_emps(tmp_path):
-    """``jaxflex identify jaxflex:emps/DATA_EMPS`` with no start file: the
+    """``jaxflex identify jaxflex:emps/DATA_EMPS --closed-loop`` with no start file: the
     rigid model from the one encoder, the start from the inverse dynamics, the offset the
-    log shows fitted, a two-part verdict in the file, and an exit code that follows the
+    log shows fitted, the closed-loop refinement through the data set's own controller
+    recorded, a two-part verdict in the file, and an exit code that follows the
     solver's half (a converged model-limited file is accepted downstream). 4 s of the log
     and 10 steps a solve: what is checked here is the command, not the fit's accuracy."""
     path = tmp_path / "emps.json"
     out = _cli("identify", "jaxflex:emps/DATA_EMPS", "--out", str(path), "--stop", "4000",
-               "--max-steps", "10", "--quiet")
+               "--max-steps", "10", "--quiet", "--closed-loop")
     assert out.returncode in (0, 3), out.stderr
     d = json.loads(path.read_text())
     ident = d["identification"]
     assert ident["start"]["kind"] == "rigid" and not ident["start"]["user"]
     assert "torque_offset.offset" in ident["free"] and "I" in ident["free"]
     assert d["axis"] == "prismatic"  # the data set's axis, for discover
+    cl = ident["closed_loop"]  # the refinement through EMPS's own P/P cascade, in numbers
+    assert cl["before"]["position_pct"] > 0 and "series" not in cl["after"]
     assert ident["model"]["verdict"] == "model-limited"  # a real rig: far above the noise
     assert ident["solver"]["converged"] == (out.returncode == 0)
     finals = [a["cost_final"] for a in ident["attempts"] if "cost_final" in a]

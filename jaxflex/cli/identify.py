@@ -267,7 +267,9 @@ def _closed_loop(res: Any, log: Any, loop: dict[str, Any], model: str, max_steps
     after = closed_loop_errors(fit["params"], log, kind=kind)
     better = (after["position_pct"] / before["position_pct"]) ** 2 + (
         after["torque_pct"] / before["torque_pct"]) ** 2 < 2.0
-    record = {"free": names, "before": before, "after": after, "kept": bool(better),
+    numbers = lambda e: {k: v for k, v in e.items() if k != "series"}  # noqa: E731
+    record = {"free": names, "before": numbers(before), "after": numbers(after),
+              "kept": bool(better),
               "converged": fit["converged"], "reason": fit["reason"], "steps": fit["steps"],
               "stderr": {k: list(map(float, v)) for k, v in fit["stderr"].items()},
               "stderr_kind": fit["stderr_kind"]}
