@@ -69,6 +69,33 @@ class Search:
                   f"{self.good:.3e}); {sol.reason}")
         return sol
 
+    def race(self, prob: Problem, starts: Sequence[tuple[str, Any]], label: dict[str, Any],
+             max_steps: int) -> tuple[Solution, int]:
+        """The best of several starts of ``prob`` for the steps of one solve: each start
+        gets ``RACE_STEPS`` steps in turn (stopping at the first that settles), then the
+        lowest that has not converged continues to ``max_steps`` in all. A start (a thunk)
+        is made only when its turn comes. Returns the best solution and the steps taken."""
+        first = min(RACE_STEPS, max_steps)
+        runs: list[tuple[str, Solution]] = []
+        for name, start_of in starts:
+            sol = self.run(prob, start_of(), {**label, "start": name}, first, full=False)
+            runs.append((name, sol))
+            if is_settled(sol, self.good):
+                return sol, sum(s.steps for _, s in runs)
+        name, lead = min(runs, key=lambda r: r[1].cost)
+        steps = sum(s.steps for _, s in runs)
+        if not lead.converged and lead.steps >= first and max_steps > first:
+            more = self.run(prob, lead.y, {**label, "start": f"{name}, continued"},
+                            max_steps - first, full=False)
+            steps += more.steps
+            if more.cost <= lead.cost:
+                lead = dataclasses.replace(more, steps=lead.steps + more.steps)
+        return lead, steps
+
+
+#: Steps each start of a race (``Search.race``) is given before only the lowest goes on.
+RACE_STEPS: int = 40
+
 
 def starts_of(log: Log, init: Params, free: Sequence[str], prob: Problem, y0: Any,
             model: str, static_start: bool, user_start: bool, data: DataStart | None,
@@ -140,16 +167,11 @@ def fix_unidentified(search: Search, res: IdentResult, prob: Problem, best: Solu
             phys = space.physical_values(y[0])
             return sub.space.theta_of({k: phys[k] for k in keep}), y[1]
 
-        sol = None
-        for label, start_of in (("fitted", lambda: kept(cur.space, sol_cur.y)),
-                                ("user", lambda: warmed(sub, kept(prob.space, y0)))):
-            s_ = search.run(sub, start_of(), {"refit_without": list(fixed_why),
-                                              "start": label}, max_steps, full=False)
-            total += s_.steps
-            if sol is None or s_.cost < sol.cost:
-                sol = s_
-            if is_settled(sol, good):
-                break
+        sol, steps = search.race(
+            sub, (("fitted", lambda: kept(cur.space, sol_cur.y)),
+                  ("user", lambda: warmed(sub, kept(prob.space, y0)))),
+            {"refit_without": list(fixed_why)}, max_steps)
+        total += steps
         res = finish(sub, init, sol.y, steps=total, converged=sol.converged, wall_s=0.0,
                      rel_stderr_limit=rel_stderr_limit, noise_cost=good, log=log,
                      unidentified=dict(fixed_why), solution=sol)
