@@ -60,6 +60,9 @@ SKEW_FREE: tuple[str, ...] = ("J", "K", "motor_friction.Fm", "encoder_skew.skew"
 #: Sensor nuisances a recording sets anew: the link encoder's offset and scale against the
 #: motor encoder (the KUKA KR300's offset changes between recordings).
 PER_LOG: tuple[str, ...] = ("encoder_skew.offset", "encoder_scale.scale")
+#: A fitted parameter above this relative standard error is marked not identified (it keeps
+#: its fitted value), as ``jaxflex.identify.identify`` marks them.
+REL_STDERR_LIMIT: float = 0.5
 #: The solver's statistical stop: the step that remains is below sqrt(DECREMENT_TOL)
 #: standard errors of white residuals (``jaxflex.fit.least_squares``, ``decrement_tol``).
 DECREMENT_TOL: float = 1e-2
@@ -268,8 +271,7 @@ def _record(fit: TorqueFit, params: Params, free: Sequence[str], skew: TorqueFit
     reason = "; ".join(f"{w}: {'converged' if f.converged else 'not converged'} ({f.reason}"
                        + (f"; at the constraint's boundary: {f.at_bound}" if f.at_bound else "")
                        + ")" for w, f in ends)
-    marks = {k: {"identified": bool(k in fit.stderr and math.isfinite(fit.stderr[k][0])
-                                    and k not in fit.at_bound)} for k in free}
+    marks = {k: _mark(k, fit, params) for k in free}
     rec: dict[str, Any] = {
         "model": "rotor", "method": "equation error: the torque the rotor line needs for the "
         "measured motion against the logged torque (jaxflex.identify.torque)",
@@ -290,6 +292,22 @@ def _record(fit: TorqueFit, params: Params, free: Sequence[str], skew: TorqueFit
             "K_deflection": [float(x) for x in _value(skew.params, "K")],
             "K_deflection_stderr": skew.stderr.get("K")}
     return rec
+
+
+def _mark(name: str, fit: TorqueFit, params: Params) -> dict[str, Any]:
+    """A fitted name's mark in the file: identified, or not with the reason (at its
+    constraint's boundary, in a null direction, or a relative standard error above
+    ``REL_STDERR_LIMIT``); every name keeps its fitted value."""
+    se = np.asarray(fit.stderr.get(name, [math.nan]), float)
+    rel = float(np.max(np.abs(se) / np.maximum(np.abs(_value(params, name)), 1e-300)))
+    if name in fit.at_bound:
+        return {"identified": False, "reason": "at its constraint's boundary"}
+    if not math.isfinite(rel):
+        return {"identified": False, "reason": "numerically null direction of the Jacobian"}
+    if rel > REL_STDERR_LIMIT:
+        return {"identified": False, "reason": f"relative standard error {100 * rel:.3g}% > "
+                f"{100 * REL_STDERR_LIMIT:g}% (residuals' correlation time included)"}
+    return {"identified": True}
 
 
 def _has(params: Params, name: str) -> bool:
