@@ -113,7 +113,10 @@ def run(args: argparse.Namespace) -> int:
         loop_controller(p)
     if args.model is None:
         args.model = identified_kind(sets["params"])
-        print(f"model {args.model} (as {args.params} was identified; --model to choose)")
+        if args.model is None:
+            args.model = "flexible"
+        else:
+            print(f"model {args.model} (as {args.params} was identified; --model to choose)")
     mapping = parse_mapping(args.map)
     units = axis_units(mapping, args.linear)
     logs = []
@@ -205,9 +208,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def identified_kind(params: Any) -> str:
+def identified_kind(params: Any) -> str | None:
     """The model kind a parameter file was identified as (``identification.model_kind``, or
-    ``identification.model``), "flexible" for a file that records none."""
+    ``identification.model``), None for a file that records none."""
     ident = params.extra.get("identification")
     if isinstance(ident, dict):
         mk = ident.get("model_kind")
@@ -215,7 +218,7 @@ def identified_kind(params: Any) -> str:
             return mk["kind"]
         if ident.get("model") in ("flexible", "rigid", "rotor", "link"):
             return ident["model"]
-    return "flexible"
+    return None
 
 
 def per_log_sensors(params: Any, log: Any, kind: str) -> tuple[Any, dict[str, Any] | None]:
