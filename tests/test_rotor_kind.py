@@ -109,14 +109,15 @@ def test_identify_writes_the_chosen_kind_and_an_explicit_model_wins(tmp_path, ca
     text = capsys.readouterr().out
     assert "model rotor" in text and "declared coupled" in text
     d = json.loads(out.read_text())
-    assert d["identification"]["model_kind"]["kind"] == "rotor"
-    assert "--link-side" in d["identification"]["model_kind"]["why"]
+    assert d["identification"]["start"]["kind"] == "rotor"
+    assert "--link-side" in d["identification"]["start"]["kind_reason"]
     assert d["link_side"] == "coupled"
     out2 = tmp_path / "b.json"
     assert main(["identify", str(f), "--link-side", "single", "--model", "rotor",
                  "--out", str(out2)]) == 0
     d2 = json.loads(out2.read_text())
-    assert d2["identification"]["model_kind"] == {"kind": "rotor", "why": "--model rotor"}
+    assert d2["identification"]["start"]["kind"] == "rotor"
+    assert d2["identification"]["start"]["kind_reason"] == "--model rotor"
     assert d2["link_side"] == "single"
 
 
@@ -139,7 +140,7 @@ def test_kuka_axis_from_the_command_line_beats_the_rigid_baseline(axis, tmp_path
     least-squares baseline fitted on A."""
     out = tmp_path / f"a{axis}.json"
     assert main(["identify", f"jaxflex:kuka/A/{axis}", "--out", str(out)]) == 0
-    assert json.loads(out.read_text())["identification"]["model_kind"]["kind"] == "rotor"
+    assert json.loads(out.read_text())["identification"]["start"]["kind"] == "rotor"
     val = tmp_path / "val"
     assert main(["validate", f"jaxflex:kuka/B/{axis}", f"jaxflex:kuka/C/{axis}", "--params",
                  str(out), "--out", str(val)]) == 0

@@ -5,7 +5,12 @@ Writes the identified parameters in the docs/spec.md section 7 format with stand
 table with the two-part verdict: the solver's (converged or not) and the model's (adequate, or
 model-limited with what the residual shows). ``LOG`` is a file or a shipped data set
 (``jaxflex:emps/DATA_EMPS``, ``jaxflex:kuka/A/2``); without ``--params`` every parameter
-starts from the log's inverse dynamics.
+starts from the log's inverse dynamics. The model kind follows the log's encoders and its
+declared link side (``--link-side``, a start file's ``link_side``, a shipped data set's own):
+a coupled link side with two encoders is the rotor kind, fitted by equation error on the
+torque from the measured motion (``jaxflex.identify.torque``) with a figure of measured
+against predicted torque; the command prints the kind and why and writes them to
+``identification.start`` (``kind``, ``kind_reason``).
 """
 
 from __future__ import annotations
@@ -66,7 +71,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "or <effect>.<param> (an effect the start lacks is added, e.g. "
                    "torque_offset.offset). Default: the six LuGre parameters, with --params; "
                    "without, also the inertia (I; J, K for the flexible model) and the "
-                   "offset the data show")
+                   "offset the data show; for the rotor kind J, K, motor_friction.Fm, "
+                   "motor_friction.bm, torque_offset.offset, encoder_scale.scale (the "
+                   "encoder skew and offset from the first step unless named)")
     p.add_argument("--fix", default=None, metavar="NAME=VALUE,...",
                    help="pin parameters at values before the fit (e.g. 'sigma1=0,J=1e-3'), "
                         "names as --free; a pinned name is not fitted")
@@ -88,7 +95,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "offset c and the encoder scale; jaxflex.identify.torque), "
                         "or link: the link subsystem M q1'' + F = K (q2 - q1) driven by the "
                         "measured rotor motion (no motor model: friction on the link side). "
-                        "An explicit kind always wins")
+                        "An explicit kind always wins. The rotor kind is not replayed: "
+                        "--segment, --substeps and --closed-loop do not apply to it")
     p.add_argument("--link-side", choices=("single", "coupled"), default=None,
                    help="what a single-joint model can describe of the link side: single (the "
                         "link is the one joint the model describes) or coupled (it belongs to "
@@ -312,11 +320,11 @@ def _closed_loop(res: Any, log: Any, loop: dict[str, Any], model: str, max_steps
 def _declare(params: Any, model: str, why: str, axis: list[str] | None,
              side: list[str] | None) -> None:
     """Write into a result's ``extra`` the model kind chosen and why
-    (``identification.model_kind``), and what the log's owner declared of the axes (``axis``:
-    what gravity can do, so that discover does not try an effect that cannot act;
-    ``link_side``)."""
+    (``identification.start``'s ``kind`` and ``kind_reason``), and what the log's owner
+    declared of the axes (``axis``: what gravity can do, so that discover does not try an
+    effect that cannot act; ``link_side``)."""
     ident = params.extra.setdefault("identification", {})
-    ident["model_kind"] = {"kind": model, "why": why}
+    ident["start"] = {**ident.get("start", {}), "kind": model, "kind_reason": why}
     for key, value in (("axis", axis), ("link_side", side)):
         if value is not None and key not in params.extra:
             params.extra[key] = value[0] if len(value) == 1 else value

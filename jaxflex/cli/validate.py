@@ -49,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--map", default=None, help="column mapping or @FILE (docs/spec.md 6.4)")
     p.add_argument("--model", choices=("flexible", "rigid", "rotor", "link"), default=None,
                    help="model structure (default: the kind the file was identified as, "
-                        "identification.model_kind, else flexible)")
+                        "identification.start.kind, else flexible)")
     p.add_argument("--disturbance", default=None,
                    help="expression on the log file's variables added to the controller output "
                         "in the closed loop [V for pp_cascade, N m otherwise], e.g. pulses_N (default: none; a file without "
@@ -209,15 +209,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def identified_kind(params: Any) -> str | None:
-    """The model kind a parameter file was identified as (``identification.model_kind``, or
-    ``identification.model``), None for a file that records none."""
+    """The model kind a parameter file was identified as (``identification.start.kind``, or
+    ``identification.model`` as a name), None for a file that records none."""
     ident = params.extra.get("identification")
-    if isinstance(ident, dict):
-        mk = ident.get("model_kind")
-        if isinstance(mk, dict) and mk.get("kind") in ("flexible", "rigid", "rotor", "link"):
-            return mk["kind"]
-        if ident.get("model") in ("flexible", "rigid", "rotor", "link"):
-            return ident["model"]
+    if not isinstance(ident, dict):
+        return None
+    start = ident.get("start")
+    for k in (start.get("kind") if isinstance(start, dict) else None, ident.get("model")):
+        if k in ("flexible", "rigid", "rotor", "link"):
+            return k
     return None
 
 

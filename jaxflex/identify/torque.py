@@ -273,7 +273,7 @@ def _record(fit: TorqueFit, params: Params, free: Sequence[str], skew: TorqueFit
                        + ")" for w, f in ends)
     marks = {k: _mark(k, fit, params) for k in free}
     rec: dict[str, Any] = {
-        "model_kind": {"kind": "rotor", "why": "the rotor subsystem's identification"},
+        "start": {"kind": "rotor", "kind_reason": "the rotor subsystem's identification"},
         "method": "equation error: the torque the rotor line needs for the "
         "measured motion against the logged torque (jaxflex.identify.torque)",
         "free": list(free), "steps": fit.steps, "cost": fit.cost,
