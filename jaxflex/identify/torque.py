@@ -70,18 +70,19 @@ DECREMENT_TOL: float = 1e-2
 
 class TorqueData(eqx.Module):
     """Data of an equation-error fit: the parameter space, the measured motion
-    (``jaxflex.validate.motion_of``) and the residual's scale (torque [N m] or deflection
-    [rad]); ``deflection`` selects the residual (module docstring)."""
+    (``jaxflex.validate.motion_of``) and each joint's residual scale (n,) (torque [N m] or
+    deflection [rad]: every joint weighs alike); ``deflection`` selects the residual (module
+    docstring)."""
 
     space: ParamSpace
     motion: dict
-    scale: float = eqx.field(static=True)
+    scale: jax.Array
     deflection: bool = eqx.field(static=True, default=False)
 
 
 def torque_residuals(theta: dict, data: TorqueData) -> jax.Array:
-    """(tau_hat - tau) / scale over the samples and joints, or in the deflection domain
-    (``data.deflection``) (tau_hat - tau) / (K scale)."""
+    """(tau_hat - tau) / scale over the samples and joints (sample-major), or in the
+    deflection domain (``data.deflection``) (tau_hat - tau) / (K scale)."""
     from jaxflex.validate import predicted_torque
 
     plant = data.space.plant(theta)
@@ -179,14 +180,20 @@ def fit_equation_error(params: Params, log: Log, free: Sequence[str], *,
         raise ValueError("identify: the rotor model needs the columns tau, q1 and q2")
     motion = {k: jnp.asarray(v) for k, v in motion_of(log, "rotor").items()}
     space = ParamSpace.build(params.to_plant(), list(free))
-    scale = float(np.std(np.asarray(log.q2) - np.asarray(log.q1)) if deflection
-                  else np.std(np.asarray(log.tau)))
-    data = TorqueData(space=space, motion=motion, scale=scale, deflection=deflection)
+    x = (np.asarray(log.q2, float) - np.asarray(log.q1, float) if deflection
+         else np.asarray(log.tau, float)).reshape(log.N, log.n)
+    scale = np.std(x, axis=0)
+    if not np.all(scale > 0):
+        raise ValueError(f"identify: a joint's {'deflection' if deflection else 'torque'} is "
+                         "constant in the log; the rotor line cannot be fitted to it")
+    data = TorqueData(space=space, motion=motion, scale=jnp.asarray(scale),
+                      deflection=deflection)
     m = int(np.size(log.tau))
     sol = least_squares(data, space.theta0(), fn=torque_residuals, max_steps=max_steps,
                         scaling=scaling, decrement_tol=CostBound(DECREMENT_TOL * 2.0 / m))
-    r = np.asarray(torque_residuals(sol.y, data))
-    tau_int = integrated_autocorrelation(r)
+    r = np.asarray(torque_residuals(sol.y, data)).reshape(log.N, log.n)
+    # the joints' residuals share one variance inflation: the longest correlation time
+    tau_int = max(integrated_autocorrelation(r[:, j]) for j in range(log.n))
     cov = covariance(data, sol.y, fn=torque_residuals, inflation=tau_int)
     phys = {k: np.asarray(v, float) for k, v in space.physical(sol.y).items()}
     start = {k: np.asarray(v, float) for k, v in space.physical(space.theta0()).items()}
