@@ -87,7 +87,7 @@ CONTROLLER_KEYS: tuple[str, ...] = (
 # physics the log's owner knows (read by ``jaxflex.discover.declared_axes``)
 EXTRA_KEYS: tuple[str, ...] = ("stderr", "identification", "discover", "source", "description",
                                "comment", "notes", "units", "meta", "loop_controller",
-                               "certificate", "axis")
+                               "certificate", "axis", "link_side")
 SECTIONS: tuple[str, ...] = ("plant", "friction", "gains", "effects", "controller")
 
 

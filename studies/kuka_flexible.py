@@ -151,6 +151,7 @@ def fit(params: Any, log: Any, free: tuple[str, ...], *, deflection: bool = Fals
     constraint boundary (positive ones below 1e-100 of their start or above 1e100 times it,
     bounded ones within 1e-6 of their range from an end))."""
     from jaxflex.fit import ParamSpace, constraint_of, covariance, least_squares, set_values
+    from jaxflex.identify.torque import integrated_autocorrelation
     from jaxflex.validate import motion_of
 
     motion = {k: jnp.asarray(v) for k, v in motion_of(log, "rotor").items()}
@@ -181,28 +182,6 @@ def fit(params: Any, log: Any, free: tuple[str, ...], *, deflection: bool = Fals
              "K_stderr_white": float(np.asarray(cov_w["stderr"]["K"])[0]) if "K" in free
              else float("nan")}
     return set_values(params, phys), se, sol, extra
-
-
-def integrated_autocorrelation(r: np.ndarray, max_lag: int = 1000) -> float:
-    """Integrated autocorrelation time [samples] of a residual series (N,) by Geyer's initial
-    positive sequence on pairs: 1 + 2 sum rho_k = -1 + 2 sum_m (rho_2m + rho_2m+1), summed
-    while the pair sums stay positive. Pairs keep a ripple that alternates in sign from lag to
-    lag (the KUKA torque's) from stopping the sum at lag 1 while a slow model error is still
-    correlated."""
-    r = np.asarray(r, float) - np.mean(r)
-    n = r.size
-    f = np.fft.rfft(r, 2 * n)
-    acf = np.fft.irfft(f * np.conj(f))[: min(max_lag, n - 1) + 1]
-    if acf[0] <= 0:
-        return 1.0
-    rho = acf / acf[0]
-    tau = -1.0
-    for m in range(rho.size // 2):
-        g = rho[2 * m] + rho[2 * m + 1]
-        if g <= 0:
-            break
-        tau += 2.0 * g
-    return float(max(tau, 1.0))
 
 
 def start_params(J0: float, K0: float) -> Any:

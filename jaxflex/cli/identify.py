@@ -5,7 +5,12 @@ Writes the identified parameters in the docs/spec.md section 7 format with stand
 table with the two-part verdict: the solver's (converged or not) and the model's (adequate, or
 model-limited with what the residual shows). ``LOG`` is a file or a shipped data set
 (``jaxflex:emps/DATA_EMPS``, ``jaxflex:kuka/A/2``); without ``--params`` every parameter
-starts from the log's inverse dynamics.
+starts from the log's inverse dynamics. The model kind follows the log's encoders and its
+declared link side (``--link-side``, a start file's ``link_side``, a shipped data set's own):
+a coupled link side with two encoders is the rotor kind, fitted by equation error on the
+torque from the measured motion (``jaxflex.identify.torque``) with a figure of measured
+against predicted torque; the command prints the kind and why and writes them to
+``identification.start`` (``kind``, ``kind_reason``).
 """
 
 from __future__ import annotations
@@ -66,7 +71,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "or <effect>.<param> (an effect the start lacks is added, e.g. "
                    "torque_offset.offset). Default: the six LuGre parameters, with --params; "
                    "without, also the inertia (I; J, K for the flexible model) and the "
-                   "offset the data show")
+                   "offset the data show; for the rotor kind J, K, motor_friction.Fm, "
+                   "motor_friction.bm, torque_offset.offset, encoder_scale.scale (the "
+                   "encoder skew and offset from the first step unless named)")
     p.add_argument("--fix", default=None, metavar="NAME=VALUE,...",
                    help="pin parameters at values before the fit (e.g. 'sigma1=0,J=1e-3'), "
                         "names as --free; a pinned name is not fitted")
@@ -76,12 +83,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", choices=("auto", "flexible", "rigid", "rotor", "link"),
                    default="auto",
                    help="auto (default): rigid when the log has one encoder (q2 absent or "
-                        "equal to q1), else flexible; flexible joint (eq. 3), rigid "
-                        "Jx x'' = u - F (eq. 37), or rotor: the "
-                        "rotor subsystem J q2'' + K (q2 - q1) + motor effects = tau driven by "
-                        "the measured link motion (subsystem identification, no link model), "
+                        "equal to q1); with two, rotor where the link side is declared "
+                        "coupled (--link-side; the shipped KUKA axes), else flexible. "
+                        "flexible joint (eq. 3), rigid Jx x'' = u - F (eq. 37), or rotor: the "
+                        "rotor subsystem J q2'' + K (q2 - q1c) + Fm tanh(q2'/w) + bm q2' - c = "
+                        "tau driven by the measured link motion q1c = (1 + scale) (q1 + skew "
+                        "q1' + off) (no link model: the spring's deflection carries gravity, a "
+                        "counterbalance and the other axes), fitted by equation error on the "
+                        "torque in two steps (the encoder skew and offset in the deflection, "
+                        "then J, K, motor friction Fm, bm with w = 1e-4 rad/s, the torque "
+                        "offset c and the encoder scale; jaxflex.identify.torque), "
                         "or link: the link subsystem M q1'' + F = K (q2 - q1) driven by the "
-                        "measured rotor motion (no motor model: friction on the link side)")
+                        "measured rotor motion (no motor model: friction on the link side). "
+                        "An explicit kind always wins. The rotor kind is not replayed: "
+                        "--segment, --substeps and --closed-loop do not apply to it")
+    p.add_argument("--link-side", choices=("single", "coupled"), default=None,
+                   help="what a single-joint model can describe of the link side: single (the "
+                        "link is the one joint the model describes) or coupled (it belongs to "
+                        "a multi-axis arm: the other axes, gravity, a counterbalance act on "
+                        "it; with two encoders --model auto then picks rotor). Default: the "
+                        "start file's top-level link_side, else the shipped data set's "
+                        "(KUKA: coupled; EMPS: single), else single")
     p.add_argument("--segment", type=_segment, default="auto",
                    help="samples per multiple-shooting segment (0: whole log), or 'auto' "
                         "(default): two mechanical time constants of the start model "
@@ -139,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.data import is_named, load_named
     from jaxflex.identify import IdentificationWarning, choose_segment_length, identify
     from jaxflex.identify.problem import SEGMENT_TIME_CONSTANTS, default_free, start_hints
-    from jaxflex.identify.start import StartError, check_model, start_from_data
+    from jaxflex.identify.start import StartError, check_model, link_sides, start_from_data
     from jaxflex.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.params import load_params, save_params
 
@@ -147,21 +169,36 @@ def run(args: argparse.Namespace) -> int:
 
     check_outputs(args.force, files=[args.out, args.figure or Path(args.out).with_suffix(".png")])
     pins = _pins(args.fix)
-    loop, axis = None, None
+    loop, axis, side, side_from = None, None, None, None
     if is_named(args.log):
         if args.mapping:
             raise ValueError("--map is for files; a shipped data set has its own columns")
         named = load_named(args.log)
         log, loop, axis = named.log, named.loop_controller, named.axis
+        side, side_from = named.link_side, f"the shipped data set {args.log}"
     else:
         required = REQUIRED_COLUMNS if args.model not in ("rigid", "auto") else ("t", "tau", "q1")
         log = load_log(args.log, parse_mapping(args.mapping), required=required)
     log = log.slice(args.start, args.stop)
     say = (lambda s: None) if args.quiet else print
-    model, why = check_model(log, args.model)
+    start_file = None
+    if args.params is not None:
+        start_file = load_params(args.params, accept_unconverged=True)  # a start guess
+        if "link_side" in start_file.extra:
+            side, side_from = start_file.extra["link_side"], args.params
+    if args.link_side is not None:
+        side, side_from = args.link_side, "--link-side"
+    side = link_sides(side, log.n, where=f"link_side ({side_from})")
+    model, why = check_model(log, args.model, side)
+    if args.model != "auto":
+        why = "--model " + args.model
+    elif side is not None and "coupled" in side:
+        why += f"; link side declared by {side_from}"
+    if model == "rotor":
+        return _rotor(args, log, model, why, start_file, pins, axis, side, say)
     data = None
     if args.params is not None:
-        init = load_params(args.params, accept_unconverged=True)  # a start guess
+        init = start_file
         start_note = f"start {args.params}"
         try:  # the common mistakes (degrees, rate, sign), named before the long fit
             data = start_from_data(log, model)
@@ -222,10 +259,7 @@ def run(args: argparse.Namespace) -> int:
             return 3
     if args.closed_loop:
         _closed_loop(res, log, loop, model, args.max_steps, say)
-    if axis is not None and "axis" not in res.params.extra:
-        # a shipped data set knows its axes (what gravity can do there): the file says it,
-        # so that discover does not try an effect that cannot act
-        res.params.extra["axis"] = axis[0] if len(axis) == 1 else axis
+    _declare(res.params, model, why, axis, side)
     out = Path(args.out)
     save_params(res.params, out)
     fig = Path(args.figure) if args.figure else out.with_suffix(".png")
@@ -281,3 +315,72 @@ def _closed_loop(res: Any, log: Any, loop: dict[str, Any], model: str, max_steps
         res.params.extra["identification"]["closed_loop"] = record
     say(f"[identify] closed loop: position {after['position_pct']:.4g}%, torque "
         f"{after['torque_pct']:.4g}% ({'kept' if better else 'not kept: no better'})")
+
+
+def _declare(params: Any, model: str, why: str, axis: list[str] | None,
+             side: list[str] | None) -> None:
+    """Write into a result's ``extra`` the model kind chosen and why
+    (``identification.start``'s ``kind`` and ``kind_reason``), and what the log's owner
+    declared of the axes (``axis``: what gravity can do, so that discover does not try an
+    effect that cannot act; ``link_side``)."""
+    ident = params.extra.setdefault("identification", {})
+    ident["start"] = {**ident.get("start", {}), "kind": model, "kind_reason": why}
+    for key, value in (("axis", axis), ("link_side", side)):
+        if value is not None and key not in params.extra:
+            params.extra[key] = value[0] if len(value) == 1 else value
+
+
+def _rotor(args: argparse.Namespace, log: Any, model: str, why: str, start_file: Any,
+           pins: dict[str, float], axis: list[str] | None, side: list[str] | None,
+           say: Callable[[str], None]) -> int:
+    """``identify`` of the rotor kind: equation error on the torque from the measured motion
+    (``jaxflex.identify.torque.identify_rotor``); writes the file and a figure of the measured
+    against the predicted torque. Returns the exit code (0 converged, 3 not)."""
+    import sys
+    from pathlib import Path
+
+    from jaxflex.identify.problem import with_named_effects
+    from jaxflex.identify.start import start_from_data
+    from jaxflex.identify.torque import ROTOR_FREE, identify_rotor
+    from jaxflex.params import save_params
+
+    if args.closed_loop:
+        raise ValueError("--closed-loop: the rotor model takes the link motion from the log and "
+                         "has no closed loop to simulate; choose --model flexible or rigid")
+    free = ([s.strip() for s in args.free.split(",") if s.strip()] if args.free
+            else list(ROTOR_FREE))
+    data = start_from_data(log, "rotor")
+    if start_file is None:
+        init = data.params
+        say("[identify] start from the log's inverse dynamics (rotor line):\n  "
+            + data.summary().replace("\n", "\n  "))
+    else:
+        init = with_named_effects(start_file, free, data.params)
+        say(f"[identify] start {args.params}")
+    say(f"[identify] {log.N} samples at {1e3 * log.dt:g} ms, {log.n} joint(s), model {model} "
+        f"({why}), free {[k for k in free if k not in pins]}; equation error on the torque "
+        "from the measured motion")
+    res = identify_rotor(log, init, free, pin=pins, max_steps=args.max_steps)
+    _declare(res.params, model, why, axis, side)
+    out = Path(args.out)
+    save_params(res.params, out)
+    fig = Path(args.figure) if args.figure else out.with_suffix(".png")
+    from jaxflex.plots import save_figure
+    from jaxflex.plots.validate import plot_validation_log
+    from jaxflex.validate import torque_prediction
+
+    series = {"t": log.t, "tau": log.tau, "q": log.q1, "closed_loop": None,
+              "tau_hat": torque_prediction(res.params, log, kind="rotor")}
+    save_figure(plot_validation_log(series, units=("rad", "N m"), title=(
+        f"rotor model on the identification log: torque error {res.torque_pct:.3g}%")), fig)
+    print(res.table())
+    say(f"[identify] wrote {out} and {fig} ({res.wall_s:.1f} s)")
+    if not res.converged:
+        print(f"jaxflex identify: the solver did not converge: {res.reason}. {out} is marked "
+              "unconverged; downstream commands refuse it unless given --accept-unconverged",
+              file=sys.stderr)
+        return 0 if args.accept_result else 3
+    say("[identify] verdict: solver converged; validate on other logs of the axis with "
+        f"jaxflex validate LOG... --params {out} (the encoder offset and scale re-estimated "
+        "on each)")
+    return 0

@@ -14,6 +14,16 @@ written until every log has been validated. Each row's ``residual_analysis`` is 
 MATLAB's ``resid`` gives it (autocorrelation and torque cross-correlation with 99% bands,
 Ljung-Box whiteness), drawn in ``DIR/<log>_<params>_residuals.png``.
 
+A rotor-kind file (``jaxflex identify`` on a coupled axis, e.g. ``jaxflex:kuka/A/2``) is
+judged by the torque it predicts from each log's measured motion. The link encoder's offset
+and scale against the motor encoder are sensor nuisances that a recording sets anew (the
+file's ``identification.per_log``): they are re-estimated on each log with every other
+parameter held (``jaxflex.identify.torque.refit_per_log``), and the row gives the torque error
+with them (``torque_pct``) and with the file's own values (``torque_pct_as_identified``).
+
+    jaxflex identify jaxflex:kuka/A/2 --out a2.json
+    jaxflex validate jaxflex:kuka/B/2 jaxflex:kuka/C/2 --params a2.json --out val2
+
 Example (EMPS, with the pulses of the validation file injected in volts):
 
     jaxflex validate jaxflex/data/DATA_EMPS_PULSES.mat --params emps.json --model rigid \\
@@ -23,6 +33,7 @@ Example (EMPS, with the pulses of the validation file injected in volts):
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -36,8 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--against", default=None, help="reference parameter file (JSON)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--map", default=None, help="column mapping or @FILE (docs/spec.md 6.4)")
-    p.add_argument("--model", choices=("flexible", "rigid", "rotor", "link"), default="flexible",
-                   help="model structure (default flexible)")
+    p.add_argument("--model", choices=("flexible", "rigid", "rotor", "link"), default=None,
+                   help="model structure (default: the kind the file was identified as, "
+                        "identification.start.kind, else flexible)")
     p.add_argument("--disturbance", default=None,
                    help="expression on the log file's variables added to the controller output "
                         "in the closed loop [V for pp_cascade, N m otherwise], e.g. pulses_N (default: none; a file without "
@@ -99,6 +111,12 @@ def run(args: argparse.Namespace) -> int:
         sets["against"] = load_params(args.against)
     for p in sets.values():  # a bad loop_controller section is refused before any work
         loop_controller(p)
+    if args.model is None:
+        args.model = identified_kind(sets["params"])
+        if args.model is None:
+            args.model = "flexible"
+        else:
+            print(f"model {args.model} (as {args.params} was identified; --model to choose)")
     mapping = parse_mapping(args.map)
     units = axis_units(mapping, args.linear)
     logs = []
@@ -122,8 +140,15 @@ def run(args: argparse.Namespace) -> int:
     results = []  # everything is computed before the folder is created
     for name, log, d in logs:
         for which, p in sets.items():
+            p, nuisance = per_log_sensors(p, log, args.model)
             res = validate(p, log, kind=args.model, segment=args.segment,
                            substeps=args.substeps, disturbance=d)
+            if nuisance is not None:
+                res["per_log"] = nuisance
+                res["torque_pct_as_identified"] = nuisance["torque_pct_as_identified"]
+                print(f"{name} {which}: per-log sensor nuisances {nuisance['values']} "
+                      f"(converged {nuisance['converged']}); torque error {res['torque_pct']:.4g}% "
+                      f"({nuisance['torque_pct_as_identified']:.4g}% with the file's values)")
             results.append((name, which, res))
 
     from jaxflex.plots import save_figure
@@ -166,7 +191,9 @@ def run(args: argparse.Namespace) -> int:
             fl = cl.get("noise_floor", {})
             f = lambda k: f"{cl[k]:.4g} ({fl[k]:.2g})" if k in cl else "-"
             lines.append(f"| {r['log']} | {r['params']} | {r['gap']:.4g} ({r['gap_noise']:.2g}) | "
-                         f"{r['torque_pct']:.4g} ({r['torque_noise_pct']:.3g}) | "
+                         f"{r['torque_pct']:.4g} ({r['torque_noise_pct']:.3g})"
+                         + (f" [{r['torque_pct_as_identified']:.4g} with the file's sensors]"
+                            if "torque_pct_as_identified" in r else "") + " | "
                          f"{f('position_pct')} | {f('velocity_pct')} | {f('torque_pct')} |")
         table = "\n".join(lines)
         (out / "table.md").write_text(table + "\n")
@@ -179,3 +206,38 @@ def run(args: argparse.Namespace) -> int:
           "closed loop, the benchmark metric")
     print(f"wrote {out / 'report.json'}")
     return 0
+
+
+def identified_kind(params: Any) -> str | None:
+    """The model kind a parameter file was identified as (``identification.start.kind``, or
+    ``identification.model`` as a name), None for a file that records none."""
+    ident = params.extra.get("identification")
+    if not isinstance(ident, dict):
+        return None
+    start = ident.get("start")
+    for k in (start.get("kind") if isinstance(start, dict) else None, ident.get("model")):
+        if k in ("flexible", "rigid", "rotor", "link"):
+            return k
+    return None
+
+
+def per_log_sensors(params: Any, log: Any, kind: str) -> tuple[Any, dict[str, Any] | None]:
+    """For the rotor kind, ``params`` with the file's per-log sensor nuisances
+    (``identification.per_log``) re-estimated on ``log`` (``refit_per_log``) and a record:
+    the values, whether the fit converged and the torque error [%] with the file's own
+    values; ``(params, None)`` for another kind or a file that declares none."""
+    ident = params.extra.get("identification")
+    names = ident.get("per_log") if isinstance(ident, dict) else None
+    if kind != "rotor" or not names:
+        return params, None
+    from jaxflex.fit import get_value
+    from jaxflex.identify.torque import refit_per_log
+    from jaxflex.validate import rel_error_pct, torque_prediction
+
+    before = rel_error_pct(log.tau, torque_prediction(params, log, kind="rotor"))
+    refit, fit = refit_per_log(params, log, names)
+    if fit is None:
+        return params, None
+    return refit, {"names": list(names), "converged": fit.converged,
+                   "values": {k: [float(x) for x in get_value(refit, k)] for k in names},
+                   "torque_pct_as_identified": before}

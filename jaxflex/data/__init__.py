@@ -325,12 +325,18 @@ class NamedData:
         axis: what gravity can do on each joint, as a parameter file declares it
             (``jaxflex.discover.config.AXES``: EMPS's prismatic axis; the KUKA axes from the
             arm's kinematics, ``jaxflex.chain.SerialChain.axis_kinds``), or None.
+        link_side: what a single-joint model can describe of each joint's link side, as a
+            parameter file declares it (``jaxflex.identify.start.LINK_SIDES``): EMPS's
+            "single" (one prismatic axis); every KUKA axis "coupled" (one axis of a six-axis
+            arm: the other axes, gravity and axis 2's hydraulic counterbalance act on its
+            link), or None.
     """
 
     log: Log
     loop_controller: dict[str, Any] | None
     name: str
     axis: list[str] | None = None
+    link_side: list[str] | None = None
 
 
 def _kuka_axis_kinds(trajectory: str, axes: Sequence[int]) -> list[str]:
@@ -374,12 +380,13 @@ def load_named(spec: str) -> NamedData:
             loop = {"type": "pp_cascade", "kp": float(rec.kp), "kv": float(rec.kv),
                     "gtau": float(rec.gtau), "vmax": 10.0}
             return NamedData(log=load_emps(parts[1]), loop_controller=loop, name=spec,
-                             axis=["prismatic"])
+                             axis=["prismatic"], link_side=["single"])
         if parts[0] == "kuka" and len(parts) in (2, 3) and parts[1] in KUKA_TRAJECTORIES:
             axis = KUKA_AXES if len(parts) == 2 else int(parts[2])
             axes = [axis] if isinstance(axis, int) else list(axis)
             return NamedData(log=load_kuka(parts[1], axis), loop_controller=None, name=spec,
-                             axis=_kuka_axis_kinds(parts[1], axes))
+                             axis=_kuka_axis_kinds(parts[1], axes),
+                             link_side=["coupled"] * len(axes))
     except ValueError:
         pass
     raise ValueError(f"unknown shipped data set {spec!r}; known: {known}")

@@ -2,8 +2,12 @@
 
 Public API (a workflow on the fitting engine ``jaxflex.fit``):
 
-- ``start_from_data(log, model)``, ``suggest_model(log)``: a full start and the model kind
-  from the log alone (linear least squares on the inverse dynamics);
+- ``start_from_data(log, model)``, ``suggest_model(log, link_side)``: a full start and the
+  model kind from the log and its declared link side (linear least squares on the inverse
+  dynamics);
+- ``identify_rotor(log, init=None, free=None) -> RotorResult``: the rotor kind by equation
+  error on the torque from the measured motion; ``refit_per_log``: its per-log sensor
+  nuisances on another log;
 - ``identify(log, init=None, free=None, model=..., segment_length=...) -> IdentResult``: joint
   output-error fit by gradient through the simulator (optimistix Levenberg-Marquardt,
   multiple shooting, constraints by reparametrisation, standard errors, identifiability
@@ -45,6 +49,7 @@ from jaxflex.identify.experiments import (
     two_step,
 )
 from jaxflex.identify.start import DataStart, StartError, start_from_data, suggest_model
+from jaxflex.identify.torque import RotorResult, identify_rotor, refit_per_log
 from jaxflex.identify.verdict import model_verdict
 from jaxflex.identify.static import (
     STATIC_NAMES,
@@ -63,5 +68,6 @@ __all__ = [
     "rigid_step", "rigid_vector_field", "set_values", "simulate_log", "static_map_experiment",
     "start_from_static_map", "static_map_from_log",
     "synthetic_log", "two_step", "DataStart", "StartError", "start_from_data", "suggest_model",
+    "RotorResult", "identify_rotor", "refit_per_log",
     "model_verdict", "default_free",
 ]
