@@ -102,9 +102,10 @@ def main(argv: list[str] | None = None) -> dict:
     hump = set_values(p_ms, {"Fs": np.array([1.5 * fc]), "vs": np.array([0.1])})
     for start_name, start in (("multiple_shooting", p_ms), ("initial_guess", init),
                               ("stribeck_hump", hump)):
-        rf = closed_loop_fit(start, log, free, kind="rigid",  # DATA_EMPS has no pulses
-                             max_steps=10 if args.small else 150)
-        e = closed_loop_errors(rf["params"], log)
+        fit = closed_loop_fit(start, log, free, kind="rigid",  # DATA_EMPS has no pulses
+                              max_steps=10 if args.small else 150)
+        e = closed_loop_errors(fit.params, log)
+        rf = fit.to_dict()
         rf["common_cost"] = 0.5 * ((e["position_pct"] / ref_err["position_pct"]) ** 2
                                    + (e["torque_pct"] / ref_err["torque_pct"]) ** 2)
         refines[start_name] = rf
