@@ -33,6 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     from jaxflex.discover import DiscoverConfig, discover
     from jaxflex.logs import load_log
     from jaxflex.params import Params, save_params
+    from jaxflex.plots import save_figures
     from jaxflex.plots.discover import plot_report
 
     if a.data is None:
@@ -53,7 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     save_params(res.params, out / "params.json")
-    rep["figures"] = plot_report(res, out)
+    rep["figures"] = save_figures(plot_report(res), out)
     rep["model_note"] = ("rigid axis as two half masses with K for a 600 rad/s internal mode; "
                          "units N, m (translational)")
     (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")

@@ -229,9 +229,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     save_params(res.params, out)
     fig = Path(args.figure) if args.figure else out.with_suffix(".png")
+    from jaxflex.plots import save_figure
     from jaxflex.plots.identify import plot_fit
 
-    plot_fit(res, fig)
+    save_figure(plot_fit(res), fig)
     print(res.table())
     for w in res.warnings:
         print(f"warning: {w}")
