@@ -299,15 +299,68 @@ def spectral_radius(A: np.ndarray) -> float:
     return float(np.max(np.abs(mu[live]))) if live.any() else 0.0
 
 
+@dataclasses.dataclass(frozen=True)
+class RestModes:
+    """The loop linearised at rest: ``spectral_radius`` of its one-sample map (multipliers
+    at exactly 1, conserved quantities, left out; per sample), ``stable`` (that radius < 1)
+    and ``modes``, the slowest (``Modes.dominant``: multiplier, |mu|, frequency [Hz],
+    damping ratio, time constant [s], the states taking part)."""
+
+    spectral_radius: float
+    stable: bool
+    modes: list[dict[str, Any]]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the fields by name."""
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class FloquetModes:
+    """The loop along a periodic reference of period ``period_s`` [s]: ``spectral_radius``
+    of the monodromy matrix (per period), ``stable``, the slowest ``modes`` (as
+    ``RestModes``) and the RMS link error over the last period ``rms_error_last_period``
+    [rad]."""
+
+    period_s: float
+    spectral_radius: float
+    stable: bool
+    modes: list[dict[str, Any]]
+    rms_error_last_period: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the fields by name."""
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopAnalysis:
+    """Result of ``analyse_loop``: the configuration (``q2d_method``, ``compensation``), the
+    modes at rest and, where asked for, the Floquet multipliers (else None)."""
+
+    q2d_method: str
+    compensation: bool
+    rest: RestModes
+    floquet: FloquetModes | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: ``q2d_method``, ``compensation``, ``rest`` and, where computed,
+        ``floquet``."""
+        out = dataclasses.asdict(self)
+        if self.floquet is None:
+            del out["floquet"]
+        return out
+
+
 def analyse_loop(plant: FlexibleJointPlant, gains: Any, *, q2d_method: str = "model",
                  compensation: bool = True, sensing: AbstractSensing | None = None,
                  floquet: bool = False, n_modes: int = 6, dt: float = 1e-3,
-                 tau_max: float = 2.0, period_reference: Any = None) -> dict[str, Any]:
+                 tau_max: float = 2.0, period_reference: Any = None) -> LoopAnalysis:
     """Modes of the paper's loop (controller on ``plant`` as its own model, ``gains``) at
     rest (a reference held at 0 rad) and, with ``floquet``, Floquet multipliers along
-    ``period_reference`` (default the paper's 0.5 Hz sinusoid, period 2 s). JSON-ready:
-    per case the spectral radius (multipliers at exactly 1, conserved quantities, left
-    out), ``stable`` (that radius < 1) and the ``n_modes`` slowest modes (``Modes.dominant``).
+    ``period_reference`` (default the paper's 0.5 Hz sinusoid, period 2 s): per case the
+    spectral radius, whether it is below 1 and the ``n_modes`` slowest modes
+    (``LoopAnalysis``). ``dt`` [s] the controller period, ``tau_max`` [N m] its torque limit.
     """
     from jaxflex.trajectory import Sinusoid
 
@@ -320,10 +373,8 @@ def analyse_loop(plant: FlexibleJointPlant, gains: Any, *, q2d_method: str = "mo
                     compensation=compensation, dt=dt, tau_max=tau_max)
     M, A = rest_modes(rest)
     r = spectral_radius(A)
-    out: dict[str, Any] = {
-        "q2d_method": q2d_method, "compensation": compensation,
-        "rest": {"spectral_radius": r, "stable": bool(r < 1.0), "modes": M.dominant(n_modes)},
-    }
+    at_rest = RestModes(spectral_radius=r, stable=bool(r < 1.0), modes=M.dominant(n_modes))
+    along = None
     if floquet:
         traj = period_reference
         if traj is None:
@@ -332,7 +383,8 @@ def analyse_loop(plant: FlexibleJointPlant, gains: Any, *, q2d_method: str = "mo
         period = float(1.0 / np.max(np.asarray(traj.frequency)))
         MF, P, tr = monodromy(ClosedLoopMap(plant, ctrl(traj), rest.sensing), period)
         rf = spectral_radius(P)
-        out["floquet"] = {"period_s": period, "spectral_radius": rf, "stable": bool(rf < 1.0),
-                          "modes": MF.dominant(n_modes),
-                          "rms_error_last_period": float(np.sqrt(np.mean(tr["e1"] ** 2)))}
-    return out
+        along = FloquetModes(period_s=period, spectral_radius=rf, stable=bool(rf < 1.0),
+                             modes=MF.dominant(n_modes),
+                             rms_error_last_period=float(np.sqrt(np.mean(tr["e1"] ** 2))))
+    return LoopAnalysis(q2d_method=q2d_method, compensation=compensation, rest=at_rest,
+                        floquet=along)

@@ -316,11 +316,10 @@ def rest_oscillation(
         f = np.fft.rfftfreq(len(last), dt)
         k = int(np.argmax(spec[1:]) + 1)
         modes = analyse_loop(plant, gains, q2d_method=q2d_method, compensation=comp,
-                             sensing=sensing, n_modes=3)["rest"]
+                             sensing=sensing, n_modes=3).rest
         out[key] = {"rms_error_tail": float(np.sqrt(np.mean(last**2))),
                     "peak_hz": float(f[k]), "peak_amplitude": float(spec[k]),
-                    "spectral_radius": modes["spectral_radius"], "stable": modes["stable"],
-                    "modes": modes["modes"]}
+                    **modes.to_dict()}
     return out
 
 

@@ -425,15 +425,55 @@ def _box_min_and_grad(theta, leak, box, vgrid, eps):
     return jax.value_and_grad(lambda th: _box_min(gains_of(th, leak), box, vgrid, eps))(theta)
 
 
+@dataclasses.dataclass(frozen=True)
+class HeldOutEvaluation:
+    """Result of ``evaluate_batch``: gains on held-out plants of a task's spread.
+
+    **Fields:**
+
+    - ``held_out_plants``: how many plants.
+    - ``rms_error`` [rad]: RMS link error per plant; ``lost``: per plant, whether its run
+      diverged.
+    - ``rms_q50``, ``rms_q95``, ``rms_mean`` [rad]: median, 95% quantile and mean of the RMS
+      error over the plants not lost (nan where every plant is lost).
+    - ``lost_fraction``: the share of plants lost.
+    - ``certified_fraction``: the share of plants whose N2 is positive definite over
+      |q1'| <= ``certify_speed`` [rad/s] (``RobustTask.certify_speed``).
+    - ``certified_up_to_q05``, ``certified_up_to_q50`` [rad/s]: 5% and 50% quantiles over
+      the plants of the speed up to which N2 is positive definite.
+    """
+
+    held_out_plants: int
+    rms_error: list[float]
+    lost: list[bool]
+    rms_q50: float
+    rms_q95: float
+    rms_mean: float
+    lost_fraction: float
+    certified_fraction: float
+    certify_speed: float
+    certified_up_to_q05: float
+    certified_up_to_q50: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the fields by name."""
+        return dataclasses.asdict(self)
+
+    def summary(self) -> dict[str, Any]:
+        """``to_dict`` without the per-plant lists (``rms_error``, ``lost``)."""
+        return {k: v for k, v in self.to_dict().items() if k not in ("rms_error", "lost")}
+
+
 @requires_float64
 def evaluate_batch(task: RobustTask, gains: CascadeGains, *, samples: int = 1000,
                    seed_offset: int = 1_000_003, eps: float = DEFAULT_EPS, grid: int = 65,
-                   chunk_size: int = 250) -> dict[str, Any]:
+                   chunk_size: int = 250) -> HeldOutEvaluation:
     """``gains`` on ``samples`` held-out plants of the task's spread (seed + ``seed_offset``:
     never the training plants): RMS link error per plant [rad] (the sweep engine), its
     quantiles, the lost fraction, and per plant whether N2 is positive definite over
     |q1'| <= ``task.certify_speed()`` (``certified_fraction``) and the speed [rad/s] up to which
-    it is (on a ``grid``-point grid up to 5 x the task speed)."""
+    it is (on a ``grid``-point grid up to 5 x the task speed). ``eps``: the certificate's
+    margin on the smallest eigenvalue of N2; ``chunk_size``: plants per sweep chunk."""
     spec = task.spec
     held = spec.with_(nominal=dataclasses.replace(spec.nominal, gains=gains.to_dict()),
                       seed=spec.seed + seed_offset, samples=samples)
@@ -455,11 +495,11 @@ def evaluate_batch(task: RobustTask, gains: CascadeGains, *, samples: int = 1000
     up_to = np.where(first_bad == 0, 0.0, vgrid[np.maximum(first_bad - 1, 0)])
     rms_ok = np.where(lost, np.nan, rms)
     q = lambda a: float(np.nanquantile(rms_ok, a)) if np.any(~lost) else math.nan
-    return {
-        "held_out_plants": samples, "rms_error": rms.tolist(), "lost": lost.tolist(),
-        "rms_q50": q(0.5), "rms_q95": q(0.95), "rms_mean": float(np.nanmean(rms_ok)),
-        "lost_fraction": float(np.mean(lost)),
-        "certified_fraction": float(np.mean(ok_task)), "certify_speed": v_task,
-        "certified_up_to_q05": float(np.quantile(up_to, 0.05)),
-        "certified_up_to_q50": float(np.quantile(up_to, 0.5)),
-    }
+    return HeldOutEvaluation(
+        held_out_plants=samples, rms_error=rms.tolist(), lost=lost.tolist(),
+        rms_q50=q(0.5), rms_q95=q(0.95), rms_mean=float(np.nanmean(rms_ok)),
+        lost_fraction=float(np.mean(lost)),
+        certified_fraction=float(np.mean(ok_task)), certify_speed=v_task,
+        certified_up_to_q05=float(np.quantile(up_to, 0.05)),
+        certified_up_to_q50=float(np.quantile(up_to, 0.5)),
+    )

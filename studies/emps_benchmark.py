@@ -26,6 +26,7 @@ Usage: ``python studies/emps_benchmark.py --out DIR [--small]``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 import warnings
@@ -33,25 +34,24 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxflex.data import EMPS_IDIM_LS, EmpsRigidModel
+
 PUBLISHED = {
-    "params": {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648},
+    "params": dataclasses.asdict(EMPS_IDIM_LS),
     "DATA_EMPS": {"position_pct": 0.013752, "force_pct": 5.848},
     "DATA_EMPS_PULSES": {"position_pct": 0.0080248, "force_pct": 8.9409},
 }
-J_FIXED = 1e-3  # kg: the rigid model identifies M = I + J; J is a fixed small share
+#: The study's initial guess (with Fs 12 N and vs 0.02 m/s).
+START = EmpsRigidModel(M=60.0, Fv=100.0, Fc=10.0, offset=0.0)
 
 
-def params_of(M: float, Fc: float, Fs: float, vs: float, Fv: float, offset: float, ctrl: dict):
-    """A rigid EMPS parameter set (SI, load side) with the benchmark's controller declared.
-    ``offset`` in the benchmark's sign (force = M a + Fv v + Fc sign(v) + offset)."""
+def params_of(model: EmpsRigidModel, ctrl: dict, Fs: float | None = None, vs: float = 0.01):
+    """A rigid EMPS parameter set (SI, load side: ``EmpsRigidModel.params_dict``, its force
+    offset included) with the benchmark's controller declared; ``Fs`` [N] (None: Fc) and
+    ``vs`` [m/s] the Stribeck hump."""
     from jaxflex.params import Params
 
-    return Params.from_dict({
-        "plant": {"I": M - J_FIXED, "J": J_FIXED, "K": 1e6},
-        "friction": {"Fc": Fc, "Fs": Fs, "vs": vs, "sigma0": 1e6, "sigma1": 0.0, "sigma2": Fv},
-        "effects": {"torque_offset": {"offset": [-offset]}},
-        "loop_controller": ctrl,
-    })
+    return Params.from_dict({**model.params_dict(Fs=Fs, vs=vs), "loop_controller": ctrl})
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> dict:
     log = load_emps("DATA_EMPS")
     if args.small:
         log = log.slice(0, 4000)
-    init = params_of(60.0, 10.0, 12.0, 0.02, 100.0, 0.0, ctrl)
+    init = params_of(START, ctrl, Fs=12.0, vs=0.02)
     free = ["I", "Fc", "Fs", "vs", "sigma2", "torque_offset.offset"]
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -102,9 +102,10 @@ def main(argv: list[str] | None = None) -> dict:
     hump = set_values(p_ms, {"Fs": np.array([1.5 * fc]), "vs": np.array([0.1])})
     for start_name, start in (("multiple_shooting", p_ms), ("initial_guess", init),
                               ("stribeck_hump", hump)):
-        rf = closed_loop_fit(start, log, free, kind="rigid",  # DATA_EMPS has no pulses
-                             max_steps=10 if args.small else 150)
-        e = closed_loop_errors(rf["params"], log)
+        fit = closed_loop_fit(start, log, free, kind="rigid",  # DATA_EMPS has no pulses
+                              max_steps=10 if args.small else 150)
+        e = closed_loop_errors(fit.params, log)
+        rf = fit.to_dict()
         rf["common_cost"] = 0.5 * ((e["position_pct"] / ref_err["position_pct"]) ** 2
                                    + (e["torque_pct"] / ref_err["torque_pct"]) ** 2)
         refines[start_name] = rf
@@ -112,8 +113,7 @@ def main(argv: list[str] | None = None) -> dict:
     refine = refines[chosen]
     wall_refine = time.perf_counter() - t1
     p = refine["params"]
-    pub = PUBLISHED["params"]
-    published = params_of(pub["M"], pub["Fc"], pub["Fc"], 0.01, pub["Fv"], pub["offset"], ctrl)
+    published = params_of(EMPS_IDIM_LS, ctrl)
     results: dict = {}
     for name in ("DATA_EMPS", "DATA_EMPS_PULSES"):
         r = emps_record(name)

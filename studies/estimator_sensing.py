@@ -98,7 +98,7 @@ def run(t_final: float, progress: Any = print) -> dict[str, Any]:
                         "diverged": bool(r.metrics.diverged),
                         "rest_spectral_radius": analyse_loop(
                             plant, gains, q2d_method=method, compensation=comp,
-                            sensing=sensing)["rest"]["spectral_radius"],
+                            sensing=sensing).rest.spectral_radius,
                         "wall_s": time.perf_counter() - t0,
                     }
                 w, wo = row["with"], row["without"]

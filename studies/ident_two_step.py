@@ -73,7 +73,7 @@ def main(argv=None) -> dict:
         static.v, static.F, lambda x: np.asarray(lg.steady_state(jnp.asarray(x))),
         true_curve=lambda x: np.asarray(truth.to_lugre().steady_state(jnp.asarray(x)))),
         out / "static_map.png")
-    plot_fit(ts.dynamic, out / "two_step_fit.png")
+    save_figure(plot_fit(ts.dynamic), out / "two_step_fit.png")
     rel = lambda p: {k: p.friction[k][0] / truth.friction[k][0] - 1 for k in LUGRE_NAMES}
     results = {
         "truth": truth.friction,
@@ -85,7 +85,7 @@ def main(argv=None) -> dict:
             warnings.simplefilter("ignore", IdentificationWarning)
             jf = identify(log, init, DEFAULT_FREE, segment_length=300, substeps=2,
                           max_steps=100)
-        plot_fit(jf, out / "joint_fit.png")
+        save_figure(plot_fit(jf), out / "joint_fit.png")
         results["joint"] = {"params": jf.params.friction, "rel_error": rel(jf.params),
                             "stderr": jf.stderr, "wall_s": jf.wall_s, "warnings": jf.warnings}
     print(json.dumps(results, indent=2))

@@ -52,7 +52,7 @@ def main() -> None:
 
     def top(res):
         """The slowest oscillatory mode (or the slowest mode) at rest."""
-        ms = [m for m in res["rest"]["modes"] if m["abs"] < 1 - 1e-9 or m["abs"] > 1 + 1e-9]
+        ms = [m for m in res.rest.modes if m["abs"] < 1 - 1e-9 or m["abs"] > 1 + 1e-9]
         osc = [m for m in ms if m["frequency_hz"] > 0.05]
         return (osc or ms)[0]
 
@@ -65,10 +65,10 @@ def main() -> None:
                                    sensing=sensing_preset(vel))
                 key = f"{method}/{'exact' if vel == 'ideal' else 'filtered'}_velocity/" + (
                     "with_compensation" if comp else "without_compensation")
-                grid[key] = {"spectral_radius": res["rest"]["spectral_radius"],
-                             "stable": res["rest"]["stable"], "slowest_oscillatory": top(res),
-                             "modes": res["rest"]["modes"]}
-                print(f"{key:<60} radius {res['rest']['spectral_radius']:.5f} "
+                grid[key] = {"spectral_radius": res.rest.spectral_radius,
+                             "stable": res.rest.stable, "slowest_oscillatory": top(res),
+                             "modes": res.rest.modes}
+                print(f"{key:<60} radius {res.rest.spectral_radius:.5f} "
                       f"f {top(res)['frequency_hz']:.2f} Hz zeta {top(res)['damping']:.3f}")
     doc["rest_modes"] = grid
 
@@ -87,7 +87,7 @@ def main() -> None:
             for v in values:
                 res = analyse_loop(plant, gains(**{name: v}), q2d_method=method)
                 m = top(res)
-                rad.append(res["rest"]["spectral_radius"])
+                rad.append(res.rest.spectral_radius)
                 freq.append(m["frequency_hz"])
                 rows.append({"q2d_method": method, name: v, "spectral_radius": rad[-1],
                              "frequency_hz": m["frequency_hz"], "damping": m["damping"]})
@@ -110,7 +110,7 @@ def main() -> None:
             res = analyse_loop(plant, gains(), q2d_method=method, compensation=comp,
                                floquet=True)
             doc["floquet"][f"{method}/{'with' if comp else 'without'}_compensation"] = \
-                res["floquet"]
+                res.floquet.to_dict()
 
     # 4. nonlinear check: the loop at rest, started 1 mrad off, spectral peak of e1
     T = 4.0 if args.small else 10.0

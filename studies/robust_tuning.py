@@ -147,11 +147,11 @@ def main(argv: list[str] | None = None) -> dict:
     for name, g in sets.items():
         t0 = time.perf_counter()
         e = evaluate_batch(task, g, samples=held)
-        e["seconds"] = time.perf_counter() - t0
-        e["gains"] = g.to_dict()
         ev[name] = e
-        print(f"{name:8s} rms q50 {e['rms_q50']:.3e}  q95 {e['rms_q95']:.3e}  lost "
-              f"{e['lost_fraction']:.3f}  certified {e['certified_fraction']:.3f}")
+        results[name] = {**e.summary(), "seconds": time.perf_counter() - t0,
+                         "gains": g.to_dict()}
+        print(f"{name:8s} rms q50 {e.rms_q50:.3e}  q95 {e.rms_q95:.3e}  lost "
+              f"{e.lost_fraction:.3f}  certified {e.certified_fraction:.3f}")
     # cost of robustness on the nominal plant
     from jaxflex.tune import tracking_cost
     nominal_rms = {}
@@ -159,17 +159,16 @@ def main(argv: list[str] | None = None) -> dict:
         _, aux = tracking_cost(p.to_plant(), g, ntask)
         nominal_rms[name] = float(np.max(np.asarray(aux["rms_error"])))
     for name in sets:
-        results[name] = {k: v for k, v in ev[name].items() if k not in ("rms_error", "lost")}
         results[name]["rms_nominal_plant"] = nominal_rms[name]
     box_certs = {k: certify_box(rob.box, g, 500.0, num=201, margin=0.05) for k, g in sets.items()}
     for k in sets:
         results[k]["box_certified_up_to"] = box_certs[k].certified_up_to
     results["box"] = rob.box.to_dict()
     results["held_out_plants"] = held
-    results["robust_beats_nominal_q95"] = bool(ev["robust"]["rms_q95"] < ev["nominal"]["rms_q95"])
+    results["robust_beats_nominal_q95"] = bool(ev["robust"].rms_q95 < ev["nominal"].rms_q95)
     results["cost_of_robustness"] = {
         "nominal_plant_rms_ratio_robust_over_nominal": nominal_rms["robust"] / nominal_rms["nominal"],
-        "median_rms_ratio_robust_over_nominal": ev["robust"]["rms_q50"] / ev["nominal"]["rms_q50"],
+        "median_rms_ratio_robust_over_nominal": ev["robust"].rms_q50 / ev["nominal"].rms_q50,
     }
 
     # 4. one robust step over 256 plants x 2 s
@@ -202,12 +201,12 @@ def main(argv: list[str] | None = None) -> dict:
 
     # figure
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
-    allr = np.concatenate([np.asarray(ev[k]["rms_error"]) for k in sets])
+    allr = np.concatenate([np.asarray(ev[k].rms_error) for k in sets])
     bins = np.geomspace(max(np.nanmin(allr), 1e-6), np.nanmax(allr) * 1.01, 40)
     for k in sets:
-        r = np.asarray(ev[k]["rms_error"])
-        ax[0].hist(r[~np.asarray(ev[k]["lost"])], bins=bins, histtype="step", lw=1.5,
-                   label=f"{k}: q50 {ev[k]['rms_q50']:.2e}, q95 {ev[k]['rms_q95']:.2e}")
+        r = np.asarray(ev[k].rms_error)
+        ax[0].hist(r[~np.asarray(ev[k].lost)], bins=bins, histtype="step", lw=1.5,
+                   label=f"{k}: q50 {ev[k].rms_q50:.2e}, q95 {ev[k].rms_q95:.2e}")
     ax[0].set_xscale("log")
     ax[0].set_xlabel("RMS link error on a held-out plant [rad]")
     ax[0].set_ylabel("plants")
@@ -217,7 +216,7 @@ def main(argv: list[str] | None = None) -> dict:
         c = box_certs[k]
         ax[1].semilogx(np.maximum(c.velocities, 1e-2), c.lambda_min,
                        label=f"{k}: certified on the box to {c.certified_up_to:.3g} rad/s; "
-                       f"{100 * ev[k]['certified_fraction']:.0f}% of plants at task speed")
+                       f"{100 * ev[k].certified_fraction:.0f}% of plants at task speed")
     ax[1].axhline(0.05, color="k", lw=0.8, ls="--")
     ax[1].axvline(task.certify_speed(), color="gray", lw=0.8, ls=":")
     ax[1].set_xlabel("link speed |q1'| [rad/s]")

@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> dict:
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
+    from jaxflex.plots import save_figures
     from jaxflex.plots.sweep import plot_sweep
     from jaxflex.sweep import load_spread, nominal_run, run_sweep
 
@@ -74,7 +75,8 @@ def main(argv: list[str] | None = None) -> dict:
         runs[label] = run_sweep(s, chunk_size=chunk, progress=not a.no_progress)
         noms[label] = nominal_run(s)
     wall = time.perf_counter() - t0
-    figs = plot_sweep(runs, out, nominal=noms["with compensation"])
+    figs = [str(out / f) for f in save_figures(plot_sweep(runs, nominal=noms["with compensation"]),
+                                                 out, dpi=120)]
 
     w, wo = runs["with compensation"].samples, runs["without compensation"].samples
     both = ~w["diverged"] & ~wo["diverged"]

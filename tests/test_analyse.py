@@ -51,8 +51,8 @@ def test_rest_modes_of_the_paper_loop():
     on = analyse_loop(paper_plant(), paper_gains(), q2d_method="model")
     off = analyse_loop(paper_plant(), paper_gains(), q2d_method="model", compensation=False)
     filt = analyse_loop(paper_plant(), paper_gains(), q2d_method="filtered")
-    assert not on["rest"]["stable"] and off["rest"]["stable"] and filt["rest"]["stable"]
-    grow = on["rest"]["modes"][0]
+    assert not on.rest.stable and off.rest.stable and filt.rest.stable
+    grow = on.rest.modes[0]
     assert grow["abs"] > 1.0 and 3.5 < grow["frequency_hz"] < 5.5 and grow["damping"] < 0
     assert "plant.z" in grow["states"] or "ctrl.z_hat" in grow["states"]
 

@@ -16,17 +16,14 @@ from jaxflex.discover import (
     nominal_for_model,
     spring_mode,
 )
+from jaxflex.data import EMPS_IDIM_LS
 from jaxflex.errors import InputError
 from jaxflex.logs import save_log
 from jaxflex.params import Params, ParamsError
 
-#: The EMPS benchmark's published rigid model (Janot et al. 2019) as a rigid identification
-#: would write it: the moving mass as I, a tiny J, a large K.
-EMPS_RIGID = {
-    "plant": {"I": 95.1, "J": 1e-3, "K": 1e6},
-    "friction": {"Fc": 20.4, "Fs": 22.0, "vs": 0.01, "sigma0": 1e6, "sigma1": 100.0,
-                 "sigma2": 203.5},
-}
+#: The EMPS benchmark's published rigid model as a rigid identification would write it (the
+#: moving mass as I plus a tiny J, a large K), with a Stribeck hump and no force offset.
+EMPS_RIGID = EMPS_IDIM_LS.params_dict(Fs=22.0, sigma1=100.0, offset=False)
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +44,8 @@ def test_a_rigid_model_too_stiff_for_the_replay_is_refused_with_its_remedy(emps_
     covariance died in numpy ("Eigenvalues did not converge"). It is refused before any fit,
     naming the mode and the remedy."""
     p = _rigid()
-    assert spring_mode(p) == pytest.approx(np.sqrt(1e6 * (1 / 95.1 + 1e3)))
+    I, J = EMPS_RIGID["plant"]["I"], EMPS_RIGID["plant"]["J"]
+    assert spring_mode(p) == pytest.approx(np.sqrt(1e6 * (1 / I + 1 / J)))
     with pytest.raises(ValueError, match=r"spring mode.*--model rigid.*substeps"):
         discover(emps_log, p, DiscoverConfig(candidates=("torque_offset",), model="flexible"))
 
@@ -56,7 +54,7 @@ def test_a_rigid_model_is_replayed_as_two_stiff_halves(emps_log):
     """model 'rigid': two halves of I + J joined by the spring of a 600 rad/s mode at 1 ms
     (as ``studies/discover_emps.py``), friction unchanged; a one-encoder log reads q2 = q1."""
     p, log, note = nominal_for_model(_rigid(), "rigid", emps_log, 1e-3)
-    half = (95.1 + 1e-3) / 2
+    half = EMPS_IDIM_LS.M / 2
     assert p.plant["I"] == pytest.approx([half]) and p.plant["J"] == pytest.approx([half])
     assert spring_mode(p) == pytest.approx(600.0)
     assert p.friction == _rigid().friction

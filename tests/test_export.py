@@ -22,7 +22,7 @@ from jaxflex.export import (
     load_module,
     parity_ok,
 )
-from jaxflex.export.codegen import function_source
+from jaxflex.export.pygen import function_source
 from jaxflex.presets import paper_params
 
 

@@ -689,18 +689,14 @@ def test_a_local_minimum_from_every_start_is_rescued_by_the_vs_restart():
 def _emps_start():
     """EMPS (DATA_EMPS) and the rigid start of ``studies/emps_benchmark.py`` (60 kg, Fc 10 N,
     Fs 12 N, vs 0.02 m/s, 100 N s/m), with its free parameters."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
-    from emps_benchmark import params_of
-
-    from jaxflex.data import emps_record, load_emps
+    from jaxflex.data import EmpsRigidModel, emps_record, load_emps
+    from jaxflex.params import Params
     from jaxflex.validate import PPCascade
 
     rec = emps_record("DATA_EMPS")
     ctrl = PPCascade(kp=rec.kp, kv=rec.kv, gtau=rec.gtau).to_dict()
-    return (load_emps("DATA_EMPS"), params_of(60.0, 10.0, 12.0, 0.02, 100.0, 0.0, ctrl),
+    start = EmpsRigidModel(M=60.0, Fv=100.0, Fc=10.0, offset=0.0).params_dict(Fs=12.0, vs=0.02)
+    return (load_emps("DATA_EMPS"), Params.from_dict({**start, "loop_controller": ctrl}),
             ["I", "Fc", "Fs", "vs", "sigma2", "torque_offset.offset"])
 
 
@@ -738,7 +734,7 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
     vs is marked, and the set predicts the closed loop (force error on DATA_EMPS below 6%;
     published parameters 5.85%). Before, Fc was fixed first, the refit dropped, and Fc = 10 N,
     Fs = 12 N written beside values fitted with 20 N: force error 19.5%."""
-    from jaxflex.data import emps_record
+    from jaxflex.data import EMPS_IDIM_LS, emps_record
     from jaxflex.validate import validate
 
     log, start, free = _emps_start()
@@ -750,7 +746,7 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
     assert r.unidentifiable == ["vs"]
     assert r.params.friction["vs"] == start.friction["vs"]
     fc = r.params.friction["Fc"][0]
-    assert fc == pytest.approx(20.39, rel=0.1)
+    assert fc == pytest.approx(EMPS_IDIM_LS.Fc, rel=0.1)
     assert r.params.friction["Fs"][0] >= fc
     v = validate(r.params, log, kind="rigid", substeps=2,
                  disturbance=emps_record("DATA_EMPS").pulses)

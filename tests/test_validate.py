@@ -93,15 +93,15 @@ def test_closed_loop_fit_recovers_a_known_rigid_axis_and_refuses_what_it_cannot_
     start = _pp_params(M=80.0, Fv=240.0, Fc=16.0, offset=2.4)
     res = closed_loop_fit(start, log, ["I", "sigma2", "Fc", "torque_offset.offset"],
                           max_steps=40)
-    p = res["params"]
-    assert res["converged"] and res["cost"] < 1e-6 * res["cost_start"]
+    p = res.params
+    assert res.converged and res.cost < 1e-6 * res.cost_start
     assert p.plant["I"][0] == pytest.approx(truth.plant["I"][0], rel=1e-3)
     assert p.friction["sigma2"][0] == pytest.approx(200.0, rel=1e-3)
     assert p.friction["Fc"][0] == pytest.approx(20.0, rel=1e-3)
     # standard errors with the log's consecutive blocks as clusters (closed-loop errors are
     # correlated in time), finite for every fitted name
-    assert res["stderr_kind"].startswith("block-robust")
-    assert all(np.all(np.isfinite(v)) and np.all(np.asarray(v) >= 0) for v in res["stderr"].values())
+    assert res.stderr_kind.startswith("block-robust")
+    assert all(np.all(np.isfinite(v)) and np.all(np.asarray(v) >= 0) for v in res.stderr.values())
     with pytest.raises(ValueError, match="declare no controller"):
         closed_loop_fit(Params.from_dict({k: v for k, v in start.to_dict().items()
                                           if k != "loop_controller"}), log, ["I"])
@@ -150,8 +150,8 @@ def test_declared_pd_loop_reproduces_a_pd_rotor_log_and_wrong_parameters_do_not(
 
     res = closed_loop_fit(_declared(gen, pd, ("plant", "K", 1.15)), gen.log, ["K"],
                           kind="flexible", max_steps=30)
-    assert res["converged"]
-    assert res["params"].plant["K"][0] == pytest.approx(truth.plant["K"][0], rel=1e-3)
+    assert res.converged
+    assert res.params.plant["K"][0] == pytest.approx(truth.plant["K"][0], rel=1e-3)
 
 
 def test_loop_controller_sections_name_their_problem():

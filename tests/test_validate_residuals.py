@@ -7,15 +7,12 @@ import json
 import numpy as np
 import pytest
 
+from jaxflex.data import EMPS_IDIM_LS
 from jaxflex.logs import save_log
 from jaxflex.params import Params
 from jaxflex.validate import replay_residual_analysis
 
-EMPS_RIGID = {
-    "plant": {"I": 95.1, "J": 1e-3, "K": 1e6},
-    "friction": {"Fc": 20.4, "Fs": 22.0, "vs": 0.01, "sigma0": 1e6, "sigma1": 100.0,
-                 "sigma2": 203.5},
-}
+EMPS_RIGID = EMPS_IDIM_LS.params_dict(Fs=22.0, sigma1=100.0, offset=False)
 
 
 @pytest.fixture(scope="module")

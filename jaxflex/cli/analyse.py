@@ -50,20 +50,18 @@ def run(args: argparse.Namespace) -> int:
                        compensation=not args.no_compensation,
                        sensing=sensing_preset(args.sensing), floquet=args.floquet,
                        n_modes=args.modes)
-    res["sensing"] = args.sensing
     if args.json:
-        print(json.dumps(res))
-        return 0 if res["rest"]["stable"] else 1
-    for key, title in (("rest", "at rest (eigenvalues of the one-sample map)"),
-                       ("floquet", "along the sinusoid (monodromy multipliers)")):
-        if key not in res:
+        print(json.dumps({**res.to_dict(), "sensing": args.sensing}))
+        return 0 if res.rest.stable else 1
+    for r, title in ((res.rest, "at rest (eigenvalues of the one-sample map)"),
+                     (res.floquet, "along the sinusoid (monodromy multipliers)")):
+        if r is None:
             continue
-        r = res[key]
-        print(f"{title}: spectral radius {r['spectral_radius']:.6f} "
-              f"({'stable' if r['stable'] else 'UNSTABLE'})")
+        print(f"{title}: spectral radius {r.spectral_radius:.6f} "
+              f"({'stable' if r.stable else 'UNSTABLE'})")
         print(f"  {'|mu|':>9} {'f (Hz)':>8} {'damping':>8} {'tau (s)':>9}  states")
-        for m in r["modes"]:
+        for m in r.modes:
             st = ", ".join(f"{k} {v:.2f}" for k, v in m["states"].items())
             print(f"  {m['abs']:9.6f} {m['frequency_hz']:8.3f} {m['damping']:8.3f} "
                   f"{m['time_constant_s']:9.3g}  {st}")
-    return 0 if res["rest"]["stable"] else 1
+    return 0 if res.rest.stable else 1

@@ -154,9 +154,10 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
         save_params(params, out / "params.json")
         if plots is not None:
+            from jaxflex.plots import save_figures
             from jaxflex.plots.discover import plot_report
 
-            rep["figures"] = plot_report(res, out)
+            rep["figures"] = save_figures(plot_report(res), out)
         (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
     print(f"effect: {rep['effect']}  effects: {rep['effects']}  gap {rep['gap_before']:.4f} -> "
           f"{rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})  {rep['seconds']:.0f} s")
@@ -207,11 +208,12 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out,
                                          "joint": j}}
             save_params(params, out / f"params_joint{j}.json")
             if not args.no_plots:
+                from jaxflex.plots import save_figures
                 from jaxflex.plots.discover import plot_report
 
                 sub = out / f"joint{j}"
                 sub.mkdir(exist_ok=True)
-                rep["figures"] = [f"joint{j}/{f}" for f in plot_report(res, sub)]
+                rep["figures"] = [f"joint{j}/{f}" for f in save_figures(plot_report(res), sub)]
             reps.append({"joint": j, **rep})
         summary = {"joints": reps, "effect": [r["effect"] for r in reps],
                    "answer": [r["answer"] for r in reps],

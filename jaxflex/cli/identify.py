@@ -263,9 +263,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     save_params(res.params, out)
     fig = Path(args.figure) if args.figure else out.with_suffix(".png")
+    from jaxflex.plots import save_figure
     from jaxflex.plots.identify import plot_fit
 
-    plot_fit(res, fig)
+    save_figure(plot_fit(res), fig)
     print(res.table())
     for w in res.warnings:
         print(f"warning: {w}")
@@ -298,19 +299,19 @@ def _closed_loop(res: Any, log: Any, loop: dict[str, Any], model: str, max_steps
     say(f"[identify] closed-loop refinement of {names} (before: position "
         f"{before['position_pct']:.4g}%, torque {before['torque_pct']:.4g}%) ...")
     fit = closed_loop_fit(p, log, names, kind=kind, max_steps=max_steps)
-    after = closed_loop_errors(fit["params"], log, kind=kind)
+    after = closed_loop_errors(fit.params, log, kind=kind)
     better = (after["position_pct"] / before["position_pct"]) ** 2 + (
         after["torque_pct"] / before["torque_pct"]) ** 2 < 2.0
     numbers = lambda e: {k: v for k, v in e.items() if k != "series"}  # noqa: E731
     record = {"free": names, "before": numbers(before), "after": numbers(after),
               "kept": bool(better),
-              "converged": fit["converged"], "reason": fit["reason"], "steps": fit["steps"],
-              "stderr": {k: list(map(float, v)) for k, v in fit["stderr"].items()},
-              "stderr_kind": fit["stderr_kind"]}
+              "converged": fit.converged, "reason": fit.reason, "steps": fit.steps,
+              "stderr": {k: list(map(float, v)) for k, v in fit.stderr.items()},
+              "stderr_kind": fit.stderr_kind}
     if better:
-        extra = dict(fit["params"].extra)
+        extra = dict(fit.params.extra)
         extra["identification"] = {**res.params.extra["identification"], "closed_loop": record}
-        res.params = dataclasses.replace(fit["params"], extra=extra)
+        res.params = dataclasses.replace(fit.params, extra=extra)
     else:
         res.params.extra["identification"]["closed_loop"] = record
     say(f"[identify] closed loop: position {after['position_pct']:.4g}%, torque "

@@ -154,9 +154,11 @@ def run(args: argparse.Namespace) -> int:
                   f"partial summary {out / 'summary.json'} (\"partial\": true, no figures); "
                   f"continue with: {resume_command}", file=sys.stderr)
             return 130
+        from jaxflex.plots import save_figures
         from jaxflex.plots.sweep import plot_sweep
 
-        doc["figures"] = plot_sweep(res, out, nominal=nominal_run(spec))
+        figs = save_figures(plot_sweep(res, nominal=nominal_run(spec)), out, dpi=120)
+        doc["figures"] = [str(out / f) for f in figs]
         (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
         ckpt_path.unlink(missing_ok=True)
         m = res.summary["metrics"]["rms_error"]

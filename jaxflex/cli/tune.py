@@ -210,16 +210,15 @@ def run_robust(args: argparse.Namespace, out: Path, report_dir: Path) -> int:
     params.extra = {**params.extra, "certificate": {k: v for k, v in summary.items()
                                                     if k != "starts"}}
     report = {"search": summary,
-              "held_out": {k: {kk: vv for kk, vv in e.items() if kk not in ("rms_error", "lost")}
-                           for k, e in ev.items()}}
+              "held_out": {k: e.summary() for k, e in ev.items()}}
     with writing():  # the whole result or nothing, Ctrl-C included
         report_dir.mkdir(parents=True, exist_ok=True)
         (report_dir / "report.json").write_text(json.dumps(report, indent=1, default=float))
         save_params(params, out)
     print(f"{'':<8} {'RMS q50 (rad)':>14} {'RMS q95 (rad)':>14} {'lost':>6} {'N2>0 at task':>13}")
     for k, e in ev.items():
-        print(f"{k:<8} {e['rms_q50']:>14.3e} {e['rms_q95']:>14.3e} {e['lost_fraction']:>6.3f} "
-              f"{e['certified_fraction']:>13.3f}")
+        print(f"{k:<8} {e.rms_q50:>14.3e} {e.rms_q95:>14.3e} {e.lost_fraction:>6.3f} "
+              f"{e.certified_fraction:>13.3f}")
     print(f"certified on the box up to {res.certificate.certified_up_to:.4g} rad/s (margin "
           f"{args.margin}); wrote {out} and {report_dir}/report.json ({res.wall_time_s:.0f} s)")
     return 0

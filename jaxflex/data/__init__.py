@@ -170,6 +170,59 @@ def load_emps(name: str = "DATA_EMPS") -> Log:
                            source=f"jaxflex.data:{name}")
 
 
+@dataclasses.dataclass(frozen=True)
+class EmpsRigidModel:
+    """A rigid model of the EMPS axis in the benchmark's form (SI, load side):
+
+        force = M q'' + Fv q' + Fc sign(q') + offset        [N]
+
+    M [kg] moving mass; Fv [N s/m] viscous friction; Fc [N] Coulomb friction; offset [N]
+    force offset in the benchmark's sign (jaxflex's ``torque_offset`` effect, which adds to
+    the applied force, holds -offset).
+    """
+
+    M: float
+    Fv: float
+    Fc: float
+    offset: float
+
+    def params_dict(self, *, Fs: float | None = None, vs: float = 0.01, sigma0: float = 1e6,
+                    sigma1: float = 0.0, J: float = 1e-3, K: float = 1e6,
+                    offset: bool = True) -> dict[str, Any]:
+        """The model as the sections of a rigid jaxflex parameter file (docs/spec.md
+        section 7), for ``Params.from_dict``: the rigid identification's M = I + J split as
+        I = M - J, LuGre friction with Fc and sigma2 = Fv.
+
+        **Arguments:**
+
+        - ``Fs``: static friction [N] (None: Fc, no Stribeck hump).
+        - ``vs``: Stribeck velocity [m/s].
+        - ``sigma0``, ``sigma1``: bristle stiffness [N/m] and damping [N s/m].
+        - ``J``: the rotor's share of M [kg]; ``K``: the spring joining the two [N/m].
+        - ``offset``: whether the ``torque_offset`` effect (-offset [N]) is included.
+
+        **Returns:**
+
+        ``{"plant", "friction"}`` and, with ``offset``, ``"effects"``.
+        """
+        d: dict[str, Any] = {
+            "plant": {"I": self.M - J, "J": J, "K": K},
+            "friction": {"Fc": self.Fc, "Fs": self.Fc if Fs is None else Fs, "vs": vs,
+                         "sigma0": sigma0, "sigma1": sigma1, "sigma2": self.Fv},
+        }
+        if offset:
+            d["effects"] = {"torque_offset": {"offset": [-self.offset]}}
+        return d
+
+
+EMPS_IDIM_LS: EmpsRigidModel = EmpsRigidModel(M=95.1089, Fv=203.5034, Fc=20.3935,
+                                              offset=-3.1648)
+"""The EMPS benchmark's published reference model, identified on DATA_EMPS by the inverse
+dynamic model and ordinary least squares (IDIM-LS): A. Janot, M. Gautier, M. Brunot, "Data
+Set and Reference Models of EMPS", 2019 Workshop on Nonlinear System Identification
+Benchmarks, Eindhoven (SOURCE.md beside this file)."""
+
+
 # --------------------------------------------------------------------------------------- KUKA
 
 
@@ -304,7 +357,8 @@ def reduce_kuka(src_dir: str | os.PathLike, out_dir: str | os.PathLike) -> dict[
 
 
 __all__ = [
-    "DATA_DIR", "EMPS_NAMES", "KUKA_AXES", "KUKA_TRAJECTORIES", "EmpsRecord", "KukaRecord",
+    "DATA_DIR", "EMPS_IDIM_LS", "EMPS_NAMES", "KUKA_AXES", "KUKA_TRAJECTORIES", "EmpsRecord",
+    "EmpsRigidModel", "KukaRecord",
     "available", "emps_record", "kuka_record", "load_emps", "load_kuka", "reduce_kuka",
 ]
 

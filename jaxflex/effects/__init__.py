@@ -50,6 +50,7 @@ from jaxflex.effects.base import (
     register_effect,
 )
 from jaxflex.effects.library import (
+    AbstractRipple,
     ActuatorLag,
     AsymmetricFriction,
     Backlash,
@@ -84,6 +85,7 @@ from jaxflex.effects.compose import (
 
 __all__ = [
     "AbstractEffect",
+    "AbstractRipple",
     "ActuatorDeadZone",
     "ActuatorLag",
     "AsymmetricFriction",

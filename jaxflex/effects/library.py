@@ -99,40 +99,6 @@ def softplus(x: Array, w: Array) -> Array:
     return w * jnp.logaddexp(0.0, x / w)
 
 
-#: A ripple start searches spatial frequencies from this many periods over the angle's travel:
-#: a slower "ripple" is a smooth trend, not cogging.
-RIPPLE_MIN_PERIODS: float = 2.0
-
-
-def _ripple_start(cls: type[Cogging] | type[MotorCogging], data: ResidualStart,
-                  side: Literal["link", "rotor"], highest: float) -> Any:
-    """A ripple A sin(N q + phi) [N m] fitted to the ``side``'s residual against its angle by
-    linear least squares over a grid of N [1/rad] (gradient cannot find a frequency): a coarse
-    one from ``RIPPLE_MIN_PERIODS`` periods over the travel to ``highest``, then a fine one
-    about its best. The residual is cleared of what a refit of the nominal model absorbs
-    anyway (``ResidualStart.ripple_fits``), the Stribeck term included: a nominal refit can
-    raise Fs to absorb a ripple, after which the raw residual peaks elsewhere. The typical
-    start where the angle travels too little for the grid, or the grid explains nothing."""
-    q = data.angle(side)
-    lowest = max(5.0, 2.0 * math.pi * RIPPLE_MIN_PERIODS / max(float(np.ptp(q)), 1e-9))
-    coarse = np.arange(lowest, highest, 0.5)
-    if not coarse.size:
-        return cls.typical(1)
-    expl, a_s, a_c = data.ripple_fits(side, coarse, 0.5)
-    j = int(np.argmax(expl))
-    if not expl[j] > 0:
-        return cls.typical(1)
-    N, s_, c_ = float(coarse[j]), a_s[j], a_c[j]
-    fine = N + np.arange(-0.5, 0.51, 0.02)
-    e, fs, fc = data.ripple_fits(side, fine, 0.02)
-    k = int(np.argmax(e))
-    if e[k] > expl[j]:
-        N, s_, c_ = float(fine[k]), fs[k], fc[k]
-    # the residual equals the missing torque A sin(N q + phi), on either side with its own sign
-    A, phi = max(math.hypot(s_, c_), 1e-3), math.atan2(c_, s_)
-    return cls(A=np.full(1, A), N=np.full(1, N), phi=np.full(1, phi))
-
-
 @register_effect
 class AsymmetricFriction(AbstractEffect):
     """Direction-dependent Coulomb level on the link: the Coulomb level is Fc + dF when moving
@@ -164,12 +130,88 @@ class AsymmetricFriction(AbstractEffect):
         return -self.dF * jnp.abs(smooth_sign(x.dq1, self.width))
 
 
+#: A ripple start searches spatial frequencies from this many periods over the angle's travel:
+#: a slower "ripple" is a smooth trend, not cogging.
+RIPPLE_MIN_PERIODS: float = 2.0
+
+
+class AbstractRipple(AbstractEffect):
+    """Position-periodic torque ripple A sin(N q + phi) [N m] against one side's angle q
+    (``side``: the link angle q1 or the link-referred rotor angle q2): cogging. The concrete
+    classes say the side, the hook it acts through and the frequencies they start and draw.
+
+    A [N m] >= 0 amplitude; N [1/rad] > 0 spatial frequency (not fitted by gradient, chosen
+    from the residual's spectrum against q); phi [rad] phase.
+    """
+
+    side: eqx.AbstractClassVar[Literal["link", "rotor"]]
+    typical_N: eqx.AbstractClassVar[float]
+    """N [1/rad] of the ``typical`` start."""
+    highest_N: eqx.AbstractClassVar[float]
+    """The highest N [1/rad] a start from the residual searches."""
+    drawn_N: eqx.AbstractClassVar[tuple[float, ...]]
+    """The N [1/rad] a synthetic log draws from."""
+    A: eqx.AbstractVar[Float[Array, " n"]]
+    N: eqx.AbstractVar[Float[Array, " n"]]
+    phi: eqx.AbstractVar[Float[Array, " n"]]
+
+    def __check_init__(self) -> None:
+        check_nonnegative(self.name, A=self.A)
+        check_positive(self.name, N=self.N)
+
+    @classmethod
+    def typical(cls, n: int) -> AbstractRipple:
+        return cls(A=np.full(n, 0.01), N=np.full(n, cls.typical_N), phi=np.zeros(n))
+
+    @classmethod
+    def start_from_residual(cls, data: ResidualStart) -> AbstractRipple:
+        """A ripple fitted to the ``side``'s residual against its angle by linear least
+        squares over a grid of N [1/rad] (gradient cannot find a frequency): a coarse one
+        from ``RIPPLE_MIN_PERIODS`` periods over the travel to ``highest_N``, then a fine one
+        about its best. The residual is cleared of what a refit of the nominal model absorbs
+        anyway (``ResidualStart.ripple_fits``), the Stribeck term included: a nominal refit
+        can raise Fs to absorb a ripple, after which the raw residual peaks elsewhere. The
+        typical start where the angle travels too little for the grid, or the grid explains
+        nothing."""
+        q = data.angle(cls.side)
+        lowest = max(5.0, 2.0 * math.pi * RIPPLE_MIN_PERIODS / max(float(np.ptp(q)), 1e-9))
+        coarse = np.arange(lowest, cls.highest_N, 0.5)
+        if not coarse.size:
+            return cls.typical(1)
+        expl, a_s, a_c = data.ripple_fits(cls.side, coarse, 0.5)
+        j = int(np.argmax(expl))
+        if not expl[j] > 0:
+            return cls.typical(1)
+        N, s_, c_ = float(coarse[j]), a_s[j], a_c[j]
+        fine = N + np.arange(-0.5, 0.51, 0.02)
+        e, fs, fc = data.ripple_fits(cls.side, fine, 0.02)
+        k = int(np.argmax(e))
+        if e[k] > expl[j]:
+            N, s_, c_ = float(fine[k]), fs[k], fc[k]
+        # the residual equals the missing torque A sin(N q + phi), on either side with its own sign
+        A, phi = max(math.hypot(s_, c_), 1e-3), math.atan2(c_, s_)
+        return cls(A=np.full(1, A), N=np.full(1, N), phi=np.full(1, phi))
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
+        """``AbstractEffect.draw`` plus N one of ``drawn_N`` [1/rad] and a uniform phase."""
+        kw = super().draw(rng, scale)
+        kw["N"] = float(rng.choice(list(cls.drawn_N)))
+        kw["phi"] = rng.uniform(-math.pi, math.pi)
+        return kw
+
+    def ripple(self, q: Array) -> Float[Array, " n"]:
+        """A sin(N q + phi) [N m] at the angle ``q`` [rad]."""
+        return self.A * jnp.sin(self.N * q + self.phi)
+
+
 @register_effect
-class Cogging(AbstractEffect):
+class Cogging(AbstractRipple):
     """Position-periodic torque ripple on the link: link_torque = A sin(N q1 + phi) [N m].
 
     A [N m] >= 0 amplitude; N [1/rad] > 0 spatial frequency (cycles per radian times 2 pi; not
-    fitted by gradient, chosen from the residual's spectrum against position); phi [rad] phase.
+    fitted by gradient, chosen from the residual's spectrum against position; started below
+    80 1/rad, drawn from 20, 30, 45 1/rad); phi [rad] phase.
     """
 
     name: ClassVar[str] = "cogging"
@@ -177,44 +219,27 @@ class Cogging(AbstractEffect):
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free"}
     telling: ClassVar[str | None] = "position"
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"A": (0.03, 0.06)}
+    side: ClassVar[Literal["link", "rotor"]] = "link"
+    typical_N: ClassVar[float] = 25.0
+    highest_N: ClassVar[float] = 80.0
+    drawn_N: ClassVar[tuple[float, ...]] = (20.0, 30.0, 45.0)
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
-    def __check_init__(self) -> None:
-        check_nonnegative("cogging", A=self.A)
-        check_positive("cogging", N=self.N)
-
-    @classmethod
-    def typical(cls, n: int) -> Cogging:
-        return cls(A=np.full(n, 0.01), N=np.full(n, 25.0), phi=np.zeros(n))
-
-    @classmethod
-    def start_from_residual(cls, data: ResidualStart) -> Cogging:
-        """N, A, phi from the link residual's best ripple against q1 (``_ripple_start``, N
-        below 80 1/rad)."""
-        return _ripple_start(cls, data, "link", 80.0)
-
-    @classmethod
-    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
-        """``AbstractEffect.draw`` plus N one of 20, 30, 45 1/rad and a uniform phase."""
-        kw = super().draw(rng, scale)
-        kw["N"] = float(rng.choice([20.0, 30.0, 45.0]))
-        kw["phi"] = rng.uniform(-math.pi, math.pi)
-        return kw
-
     def link_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return self.A * jnp.sin(self.N * x.q1 + self.phi)
+        return self.ripple(x.q1)
 
 
 @register_effect
-class MotorCogging(AbstractEffect):
+class MotorCogging(AbstractRipple):
     """Position-periodic torque ripple on the rotor (the motor's magnets): rotor_torque =
     A sin(N q2 + phi) [N m], q2 the link-referred rotor angle.
 
     A [N m] >= 0 amplitude (link-referred); N [1/rad] > 0 spatial frequency in the rotor angle
     (a motor with p cogging periods per revolution behind a 1:r gear has N = p r; not fitted by
-    gradient, chosen from the rotor-side residual's spectrum against q2); phi [rad] phase.
+    gradient, chosen from the rotor-side residual's spectrum against q2; started below
+    400 1/rad, drawn from 60, 90, 150 1/rad); phi [rad] phase.
     """
 
     name: ClassVar[str] = "motor_cogging"
@@ -222,34 +247,16 @@ class MotorCogging(AbstractEffect):
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free"}
     telling: ClassVar[str | None] = "rotor position"
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"A": (0.02, 0.04)}
+    side: ClassVar[Literal["link", "rotor"]] = "rotor"
+    typical_N: ClassVar[float] = 60.0
+    highest_N: ClassVar[float] = 400.0
+    drawn_N: ClassVar[tuple[float, ...]] = (60.0, 90.0, 150.0)
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
 
-    def __check_init__(self) -> None:
-        check_nonnegative("motor_cogging", A=self.A)
-        check_positive("motor_cogging", N=self.N)
-
-    @classmethod
-    def typical(cls, n: int) -> MotorCogging:
-        return cls(A=np.full(n, 0.01), N=np.full(n, 60.0), phi=np.zeros(n))
-
-    @classmethod
-    def start_from_residual(cls, data: ResidualStart) -> MotorCogging:
-        """N, A, phi from the rotor residual's best ripple against q2 (``_ripple_start``, N
-        below 400 1/rad: a motor's periods times the gear ratio)."""
-        return _ripple_start(cls, data, "rotor", 400.0)
-
-    @classmethod
-    def draw(cls, rng: np.random.Generator, scale: float = 1.0) -> dict[str, Any]:
-        """``AbstractEffect.draw`` plus N one of 60, 90, 150 1/rad and a uniform phase."""
-        kw = super().draw(rng, scale)
-        kw["N"] = float(rng.choice([60.0, 90.0, 150.0]))
-        kw["phi"] = rng.uniform(-math.pi, math.pi)
-        return kw
-
     def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return self.A * jnp.sin(self.N * x.q2 + self.phi)
+        return self.ripple(x.q2)
 
 
 @register_effect

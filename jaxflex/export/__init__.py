@@ -5,8 +5,8 @@ The single source of truth is the JAX controller as the sampled-data loop runs i
 velocity source -- the dirty derivative, or the Kalman filter of ``jaxflex.estimator`` with
 its state and the DAC it predicts through -- observer leak, q2d method, torque limit, n
 joints). Its ``init`` and ``step`` are traced once with ``jax.make_jaxpr``
-(``codegen.trace``) and the jaxprs are translated by one translator with two dialects
-(``jaxflex.export.translate``): straight-line Python (``codegen.generate_source``) and C99
+(``tracing.trace``) and the jaxprs are translated by one translator with two dialects
+(``jaxflex.export.translate``): straight-line Python (``pygen.generate_source``) and C99
 (``cgen.generate_c``; ``native`` compiles and loads it through ctypes). A change to the JAX
 controller changes both exports. Both also take the reference from the rig at each step
 (q1d and its first four derivatives) besides following the recorded trajectory.
@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.export.codegen import Traced, generate_source, trace
+from jaxflex.export.atoms import UnsupportedPrimitive
 from jaxflex.export.program import (
     REFERENCE_ROWS,
     ExportError,
@@ -45,7 +45,8 @@ from jaxflex.export.program import (
     rig_controller,
     sampled_controller,
 )
-from jaxflex.export.translate import UnsupportedPrimitive
+from jaxflex.export.pygen import generate_source
+from jaxflex.export.tracing import Traced, trace
 
 __all__ = [
     "ExportError", "ParityResult", "REFERENCE_ROWS", "SampledController", "Traced",

@@ -1,6 +1,6 @@
 """Write the controller as C99 (a source and a header) from the same traced programs as the
-Python export (``jaxflex.export.codegen.trace``), translated with the C dialect of
-``jaxflex.export.translate``.
+Python export (``jaxflex.export.tracing.trace``), translated with the C dialect
+(``jaxflex.export.dialect.C99``).
 
 The controller's constants are folded into the code (the C export has no parameter
 overrides: export again for other values). Every value is a double; the state is a fixed
@@ -18,15 +18,16 @@ import re
 import textwrap
 
 
-from jaxflex.export.codegen import (
+from jaxflex.export.atoms import Program, Sym, const_array, eliminate_dead
+from jaxflex.export.dialect import C99, format_atom
+from jaxflex.export.program import REFERENCE_ROWS, describe
+from jaxflex.export.tracing import (
     SPEC_ENTRIES,
     Traced,
     listed_leaves,
     trace,
     translate_program,
 )
-from jaxflex.export.program import REFERENCE_ROWS, describe
-from jaxflex.export.translate import C99, Program, Sym, const_array, eliminate_dead, format_atom
 
 C_FLAGS: tuple[str, ...] = ("-std=c99", "-O2", "-ffp-contract=off", "-fno-fast-math")
 """Compiler flags the generated C is checked with (gcc/clang syntax)."""
@@ -65,7 +66,7 @@ def generate_c(controller: object = None, *, traced: Traced | None = None,
 
     - ``controller``: a ``SampledController`` or ``CascadeController`` (ignored when
       ``traced`` is given).
-    - ``traced``: the programs traced by ``jaxflex.export.codegen.trace``.
+    - ``traced``: the programs traced by ``jaxflex.export.tracing.trace``.
     - ``header_name``: the header's file name, as the source includes it.
     - ``description``: the first line of both files' comment.
 

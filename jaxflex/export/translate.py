@@ -18,108 +18,31 @@ parameters are hoisted into a ``derive`` function that runs once per parameter s
 forms the per-sample function. Common subexpressions are shared, trivial operations (x * 1,
 x + 0, operations on literals) are folded, and dead code is dropped.
 
-Unsupported primitives raise ``UnsupportedPrimitive`` naming the primitive.
+Unsupported primitives raise ``UnsupportedPrimitive`` naming the primitive. The atoms,
+statements and programs are defined in ``jaxflex.export.atoms``, the spellings in
+``jaxflex.export.dialect``, the exact fused multiply-add in ``jaxflex.export.fma``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from jaxflex.export.atoms import (
+    Atom,
+    Opaque,
+    Stmt,
+    Sym,
+    UnsupportedPrimitive,
+    const_array,
+    is_const,
+    map_atoms,
+)
+from jaxflex.export.dialect import PYTHON, Dialect
+from jaxflex.export.fma import exact_fma
 
-class UnsupportedPrimitive(ValueError):
-    """A jaxpr primitive the exporter cannot translate (the message names it)."""
-
-
-class Sym:
-    """A variable of the generated code; ``static`` if it depends only on parameters."""
-
-    __slots__ = ("name", "static")
-
-    def __init__(self, name: str, static: bool):
-        self.name = name
-        self.static = static
-
-    def __repr__(self) -> str:
-        return self.name
-
-
-class _Opaque:
-    """Placeholder for outputs that must not be used (e.g. the LU factors behind a solve)."""
-
-    def __init__(self, what: str):
-        self.what = what
-
-
-Atom = Any  # float | int | bool | Sym | _Opaque
-
-
-def _lit(c: Any) -> str:
-    if isinstance(c, (bool, np.bool_)):
-        return "True" if c else "False"
-    if isinstance(c, (int, np.integer)):
-        v = int(c)
-        return f"({v})" if v < 0 else str(v)
-    v = float(c)
-    if math.isnan(v):
-        return "_NAN"
-    if math.isinf(v):
-        return "_INF" if v > 0 else "(-_INF)"
-    r = repr(v)
-    return f"({r})" if v < 0 or r.startswith("-") else r
-
-
-def _is_const(a: Atom) -> bool:
-    return not isinstance(a, (Sym, _Opaque))
-
-
-@dataclass
-class Stmt:
-    """One generated statement: ``targets = code``; ``uses`` the names it reads."""
-
-    targets: tuple[str, ...]
-    code: str
-    uses: tuple[str, ...]
-    static: bool
-
-
-@dataclass
-class Program:
-    """Generated code of one traced function: hoisted and per-sample statements."""
-
-    params: list[str]
-    signals: list[str]
-    outputs: list[Atom]
-    static_stmts: list[Stmt] = field(default_factory=list)
-    dyn_stmts: list[Stmt] = field(default_factory=list)
-
-
-# Python/math spellings of unary elementwise primitives; {0} is the operand.
-_UNARY: dict[str, str] = {
-    "neg": "-{0}", "sin": "_m.sin({0})", "cos": "_m.cos({0})", "tan": "_m.tan({0})",
-    "asin": "_m.asin({0})", "acos": "_m.acos({0})", "atan": "_m.atan({0})",
-    "sinh": "_m.sinh({0})", "cosh": "_m.cosh({0})", "tanh": "_m.tanh({0})",
-    "asinh": "_m.asinh({0})", "acosh": "_m.acosh({0})", "atanh": "_m.atanh({0})",
-    "exp": "_m.exp({0})", "exp2": "2.0 ** {0}", "log": "_m.log({0})", "expm1": "_m.expm1({0})",
-    "log1p": "_m.log1p({0})", "sqrt": "_m.sqrt({0})", "rsqrt": "1.0 / _m.sqrt({0})",
-    "cbrt": "_m.copysign(abs({0}) ** (1.0 / 3.0), {0})", "abs": "abs({0})",
-    "sign": "_sign({0})", "floor": "float(_m.floor({0}))", "ceil": "float(_m.ceil({0}))",
-    "is_finite": "_m.isfinite({0})", "not": "not {0}", "square": "{0} * {0}",
-    "logistic": "1.0 / (1.0 + _m.exp(-{0}))", "erf": "_m.erf({0})", "erfc": "_m.erfc({0})",
-    "lgamma": "_m.lgamma({0})",
-}
-_BINARY: dict[str, str] = {
-    "add": "{0} + {1}", "add_any": "{0} + {1}", "sub": "{0} - {1}", "mul": "{0} * {1}",
-    "div": "{0} / {1}", "pow": "{0} ** {1}", "atan2": "_m.atan2({0}, {1})",
-    "rem": "_m.fmod({0}, {1})", "nextafter": "_m.nextafter({0}, {1})",
-    "max": "({0} if {0} >= {1} or {0} != {0} else {1})",
-    "min": "({0} if {0} <= {1} or {0} != {0} else {1})",
-    "eq": "{0} == {1}", "ne": "{0} != {1}", "lt": "{0} < {1}", "le": "{0} <= {1}",
-    "gt": "{0} > {1}", "ge": "{0} >= {1}", "and": "{0} and {1}", "or": "{0} or {1}",
-}
 # Generation-time folding on literals (IEEE-identical to XLA for arithmetic).
 _FOLD2: dict[str, Callable[[Any, Any], Any]] = {
     "add": lambda a, b: a + b, "add_any": lambda a, b: a + b, "sub": lambda a, b: a - b,
@@ -129,100 +52,6 @@ _FOLD2: dict[str, Callable[[Any, Any], Any]] = {
     "and": lambda a, b: a and b, "or": lambda a, b: a or b,
 }
 _FOLD1: dict[str, Callable[[Any], Any]] = {"neg": lambda a: -a, "abs": abs, "not": lambda a: not a}
-
-
-def _c_lit(c: Any) -> str:
-    if isinstance(c, (bool, np.bool_)):
-        return "1" if c else "0"
-    if isinstance(c, (int, np.integer)):
-        v = int(c)
-        return f"({v})" if v < 0 else str(v)
-    v = float(c)
-    if math.isnan(v):
-        return "NAN"
-    if math.isinf(v):
-        return "INFINITY" if v > 0 else "(-INFINITY)"
-    r = repr(v)
-    return f"({r})" if v < 0 or r.startswith("-") else r
-
-
-def _py_solve(n: int, names: list[str], targets: list[str]) -> str:
-    return f"_solve({n}, ({', '.join(names[: n * n])},), ({', '.join(names[n * n:])},))"
-
-
-def _c_solve(n: int, names: list[str], targets: list[str]) -> str:
-    return (f"jf_solve({n}, (const double[]){{{', '.join(names[: n * n])}}}, "
-            f"(const double[]){{{', '.join(names[n * n:])}}}, "
-            f"(double *[]){{{', '.join('&' + t for t in targets)}}})")
-
-
-@dataclass(frozen=True)
-class Dialect:
-    """How a back end spells the translator's operations (one traced jaxpr, several back ends).
-
-    ``unary``/``binary``: templates of elementwise primitives ({0}, {1}: operands);
-    ``literal``: a constant's source; ``select2``/``select_n``: two-way and n-way selects
-    ({0}: predicate; ``select_n`` takes the case index); ``to_bool``/``to_int``/``to_float``:
-    conversions (``to_float`` None: no code, the value is already a float); ``int_div``:
-    integer division; ``round_even``/``round_away``: the two rounding methods; ``solve``:
-    the statement of a linear solve (size, operand names, target names).
-    """
-
-    name: str
-    unary: dict[str, str]
-    binary: dict[str, str]
-    literal: Callable[[Any], str]
-    select2: str
-    select_n: str
-    to_bool: str
-    to_int: str
-    to_float: str | None
-    int_div: str
-    round_even: str
-    round_away: str
-    solve: Callable[[int, list[str], list[str]], str]
-    fma: str
-
-
-PYTHON = Dialect(
-    name="python", unary=_UNARY, binary=_BINARY, literal=_lit,
-    select2="({2} if {0} else {1})", select_n="({{1}} if {{0}} == {i} else {{2}})",
-    to_bool="bool({0})", to_int="int({0})", to_float="float({0})", int_div="int({0} / {1})",
-    round_even="float(round({0}))", round_away="_round_away({0})", solve=_py_solve,
-    fma="_fma({0}, {1}, {2})",
-)
-"""Python on floats with ``math`` (``_m``); the generated module defines ``_sign``,
-``_round_away``, ``_solve`` and ``_fma``."""
-
-_C_UNARY: dict[str, str] = {
-    **{k: f"{k}({{0}})" for k in ("sin", "cos", "tan", "asin", "acos", "atan", "sinh", "cosh",
-                                  "tanh", "asinh", "acosh", "atanh", "exp", "exp2", "log",
-                                  "expm1", "log1p", "sqrt", "floor", "ceil", "erf", "erfc",
-                                  "lgamma")},
-    "neg": "-{0}", "rsqrt": "1.0 / sqrt({0})",
-    "cbrt": "copysign(pow(fabs({0}), 1.0 / 3.0), {0})", "abs": "fabs({0})",
-    "sign": "jf_sign({0})", "is_finite": "(isfinite({0}) != 0)", "not": "(!{0})",
-    "square": "{0} * {0}", "logistic": "1.0 / (1.0 + exp(-{0}))",
-}
-_C_BINARY: dict[str, str] = {
-    "add": "{0} + {1}", "add_any": "{0} + {1}", "sub": "{0} - {1}", "mul": "{0} * {1}",
-    "div": "{0} / {1}", "pow": "pow({0}, {1})", "atan2": "atan2({0}, {1})",
-    "rem": "fmod({0}, {1})", "nextafter": "nextafter({0}, {1})",
-    "max": "(({0} >= {1} || {0} != {0}) ? {0} : {1})",
-    "min": "(({0} <= {1} || {0} != {0}) ? {0} : {1})",
-    "eq": "({0} == {1})", "ne": "({0} != {1})", "lt": "({0} < {1})", "le": "({0} <= {1})",
-    "gt": "({0} > {1})", "ge": "({0} >= {1})", "and": "({0} && {1})", "or": "({0} || {1})",
-}
-
-C99 = Dialect(
-    name="c99", unary=_C_UNARY, binary=_C_BINARY, literal=_c_lit,
-    select2="({0} ? {2} : {1})", select_n="({{0}} == {i} ? {{1}} : {{2}})",
-    to_bool="({0} != 0)", to_int="trunc({0})", to_float=None, int_div="trunc({0} / {1})",
-    round_even="nearbyint({0})", round_away="round({0})", solve=_c_solve,
-    fma="fma({0}, {1}, {2})",
-)
-"""C99 on doubles with libm (every value, booleans and integers included, is a double);
-the generated file defines ``jf_sign`` and ``jf_solve``."""
 
 _CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint", "custom_jvp_call",
           "custom_vjp_call", "custom_vjp_call_jaxpr", "custom_lin")
@@ -257,7 +86,7 @@ class Translator:
     def emit(self, template: str, *args: Atom) -> Sym:
         """One statement computing ``template`` of atoms; shared when already computed."""
         for a in args:
-            if isinstance(a, _Opaque):
+            if isinstance(a, Opaque):
                 raise UnsupportedPrimitive(
                     f"the exporter cannot use the {a.what} output of a primitive directly"
                 )
@@ -288,9 +117,9 @@ class Translator:
     # ----- scalar operations with simplification ----------------------------------------------
 
     def unary(self, prim: str, a: Atom, *, int_out: bool = False) -> Atom:
-        if _is_const(a) and prim in _FOLD1:
+        if is_const(a) and prim in _FOLD1:
             return _FOLD1[prim](a)
-        if _is_const(a) and prim in ("sin", "cos", "exp", "log", "sqrt", "atan", "tanh", "expm1",
+        if is_const(a) and prim in ("sin", "cos", "exp", "log", "sqrt", "atan", "tanh", "expm1",
                                      "log1p") and isinstance(a, (int, float)):
             try:
                 return float(getattr(math, prim)(a))
@@ -301,7 +130,7 @@ class Translator:
         return self.emit(self.d.unary[prim], a)
 
     def binary(self, prim: str, a: Atom, b: Atom, *, is_int: bool = False) -> Atom:
-        ca, cb = _is_const(a), _is_const(b)
+        ca, cb = is_const(a), is_const(b)
         if prim == "div" and is_int:
             if ca and cb:
                 return int(a / b)
@@ -339,7 +168,7 @@ class Translator:
         return self.emit(self.d.binary[prim], a, b)
 
     def integer_pow(self, a: Atom, y: int) -> Atom:
-        if _is_const(a):
+        if is_const(a):
             return float(a) ** y
         if y == 0:
             return 1.0
@@ -356,10 +185,10 @@ class Translator:
         return acc
 
     def select(self, pred: Atom, cases: Sequence[Atom]) -> Atom:
-        if _is_const(pred):
+        if is_const(pred):
             return cases[int(pred)]
         if len(cases) == 2:
-            if _is_const(cases[0]) and _is_const(cases[1]) and cases[0] == cases[1] \
+            if is_const(cases[0]) and is_const(cases[1]) and cases[0] == cases[1] \
                     and type(cases[0]) is type(cases[1]):
                 return cases[0]
             return self.emit(self.d.select2, pred, cases[0], cases[1])
@@ -370,14 +199,14 @@ class Translator:
 
     def fma(self, a: Atom, b: Atom, c: Atom) -> Atom:
         """a * b + c rounded once (IEEE 754 fusedMultiplyAdd)."""
-        if _is_const(a) and _is_const(b) and _is_const(c):
+        if is_const(a) and is_const(b) and is_const(c):
             return exact_fma(float(a), float(b), float(c))
         for x, y in ((a, b), (b, a)):
-            if _is_const(x) and x == 0 and not math.isnan(float(x)) and _is_const(y):
+            if is_const(x) and x == 0 and not math.isnan(float(x)) and is_const(y):
                 return self.binary("add", 0.0 * float(y), c)
-            if _is_const(x) and x == 1:
+            if is_const(x) and x == 1:
                 return self.binary("add", y, c)
-        if _is_const(c) and c == 0:
+        if is_const(c) and c == 0:
             return self.binary("mul", a, b)
         return self.emit(self.d.fma, a, b, c)
 
@@ -453,7 +282,7 @@ class Translator:
         if prim == "convert_element_type":
             return [self._convert(ins[0], eqn.invars[0].aval, out_avals[0])]
         if prim == "integer_pow":
-            return [_map1(lambda a: self.integer_pow(a, int(p["y"])), ins[0])]
+            return [map_atoms(lambda a: self.integer_pow(a, int(p["y"])), ins[0])]
         if prim in ("select_n",):
             pred, cases = ins[0], ins[1:]
             arrs = np.broadcast_arrays(pred, *cases)
@@ -467,11 +296,11 @@ class Translator:
             for idx in np.ndindex(x.shape):
                 out[idx] = self.binary("min", self.binary("max", x[idx], lo[idx]), hi[idx])
             return [out]
-        if prim in _UNARY or prim in _FOLD1:
+        if prim in self.d.unary or prim in _FOLD1:
             if prim == "sign" and _is_int_dtype(out_avals[0]):
                 raise UnsupportedPrimitive("primitive 'sign' on integers is not supported")
-            return [_map1(lambda a: self.unary(prim, a), ins[0])]
-        if prim in _BINARY:
+            return [map_atoms(lambda a: self.unary(prim, a), ins[0])]
+        if prim in self.d.binary:
             is_int = _is_int_dtype(out_avals[0])
             a, b = np.broadcast_arrays(ins[0], ins[1])
             out = np.empty(a.shape, dtype=object)
@@ -481,26 +310,26 @@ class Translator:
         if prim == "round":
             method = int(p.get("rounding_method", 0))
             fmt = self.d.round_even if method == 1 else self.d.round_away
-            return [_map1(lambda a: self.emit(fmt, a), ins[0])]
+            return [map_atoms(lambda a: self.emit(fmt, a), ins[0])]
         return [np.asarray(o, dtype=object) if not isinstance(o, np.ndarray) else o
                 for o in self.structural(prim, p, ins, out_avals)]
 
     def _convert(self, x: np.ndarray, in_aval: Any, aval: Any) -> np.ndarray:
         if _is_bool_dtype(aval):
-            return _map1(lambda a: bool(a) if _is_const(a) else self.emit(self.d.to_bool, a), x)
+            return map_atoms(lambda a: bool(a) if is_const(a) else self.emit(self.d.to_bool, a), x)
         if _is_int_dtype(aval):
-            return _map1(lambda a: int(a) if _is_const(a) else self.emit(self.d.to_int, a), x)
+            return map_atoms(lambda a: int(a) if is_const(a) else self.emit(self.d.to_int, a), x)
 
         from_float = np.issubdtype(np.dtype(in_aval.dtype), np.floating)
 
         def to_float(a):
-            if _is_const(a):
+            if is_const(a):
                 return float(a)
             if from_float or self.d.to_float is None:
                 return a
             return self.emit(self.d.to_float, a)
 
-        return _map1(to_float, x)
+        return map_atoms(to_float, x)
 
     def structural(self, prim: str, p: dict, ins: list[np.ndarray], out_avals: list) -> list:
         x = ins[0] if ins else None
@@ -524,7 +353,7 @@ class Translator:
             starts = []
             for a, size, dim in zip(ins[1:], p["slice_sizes"], x.shape):
                 v = a.reshape(()).item()
-                if not _is_const(v):
+                if not is_const(v):
                     raise UnsupportedPrimitive("dynamic_slice with data-dependent start indices")
                 starts.append(min(max(int(v), 0), dim - size))
             sl = tuple(slice(s, s + z) for s, z in zip(starts, p["slice_sizes"]))
@@ -584,7 +413,7 @@ class Translator:
         if prim == "dot_general":
             return [self.dot_general(ins[0], ins[1], p["dimension_numbers"])]
         if prim == "lu":
-            return [np.full(tuple(a.shape), _Opaque("LU factorisation"), dtype=object) for a in out_avals]
+            return [np.full(tuple(a.shape), Opaque("LU factorisation"), dtype=object) for a in out_avals]
         if prim == "custom_linear_solve":
             return [self.linear_solve(p, ins)]
         raise UnsupportedPrimitive(
@@ -657,83 +486,9 @@ class Translator:
         if A.shape != (n, n) or b.ndim != 1:
             raise UnsupportedPrimitive("custom_linear_solve: need A (n, n) and b (n,)")
         off = [A[i, j] for i in range(n) for j in range(n) if i != j]
-        if all(_is_const(a) and a == 0 for a in off):
+        if all(is_const(a) and a == 0 for a in off):
             # diagonal A: LU with partial pivoting reduces to b_i / A_ii
             return np.array([self.binary("div", b[i], A[i, i]) for i in range(n)], dtype=object)
         flat = [A[i, j] for i in range(n) for j in range(n)] + [b[i] for i in range(n)]
         outs = self.emit_multi(lambda nm, tg: self.d.solve(n, nm, tg), flat, n)
         return np.array(outs, dtype=object)
-
-
-def exact_fma(a: float, b: float, c: float) -> float:
-    """a * b + c rounded once to float64 (IEEE 754 fusedMultiplyAdd) on Python floats: the
-    product split exactly into p + e (Dekker's two-product) and the three summed with one
-    rounding (``math.fsum``); outside the range where the split is exact, by rationals."""
-    p = a * b
-    if a == 0 or b == 0 or not (math.isfinite(p) and math.isfinite(c)):
-        return p + c
-    if 1e-140 < abs(a) < 1e140 and 1e-140 < abs(b) < 1e140:
-        t = 134217729.0 * a
-        ah = t - (t - a)
-        al = a - ah
-        t = 134217729.0 * b
-        bh = t - (t - b)
-        bl = b - bh
-        e = ((ah * bh - p) + ah * bl + al * bh) + al * bl
-        return math.fsum((p, e, c))
-    from fractions import Fraction
-
-    r = Fraction(a) * Fraction(b) + Fraction(c)
-    return float(r) if r != 0 else p + c
-
-
-def const_array(v: Any) -> np.ndarray:
-    """An object array of the constants (or atoms) of ``v``, as the translator holds values."""
-    arr = np.asarray(v)
-    out = np.empty(arr.shape, dtype=object)
-    for idx in np.ndindex(arr.shape):
-        x = arr[idx]
-        if isinstance(x, Sym):
-            out[idx] = x
-        elif arr.dtype == np.bool_:
-            out[idx] = bool(x)
-        elif np.issubdtype(arr.dtype, np.integer):
-            out[idx] = int(x)
-        elif arr.dtype == object:
-            out[idx] = x
-        else:
-            out[idx] = float(x)
-    return out
-
-
-def _map1(f: Callable[[Atom], Atom], x: np.ndarray) -> np.ndarray:
-    out = np.empty(x.shape, dtype=object)
-    for idx in np.ndindex(x.shape):
-        out[idx] = f(x[idx])
-    return out
-
-
-def sym_array(prefix: str, shape: tuple[int, ...], static: bool) -> np.ndarray:
-    """An object array of fresh input symbols ``prefix_i`` (row-major)."""
-    out = np.empty(shape, dtype=object)
-    for k, idx in enumerate(np.ndindex(shape)):
-        out[idx] = Sym(f"{prefix}_{k}", static)
-    return out
-
-
-def eliminate_dead(stmts: list[Stmt], live: set[str]) -> list[Stmt]:
-    """Statements needed for the ``live`` names, in order (``live`` is updated in place)."""
-    keep = []
-    for st in reversed(stmts):
-        if any(t in live for t in st.targets):
-            keep.append(st)
-            live.update(st.uses)
-    keep.reverse()
-    return keep
-
-
-def format_atom(a: Atom, dialect: Dialect = PYTHON) -> str:
-    """Source of an atom in ``dialect`` (default Python)."""
-    if isinstance(a, _Opaque):
-        raise UnsupportedPrimitive(f"the exporter cannot output the {a.what} directly")
-    return a.name if isinstance(a, Sym) else dialect.literal(a)

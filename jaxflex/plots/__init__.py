@@ -1,9 +1,10 @@
 """Figures (host-side, matplotlib). One module per topic; the physics modules never import
 this package.
 
-Every ``plot_*`` function builds and returns a ``matplotlib.figure.Figure`` made without
-pyplot, so importing this package selects no backend and keeps no figure alive; whoever wants
-a file writes it with ``save_figure``.
+Every ``plot_*`` function builds and returns ``matplotlib.figure.Figure``s made without
+pyplot (one, or several by name), so importing this package selects no backend and keeps no
+figure alive; whoever wants a file writes it with ``save_figure`` (``save_figures`` for
+several by name).
 """
 
 from __future__ import annotations
@@ -49,4 +50,20 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> str:
     return path.name
 
 
-__all__ = ["new_figure", "save_figure"]
+def save_figures(figs: dict[str, Figure], folder: str | Path, dpi: int = 110) -> list[str]:
+    """Write each figure of ``figs`` as ``folder/<name>.png``.
+
+    **Arguments:**
+
+    - `figs`: file stem -> figure.
+    - `folder`: an existing folder.
+    - `dpi`: dots per inch.
+
+    **Returns:**
+
+    The file names (without the folder), in the order of ``figs``.
+    """
+    return [save_figure(fig, Path(folder) / f"{name}.png", dpi) for name, fig in figs.items()]
+
+
+__all__ = ["new_figure", "save_figure", "save_figures"]

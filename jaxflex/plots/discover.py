@@ -4,14 +4,13 @@ model's residual analysis (autocorrelation and input cross-correlation with thei
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
-from jaxflex.plots import new_figure, save_figure
+from jaxflex.plots import new_figure
 
 #: Tick labels of the log axes as plain numbers (1e-05, 0.1, 10): matplotlib's default writes
 #: them in mathtext, whose parser costs 0.2-0.3 s to build on a run's first figure.
@@ -176,18 +175,16 @@ def report_figures(report: dict[str, Any], localisation: dict[str, Any], samples
     return figs
 
 
-def plot_report(result: Any, out: str | Path) -> list[str]:
-    """Write every figure of one ``DiscoverResult`` into the folder ``out`` as PNGs.
+def plot_report(result: Any) -> dict[str, Figure]:
+    """Every figure of one ``DiscoverResult`` (``report_figures``), by file stem.
 
     **Arguments:**
 
     - `result`: the ``DiscoverResult``.
-    - `out`: an existing folder.
 
     **Returns:**
 
-    The file names written.
+    Name -> figure, as ``report_figures``.
     """
-    figs = report_figures(result.to_json(), result.localisation.summary,
+    return report_figures(result.to_json(), result.localisation.summary,
                           len(result.localisation.series["t"]), result.held_out_replay())
-    return [save_figure(f, Path(out) / f"{k}.png") for k, f in figs.items()]

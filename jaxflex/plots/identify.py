@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from jaxflex.plots import new_figure, save_figure
+from jaxflex.plots import new_figure
 
 
 def fit_traces(result: Any) -> dict[str, Any]:
@@ -72,20 +71,19 @@ def plot_identification(traces: dict[str, Any], max_points: int = 20000) -> Figu
     return fig
 
 
-def plot_fit(result: Any, path: str | Path, max_points: int = 20000) -> list[str]:
-    """Write ``plot_identification`` of an ``IdentResult`` as a PNG (the command line's figure).
+def plot_fit(result: Any, max_points: int = 20000) -> Figure:
+    """``plot_identification`` of an ``IdentResult`` (the command line's figure).
 
     **Arguments:**
 
     - `result`: the ``IdentResult``.
-    - `path`: the file to write.
     - `max_points`: as ``plot_identification``.
 
     **Returns:**
 
-    ``[file name]``.
+    The figure.
     """
-    return [save_figure(plot_identification(fit_traces(result), max_points), path)]
+    return plot_identification(fit_traces(result), max_points)
 
 
 def plot_static_map(v: np.ndarray, F: np.ndarray, curve: Any,

@@ -6,13 +6,12 @@ compensation) so that they can be compared on the same axes.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from jaxflex.plots import new_figure, save_figure
+from jaxflex.plots import new_figure
 
 if TYPE_CHECKING:
     from jaxflex.sweep.summary import SweepResult
@@ -113,24 +112,19 @@ def plot_sensitivity(results, top: int = 12) -> Figure:
     return fig
 
 
-def plot_sweep(results, out: str | Path, nominal: dict | None = None) -> list[str]:
-    """Write the three figures into the folder ``out`` (made if missing) as PNGs.
+def plot_sweep(results: SweepResult | dict[str, SweepResult],
+               nominal: dict | None = None) -> dict[str, Figure]:
+    """The sweep's three figures, by file stem.
 
     **Arguments:**
 
     - `results`: one ``SweepResult`` or labelled ones.
-    - `out`: the folder.
     - `nominal`: the nominal plant's run (``nominal_run``) for the error bands.
 
     **Returns:**
 
-    The paths written.
+    ``{"error_histograms", "error_bands", "sensitivity"}``: name -> figure.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    figs = {"error_histograms": plot_error_histograms(results),
+    return {"error_histograms": plot_error_histograms(results),
             "error_bands": plot_error_bands(results, nominal=nominal),
             "sensitivity": plot_sensitivity(results)}
-    for name, fig in figs.items():
-        save_figure(fig, out / f"{name}.png", dpi=120)
-    return [str(out / f"{name}.png") for name in figs]

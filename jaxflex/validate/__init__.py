@@ -57,6 +57,7 @@ from jaxflex.validate.loops import (
 )
 from jaxflex.validate.closed_loop import (
     ClosedLoopFit,
+    ClosedLoopFitResult,
     RIGID_TERMS,
     ROBUST_BLOCKS,
     benchmark_derivative,
@@ -87,6 +88,7 @@ __all__ = [
     "CascadeLaw",
     "CascadeLoop",
     "ClosedLoopFit",
+    "ClosedLoopFitResult",
     "DeclaredLoop",
     "LOOP_SECTION",
     "LOOP_TYPES",

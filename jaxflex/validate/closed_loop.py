@@ -7,6 +7,7 @@ log (``closed_loop_fit``) and the rigid inverse-dynamics torque fit of the EMPS 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
@@ -158,11 +159,44 @@ def closed_loop_residuals(theta: dict, data: ClosedLoopFit) -> jax.Array:
 ROBUST_BLOCKS: int = 20
 
 
+@dataclasses.dataclass(frozen=True)
+class ClosedLoopFitResult:
+    """Result of ``closed_loop_fit``.
+
+    **Fields:**
+
+    - ``params``: the refined ``Params``.
+    - ``stderr``: name -> physical standard error (the parameter's units): cluster-robust
+      over ``ROBUST_BLOCKS`` consecutive blocks of the log
+      (``jaxflex.fit.cluster_robust_covariance``), since a closed loop's errors are
+      correlated over hundreds of samples; the white-residual ones where there are too few
+      blocks for the parameters.
+    - ``stderr_kind``: which of the two.
+    - ``converged``, ``steps``, ``reason``: the engine's verdict, step count and why it
+      stopped.
+    - ``cost_start``, ``cost``: 0.5 ||r||^2 of the weighted errors (dimensionless) at the
+      start (1 by the weighting) and at the end.
+    """
+
+    params: Params
+    stderr: dict[str, list[float]]
+    stderr_kind: str
+    converged: bool
+    steps: int
+    cost_start: float
+    cost: float
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields as a dict (``params`` stays a ``Params``)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
 def closed_loop_fit(
     params: Params, log: Log, free: list[str], *, kind: str = "rigid",
     disturbance: np.ndarray | None = None, substeps: int = 2, drop: int = 49,
     max_steps: int = 100, rtol: float = 1e-8, atol: float = 1e-8,
-) -> dict[str, Any]:
+) -> ClosedLoopFitResult:
     """Output-error identification *in closed loop*: the parameters ``free`` (names of
     ``jaxflex.fit.ParamSpace``) that minimise the benchmark metric's position and torque
     errors of the declared controller (``loop_controller``: the P/P cascade, a PD loop or
@@ -178,13 +212,8 @@ def closed_loop_fit(
     smooth near a good model but not far from it. ``max_steps``, ``rtol``, ``atol``: the
     engine's step cap and termination tolerances (``jaxflex.fit.least_squares``).
 
-    Returns a dict: ``params`` (the refined ``Params``), ``stderr`` (name -> physical
-    standard error: cluster-robust over ``ROBUST_BLOCKS`` consecutive blocks of the log,
-    ``jaxflex.fit.cluster_robust_covariance``, since a closed loop's errors are correlated
-    over hundreds of samples; the white-residual ones where there are too few blocks for the
-    parameters), ``stderr_kind`` (which), ``converged``, ``steps``, ``cost_start``, ``cost``
-    (0.5 ||r||^2, weighted), ``reason``. Raises ``ValueError`` when the parameters declare no controller,
-    the log has no reference, or ``free`` names an unknown parameter.
+    Returns a ``ClosedLoopFitResult``. Raises ``ValueError`` when the parameters declare no
+    controller, the log has no reference, or ``free`` names an unknown parameter.
     """
     from jaxflex.fit import cluster_robust_covariance, covariance, least_squares, set_values
 
@@ -223,10 +252,10 @@ def closed_loop_fit(
         cov = covariance(data, sol.y, fn=closed_loop_residuals, solution=sol)
         kind_se = "white residuals"
     phys = space.physical_values(sol.y)
-    return {"params": set_values(params, phys),
-            "stderr": {k: np.asarray(v).tolist() for k, v in cov["stderr"].items()},
-            "stderr_kind": kind_se,
-            "converged": bool(sol.converged), "steps": int(sol.steps),
-            "cost_start": 1.0, "cost": float(sol.cost), "reason": sol.reason}
+    return ClosedLoopFitResult(
+        params=set_values(params, phys),
+        stderr={k: np.asarray(v).tolist() for k, v in cov["stderr"].items()},
+        stderr_kind=kind_se, converged=bool(sol.converged), steps=int(sol.steps),
+        cost_start=1.0, cost=float(sol.cost), reason=sol.reason)
 
 

@@ -1,74 +1,39 @@
-"""Trace the controller once and write the standalone Python module from its programs.
+"""Write the standalone Python module of a traced controller.
 
-``trace`` runs ``jax.make_jaxpr`` on the functions of a ``SampledController`` for fixed
-shapes (n joints): ``init`` (filters, Kalman filter and observer state at the first
-sample), ``step`` (one sample: velocity source, observer, q2d derivatives, cascade law,
-saturation), their variants with the reference given (``init_ref``, ``step_ref``) and the
-recorded reference (``reference``, ``reference_derivatives``). Every array leaf of the
-controller (model, LuGre, gains, reference, filter constants, Kalman gains, torque limit) is
-a jaxpr *input*. ``generate_source`` translates the programs into Python, where the leaves
-stay parameters (the module can be rebuilt with other values; the traced ones are its
-defaults); ``jaxflex.export.cgen`` translates the same programs into C.
+``generate_source`` translates the programs of ``jaxflex.export.tracing.trace`` with the
+``PYTHON`` dialect into a module that imports only numpy and the standard library: each
+program becomes ``_derive_<f>`` (the statements on the controller's leaves alone, run once
+per parameter set) and ``_make_<f>`` (a closure with the per-sample statements, on Python
+floats with a numpy float64 fallback that keeps IEEE semantics). The leaves stay parameters,
+so the module can be rebuilt with other values; the traced ones are its defaults. The
+module's fused multiply-add is the source of ``jaxflex.export.fma.exact_fma`` itself.
 """
 
 from __future__ import annotations
 
 import datetime
+import inspect
 import math
 import re
-from dataclasses import dataclass
 from typing import Any, Callable
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.controller import CascadeController
-from jaxflex.export.program import (
-    REFERENCE_ROWS,
-    SampledController,
-    describe,
-    sampled_controller,
+from jaxflex.export.atoms import Program, Sym, eliminate_dead, sym_array
+from jaxflex.export.dialect import format_atom
+from jaxflex.export.fma import exact_fma
+from jaxflex.export.program import REFERENCE_ROWS, SampledController, describe
+from jaxflex.export.tracing import (
+    SPEC_ENTRIES,
+    Traced,
+    listed_leaves,
+    trace,
+    translate_program,
 )
-from jaxflex.export.translate import (
-    PYTHON,
-    Dialect,
-    Program,
-    Sym,
-    Translator,
-    eliminate_dead,
-    format_atom,
-    sym_array,
-)
-from jaxflex.simulate import REFERENCE_ORDER
-
-# docs/spec.md section 7 entries -> controller leaf names (the model the rig's plant defaults to)
-SPEC_ENTRIES: dict[str, str] = {
-    "plant.I": "model.links.I", "plant.J": "model.J", "plant.K": "model.K",
-    **{f"friction.{k}": f"model.friction.{k}" for k in ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")},
-    **{f"gains.{k}": f"gains.{k}" for k in ("Ke", "KD1", "KD2", "kv", "L1", "L2")},
-}
-
-
-@dataclass
-class _Leaves:
-    names: list[str]
-    values: list[np.ndarray]
-    rebuild: Callable[[list[Any]], Any]
-
-
-def _leaves(controller: Any) -> _Leaves:
-    dyn, static = eqx.partition(controller, eqx.is_array)
-    flat, treedef = jax.tree_util.tree_flatten_with_path(dyn)
-    names = [jax.tree_util.keystr(path).lstrip(".") for path, _ in flat]
-    values = [np.asarray(v, dtype=np.float64) for _, v in flat]
-
-    def rebuild(leaves):
-        return eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
-
-    return _Leaves(names, values, rebuild)
-
+from jaxflex.export.translate import Translator
 
 def _translate(fn: Callable, example_args: list[Any], arg_syms: list[np.ndarray],
                prefix: str) -> Program:
@@ -166,196 +131,6 @@ def _literal(v: float) -> str:
     return repr(float(v))
 
 
-@dataclass
-class Traced:
-    """The traced programs of one ``SampledController`` (shared by every back end).
-
-    ``jaxprs``: name -> (ClosedJaxpr, signal inputs as (name, shape) pairs), for ``init``
-    (t, q1, q2), ``step`` (state, t, q1, q2), ``init_ref`` and ``step_ref`` (the same with
-    the reference R given), ``reference`` (t -> q1d) and ``reference_derivatives``
-    (t -> R); the controller's array leaves (``names``, ``values``) come first in each.
-    """
-
-    sc: SampledController
-    names: list[str]
-    values: list[np.ndarray]
-    state_names: list[str]
-    state_sizes: list[int]
-    jaxprs: dict[str, tuple[Any, list[tuple[str, tuple[int, ...]]]]]
-
-    @property
-    def n(self) -> int:
-        """Number of joints."""
-        return self.sc.n
-
-    @property
-    def n_state(self) -> int:
-        """Number of state values (every leaf's size)."""
-        return sum(self.state_sizes)
-
-
-def trace(controller: CascadeController | SampledController) -> Traced:
-    """Trace the programs of a controller once, in float64, for every back end.
-
-    **Arguments:**
-
-    - ``controller``: a ``SampledController``, or a ``CascadeController`` (run with the
-      dirty derivative and no DAC, ``jaxflex.export.sampled_controller``).
-
-    **Returns:**
-
-    The ``Traced`` programs.
-
-    **Raises:**
-
-    ``ExportError`` for a configuration the export cannot run.
-    """
-    with jax.enable_x64(True):
-        return _trace(sampled_controller(controller))
-
-
-def _trace(sc: SampledController) -> Traced:
-    n = sc.n
-    lv = _leaves(sc)
-    f64 = jnp.float64
-    leaves = [jnp.asarray(v, f64) for v in lv.values]
-    zeros = jnp.zeros(n, f64)
-    state0 = sc.init(0.0, zeros, zeros)
-    flat, st_def = jax.tree_util.tree_flatten_with_path(state0)
-    st_leaves = [x for _, x in flat]
-    state_names = [jax.tree_util.keystr(path).lstrip(".") for path, _ in flat]
-    k = len(leaves)
-
-    def rebuild(args):
-        return lv.rebuild(list(args[:k]))
-
-    def state_of(args):
-        return jax.tree_util.tree_unflatten(st_def, list(args[k:k + len(st_leaves)]))
-
-    def step_fn(*args):
-        t, q1, q2 = args[k + len(st_leaves):]
-        new, out = rebuild(args).step(state_of(args), t, q1, q2)
-        return jax.tree_util.tree_leaves(new), out.tau
-
-    def step_ref_fn(*args):
-        t, q1, q2, R = args[k + len(st_leaves):]
-        new, out = rebuild(args).with_reference(R, t).step(state_of(args), t, q1, q2)
-        return jax.tree_util.tree_leaves(new), out.tau
-
-    def init_fn(*args):
-        t, q1, q2 = args[k:]
-        return jax.tree_util.tree_leaves(rebuild(args).init(t, q1, q2))
-
-    def init_ref_fn(*args):
-        t, q1, q2, R = args[k:]
-        return jax.tree_util.tree_leaves(rebuild(args).with_reference(R, t).init(t, q1, q2))
-
-    def ref_fn(*args):
-        return rebuild(args).controller.trajectory.position(args[k])
-
-    def ref_derivs_fn(*args):
-        return rebuild(args).controller.trajectory.derivatives(args[k], order=REFERENCE_ORDER)
-
-    S = [(f"s{i}", tuple(x.shape)) for i, x in enumerate(st_leaves)]
-    tq = [("t", ()), ("q1", (n,)), ("q2", (n,))]
-    r = [("r", (REFERENCE_ROWS, n))]
-    specs = {
-        "init": (init_fn, tq), "step": (step_fn, S + tq),
-        "init_ref": (init_ref_fn, tq + r), "step_ref": (step_ref_fn, S + tq + r),
-        "reference": (ref_fn, [("t", ())]), "reference_derivatives": (ref_derivs_fn, [("t", ())]),
-    }
-    jaxprs = {}
-    for name, (fn, sig) in specs.items():
-        examples = [*leaves, *[jnp.zeros(shape, f64) for _, shape in sig]]
-        jaxprs[name] = (jax.make_jaxpr(fn)(*examples), sig)
-    # the law's constants keep the names of the bare controller ("gains.L1"); the
-    # estimator's and the DAC's are "estimator.L", "sensing.dac_range"
-    names = [nm.removeprefix("controller.") for nm in lv.names]
-    return Traced(sc, names, lv.values, state_names,
-                  [int(np.size(x)) for x in st_leaves], jaxprs)
-
-
-def _signal_syms(sig: list[tuple[str, tuple[int, ...]]]) -> list[np.ndarray]:
-    out = []
-    for name, shape in sig:
-        if shape == ():
-            out.append(np.array(Sym(name, False), dtype=object).reshape(()))
-        else:
-            out.append(sym_array(name, shape, False))
-    return out
-
-
-def _signal_args(sig: list[tuple[str, tuple[int, ...]]]) -> list[str]:
-    return [name if shape == () else f"{name}_{i}"
-            for name, shape in sig for i in range(int(np.prod(shape, dtype=int)))]
-
-
-def translate_program(tr: Traced, name: str, param_inputs: list[np.ndarray],
-                      dialect: Dialect = PYTHON) -> Program:
-    """Translate one traced program of ``tr`` into ``dialect``.
-
-    **Arguments:**
-
-    - ``tr``: the traced programs (``trace``).
-    - ``name``: which one ("init", "step", "init_ref", "step_ref", "reference",
-      "reference_derivatives").
-    - ``param_inputs``: the controller's leaves as atoms (``sym_array`` symbols to keep
-      them parameters, ``const_array`` of their values to fold them into the code).
-    - ``dialect``: the back end's spelling (``PYTHON`` or ``C99``).
-
-    **Returns:**
-
-    The ``Program`` (hoisted and per-sample statements, outputs).
-
-    **Raises:**
-
-    ``UnsupportedPrimitive`` naming a primitive the translator cannot handle.
-    """
-    closed, sig = tr.jaxprs[name]
-    t = Translator(prefix="v", dialect=dialect)
-    outs = t.run(closed.jaxpr, closed.consts, [*param_inputs, *_signal_syms(sig)])
-    prog = Program(params=[], signals=_signal_args(sig),
-                   outputs=[a for o in outs for a in np.asarray(o).reshape(-1)])
-    prog.static_stmts, prog.dyn_stmts = t.static_stmts, t.dyn_stmts
-    return prog
-
-
-_PARAM = re.compile(r"\bp(\d+)_\d+\b")
-
-
-def _used_params(progs: list[Program]) -> set[int]:
-    """Indices of the controller leaves that any program's live code reads."""
-    used: set[int] = set()
-    for prog in progs:
-        live = {a.name for a in prog.outputs if isinstance(a, Sym)}
-        dyn = eliminate_dead(prog.dyn_stmts, live)
-        live |= {u for st in dyn for u in st.uses}
-        eliminate_dead(prog.static_stmts, live)
-        used |= {int(m.group(1)) for name in live for m in [_PARAM.fullmatch(name)] if m}
-    return used
-
-
-def listed_leaves(tr: Traced, progs: list[Program] | None = None) -> list[int]:
-    """Indices of the controller leaves an export lists as its constants: those its code
-    reads, and the parameter file's entries (the rig's plant and friction default to them)
-    even where the law does not read them.
-
-    **Arguments:**
-
-    - ``tr``: the traced programs.
-    - ``progs``: their translations with the leaves as parameters (translated here if None).
-
-    **Returns:**
-
-    Sorted indices into ``tr.names``.
-    """
-    if progs is None:
-        syms = [sym_array(f"p{i}", v.shape, True) for i, v in enumerate(tr.values)]
-        progs = [translate_program(tr, name, syms) for name in tr.jaxprs]
-    spec_leaves = {tr.names.index(v) for v in SPEC_ENTRIES.values() if v in tr.names}
-    return sorted(_used_params(progs) | spec_leaves)
-
-
 _PY_FUNCS = ("step", "init", "reference", "step_ref", "init_ref", "reference_derivatives")
 
 
@@ -430,7 +205,7 @@ def _generate(tr: Traced, description: str) -> str:
         config=describe(sc), rows=REFERENCE_ROWS,
     )
     body = _BODY.format(
-        n=n, dt=repr(float(c.dt)), method=c.q2d_method, velocity=sc.sensing.velocity,
+        prelude=_PRELUDE, helpers=_HELPERS, n=n, dt=repr(float(c.dt)), method=c.q2d_method, velocity=sc.sensing.velocity,
         config=describe(sc), rows=REFERENCE_ROWS,
         defaults=defaults, spec_map=repr(spec_map), state_names=repr(tr.state_names),
         funcs="\n\n\n".join(funcs),
@@ -463,30 +238,15 @@ numpy array out. The torque is the command before the DAC.
 
 '''
 
-_BODY = '''import json as _json
+_PRELUDE = """import json as _json
+import math
 import math as _m
 
 import numpy as _np
+"""
 
-N_JOINTS = {n}
-DT = {dt}
-Q2D_METHOD = {method!r}
-VELOCITY = {velocity!r}
-CONFIG = {config!r}
-REFERENCE_ROWS = {rows}
-_INF = float("inf")
-_NAN = float("nan")
-
-# name: (shape, row-major values) of every controller constant
-DEFAULT_PARAMS = {{
-{defaults}
-}}
-# docs/spec.md section 7 parameter-file entries -> names above
-SPEC_MAP = {spec_map}
-STATE_NAMES = {state_names}
-
-
-def _sign(x):
+# the generated module's helpers; ``exact_fma`` is the one implementation, carried as source
+_HELPERS = '''def _sign(x):
     return 1.0 if x > 0 else (-1.0 if x < 0 else x)
 
 
@@ -514,25 +274,7 @@ def _ieee(fn, *args):
         return _to_float(fn(*conv))
 
 
-def _fma(a, b, c):
-    """a * b + c rounded once (IEEE fused multiply-add, as XLA's CPU dot products compute):
-    Dekker's exact two-product summed by math.fsum; by rationals outside its range."""
-    p = a * b
-    if a == 0 or b == 0 or not (_m.isfinite(p) and _m.isfinite(c)):
-        return p + c
-    if 1e-140 < abs(a) < 1e140 and 1e-140 < abs(b) < 1e140:
-        t = 134217729.0 * a
-        ah = t - (t - a)
-        al = a - ah
-        t = 134217729.0 * b
-        bh = t - (t - b)
-        bl = b - bh
-        return _m.fsum((p, ((ah * bh - p) + ah * bl + al * bh) + al * bl, c))
-    from fractions import Fraction
-
-    r = Fraction(float(a)) * Fraction(float(b)) + Fraction(float(c))
-    return float(r) if r != 0 else p + c
-
+''' + inspect.getsource(exact_fma) + '''
 
 def _round_away(x):
     return float(_m.copysign(_m.floor(abs(x) + 0.5), x))
@@ -552,7 +294,28 @@ def _solve(n, a, b):
     for i in range(n - 1, -1, -1):
         x[i] = (A[i][n] - sum(A[i][j] * x[j] for j in range(i + 1, n))) / A[i][i]
     return tuple(x)
+'''
 
+_BODY = '''{prelude}
+N_JOINTS = {n}
+DT = {dt}
+Q2D_METHOD = {method!r}
+VELOCITY = {velocity!r}
+CONFIG = {config!r}
+REFERENCE_ROWS = {rows}
+_INF = float("inf")
+_NAN = float("nan")
+
+# name: (shape, row-major values) of every controller constant
+DEFAULT_PARAMS = {{
+{defaults}
+}}
+# docs/spec.md section 7 parameter-file entries -> names above
+SPEC_MAP = {spec_map}
+STATE_NAMES = {state_names}
+
+
+{helpers}
 
 {funcs}
 
@@ -683,7 +446,5 @@ def function_source(fn: Callable, *example_args: Any, name: str = "f") -> str:
     names = [f"a{i}_{k}" for i, a in enumerate(args) for k in range(int(np.size(a)))]
     outs = "(" + "".join(format_atom(a) + ", " for a in prog.outputs) + ")"
     src = _fn_source(prog, name, [], ", ".join(names), "", outs)
-    prelude = _BODY.split("{funcs}")[0].split("N_JOINTS")[0]
-    helpers = _BODY.split("def _sign")[1].split("{funcs}")[0]
-    return (prelude + '_INF = float("inf")\n_NAN = float("nan")\n\n\ndef _sign' + helpers
+    return (_PRELUDE + '\n_INF = float("inf")\n_NAN = float("nan")\n\n\n' + _HELPERS + "\n\n"
             + src + f"\n\n\n{name} = _make_{name}(*_derive_{name}())\n")
