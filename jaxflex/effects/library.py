@@ -177,6 +177,7 @@ class Cogging(AbstractEffect):
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free"}
     telling: ClassVar[str | None] = "position"
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"A": (0.03, 0.06)}
+    higher: ClassVar[str | None] = "cogging_2"
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
@@ -222,6 +223,7 @@ class MotorCogging(AbstractEffect):
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free"}
     telling: ClassVar[str | None] = "rotor position"
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"A": (0.02, 0.04)}
+    higher: ClassVar[str | None] = "motor_cogging_2"
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
@@ -345,6 +347,7 @@ class MotorFriction(AbstractEffect):
     telling: ClassVar[str | None] = "rotor velocity"
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"Fm": (0.02, 0.04),
                                                                   "bm": (0.01, 0.03)}
+    higher: ClassVar[str | None] = "motor_friction_2"
     Fm: Float[Array, " n"] = eqx.field(converter=as_param)
     bm: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
     width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
@@ -372,6 +375,7 @@ class ActuatorLag(AbstractEffect):
     telling: ClassVar[str | None] = "frequency"
     step_bounded: ClassVar[tuple[str, ...]] = ("T",)
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"T": (0.002, 0.004)}
+    higher: ClassVar[str | None] = "actuator_lag_2"
     T: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
