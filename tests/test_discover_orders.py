@@ -1,7 +1,8 @@
 """Discovery names an effect family and the order the log asks for (``jaxflex.discover.orders``,
 docs/spec.md section 8.1), on logs of an independent simulator (``tests/independent_joint.py``:
 numpy RK4, effects in forms of its own): a two-harmonic cogging is answered ``cogging`` order 2
-and closes the gap, a one-harmonic cogging stays at order 1."""
+and closes the gap, a one-harmonic cogging stays at order 1, a rotor friction with a
+Stribeck term is answered ``motor_friction`` order 2."""
 
 import pytest
 
@@ -57,3 +58,25 @@ def test_a_one_harmonic_cogging_stays_order_1():
     rep = _run(link_ripple=harmonics([(0.03, 8.0, 0.3)])).to_json()
     assert (rep["effect"], rep["order"], rep["effects"]) == ("cogging", 1, ["cogging"])
     assert not rep["rounds"][0]["orders"][0]["kept"]
+
+
+@pytest.mark.slow
+def test_a_rotor_friction_with_a_stribeck_term_is_named_motor_friction_order_2():
+    """Coulomb 0.02, Stribeck excess 0.03 N m at 0.1 rad/s and viscous 0.01 N m s/rad on the
+    rotor: Coulomb and viscous alone close part of the gap; the Stribeck order pays and closes
+    it, with the levels recovered."""
+    import math
+
+    def rotor(v):
+        return -((0.02 + 0.03 * math.exp(-((v / 0.1) ** 2))) * math.tanh(v / 0.01) + 0.01 * v)
+
+    log = simulate(10.0, rotor_friction=rotor)
+    rep = discover(log, paper_params(), DiscoverConfig(
+        candidates=("motor_friction", "asymmetric_friction", "torque_offset", "joint_damping"),
+        max_effects=2)).to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("motor_friction", 2,
+                                                            ["motor_friction_2"])
+    assert rep["explained_fraction"] >= 0.75
+    p = rep["effect_params"]["motor_friction_2"]
+    for k, v in (("Fm", 0.02), ("Fsm", 0.03), ("vsm", 0.1), ("bm", 0.01)):
+        assert p[k]["value"] == pytest.approx(v, rel=0.15), k
