@@ -20,8 +20,11 @@ if TYPE_CHECKING:
 class Discovery(Result):
     """The outcome of ``discover_effects`` (docs/spec.md section 8).
 
-    effect: the answer (the first effect added, "indistinguishable", "none" or
-    "unexplained"); effects: every effect added, in order; answer: the answer in one line
+    effect: the answer (the family of the first effect added, "indistinguishable", "none"
+    or "unexplained"); order: the order of the answer's family the log asked for (e.g. 2
+    for a cogging with its 2nd harmonic; 0 when no effect is the answer); effects: every
+    effect added, in order, by registered name (``cogging_2``); orders: each one's order in
+    its family; answer: the answer in one line
     with the rivals each round could not tell apart; params: the final model (nominal
     refitted, effects added); gap_before, gap_after, gap_floor: held-out gaps of the refit
     nominal model, the final model and a correct model on this log (dimensionless);
@@ -44,6 +47,8 @@ class Discovery(Result):
     report: dict[str, Any]
     replay: dict[str, np.ndarray]
     samples: int
+    order: int = 0
+    orders: list[int] = dataclasses.field(default_factory=list)
 
     def plot(self, which: str = "replay") -> Figure:
         """One figure of the run (``jaxflex.plots.discover.report_figures``).
@@ -101,4 +106,4 @@ def discover_effects(log: Log, nominal: Params | None = None, *, progress: Any =
         gap_before=float(res.gap_before), gap_after=float(res.gap_after),
         gap_floor=float(res.gap_floor), explained=float(res.explained),
         seconds=float(res.seconds), report=res.to_json(), replay=res.held_out_replay(),
-        samples=len(res.localisation.series["t"]))
+        samples=len(res.localisation.series["t"]), order=res.order, orders=res.orders)

@@ -52,6 +52,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--min-gain", type=float, default=0.15,
                    help="minimal relative held-out gap reduction to accept an effect")
     p.add_argument("--max-effects", type=int, default=3, help="most effects to add (3)")
+    p.add_argument("--max-order", type=int, default=3,
+                   help="highest order of an effect family to fit (3; 1: each family's "
+                        "simplest member: a ripple's fundamental, Coulomb and viscous motor "
+                        "friction, a first-order lag)")
     p.add_argument("--substeps", type=int, default=1,
                    help="RK4 steps per sample in every replay (1); the lag's and the delay's "
                         "time constants are fitted from 1.5 x the step dt / substeps up, so a "
@@ -81,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
         model_kind_of,
     )
     from jaxflex.data import is_named, load_named
+    from jaxflex.effects import EFFECTS
     from jaxflex.fit.ahead import Ahead
     from jaxflex.logs import load_log, parse_mapping
     from jaxflex.params import load_params, save_params
@@ -122,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = DiscoverConfig(
         segment=args.segment, train_frac=args.train_frac, max_steps=args.max_steps,
         alpha=args.alpha, min_gain=args.min_gain, max_effects=args.max_effects, candidates=cands,
+        max_order=args.max_order,
         substeps=args.substeps, model=model,
     )
     out = Path(args.out)  # created once there is a result to write (no empty folder on Ctrl-C)
@@ -159,7 +165,11 @@ def run(args: argparse.Namespace) -> int:
 
             rep["figures"] = save_figures(plot_report(res), out)
         (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
-    print(f"effect: {rep['effect']}  effects: {rep['effects']}  gap {rep['gap_before']:.4f} -> "
+    named = (f"{rep['effect']} order {rep['order']}" if rep["order"] > 1
+             or rep["effect"] in EFFECTS and EFFECTS[rep["effect"]].higher else rep["effect"])
+    grown = [f"{f} order {k}" if k > 1 else e
+             for e, f, k in zip(rep["effects"], rep["families"], rep["orders"])]
+    print(f"effect: {named}  effects: {grown}  gap {rep['gap_before']:.4f} -> "
           f"{rep['gap_after']:.4f} (floor {rep['gap_floor']:.4f})  {rep['seconds']:.0f} s")
     added = [r for r in rep["rounds"] if r["winner"] != "none"]
     for k, r in enumerate(added):

@@ -128,8 +128,13 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
             )
     universe = tuple(sorted(universe))
     # the most entries a model fits: the nominal ones and the largest max_effects effects
-    # (``discover`` adds at most max_effects; a tie's rivals are swapped in, not added)
-    sizes = sorted((fitted_count(n) for n in universe), reverse=True)
+    # (``discover`` adds at most max_effects; a tie's rivals are swapped in, not added), each
+    # family at its largest order (a family's orders are swapped in, one at a time)
+    family: dict[str, int] = {}
+    for n in universe:
+        f = EFFECTS[n].family_name()
+        family[f] = max(family.get(f, 0), fitted_count(n))
+    sizes = sorted(family.values(), reverse=True)
     jac_columns = len(NOMINAL_FIT) + sum(sizes[:max_effects])
     h = dt / substeps
     effs = [Gated(typical_effect(n, h), to_device(0.0)) for n in universe]

@@ -188,7 +188,8 @@ class DiscoverConfig:
     floor that the effects added must close for the answer to name them when the final gap
     stays unexplained (``explained_min``, ``explained_fraction``; 0: always name them); the
     kind of model the nominal parameters describe (``model``, one of ``DISCOVER_MODELS``:
-    ``nominal_for_model``)."""
+    ``nominal_for_model``); the highest order of an effect family discovery fits
+    (``max_order``; 1: each family's simplest member only, ``jaxflex.discover.orders``)."""
 
     segment: float = 0.3
     train_frac: float = 0.7
@@ -208,3 +209,4 @@ class DiscoverConfig:
     contest: float = 3.0
     explained_min: float = 0.75
     model: str = "flexible"
+    max_order: int = 3

@@ -210,6 +210,25 @@ class _ResidualStart:
         q, r, Q = self._side(side, trend)
         return _grid_fits(q, r, Q, grid, step)
 
+    def column_fits(self, side: str, columns: Any) -> tuple[float, np.ndarray]:
+        if side not in ("link", "rotor"):
+            raise ValueError(f"side must be 'link' or 'rotor', got {side!r}")
+        s = self._series
+        q, v, r = ((s["q2"], s["v2"], s["r_rotor"]) if side == "rotor"
+                   else (s["q1"], s["v1"], s["r_link"]))
+        nuisance = np.column_stack([np.ones_like(q), s["d"], np.gradient(v, s["t"])])
+        if side == "link":  # the sliding samples only, as ``_cleared``
+            sliding = np.abs(v) > 2.0 * (self._vs if self._vs is not None else 0.05)
+            if np.mean(sliding) > 0.1:
+                q, v, r, nuisance = q[sliding], v[sliding], r[sliding], nuisance[sliding]
+        X = np.asarray(columns(q, v), float).reshape(q.size, -1)
+        Q, _ = np.linalg.qr(nuisance)
+        Xc, rc = X - Q @ (Q.T @ X), r - Q @ (Q.T @ r)
+        c, _, rank, _ = np.linalg.lstsq(Xc, rc, rcond=None)
+        if rank < X.shape[1] or not np.all(np.isfinite(c)):
+            return -1.0, np.zeros(X.shape[1])
+        return float(np.sum((Xc @ c) ** 2)), c
+
 
 def _cogging_start(series: dict[str, np.ndarray], name: str = "cogging",
                    vs: float | None = None) -> AbstractEffect:
@@ -268,3 +287,11 @@ def start_effect(name: str, model: Model, series: dict[str, np.ndarray],
     Stribeck velocity and the integration step ``h`` [s]."""
     vs = float(np.ravel(model.params.friction["vs"])[0])
     return EFFECTS[name].start_from_residual(_ResidualStart(series, vs, model.params, h))
+
+
+def residual_start(log: Log, model: Model, h: float) -> _ResidualStart:
+    """The ``jaxflex.effects.ResidualStart`` of ``model`` on ``log``: the torque residuals
+    of its nominal parameters (``localise``), its Stribeck velocity and the integration step
+    ``h`` [s] (what ``AbstractEffect.from_lower`` reads)."""
+    vs = float(np.ravel(model.params.friction["vs"])[0])
+    return _ResidualStart(localise(log, model.params).series, vs, model.params, h)

@@ -22,7 +22,8 @@ from jaxflex.params import Params
 class DiscoverResult:
     """Outcome of ``discover``.
 
-    effect: the first effect added, "indistinguishable" (an effect is missing, but the first
+    effect: the family of the first effect added (its order in ``order``; a family of one
+    is the effect's own name), "indistinguishable" (an effect is missing, but the first
     round's best candidates explain the log equally well within its noise, ``tied``, so
     naming one would be a guess), "none" (the final gap is at the floor) or "unexplained"
     (the gap stays significantly above the floor and no candidate closes it: none was added,
@@ -32,7 +33,12 @@ class DiscoverResult:
     tied: the first round's candidates that the data cannot tell apart (``tied``; one name,
     the effect, when the answer is decided; empty when none was added); the ties of every
     round are in ``effects_tied`` and in the one-line ``answer``;
-    effects: all added, in order (in a tie the model carries one representative so that
+    order: the order of the answer's family that the log asked for (``jaxflex.discover.orders``:
+    e.g. 2 for a cogging with its 2nd harmonic; 1 for a family's simplest member and for a
+    family of one; 0 when no effect is the answer);
+    effects: all added, in order, by their registered names (a family's order above 1 by its
+    own name, e.g. ``cogging_2``; ``families`` and ``orders`` name each as a family and an
+    order) (in a tie the model carries one representative so that
     later rounds have a base: the held-out gap's pick while it stays tied, ``representative``;
     a tie is judged again on the final model, ``revisit_tie``, and the representative may
     change); gap_before,
@@ -72,6 +78,17 @@ class DiscoverResult:
     explained: float = 0.0
     residuals: dict[str, Any] = dataclasses.field(default_factory=dict)
     not_tried: dict[str, str] = dataclasses.field(default_factory=dict)
+    order: int = 0
+
+    @property
+    def families(self) -> list[str]:
+        """The family of each effect added, in order (``AbstractEffect.family_name``)."""
+        return [EFFECTS[e].family_name() for e in self.effects]
+
+    @property
+    def orders(self) -> list[int]:
+        """The order of each effect added within its family, in order."""
+        return [EFFECTS[e].order for e in self.effects]
 
     @property
     def effects_tied(self) -> list[list[str]]:
@@ -80,13 +97,14 @@ class DiscoverResult:
         return effect_ties(self.rounds)
 
     def answer(self) -> str:
-        """The answer in one line: ``effect``, then every effect added with the rivals its
-        round could not tell apart from it ("a | b": one of them, the data cannot say which)."""
+        """The answer in one line: ``effect`` (with its order above 1: "cogging order 2"),
+        then every effect added with the rivals its round could not tell apart from it
+        ("a | b": one of them, the data cannot say which)."""
+        head = f"{self.effect} order {self.order}" if (self.order or 0) > 1 else self.effect
         ties = self.effects_tied
         if not ties:
-            return self.effect
-        parts = [" | ".join(t) for t in ties]
-        return f"{self.effect}: {', then '.join(parts)}"
+            return head
+        return f"{head}: {', then '.join(' | '.join(t) for t in ties)}"
 
     @property
     def params(self) -> Params:
@@ -155,7 +173,8 @@ class DiscoverResult:
         """The report (report.json) as plain JSON types."""
         nominal = {k: v for k, v in self.before.values.items()}
         return {
-            "effect": self.effect, "effects": list(self.effects), "tied": list(self.tied),
+            "effect": self.effect, "order": self.order, "effects": list(self.effects),
+            "families": self.families, "orders": self.orders, "tied": list(self.tied),
             "effects_tied": self.effects_tied, "answer": self.answer(),
             "gap_before": self.gap_before, "gap_after": self.gap_after,
             "gap_metric": "normalised RMS error of simulated q1 and q2 over held-out segments "
@@ -182,15 +201,19 @@ class DiscoverResult:
 
 def effect_ties(rounds: Sequence[dict[str, Any]]) -> list[list[str]]:
     """Per effect added, in order, the candidates its round could not tell apart from it
-    (the effect first, then its rivals by name; the effect alone when its round decided),
-    from the rounds' records (``tied``, after any second look: ``revisit_tie``). Rounds
-    whose winner was dropped or that added nothing are skipped."""
+    (the effect first, named with its order above 1 (``AbstractEffect.label``: "cogging
+    order 2"), then its rivals by name; the effect alone when its round decided), from the
+    rounds' records (``tied``, after any second look: ``revisit_tie``; ``added``, the order
+    the round's family grew to). Rounds whose winner was dropped or that added nothing are
+    skipped."""
     out = []
     for r in rounds:
         w = r["winner"]
         if w == "none":
             continue
-        out.append([w] + sorted(k for k in r.get("tied", []) if k != w))
+        added = r.get("added", w)
+        name = EFFECTS[added].label() if added in EFFECTS else added
+        out.append([name] + sorted(k for k in r.get("tied", []) if k != w))
     return out
 
 

@@ -1,6 +1,7 @@
 """The discovery workflow: ``discover`` for one joint (rounds of screen, fit, contest and
-tie until nothing is significant, then the gap floor and the answer) and ``discover_joints``
-for each joint of an n-joint log.
+tie, each added effect's family grown to the order the log asks for, until nothing is
+significant, then the gap floor and the answer) and ``discover_joints`` for each joint of an
+n-joint log.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from jaxflex.discover.fitting import (
     without_effect,
 )
 from jaxflex.discover.localisation import localise, start_effect
+from jaxflex.discover.orders import grow, grow_tie
 from jaxflex.discover.ranking import (
     autocorrelation_time,
     break_tie,
@@ -61,7 +63,13 @@ from jaxflex.discover.screening import (
     training_evidence,
     unresolved,
 )
-from jaxflex.effects import AbstractEffect, EFFECTS, acts_on_replay, candidate_effects
+from jaxflex.effects import (
+    AbstractEffect,
+    EFFECTS,
+    acts_on_replay,
+    candidate_effects,
+    family_orders,
+)
 from jaxflex.fit.ahead import Ahead, all_side_by_side, side_by_side
 from jaxflex.logs import Log
 from jaxflex.params import Params
@@ -156,6 +164,8 @@ def discover(
                 f"candidate effect {c!r} ({EFFECTS[c].where}) does not change the motion that "
                 "discover replays nor its reading: it has none of the hooks "
                 "jaxflex.effects.REPLAY_HOOKS")
+    if not cfg.max_order >= 1:
+        raise ValueError(f"discover: max_order must be at least 1, got {cfg.max_order}")
     run = _Run(model_note=model_note)
     try:
         return _discover_run(log, nominal, cfg, cands, say, run)
@@ -187,7 +197,9 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         say(f"note: the file's effects ({', '.join(nominal.effects)}) are set aside: "
             "discover starts from the model without them and tries them as candidates")
     nominal.effects = {}
-    ws = workspace(log, nominal, cands, segment=cfg.segment, train_frac=cfg.train_frac,
+    # the workspace holds each candidate's family up to ``max_order`` (``grow``)
+    universe = list(dict.fromkeys(o for c in cands for o in family_orders(c, cfg.max_order)))
+    ws = workspace(log, nominal, universe, segment=cfg.segment, train_frac=cfg.train_frac,
                    substeps=cfg.substeps, max_effects=cfg.max_effects)
     trace_fit(ws, Model(nominal, []))
     ahead = run.ahead = made_ahead(ws, nominal)
@@ -224,7 +236,8 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         n_eff = current.n_res / tau_int
         series = loc_current.series
         scores, fits, failed, screens = {}, {}, {}, {}
-        remaining = [name for name in cands if name not in added]
+        families = {EFFECTS[a].family_name() for a in added}
+        remaining = [name for name in cands if EFFECTS[name].family_name() not in families]
         starts = dict(zip(remaining, all_side_by_side(
             lambda name: start_effect(name, current.model, series, ws.step), remaining)))
         models = {name: Model(current.model.params, list(current.model.effects) + [starts[name]])
@@ -367,14 +380,33 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
             say("the round is repeated on that base")
             rebased += 1
             continue
-        added.append(winner)
-        if len(rounds[-1]["tied"]) > 1:
+        grown = winner
+        if cfg.max_order > 1:
+            # the order of the winner's family (and of each tied member's) that the log asks
+            # for: a higher order is kept when it pays as an effect does (``grow``)
+            run.stage = f"round {len(rounds)}: the orders of {winner}'s family"
+            if len(rounds[-1]["tied"]) > 1:
+                members = {k: polished if k == winner else polished_fits.get(k, fits[k])
+                           for k in rounds[-1]["tied"]}
+                pick, told, grown_fits, names, record = grow_tie(
+                    log, ws, members, rounds[-1]["tied"], winner, cfg, say)
+                rounds[-1]["tie_orders"] = record
+                if told:
+                    rounds[-1]["tied"] = [pick]
+                    say(f"tie told apart by the order: {EFFECTS[names[pick]].label()}")
+                winner, polished, grown = pick, grown_fits[pick], names[pick]
+                rounds[-1]["winner"] = winner
+            else:
+                polished, grown, rounds[-1]["orders"] = grow(log, ws, polished, winner, cfg, say)
+        rounds[-1]["added"] = grown
+        added.append(grown)
+        if len(rounds[-1]["tied"]) > 1 and grown == winner:
             # the fitted rivals, to judge the tie again once later effects are in
             open_ties.append((len(added) - 1, rounds[-1],
                               {k: fits[k].model.effects[-1] for k in rounds[-1]["tied"]}))
         current = polished
         loc_current = localise(log, current.model.params)
-        say(f"added {winner}: held-out gap {current.gap_test:.4f}")
+        say(f"added {EFFECTS[grown].label()}: held-out gap {current.gap_test:.4f}")
     run.stage = "the second look at a tie on the final model"
     for at, rnd, rivals in open_ties:
         if at == len(added) - 1:
@@ -388,7 +420,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
             decisive=cfg.decisive, tie_alpha=cfg.tie_alpha)
         now = representative(was, best, rnd["tied"])
         rnd["winner"] = now
-        added[at] = now
+        added[at] = rnd["added"] = now
         current = polished[now]
         loc_current = localise(log, current.model.params)
         say(f"tie of {sorted(rivals)} judged again with {added}: {now}, still tied {rnd['tied']}")
@@ -401,15 +433,18 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
     unexplained = bool(current.gap_test > limit)
     explained = explained_fraction(first_fit.gap_test, current.gap_test, fl["floor"])
     # the round that added the first effect (a round whose winner was dropped comes before it)
-    first_tied = next(r["tied"] for r in rounds if r["winner"] == added[0]) if added else []
+    first_tied = next(r["tied"] for r in rounds if r.get("added") == added[0]) if added else []
     answer = final_answer(added, first_tied, unexplained, explained, cfg.explained_min)
+    # the answer names the family; its order is the result's ``order``
+    order = EFFECTS[answer].order if answer in EFFECTS else 0
+    answer = EFFECTS[answer].family_name() if answer in EFFECTS else answer
     run.stage = "the residual analysis of the final model"
     try:
         resid = residual_analysis(ws, current)
     except ValueError as e:  # a residual the statistics refuse is reported, not raised
         resid = {"error": str(e)}
     return DiscoverResult(
-        effect=answer, effects=added, gap_before=first_fit.gap_test,
+        effect=answer, order=order, effects=added, gap_before=first_fit.gap_test,
         gap_after=current.gap_test, gap_floor=fl["floor"], floor=fl,
         unexplained=unexplained, before=first_fit, after=current,
         rounds=rounds, localisation=loc,

@@ -30,8 +30,13 @@ its class: ``telling`` (the quantity its residual signature shows against), ``st
 on), ``start_from_residual`` (discovery's first guess), and ``moderate`` / ``signed`` /
 ``draw`` / ``recording`` (how ``jaxflex.datagen`` hides it in a synthetic log).
 
+Families: an effect may be order k of a family (``family``, ``order``, ``higher``): a harmonic
+series of a ripple, a rotor friction with a Stribeck term, a lag of order two. Order k + 1 is
+its own registered class whose ``from_lower`` starts it from a fitted order k; discovery keeps
+a higher order only when it pays (``family_orders``).
+
 Modules: ``base`` (``AbstractEffect``, ``ResidualStart`` and the registry), ``library`` (the
-paper's named effects), ``extra`` (effects of real joints beyond the paper's model, opt-in
+paper's named effects), ``orders`` (the higher orders of their families), ``extra`` (effects of real joints beyond the paper's model, opt-in
 discovery candidates), ``compose`` (the hooks summed over a plant's effects, ``Gated``).
 
 Concrete effects register themselves by their docs/spec.md section 8 name in ``EFFECTS``; the
@@ -47,6 +52,7 @@ from jaxflex.effects.base import (
     ResidualStart,
     STEP_FLOOR,
     candidate_effects,
+    family_orders,
     register_effect,
 )
 from jaxflex.effects.library import (
@@ -70,6 +76,14 @@ from jaxflex.effects.extra import (
     LoadFriction,
     SpringHysteresis,
 )
+from jaxflex.effects.orders import (
+    ActuatorLag2,
+    Cogging2,
+    Cogging3,
+    MotorCogging2,
+    MotorCogging3,
+    MotorFriction2,
+)
 from jaxflex.effects.compose import (
     Gated,
     REPLAY_HOOKS,
@@ -88,9 +102,12 @@ __all__ = [
     "AbstractRipple",
     "ActuatorDeadZone",
     "ActuatorLag",
+    "ActuatorLag2",
     "AsymmetricFriction",
     "Backlash",
     "Cogging",
+    "Cogging2",
+    "Cogging3",
     "EFFECTS",
     "EncoderScale",
     "EncoderSkew",
@@ -100,7 +117,10 @@ __all__ = [
     "JointDamping",
     "LoadFriction",
     "MotorCogging",
+    "MotorCogging2",
+    "MotorCogging3",
     "MotorFriction",
+    "MotorFriction2",
     "REPLAY_HOOKS",
     "ResidualStart",
     "SpringHysteresis",
@@ -111,6 +131,7 @@ __all__ = [
     "applied_torque",
     "candidate_effects",
     "effect_torque",
+    "family_orders",
     "link_input",
     "link_measurement",
     "register_effect",

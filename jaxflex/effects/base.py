@@ -1,10 +1,12 @@
 """The interface of an effect (``AbstractEffect``: its hooks, constraints, typical values and
-its discovery and synthetic-log metadata), what discovery offers it for a first guess
-(``ResidualStart``) and the registry of effects by name (``EFFECTS``, ``register_effect``)."""
+its discovery and synthetic-log metadata, its family and order), what discovery offers it for
+a first guess (``ResidualStart``) and the registry of effects by name (``EFFECTS``,
+``register_effect``, ``family_orders``)."""
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any, ClassVar, Literal, Protocol
 
 import equinox as eqx
@@ -51,10 +53,32 @@ class ResidualStart(Protocol):
         sum of squares (-1 where the fit cannot be solved), a_s and a_c [N m]."""
         ...
 
+    def column_fits(self, side: Literal["link", "rotor"],
+                    columns: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                    ) -> tuple[float, np.ndarray]:
+        """The least-squares fit of the ``side``'s torque residual r [N m] by the columns
+        ``columns(angle, velocity)`` (samples, k) of its angle [rad] and velocity [rad/s]
+        (q1, q1' for ``"link"``, q2, q2' for ``"rotor"``), beside a constant, the deflection
+        and the acceleration (what a refit of the nominal spring and inertia absorbs), on the
+        link over its sliding samples only (as ``ripple_fits``): the sum of squares the
+        columns explain beyond those (-1 where the fit cannot be solved) and their k
+        coefficients (a missing torque T appears as r = T)."""
+        ...
+
 
 def candidate_effects() -> list[str]:
     """Names of the effects the discrepancy workflow tries by default (``candidate``)."""
     return sorted(k for k, c in EFFECTS.items() if c.candidate)
+
+
+def family_orders(name: str, highest: int | None = None) -> list[str]:
+    """The registered names of effect ``name``'s family from ``name`` up (``name`` first, then
+    each ``higher`` in turn), at most up to order ``highest`` (None: every order)."""
+    out = [name]
+    while (nxt := EFFECTS[out[-1]].higher) is not None and (
+            highest is None or EFFECTS[nxt].order <= highest):
+        out.append(nxt)
+    return out
 
 
 def register_effect(cls: type[AbstractEffect]) -> type[AbstractEffect]:
@@ -93,6 +117,37 @@ class AbstractEffect(eqx.Module):
     #: An effect of the logging, not of the plant: a synthetic log applies it to its recorded
     #: link channel (``recorded_link``) and never simulates it.
     recording: ClassVar[bool] = False
+    #: The family the effect is an order of, named by its order-1 member ("": the effect's
+    #: own name). Discovery names the family and the order it needed (docs/spec.md
+    #: section 8).
+    family: ClassVar[str] = ""
+    #: Its order in the family: 1 for the simplest member, k + 1 for the member that
+    #: ``from_lower`` builds from a fitted order k.
+    order: ClassVar[int] = 1
+    #: The registered name of the family's next order (None: the highest order, or a family
+    #: of one). Discovery fits it, started by its ``from_lower``, in place of this effect once
+    #: this one is added, and keeps it when it pays by the criterion that adds an effect.
+    higher: ClassVar[str | None] = None
+
+    @classmethod
+    def family_name(cls) -> str:
+        """The name of the family the effect belongs to (``family``, else its ``name``)."""
+        return cls.family or cls.name
+
+    @classmethod
+    def label(cls) -> str:
+        """How discovery's answer names the effect: ``"<family> order <k>"`` for a family's
+        order above 1, else its name (a family's order 1 is named as the family)."""
+        return cls.name if cls.order == 1 else f"{cls.family_name()} order {cls.order}"
+
+    @classmethod
+    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> AbstractEffect:
+        """This order's first guess (one joint) from a fitted instance ``lower`` of the
+        family's order below, warm-started from its values, the new parameters from the
+        residual ``data`` of the model it is added to (``ResidualStart``).
+
+        **Raises:** ``NotImplementedError`` for an effect that is no family's higher order."""
+        raise NotImplementedError(f"effect {cls.name!r} is not a higher order of a family")
 
     @classmethod
     def typical(cls, n: int) -> AbstractEffect:

@@ -223,6 +223,7 @@ class Cogging(AbstractRipple):
     typical_N: ClassVar[float] = 25.0
     highest_N: ClassVar[float] = 80.0
     drawn_N: ClassVar[tuple[float, ...]] = (20.0, 30.0, 45.0)
+    higher: ClassVar[str | None] = "cogging_2"
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
@@ -251,6 +252,7 @@ class MotorCogging(AbstractRipple):
     typical_N: ClassVar[float] = 60.0
     highest_N: ClassVar[float] = 400.0
     drawn_N: ClassVar[tuple[float, ...]] = (60.0, 90.0, 150.0)
+    higher: ClassVar[str | None] = "motor_cogging_2"
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
     phi: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
@@ -352,6 +354,7 @@ class MotorFriction(AbstractEffect):
     telling: ClassVar[str | None] = "rotor velocity"
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"Fm": (0.02, 0.04),
                                                                   "bm": (0.01, 0.03)}
+    higher: ClassVar[str | None] = "motor_friction_2"
     Fm: Float[Array, " n"] = eqx.field(converter=as_param)
     bm: Float[Array, " n"] = eqx.field(converter=as_param, default=0.0)
     width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
@@ -379,6 +382,7 @@ class ActuatorLag(AbstractEffect):
     telling: ClassVar[str | None] = "frequency"
     step_bounded: ClassVar[tuple[str, ...]] = ("T",)
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"T": (0.002, 0.004)}
+    higher: ClassVar[str | None] = "actuator_lag_2"
     T: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:

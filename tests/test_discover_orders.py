@@ -1,0 +1,82 @@
+"""Discovery names an effect family and the order the log asks for (``jaxflex.discover.orders``,
+docs/spec.md section 8.1), on logs of an independent simulator (``tests/independent_joint.py``:
+numpy RK4, effects in forms of its own): a two-harmonic cogging is answered ``cogging`` order 2
+and closes the gap, a one-harmonic cogging stays at order 1, a rotor friction with a
+Stribeck term is answered ``motor_friction`` order 2."""
+
+import pytest
+
+from jaxflex.discover import DiscoverConfig, DiscoverResult, discover, effect_ties
+from jaxflex.presets import paper_params
+
+from independent_joint import harmonics, simulate
+
+CANDS = ("cogging", "motor_cogging", "torque_offset", "hardening_spring")
+
+
+def test_the_answer_names_the_family_and_its_order():
+    """A round whose family grew records the order it added (``added``): the answer and the
+    ties name it "cogging order 2"; an order 1 keeps the effect's name."""
+    rounds = [{"winner": "cogging", "tied": ["cogging"], "added": "cogging_2"},
+              {"winner": "time_delay", "tied": ["time_delay", "actuator_lag"],
+               "added": "time_delay"}]
+    assert effect_ties(rounds) == [["cogging order 2"], ["time_delay", "actuator_lag"]]
+    fields = {f: None for f in DiscoverResult.__dataclass_fields__}
+    res = DiscoverResult(**(fields | dict(effect="cogging", order=2,
+                                          effects=["cogging_2", "time_delay"], rounds=rounds,
+                                          tied=["cogging"])))
+    assert res.families == ["cogging", "time_delay"] and res.orders == [2, 1]
+    assert res.answer() == "cogging order 2: cogging order 2, then time_delay | actuator_lag"
+
+
+def _run(**effects):
+    log = simulate(10.0, **effects)
+    return discover(log, paper_params(), DiscoverConfig(candidates=CANDS, max_effects=2))
+
+
+@pytest.mark.slow
+def test_a_two_harmonic_cogging_is_named_cogging_order_2():
+    """A1 0.03 N m at N = 8 1/rad and A2 0.015 at 16: the fundamental alone closes about half
+    of the gap's excess over the floor; its 2nd harmonic pays (the 3rd does not) and the
+    answer is cogging order 2, closing at least 75% of the excess."""
+    res = _run(link_ripple=harmonics([(0.03, 8.0, 0.3), (0.015, 16.0, 1.1)]))
+    rep = res.to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("cogging", 2, ["cogging_2"])
+    assert rep["explained_fraction"] >= 0.75
+    p = rep["effect_params"]["cogging_2"]
+    assert p["A"]["value"] == pytest.approx(0.03, rel=0.1)
+    assert p["A2"]["value"] == pytest.approx(0.015, rel=0.15)
+    assert p["N"]["value"] == pytest.approx(8.0, rel=0.02)
+    tried = rep["rounds"][0]["orders"]
+    assert [r["order"] for r in tried] == [2, 3] and tried[0]["kept"] and not tried[1]["kept"]
+
+
+@pytest.mark.slow
+def test_a_one_harmonic_cogging_stays_order_1():
+    """The same joint with the fundamental only: order 2 does not pay, the answer is cogging
+    order 1 (no harmonic fitted to the noise)."""
+    rep = _run(link_ripple=harmonics([(0.03, 8.0, 0.3)])).to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("cogging", 1, ["cogging"])
+    assert not rep["rounds"][0]["orders"][0]["kept"]
+
+
+@pytest.mark.slow
+def test_a_rotor_friction_with_a_stribeck_term_is_named_motor_friction_order_2():
+    """Coulomb 0.02, Stribeck excess 0.03 N m at 0.1 rad/s and viscous 0.01 N m s/rad on the
+    rotor: Coulomb and viscous alone close part of the gap; the Stribeck order pays and closes
+    it, with the levels recovered."""
+    import math
+
+    def rotor(v):
+        return -((0.02 + 0.03 * math.exp(-((v / 0.1) ** 2))) * math.tanh(v / 0.01) + 0.01 * v)
+
+    log = simulate(10.0, rotor_friction=rotor)
+    rep = discover(log, paper_params(), DiscoverConfig(
+        candidates=("motor_friction", "asymmetric_friction", "torque_offset", "joint_damping"),
+        max_effects=2)).to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("motor_friction", 2,
+                                                            ["motor_friction_2"])
+    assert rep["explained_fraction"] >= 0.75
+    p = rep["effect_params"]["motor_friction_2"]
+    for k, v in (("Fm", 0.02), ("Fsm", 0.03), ("vsm", 0.1), ("bm", 0.01)):
+        assert p[k]["value"] == pytest.approx(v, rel=0.15), k
