@@ -342,7 +342,7 @@ def alternating(setups: dict, rounds: int, **kw) -> tuple[dict, dict, dict, floa
 
 
 def target(out: Path, small: bool = False, tol: float = 1e-5) -> dict:
-    """The issue-17 throughput target: ``samples`` x ``T`` s of the spread in float64 with the
+    """The sweep throughput target: ``samples`` x ``T`` s of the spread in float64 with the
     fewest plant substeps (of 1, 2, 3, 5, 10) whose per-sample RMS link error is within
     ``tol`` (relative) of the same samples at 100 substeps (checked on the first
     ``n_ref`` samples), timed on one core, one device and two devices in alternating rounds,
@@ -517,7 +517,7 @@ def main() -> None:
     ap.add_argument("--components", action="store_true", help="only the time-split profile")
     ap.add_argument("--profile-only", action="store_true", help="skip scaling and baseline")
     ap.add_argument("--target", action="store_true",
-                    help="only the issue-17 target: 1000 x 10 s at a stated accuracy, one core vs two devices")
+                    help="only the throughput target: 1000 x 10 s at a stated accuracy, one core vs two devices")
     ap.add_argument("--gpu", action="store_true",
                     help="only the GPU throughput (float64, float32) beside this machine's CPU")
     ap.add_argument("--gpu-platform", default="cuda", help=argparse.SUPPRESS)

@@ -1,10 +1,10 @@
 """Study: what does discrepancy discovery say on the real KUKA KR300 logs, does it ever answer
 from a failed fit, and do the three trajectories of one axis agree?
 
-Question (issues 14 and 15): run ``jaxflex.discover.discover`` as a user would on each of axes
+Question: run ``jaxflex.discover.discover`` as a user would on each of axes
 1-3 and each recording (A, B, C; ``jaxflex.data.load_kuka``: link- and motor-side encoders,
 4 ms samples, link-referred motor torque), every candidate effect, default settings. The
-issue's rule: discover either names an effect that lowers the held-out gap after refitting,
+rule checked: discover either names an effect that lowers the held-out gap after refitting,
 or says ``none`` / ``unexplained``; it never answers from a NaN (``rule_holds``).
 
 The nominal model of an axis is what a user has before any flexible identification: the

@@ -3,8 +3,8 @@ and robustly tuned gains on 1,000 held-out plausible plants.
 
 1. Identification: all six LuGre parameters from a 10 s synthetic log of the paper's link
    (16-bit encoders, 20 % off start); its posterior (``jaxflex.fit.posterior``) is reported.
-   It is far too tight to matter (relative standard deviations below 1 %), so, as the issue
-   prescribes, the plants are drawn from the fallback spread: +-30 % on every friction
+   It is far too tight to matter (relative standard deviations below 1 %), so the plants
+   are drawn from the fallback spread: +-30 % on every friction
    parameter, +-15 % on I, J, K (uniform).
 2. Nominal tuning (``jaxflex.tune.tune``) on the nominal plant from the paper's gains; robust
    tuning (``jaxflex.robust.tune_robust``, CVaR_0.9 of the per-plant cost over a fixed

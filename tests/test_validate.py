@@ -109,8 +109,7 @@ def test_closed_loop_fit_recovers_a_known_rigid_axis_and_refuses_what_it_cannot_
         closed_loop_fit(start, Log.from_arrays(t=t, tau=tau, q1=q, q2=q), ["I"])
 
 
-# ----- declared loops: a PD loop and jaxflex's cascade (issue: "the EMPS P/P cascade, a PD
-# loop, or jaxflex's own cascade") --------------------------------------------------------------
+# ----- declared loops: the EMPS P/P cascade, a PD loop, or jaxflex's own cascade -------------
 
 def _declared(gen, section, scale=None):
     """The generated log's true parameters with the loop ``section`` declared; ``scale``:
