@@ -69,33 +69,6 @@ class Search:
                   f"{self.good:.3e}); {sol.reason}")
         return sol
 
-    def race(self, prob: Problem, starts: Sequence[tuple[str, Any]], label: dict[str, Any],
-             max_steps: int) -> tuple[Solution, int]:
-        """The best of several starts of ``prob`` for the steps of one solve: each start
-        gets ``RACE_STEPS`` steps in turn (stopping at the first that settles), then the
-        lowest that has not converged continues to ``max_steps`` in all. A start (a thunk)
-        is made only when its turn comes. Returns the best solution and the steps taken."""
-        first = min(RACE_STEPS, max_steps)
-        runs: list[tuple[str, Solution]] = []
-        for name, start_of in starts:
-            sol = self.run(prob, start_of(), {**label, "start": name}, first, full=False)
-            runs.append((name, sol))
-            if is_settled(sol, self.good):
-                return sol, sum(s.steps for _, s in runs)
-        name, lead = min(runs, key=lambda r: r[1].cost)
-        steps = sum(s.steps for _, s in runs)
-        if not lead.converged and lead.steps >= first and max_steps > first:
-            more = self.run(prob, lead.y, {**label, "start": f"{name}, continued"},
-                            max_steps - first, full=False)
-            steps += more.steps
-            if more.cost <= lead.cost:
-                lead = dataclasses.replace(more, steps=lead.steps + more.steps)
-        return lead, steps
-
-
-#: Steps each start of a race (``Search.race``) is given before only the lowest goes on.
-RACE_STEPS: int = 40
-
 
 def starts_of(log: Log, init: Params, free: Sequence[str], prob: Problem, y0: Any,
             model: str, static_start: bool, user_start: bool, data: DataStart | None,
@@ -137,8 +110,8 @@ def fix_unidentified(search: Search, res: IdentResult, prob: Problem, best: Solu
                       ) -> tuple[Problem, Solution, dict[str, str] | None, int]:
     """Fix what the data cannot determine at its start value and refit the rest, one
     parameter at a time (the least determined first: the largest relative standard error,
-    then the names of a null direction, never Fs before Fc), each refit from the values
-    fitted so far and from the user's start. The refits are kept when the last one's cost is
+    then the names of a null direction, never Fs before Fc), each refit from the user's start
+    and, unless that one settles, from the values fitted so far. The refits are kept when the last one's cost is
     within ``REFIT_TOL`` of the free fit's (at the fit's residual scale), and then released
     once from their point; otherwise the free fit is the answer, its poorly determined
     parameters marked at their fitted values. Returns the answer's problem, solution, the
@@ -167,11 +140,18 @@ def fix_unidentified(search: Search, res: IdentResult, prob: Problem, best: Solu
             phys = space.physical_values(y[0])
             return sub.space.theta_of({k: phys[k] for k in keep}), y[1]
 
-        sol, steps = search.race(
-            sub, (("fitted", lambda: kept(cur.space, sol_cur.y)),
-                  ("user", lambda: warmed(sub, kept(prob.space, y0)))),
-            {"refit_without": list(fixed_why)}, max_steps)
-        total += steps
+        # the user's start first: every parameter at its start value, the fixed one
+        # included; the values fitted so far come with the fixed one moved back to its start
+        sol = None
+        for label, start_of in (("user", lambda: warmed(sub, kept(prob.space, y0))),
+                                ("fitted", lambda: kept(cur.space, sol_cur.y))):
+            s_ = search.run(sub, start_of(), {"refit_without": list(fixed_why),
+                                              "start": label}, max_steps, full=False)
+            total += s_.steps
+            if sol is None or s_.cost < sol.cost:
+                sol = s_
+            if is_settled(sol, good):
+                break
         res = finish(sub, init, sol.y, steps=total, converged=sol.converged, wall_s=0.0,
                      rel_stderr_limit=rel_stderr_limit, noise_cost=good, log=log,
                      unidentified=dict(fixed_why), solution=sol)
