@@ -406,6 +406,7 @@ class ParamSpace(eqx.Module):
         # a link field keeps its own shape (a scalar mass is one coordinate)
         p = eqx.tree_at(lambda q: tuple(w(q) for w in wheres), self.base,
                         tuple(jnp.reshape(phys[name], jnp.shape(w(self.base)))
+                              if link_field(name) is not None else phys[name]
                               for name, w in zip(self.names, wheres)))
         tied = [_where(f"{e.name}.{k}", i) for i, e in enumerate(p.effects)
                 for k, c in type(unwrap(e)).constraints.items() if c == "tied:K"]

@@ -32,8 +32,8 @@ from jaxflex.fit import (
     dynamic_substeps,
     set_values,
 )
-from jaxflex.identify.links import structural_free
 from jaxflex.identify.discretisation import BIAS_REL, BIAS_TOL, choose_substeps, refine_fit
+from jaxflex.identify.links import structural_free
 from jaxflex.identify.problem import (
     MODEL_CHOICES,
     choose_segment_length,
