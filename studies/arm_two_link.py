@@ -6,7 +6,8 @@ eq. 3-6, docs/spec.md section 1) runs under a PD law on each rotor encoder at 1 
 (zero-order hold), reading 18-bit encoders on both sides of both joints; the log is made here
 by scipy's adaptive Dormand-Prince (``solve_ivp``, DOP853, rtol 1e-10) on the equations of
 the arm written out by hand (M, C, G of the planar arm, no jaxflex code). From a start 20-40%
-off in every fitted value, ``identify(log, start, free)`` frees the arm's masses and
+off in every fitted value, ``identify(log, start, free)`` (its own further starts, the
+log's static map and inverse dynamics, included) frees the arm's masses and
 inertias through the name mapping of ``jaxflex.fit.ParamSpace`` (``"links.I1"``, ...), J, K
 and the six LuGre parameters of both joints. The link model determines only its base
 parameters (``PlanarTwoLink.base_parameters``: a1 = I1 + m1 lc1^2 + m2 l1^2, a2 = I2 + m2 lc2^2,
@@ -199,8 +200,10 @@ def run(seconds: float = 8.0, g: float = 0.0, max_steps: int = 200,
     log = Log.from_arrays(source="arm_two_link", **raw)
     start = start_params(g)
     t0 = time.perf_counter()
-    res = identify(log, Params.from_dict(start), free_names(g), static_start=False,
-                   data_start=False, max_steps=max_steps, progress=progress)
+    # identify's own starts besides the user's: the log's static map (friction) and its
+    # inverse dynamics (J, K and friction per joint; the link fields keep the user's)
+    res = identify(log, Params.from_dict(start), free_names(g), max_steps=max_steps,
+                   progress=progress)
     wall = time.perf_counter() - t0
     ident = res.params.extra["identification"]
     out_links = ident.get("links", {})
