@@ -33,24 +33,48 @@ from jaxtyping import ArrayLike
 from jaxflex.controller import GAIN_NAMES, Q2D_METHODS, CascadeGains
 from jaxflex.effects import EFFECTS
 from jaxflex.friction import LUGRE_NAMES, LuGre
-from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.plant import AbstractLinkDynamics, DiagonalInertia, FlexibleJointPlant, PlanarTwoLink
 from jaxflex.sensing import SENSING_FIELDS, Sensing
 from jaxflex.validation import check_keys, did_you_mean
 
 PLANT_NAMES: tuple[str, ...] = ("I", "J", "K")
+#: The coupled link models a parameter file's ``links`` section may name (its ``type``), and
+#: each one's fields (all required; docs/spec.md section 7).
+LINK_TYPES: dict[str, type[AbstractLinkDynamics]] = {"planar_two_link": PlanarTwoLink}
+LINK_FIELDS: dict[str, tuple[str, ...]] = {
+    "planar_two_link": ("m1", "m2", "l1", "lc1", "lc2", "I1", "I2", "g"),
+}
 
 
 class ParamsError(ValueError):
     """A parameter file or mapping that does not follow docs/spec.md section 7."""
 
 
+def build_links(links: Mapping[str, Any]) -> AbstractLinkDynamics:
+    """The coupled link model of a ``links`` section: ``{"type": <LINK_TYPES key>, <field>:
+    value, ...}`` (a ``PlanarTwoLink``: masses [kg], lengths [m], inertias [kg m^2], g
+    [m/s^2]). Raises ``ParamsError`` naming an unknown type or a missing or unknown field."""
+    kind = links.get("type")
+    if kind not in LINK_TYPES:
+        raise ParamsError(f"links.type: expected one of {sorted(LINK_TYPES)}, got {kind!r}")
+    fields = LINK_FIELDS[kind]
+    check_keys({k: v for k, v in links.items() if k != "type"}, fields,
+               where=f"links ({kind}): ", what="field", error=ParamsError)
+    missing = [k for k in fields if k not in links]
+    if missing:
+        raise ParamsError(f"links ({kind}): missing field(s) {missing}")
+    return LINK_TYPES[kind](**{k: links[k] for k in fields})
+
+
 def build_plant(
     plant: Mapping[str, ArrayLike],
     friction: Mapping[str, ArrayLike] | None = None,
     effects: Mapping[str, Mapping[str, Any]] | None = None,
+    links: Mapping[str, Any] | None = None,
 ) -> FlexibleJointPlant:
-    """The plant of eq. 40 (M = diag(I)) from plant values I, J [kg m^2] and K [N m/rad],
-    the six LuGre values (docs/spec.md section 2; ``None``: no friction) and named effects
+    """The plant of eq. 3 from plant values J [kg m^2], K [N m/rad] and either I [kg m^2]
+    (M = diag(I), eq. 40) or a coupled link model (``links``, ``build_links``), the six
+    LuGre values (docs/spec.md section 2; ``None``: no friction) and named effects
     (``jaxflex.effects.EFFECTS`` name -> keyword arguments), each a number or an (n,) array.
 
     Traceable: the values may be JAX tracers (the modules' value checks then skip them), so
@@ -59,7 +83,8 @@ def build_plant(
     the modules for concrete non-physical values.
     """
     built = FlexibleJointPlant(
-        links=DiagonalInertia(I=plant["I"]), J=plant["J"], K=plant["K"],
+        links=DiagonalInertia(I=plant["I"]) if links is None else build_links(links),
+        J=plant["J"], K=plant["K"],
         friction=None if friction is None else LuGre.from_dict(friction),
     )
     if not effects:
@@ -88,7 +113,7 @@ CONTROLLER_KEYS: tuple[str, ...] = (
 EXTRA_KEYS: tuple[str, ...] = ("stderr", "identification", "discover", "source", "description",
                                "comment", "notes", "units", "meta", "loop_controller",
                                "certificate", "axis", "link_side")
-SECTIONS: tuple[str, ...] = ("plant", "friction", "gains", "effects", "controller")
+SECTIONS: tuple[str, ...] = ("plant", "friction", "gains", "effects", "controller", "links")
 
 
 def _positive_number(where: str, v: Any) -> float:
@@ -221,6 +246,12 @@ def _sensing_entry(v: Any) -> str | dict[str, Any]:
     return dict(v)
 
 
+def _number(where: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ParamsError(f"{where}: expected a finite number, got {v!r}")
+    return float(v)
+
+
 def _vector(section: str, name: str, value: Any, n: int | None) -> list[float]:
     vals = value if isinstance(value, (list, tuple)) else [value]
     # a JSON string ("6.77") or boolean (true) is a mistake, not a number to convert
@@ -243,11 +274,13 @@ def _vector(section: str, name: str, value: Any, n: int | None) -> list[float]:
 class Params:
     """Plant, friction, gains and effects for n joints, as plain lists of floats (SI units).
 
-    plant: I [kg m^2], J [kg m^2], K [N m/rad]; friction: the six LuGre parameters (docs/spec.md
-    section 2); gains: Ke, KD1, KD2, kv, L1, L2 (docs/spec.md section 3), optional; effects: named
-    extra effects (docs/spec.md section 8) with their parameter dicts; extra: other top-level keys kept
-    verbatim (e.g. standard errors written by identification); controller: the controller
-    configuration the gains were tuned for (``ControllerConfig``), optional.
+    plant: I [kg m^2], J [kg m^2], K [N m/rad] (no I where ``links`` is given); friction: the
+    six LuGre parameters (docs/spec.md section 2); gains: Ke, KD1, KD2, kv, L1, L2 (docs/spec.md
+    section 3), optional; effects: named extra effects (docs/spec.md section 8) with their
+    parameter dicts; extra: other top-level keys kept verbatim (e.g. standard errors written
+    by identification); controller: the controller configuration the gains were tuned for
+    (``ControllerConfig``), optional; links: a coupled link model (``build_links``: its
+    ``type`` and fields as floats) in place of M = diag(I), optional.
     """
 
     plant: dict[str, list[float]]
@@ -256,17 +289,21 @@ class Params:
     effects: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
     controller: ControllerConfig | None = None
+    links: dict[str, Any] | None = None
 
     @property
     def n(self) -> int:
         """Number of joints."""
-        return len(self.plant["I"])
+        return len(self.plant["J"])
 
     def joint(self, j: int) -> Params:
         """The one-joint parameters of joint ``j`` (0-based; a parameter file describes
         independent joints, so this is exact); extra keys are dropped."""
         if not 0 <= j < self.n:
             raise ParamsError(f"joint {j} out of range for {self.n} joint(s)")
+        if self.links is not None:
+            raise ParamsError(f"joint {j}: the joints of a coupled arm (links "
+                              f"{self.links['type']!r}) are not independent")
         pick = lambda sec: {k: [v[j]] for k, v in sec.items()}
         eff = {name: {k: ([v[j]] if isinstance(v, list) else v) for k, v in kw.items()}
                for name, kw in self.effects.items()}
@@ -294,9 +331,18 @@ class Params:
                 raise ParamsError(f"section '{sec}' must be an object, got {type(d[sec]).__name__}")
         check_keys(d["plant"], PLANT_NAMES, where="plant: ", error=ParamsError)
         check_keys(d["friction"], LUGRE_NAMES, where="friction: ", error=ParamsError)
+        links = d.get("links")
+        if links is not None:
+            if not isinstance(links, dict):
+                raise ParamsError(f"section 'links' must be an object, got {type(links).__name__}")
+            if "I" in d["plant"]:
+                raise ParamsError("plant.I: a file with a 'links' section describes the link "
+                                  "inertia there; remove plant.I")
+            links = {k: (v if k == "type" else _number(f"links.{k}", v))
+                     for k, v in links.items()}
         n = None
         plant = {}
-        for k in PLANT_NAMES:
+        for k in PLANT_NAMES if links is None else ("J", "K"):
             if k not in d["plant"]:
                 raise ParamsError(f"plant.{k} is missing")
             plant[k] = _vector("plant", k, d["plant"][k], n)
@@ -334,8 +380,7 @@ class Params:
         controller = None
         if d.get("controller") is not None:
             controller = ControllerConfig.from_dict(d["controller"])
-        extra = {k: v for k, v in d.items()
-                 if k not in ("plant", "friction", "gains", "effects", "controller")}
+        extra = {k: v for k, v in d.items() if k not in SECTIONS}
         cert = extra.get("certificate")
         if isinstance(cert, dict) and cert.get("gains") is not None and cert["gains"] != gains:
             raise ParamsError(
@@ -343,7 +388,7 @@ class Params:
                 "after 'jaxflex tune --spread'?): tune again, or remove the 'certificate' entry "
                 "to use these gains uncertified")
         p = cls(plant=plant, friction=friction, gains=gains, effects=dict(effects), extra=extra,
-                controller=controller)
+                controller=controller, links=links)
         p.validate()
         return p
 
@@ -365,6 +410,8 @@ class Params:
             d["effects"] = self.effects
         if self.controller is not None:
             d["controller"] = self.controller.to_dict()
+        if self.links is not None:
+            d["links"] = dict(self.links)
         d.update(self.extra)
         return d
 
@@ -373,9 +420,11 @@ class Params:
         return LuGre.from_dict(self.friction)
 
     def to_plant(self, with_effects: bool = True) -> FlexibleJointPlant:
-        """The plant of eq. 40 (M = diag(I)) with LuGre friction and, if known, the effects
-        (``build_plant``); an unknown effect name raises ``ParamsError``."""
-        return build_plant(self.plant, self.friction, self.effects if with_effects else None)
+        """The plant of eq. 3 (M = diag(I), eq. 40, or the ``links`` model) with LuGre
+        friction and, if known, the effects (``build_plant``); an unknown effect name raises
+        ``ParamsError``."""
+        return build_plant(self.plant, self.friction, self.effects if with_effects else None,
+                           links=self.links)
 
     def to_gains(self) -> CascadeGains:
         """The controller gains; raises ``ParamsError`` if the file has none."""

@@ -12,6 +12,7 @@ inertia J, stiffness K, optional LuGre friction and optional effects (``jaxflex.
 from __future__ import annotations
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -25,7 +26,15 @@ from jaxflex.validation import as_param, check_positive
 
 
 class AbstractLinkDynamics(eqx.Module):
-    """Rigid-link dynamics: mass matrix M(q) [kg m^2] and potential energy U(q) [J]."""
+    """Rigid-link dynamics: mass matrix M(q) [kg m^2] and potential energy U(q) [J].
+
+    ``constraints`` names each field a fit may free (as ``"links.<field>"``, docs/spec.md
+    section 5) with its constraint in the vocabulary of ``jaxflex.fit.space``; a field not
+    listed (a length, gravity) is geometry, never fitted. ``base_parameters`` gives the
+    combinations of the fields that M, C and G depend on (the identifiable ones).
+    """
+
+    constraints: ClassVar[dict[str, str]] = {}
 
     @property
     @abc.abstractmethod
@@ -58,6 +67,17 @@ class AbstractLinkDynamics(eqx.Module):
         """G(q) = dU/dq [N m]."""
         return jax.grad(self.potential)(q)
 
+    def base_parameters(self) -> dict[str, Array]:
+        """The base parameters: the fewest combinations of the fields that determine M, C
+        and G (dict name -> value, SI units). Fields outside every combination, and
+        combinations beyond their number, no log can determine. Default: the fitted fields
+        themselves (each determines the dynamics on its own)."""
+        return {k: getattr(self, k) for k in self.constraints}
+
+    def base_definitions(self) -> dict[str, str]:
+        """Each base parameter's definition in words (name -> expression of the fields)."""
+        return {k: k for k in self.constraints}
+
 
 class DiagonalInertia(AbstractLinkDynamics):
     """Decoupled links with constant inertia, M = diag(I), C = G = 0 (paper eq. 40).
@@ -65,6 +85,7 @@ class DiagonalInertia(AbstractLinkDynamics):
     I [kg m^2] per joint, > 0.
     """
 
+    constraints: ClassVar[dict[str, str]] = {"I": "positive"}
     I: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:
@@ -94,8 +115,16 @@ class PlanarTwoLink(AbstractLinkDynamics):
     m1, m2 [kg] link masses; l1 [m] length of link 1; lc1, lc2 [m] centre-of-mass distances;
     I1, I2 [kg m^2] link inertias about their centres of mass; g [m/s^2] gravity (0 for a
     horizontal arm). q = (absolute angle of link 1 from the horizontal, relative angle of link 2).
+
+    The masses and inertias are fitted (``constraints``: positive); the lengths l1, lc1, lc2
+    and g are geometry. M, C and G depend on the fields only through the base parameters
+    (``base_parameters``), three for a horizontal arm and four with gravity.
     """
 
+    constraints: ClassVar[dict[str, str]] = {
+        "m1": "positive", "m2": "positive", "lc1": "positive", "lc2": "positive",
+        "I1": "positive", "I2": "positive",
+    }
     m1: Array = eqx.field(converter=jnp.asarray)
     m2: Array = eqx.field(converter=jnp.asarray)
     l1: Array = eqx.field(converter=jnp.asarray)
@@ -128,6 +157,42 @@ class PlanarTwoLink(AbstractLinkDynamics):
         y1 = self.lc1 * jnp.sin(q[0])
         y2 = self.l1 * jnp.sin(q[0]) + self.lc2 * jnp.sin(q[0] + q[1])
         return self.g * (self.m1 * y1 + self.m2 * y2)
+
+    def base_parameters(self) -> dict[str, Array]:
+        """The base parameters of the arm (paper eq. 3's M, C, G written in them):
+
+            a1 = I1 + m1 lc1^2 + m2 l1^2   [kg m^2]   link 1 about joint 1, link 2 as a point
+            a2 = I2 + m2 lc2^2             [kg m^2]   link 2 about joint 2
+            a3 = m2 l1 lc2                 [kg m^2]   the coupling
+            a4 = m1 lc1 + m2 l1            [kg m]     first moment about joint 1 (g != 0 only)
+
+        M = [[a1 + a2 + 2 a3 c2, a2 + a3 c2], [a2 + a3 c2, a2]], C from the Christoffel
+        symbols with h = a3 s2, G = g [a4 c1 + (a3 / l1) c12, (a3 / l1) c12]: with l1 known,
+        m2 lc2 = a3 / l1 is no further parameter. M > 0 at every q iff a2 > 0 and
+        a1 a2 > a3^2. A horizontal arm (g = 0) has no a4."""
+        out = {
+            "a1": self.I1 + self.m1 * self.lc1**2 + self.m2 * self.l1**2,
+            "a2": self.I2 + self.m2 * self.lc2**2,
+            "a3": self.m2 * self.l1 * self.lc2,
+        }
+        if _nonzero(self.g):
+            out["a4"] = self.m1 * self.lc1 + self.m2 * self.l1
+        return out
+
+    def base_definitions(self) -> dict[str, str]:
+        """The expression of each base parameter (``base_parameters``)."""
+        out = {"a1": "I1 + m1 lc1^2 + m2 l1^2", "a2": "I2 + m2 lc2^2", "a3": "m2 l1 lc2"}
+        if _nonzero(self.g):
+            out["a4"] = "m1 lc1 + m2 l1"
+        return out
+
+
+def _nonzero(x: ArrayLike) -> bool:
+    """Whether a concrete structural value (gravity) is not zero; a traced one counts as
+    nonzero (the combinations then include the gravity terms)."""
+    if isinstance(x, jax.core.Tracer):
+        return True
+    return bool(jnp.any(jnp.asarray(x) != 0))
 
 
 class FlexibleJointPlant(eqx.Module):

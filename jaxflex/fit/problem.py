@@ -549,8 +549,8 @@ def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
     if prob.jac_columns is None:
         basis = jnp.eye(k, dtype=th.dtype)
     else:  # unit vectors of the fitted entries (masked ones have zero derivative)
-        fitted = ravel_pytree({nm: jnp.broadcast_to(prob.space.mask[nm], (n,))
-                               for nm in prob.space.names})[0]
+        fitted = ravel_pytree({nm: jnp.broadcast_to(prob.space.mask[nm], (m,))
+                               for nm, m in zip(prob.space.names, prob.space.sizes)})[0]
         idx = jnp.nonzero(fitted, size=prob.jac_columns, fill_value=k)[0]
         basis = jax.nn.one_hot(idx, k + 1, dtype=th.dtype)[:, :k].T
     P = basis.shape[1]

@@ -1,9 +1,12 @@
 """Free parameters and their reparametrisation: the one constraint vocabulary of jaxflex.
 
 A free parameter is named as in the parameter file (docs/spec.md section 7): plant ``I``,
-``J``, ``K``; friction ``Fc``, ``Fs``, ``vs``, ``sigma0``, ``sigma1``, ``sigma2``; or an
-effect's parameter as ``"<effect>.<param>"`` (e.g. ``"torque_offset.offset"``). Each name
-covers all n joints. Every parameter has a constraint, a string of this vocabulary:
+``J``, ``K``; friction ``Fc``, ``Fs``, ``vs``, ``sigma0``, ``sigma1``, ``sigma2``; an
+effect's parameter as ``"<effect>.<param>"`` (e.g. ``"torque_offset.offset"``); or a field
+of a coupled link model as ``"links.<field>"`` (e.g. ``"links.m2"`` of a ``PlanarTwoLink``,
+its constraint from the class's ``constraints``). Each nominal and effect name covers all n
+joints; a link field has its own size (one value for a scalar field). Every parameter has a
+constraint, a string of this vocabulary:
 
     "positive"      p = exp(u)                    (I, J, K, Fc, vs, sigma0..2; effect sizes;
                                                    u floored at LOG_TINY: p >= 1e-300)
@@ -46,7 +49,7 @@ from jaxtyping import Array
 from jaxflex.effects import EFFECTS, unwrap
 from jaxflex.friction import LUGRE_NAMES
 from jaxflex.params import PLANT_NAMES, Params
-from jaxflex.plant import FlexibleJointPlant
+from jaxflex.plant import AbstractLinkDynamics, DiagonalInertia, FlexibleJointPlant
 from jaxflex.tracecache import persistent_jit
 from jaxflex.validation import to_device
 
@@ -89,8 +92,32 @@ def _parse(constraint: str) -> tuple[str, float, float]:
     )
 
 
+LINKS_PREFIX = "links."
+
+
+def link_field(name: str) -> str | None:
+    """The field of ``"links.<field>"``; None for any other name."""
+    return name[len(LINKS_PREFIX):] if name.startswith(LINKS_PREFIX) else None
+
+
+def link_constraint(links: AbstractLinkDynamics, name: str) -> str:
+    """The constraint of ``"links.<field>"`` on the link model ``links``; raises
+    ``ValueError`` naming the field and the fields the model lets a fit free."""
+    field = link_field(name)
+    cons = type(links).constraints
+    if isinstance(links, DiagonalInertia):
+        raise ValueError(f"parameter '{name}': the links are decoupled (M = diag(I)); their "
+                         "inertia is the parameter 'I'")
+    if field not in cons:
+        raise ValueError(
+            f"parameter '{name}': {type(links).__name__} has no fitted field '{field}' "
+            f"(fitted fields: {sorted(cons)}; the others are geometry)")
+    return cons[field]
+
+
 def constraint_of(name: str, effects: Mapping[str, Any] | None = None) -> str:
-    """The constraint string of a named parameter (nominal, or ``"<effect>.<param>"``)."""
+    """The constraint string of a named parameter (nominal, or ``"<effect>.<param>"``;
+    a link field's is ``link_constraint``'s)."""
     if name in NOMINAL_CONSTRAINTS:
         return NOMINAL_CONSTRAINTS[name]
     eff, dot, par = name.partition(".")
@@ -109,8 +136,17 @@ def constraint_of(name: str, effects: Mapping[str, Any] | None = None) -> str:
 
 
 def get_value(params: Params, name: str) -> np.ndarray:
-    """The (n,) value of a named parameter in a ``Params``."""
+    """The (n,) value of a named parameter in a ``Params`` ((1,) for a scalar link field)."""
+    field = link_field(name)
+    if field is not None:
+        if params.links is None or field not in params.links or field == "type":
+            raise ValueError(f"parameter '{name}': the parameters have no link model with "
+                             f"field '{field}' (a 'links' section, docs/spec.md section 7)")
+        return np.atleast_1d(np.asarray(params.links[field], float))
     if name in PLANT_NAMES:
+        if name not in params.plant:
+            raise ValueError(f"parameter '{name}': the parameters have no plant.{name} (a "
+                             "coupled link model: free its fields as 'links.<field>')")
         return np.asarray(params.plant[name], float)
     if name in LUGRE_NAMES:
         return np.asarray(params.friction[name], float)
@@ -128,7 +164,13 @@ def set_values(params: Params, values: Mapping[str, Any]) -> Params:
     d = copy.deepcopy(params.to_dict())
     for name, v in values.items():
         v = np.atleast_1d(np.asarray(v, float)).tolist()
-        if name in PLANT_NAMES:
+        field = link_field(name)
+        if field is not None:
+            if "links" not in d or field not in d["links"]:
+                raise ValueError(f"parameter '{name}': the parameters have no link model "
+                                 f"with field '{field}'")
+            d["links"][field] = v[0] if len(v) == 1 else v
+        elif name in PLANT_NAMES:
             d["plant"][name] = v
         elif name in LUGRE_NAMES:
             d["friction"][name] = v
@@ -139,18 +181,26 @@ def set_values(params: Params, values: Mapping[str, Any]) -> Params:
 
 
 def params_of_plant(plant: FlexibleJointPlant, base: Params) -> Params:
-    """``base`` with the plant, friction and effect values of a (diagonal-inertia) plant;
-    gated effects are written when their gate is on, unwrapped."""
+    """``base`` with the plant, friction, effect and link values of a plant (diagonal
+    inertia, or ``base``'s link model); gated effects are written when their gate is on,
+    unwrapped."""
     f = lambda a: [float(v) for v in np.ravel(a)]
     fr = plant.friction
     effects = {}
     for e in plant.effects:
         if float(np.ravel(getattr(e, "gate", 1.0))[0]) > 0:
             effects[e.name] = unwrap(e).params()
+    values = {"J": f(plant.J), "K": f(plant.K)}
+    links = None
+    if base.links is None:
+        values = {"I": f(plant.links.I), **values}
+    else:
+        links = {k: (v if k == "type" else (f(getattr(plant.links, k)) if np.ndim(
+            getattr(plant.links, k)) else float(getattr(plant.links, k))))
+                 for k, v in base.links.items()}
     return Params(
-        plant={"I": f(plant.links.I), "J": f(plant.J), "K": f(plant.K)},
-        friction={k: f(getattr(fr, k)) for k in LUGRE_NAMES},
-        gains=base.gains, effects=effects, extra=dict(base.extra),
+        plant=values, friction={k: f(getattr(fr, k)) for k in LUGRE_NAMES},
+        gains=base.gains, effects=effects, extra=dict(base.extra), links=links,
     )
 
 
@@ -160,6 +210,8 @@ class ParamSpace(eqx.Module):
     ``base``: the plant whose leaves are replaced (it may hold ``Gated`` effects); ``names``:
     the parameters in theta; ``transforms``: per name (kind, a, b) from ``_parse``;
     ``effect_index``: the position in ``base.effects`` of an effect parameter (-1 nominal);
+    ``sizes``: the number of entries of each name's coordinates (n for a nominal or effect
+    parameter, the field's size for a link field);
     ``mask``: per name a boolean (array) whether it is fitted; ``fixed``: per name the
     coordinates used where it is not; ``friction_cap``: the bound [N m] on Fc and on Fs - Fc
     (data, so a new cap compiles nothing; infinite by default, where the maps are exactly
@@ -172,6 +224,7 @@ class ParamSpace(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     transforms: tuple[tuple[str, float, float], ...] = eqx.field(static=True)
     effect_index: tuple[int, ...] = eqx.field(static=True)
+    sizes: tuple[int, ...] = eqx.field(static=True)
     mask: dict[str, Array]
     fixed: dict[str, Array]
     friction_cap: Array = eqx.field(default_factory=lambda: to_device(math.inf))
@@ -186,8 +239,23 @@ class ParamSpace(eqx.Module):
         if not free:
             raise ValueError("fit: no free parameters given")
         effect_names = [e.name for e in base.effects]
-        transforms, eidx = [], []
+        transforms, eidx, sizes = [], [], []
         for name in free:
+            sizes.append(base.n)
+            if name == "I" and not isinstance(base.links, DiagonalInertia):
+                raise ValueError(
+                    f"free parameter 'I': the links are {type(base.links).__name__}, not "
+                    f"M = diag(I); free their fields as 'links.<field>' (fitted fields: "
+                    f"{sorted(type(base.links).constraints)})")
+            if link_field(name) is not None:
+                con = link_constraint(base.links, name)
+                if not is_fitted(con):
+                    raise ValueError(f"free parameter '{name}' has constraint '{con}' and is "
+                                     "not fitted")
+                eidx.append(-1)
+                sizes[-1] = int(np.size(getattr(base.links, link_field(name))))
+                transforms.append(_parse(con))
+                continue
             if name in NOMINAL_CONSTRAINTS:
                 eidx.append(-1)
             elif "." in name:
@@ -202,7 +270,7 @@ class ParamSpace(eqx.Module):
             else:
                 raise ValueError(
                     f"unknown free parameter '{name}'; use {list(PLANT_NAMES)}, "
-                    f"{list(LUGRE_NAMES)} or '<effect>.<param>'"
+                    f"{list(LUGRE_NAMES)}, '<effect>.<param>' or 'links.<field>'"
                 )
             con = constraint_of(name)
             if not is_fitted(con):
@@ -217,13 +285,17 @@ class ParamSpace(eqx.Module):
         # Fs is built from Fc: evaluate Fc first.
         order = sorted(range(len(free)), key=lambda i: free[i] != "Fc")
         names = tuple(free[i] for i in order)
-        n = base.n
+        sizes = tuple(sizes[i] for i in order)
         return cls(
             base=base, names=names, transforms=tuple(transforms[i] for i in order),
-            effect_index=tuple(eidx[i] for i in order),
+            effect_index=tuple(eidx[i] for i in order), sizes=sizes,
             mask={k: to_device(True) for k in names},
-            fixed={k: to_device(np.zeros(n)) for k in names},
+            fixed={k: to_device(np.zeros(m)) for k, m in zip(names, sizes)},
         )
+
+    def size(self, name: str) -> int:
+        """The number of coordinates of ``name``."""
+        return self.sizes[self.names.index(name)]
 
     def with_lower_bound(self, name: str, m: float) -> ParamSpace:
         """The same space with the lower bound of ``name`` (a "positive>=m" parameter, p = a +
@@ -253,6 +325,8 @@ class ParamSpace(eqx.Module):
         return tuple(k for k in self.names if bool(self.mask[k]))
 
     def _current(self, name: str, idx: int) -> Array:
+        if link_field(name) is not None:
+            return jnp.ravel(getattr(self.base.links, link_field(name)))
         if name == "I":
             return self.base.links.I
         if name in ("J", "K"):
@@ -294,8 +368,8 @@ class ParamSpace(eqx.Module):
                else np.asarray(self._current(name, i), float)
                for name, i in zip(self.names, self.effect_index)}
         fc = cur.get("Fc", np.asarray(self.base.friction.Fc, float)) if self.base.friction else 0
-        for name, (kind, a, b) in zip(self.names, self.transforms):
-            v = np.broadcast_to(cur[name], (self.base.n,))
+        for name, (kind, a, b), m in zip(self.names, self.transforms, self.sizes):
+            v = np.broadcast_to(cur[name], (m,))
             if kind == "exp":
                 th[name] = np.log(np.maximum(v, _FLOOR))
             elif kind == "lower":
@@ -329,8 +403,11 @@ class ParamSpace(eqx.Module):
         # one ``tree_at`` for all the names: each call walks the whole plant, which holds
         # every gated effect in discover
         wheres = [_where(name, idx) for name, idx in zip(self.names, self.effect_index)]
+        # a link field keeps its own shape (a scalar mass is one coordinate)
         p = eqx.tree_at(lambda q: tuple(w(q) for w in wheres), self.base,
-                        tuple(phys[name] for name in self.names))
+                        tuple(jnp.reshape(phys[name], jnp.shape(w(self.base)))
+                              if link_field(name) is not None else phys[name]
+                              for name, w in zip(self.names, wheres)))
         tied = [_where(f"{e.name}.{k}", i) for i, e in enumerate(p.effects)
                 for k, c in type(unwrap(e)).constraints.items() if c == "tied:K"]
         if tied:
@@ -350,7 +427,7 @@ class ParamSpace(eqx.Module):
     def fitted_flat(self) -> np.ndarray:
         """Boolean per flattened theta entry: fitted under the current mask."""
         # on the host, in ravel_pytree's order (sorted names): no compilation per call
-        return np.concatenate([np.broadcast_to(np.asarray(self.mask[k]), (self.base.n,))
+        return np.concatenate([np.broadcast_to(np.asarray(self.mask[k]), (self.size(k),))
                                for k in sorted(self.names)]).astype(bool)
 
 
@@ -364,6 +441,9 @@ def _physical_on_host(space: ParamSpace, theta: dict[str, Array]) -> tuple[dict[
 
 
 def _where(name: str, idx: int):
+    field = link_field(name)
+    if field is not None:
+        return lambda p: getattr(p.links, field)
     if name == "I":
         return lambda p: p.links.I
     if name in ("J", "K"):

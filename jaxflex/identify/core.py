@@ -33,6 +33,7 @@ from jaxflex.fit import (
     set_values,
 )
 from jaxflex.identify.discretisation import BIAS_REL, BIAS_TOL, choose_substeps, refine_fit
+from jaxflex.identify.links import structural_free
 from jaxflex.identify.problem import (
     MODEL_CHOICES,
     choose_segment_length,
@@ -166,6 +167,8 @@ def identify(
                                  for k, v in pin.items()})
         free = [k for k in free if k not in pin]
     init = with_named_effects(init, free, None if data is None else data.params)
+    # a coupled arm's fields beyond its base parameters: fixed before the fit, marked
+    free, structural = structural_free(init, free)
     if isinstance(segment_length, str):
         if segment_length != "auto":
             raise ValueError(f"identify: segment_length must be a number of samples, None or "
@@ -251,7 +254,8 @@ def identify(
     ahead.join()
     first = finish(prob, init, best.y, steps=best.steps, converged=best.converged,
                    wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
-                   reason=reason_of(best, good), noise_cost=good, log=log, solution=best)
+                   reason=reason_of(best, good), noise_cost=good, log=log, solution=best,
+                   unidentified=structural)
     f_prob, f_sol, f_fixed, total = fix_unidentified(
         search, first, prob, best, init, y0, log, free, model=model,
         segment_length=segment_length, outputs=outputs, output_scale=output_scale,
@@ -274,7 +278,7 @@ def identify(
     res = finish(r_prob, init, r_sol.y, steps=total, converged=r_sol.converged,
                  wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,
                  reason=reason_of(r_sol, good), noise_cost=good, log=log,
-                 unidentified=f_fixed, solution=r_sol)
+                 unidentified={**structural, **(f_fixed or {})}, solution=r_sol)
     if f_fixed:
         res.rank, res.n_free, res.singular_values = first.rank, first.n_free, first.singular_values
         res.warnings = first.warnings + res.warnings

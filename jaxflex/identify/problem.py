@@ -169,8 +169,11 @@ def with_named_effects(init: Params, free: Sequence[str], data: Params | None) -
 def start_hints(data: DataStart, init: Params) -> list[str]:
     """Hints for the common log mistakes, from the log's inverse-dynamics inertia against the
     user's start (before any fit): angles in degrees, a time axis off by an integer factor
-    (a decimated log, milliseconds). Empty when the two agree within a factor of 3."""
+    (a decimated log, milliseconds). Empty when the two agree within a factor of 3, and for
+    a coupled arm (a ``links`` model: the log's per-joint inertia is no field of it)."""
     hints = []
+    if init.links is not None:
+        return hints
     for j, f in enumerate(data.fits):
         ratio = f["Jx"][0] / float(init.plant["I"][j] + init.plant["J"][j])
         if 1 / 3 <= ratio <= 3:

@@ -21,6 +21,7 @@ from jaxflex.fit import (
     set_values,
     simulated_outputs,
 )
+from jaxflex.identify.links import base_record
 from jaxflex.logs import Log
 from jaxflex.params import Params
 
@@ -81,6 +82,9 @@ class IdentResult:
     #: identifiability is judged and the least determined parameter chosen
     information_rel_stderr: dict[str, list[float]] = dataclasses.field(default_factory=dict)
     model: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: a coupled arm's base parameters (``jaxflex.identify.links.base_record``): name ->
+    #: value, standard error (as ``stderr``) and definition; empty for decoupled links
+    links: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def adequate(self) -> bool:
@@ -112,6 +116,9 @@ class IdentResult:
         if d.get("substeps"):
             rows.append(f"integrator: {d['substeps']} substeps per sample ({d['mode']}); it moves "
                         f"the fitted parameters by at most {d['bias_se']:.2g} standard errors")
+        for b, rec in self.links.get("base_parameters", {}).items():
+            rows.append(f"base parameter {b} = {rec['definition']}: {rec['value']:.6g} +- "
+                        f"{rec['stderr']:.3g}")
         g = self.segments
         if g.get("samples"):
             rows.append(f"segments: {g['segments']} of {g['samples']} samples "
@@ -236,6 +243,9 @@ def finish(
         f"segment-robust ({robust['clusters']} segments as clusters)" if robust is not None
         else "white residuals")
     out.extra["identification"]["covariance"] = posterior_record(prob, theta, shown, bad)
+    links = base_record(prob.space.plant(theta).links, phys, np.asarray(shown["cov_phys"]))
+    if links is not None:
+        out.extra["identification"]["links"] = links
     rel = relative_stderr(se, phys)
     for k in fixed:
         se[k] = [math.nan] * len(get_value(init, k))
@@ -245,7 +255,7 @@ def finish(
         n_free=cov["n_free"], singular_values=cov["singular_values"], unidentifiable=bad,
         warnings=msgs, steps=steps, converged=converged, wall_s=wall_s, problem=prob,
         solution=y, reason=out.extra["identification"]["reason"], noise_cost=noise_cost, why=why,
-        information_rel_stderr=information,
+        information_rel_stderr=information, links=links or {},
     )
     return res
 
