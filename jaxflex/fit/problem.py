@@ -545,7 +545,6 @@ def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
     coordinates among the k). With ``prob.rolled_stages`` the replay inside takes its RK4
     stages as a loop (``Problem``)."""
     k = th.shape[0]
-    n = dims[1]
     if prob.jac_columns is None:
         basis = jnp.eye(k, dtype=th.dtype)
     else:  # unit vectors of the fitted entries (masked ones have zero derivative)
