@@ -6,6 +6,10 @@ second-order current loop).
 
 Each order is one registered final class with its ``family``, ``order`` and the ``higher``
 order's name, and ``from_lower``, its first guess from a fitted instance of the order below.
+A ripple's orders declare only their names, constraints and fields: the series, its checks,
+starts and ``from_lower`` are ``AbstractRipple``'s for every order, the side and hook their
+family base's (``AbstractCogging``, ``AbstractMotorCogging``). The lag of order two shares
+its filter state with ``time_delay`` (``AbstractSecondOrderInput``).
 None is a discovery candidate of its own (``candidate = False``): ``discover`` reaches an
 order k + 1 only from an added order k, and keeps it when it pays by the criterion that adds
 an effect.
@@ -13,8 +17,7 @@ an effect.
 
 from __future__ import annotations
 
-import math
-from typing import Any, ClassVar, Literal
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -22,58 +25,29 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxflex.effects.base import STEP_FLOOR, AbstractEffect, ResidualStart, register_effect
-from jaxflex.effects.library import ActuatorLag, MotorFriction, smooth_sign
+from jaxflex.effects.library import (
+    LEAST_AMPLITUDE,
+    AbstractCogging,
+    AbstractMotorCogging,
+    AbstractSecondOrderInput,
+    ActuatorLag,
+    MotorFriction,
+    smooth_sign,
+)
 from jaxflex.state import PlantState
 from jaxflex.validation import as_param, check_nonnegative, check_positive
 
-#: The least amplitude [N m] a harmonic starts from: a positive parameter is fitted as
-#: exp(u), whose slope vanishes with the value.
-_LEAST_AMPLITUDE: float = 1e-3
-
-
-def harmonic_series(q: Array, N: Array, terms: tuple[tuple[Array, Array], ...]) -> Array:
-    """sum_k A_k sin(k N q + phi_k) [N m] over ``terms`` ((A_1, phi_1), (A_2, phi_2), ...):
-    a ripple of spatial frequency N [1/rad] and its harmonics at the angle q [rad]."""
-    return sum(A * jnp.sin((k + 1) * N * q + phi) for k, (A, phi) in enumerate(terms))
-
-
-def _next_harmonic(cls: type[AbstractEffect], lower: AbstractEffect, data: ResidualStart,
-                   side: Literal["link", "rotor"]) -> Any:
-    """``cls`` (order k of a ripple family) from a fitted order k - 1 ``lower``: its
-    fundamental and harmonics as fitted, the new harmonic at k N from the joint linear fit of
-    the sines and cosines of j N q, j = 1..k, and of a viscous and a Coulomb column, to the
-    ``side``'s residual (``ResidualStart.column_fits``; fitted together, since over an
-    angle that does not travel evenly the harmonics are not orthogonal; the residual equals
-    the missing torque, A sin(k N q + phi) with phi = atan2(a_c, a_s))."""
-    k = cls.order
-    N = float(np.ravel(lower.N)[0])  # type: ignore[attr-defined]
-
-    def columns(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        ripple = [f(j * N * q) for j in range(1, k + 1) for f in (np.sin, np.cos)]
-        return np.column_stack([*ripple, v, np.tanh(v / 0.01)])
-
-    e, c = data.column_fits(side, columns)
-    a_s, a_c = c[2 * k - 2], c[2 * k - 1]
-    A, phi = (math.hypot(a_s, a_c), math.atan2(a_c, a_s)) if e > 0 else (0.0, 0.0)
-    kw = {p: v for p, v in lower.__dict__.items() if eqx.is_array(v)}
-    kw[f"A{k}"] = np.full(1, max(A, _LEAST_AMPLITUDE))
-    kw[f"phi{k}"] = np.full(1, phi)
-    return cls(**kw)
-
 
 @register_effect
-class Cogging2(AbstractEffect):
+class Cogging2(AbstractCogging):
     """``cogging`` of order 2: a link ripple and its 2nd harmonic, link_torque =
     A sin(N q1 + phi) + A2 sin(2 N q1 + phi2) [N m]. A, A2 [N m] >= 0; N [1/rad] > 0 (fixed,
     the fundamental of the order below); phi, phi2 [rad]."""
 
     name: ClassVar[str] = "cogging_2"
-    where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free",
                                              "A2": "positive", "phi2": "free"}
     candidate: ClassVar[bool] = False
-    telling: ClassVar[str | None] = "position"
-    family: ClassVar[str] = "cogging"
     order: ClassVar[int] = 2
     higher: ClassVar[str | None] = "cogging_3"
     A: Float[Array, " n"] = eqx.field(converter=as_param)
@@ -82,37 +56,17 @@ class Cogging2(AbstractEffect):
     A2: Float[Array, " n"] = eqx.field(converter=as_param)
     phi2: Float[Array, " n"] = eqx.field(converter=as_param)
 
-    def __check_init__(self) -> None:
-        check_nonnegative("cogging_2", A=self.A, A2=self.A2)
-        check_positive("cogging_2", N=self.N)
-
-    @classmethod
-    def typical(cls, n: int) -> Cogging2:
-        return cls(A=np.full(n, 0.01), N=np.full(n, 25.0), phi=np.zeros(n),
-                   A2=np.full(n, 0.005), phi2=np.zeros(n))
-
-    @classmethod
-    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> Cogging2:
-        """The fitted fundamental, the 2nd harmonic from the link residual (``_next_harmonic``)."""
-        return _next_harmonic(cls, lower, data, "link")
-
-    def link_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return harmonic_series(x.q1, self.N, ((self.A, self.phi), (self.A2, self.phi2)))
-
 
 @register_effect
-class Cogging3(AbstractEffect):
+class Cogging3(AbstractCogging):
     """``cogging`` of order 3: ``cogging_2`` plus the 3rd harmonic A3 sin(3 N q1 + phi3)
     [N m] on the link. A3 [N m] >= 0, phi3 [rad]; the rest as ``cogging_2``."""
 
     name: ClassVar[str] = "cogging_3"
-    where: ClassVar[str] = "link torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free",
                                              "A2": "positive", "phi2": "free",
                                              "A3": "positive", "phi3": "free"}
     candidate: ClassVar[bool] = False
-    telling: ClassVar[str | None] = "position"
-    family: ClassVar[str] = "cogging"
     order: ClassVar[int] = 3
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
@@ -122,39 +76,17 @@ class Cogging3(AbstractEffect):
     A3: Float[Array, " n"] = eqx.field(converter=as_param)
     phi3: Float[Array, " n"] = eqx.field(converter=as_param)
 
-    def __check_init__(self) -> None:
-        check_nonnegative("cogging_3", A=self.A, A2=self.A2, A3=self.A3)
-        check_positive("cogging_3", N=self.N)
-
-    @classmethod
-    def typical(cls, n: int) -> Cogging3:
-        return cls(A=np.full(n, 0.01), N=np.full(n, 25.0), phi=np.zeros(n),
-                   A2=np.full(n, 0.005), phi2=np.zeros(n), A3=np.full(n, 0.003),
-                   phi3=np.zeros(n))
-
-    @classmethod
-    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> Cogging3:
-        """The fitted ``cogging_2``, the 3rd harmonic from the link residual."""
-        return _next_harmonic(cls, lower, data, "link")
-
-    def link_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return harmonic_series(x.q1, self.N, ((self.A, self.phi), (self.A2, self.phi2),
-                                              (self.A3, self.phi3)))
-
 
 @register_effect
-class MotorCogging2(AbstractEffect):
+class MotorCogging2(AbstractMotorCogging):
     """``motor_cogging`` of order 2: a rotor ripple and its 2nd harmonic, rotor_torque =
     A sin(N q2 + phi) + A2 sin(2 N q2 + phi2) [N m], q2 the link-referred rotor angle.
     A, A2 [N m] >= 0; N [1/rad] > 0 (fitted, as in ``motor_cogging``); phi, phi2 [rad]."""
 
     name: ClassVar[str] = "motor_cogging_2"
-    where: ClassVar[str] = "rotor torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free",
                                              "A2": "positive", "phi2": "free"}
     candidate: ClassVar[bool] = False
-    telling: ClassVar[str | None] = "rotor position"
-    family: ClassVar[str] = "motor_cogging"
     order: ClassVar[int] = 2
     higher: ClassVar[str | None] = "motor_cogging_3"
     A: Float[Array, " n"] = eqx.field(converter=as_param)
@@ -163,37 +95,17 @@ class MotorCogging2(AbstractEffect):
     A2: Float[Array, " n"] = eqx.field(converter=as_param)
     phi2: Float[Array, " n"] = eqx.field(converter=as_param)
 
-    def __check_init__(self) -> None:
-        check_nonnegative("motor_cogging_2", A=self.A, A2=self.A2)
-        check_positive("motor_cogging_2", N=self.N)
-
-    @classmethod
-    def typical(cls, n: int) -> MotorCogging2:
-        return cls(A=np.full(n, 0.01), N=np.full(n, 60.0), phi=np.zeros(n),
-                   A2=np.full(n, 0.005), phi2=np.zeros(n))
-
-    @classmethod
-    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> MotorCogging2:
-        """The fitted fundamental, the 2nd harmonic from the rotor residual."""
-        return _next_harmonic(cls, lower, data, "rotor")
-
-    def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return harmonic_series(x.q2, self.N, ((self.A, self.phi), (self.A2, self.phi2)))
-
 
 @register_effect
-class MotorCogging3(AbstractEffect):
+class MotorCogging3(AbstractMotorCogging):
     """``motor_cogging`` of order 3: ``motor_cogging_2`` plus the 3rd harmonic
     A3 sin(3 N q2 + phi3) [N m] on the rotor. A3 [N m] >= 0, phi3 [rad]."""
 
     name: ClassVar[str] = "motor_cogging_3"
-    where: ClassVar[str] = "rotor torque"
     constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free",
                                              "A2": "positive", "phi2": "free",
                                              "A3": "positive", "phi3": "free"}
     candidate: ClassVar[bool] = False
-    telling: ClassVar[str | None] = "rotor position"
-    family: ClassVar[str] = "motor_cogging"
     order: ClassVar[int] = 3
     A: Float[Array, " n"] = eqx.field(converter=as_param)
     N: Float[Array, " n"] = eqx.field(converter=as_param)
@@ -202,25 +114,6 @@ class MotorCogging3(AbstractEffect):
     phi2: Float[Array, " n"] = eqx.field(converter=as_param)
     A3: Float[Array, " n"] = eqx.field(converter=as_param)
     phi3: Float[Array, " n"] = eqx.field(converter=as_param)
-
-    def __check_init__(self) -> None:
-        check_nonnegative("motor_cogging_3", A=self.A, A2=self.A2, A3=self.A3)
-        check_positive("motor_cogging_3", N=self.N)
-
-    @classmethod
-    def typical(cls, n: int) -> MotorCogging3:
-        return cls(A=np.full(n, 0.01), N=np.full(n, 60.0), phi=np.zeros(n),
-                   A2=np.full(n, 0.005), phi2=np.zeros(n), A3=np.full(n, 0.003),
-                   phi3=np.zeros(n))
-
-    @classmethod
-    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> MotorCogging3:
-        """The fitted ``motor_cogging_2``, the 3rd harmonic from the rotor residual."""
-        return _next_harmonic(cls, lower, data, "rotor")
-
-    def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return harmonic_series(x.q2, self.N, ((self.A, self.phi), (self.A2, self.phi2),
-                                              (self.A3, self.phi3)))
 
 
 #: The Stribeck velocities [rad/s] ``MotorFriction2.from_lower`` tries (log-spaced).
@@ -283,7 +176,7 @@ class MotorFriction2(AbstractEffect):
         if best is None:
             Fm = float(np.ravel(lower.Fm)[0])
             return cls(Fm=np.ravel(lower.Fm), bm=np.ravel(lower.bm),
-                       Fsm=np.full(1, max(Fm / 3.0, _LEAST_AMPLITUDE)),
+                       Fsm=np.full(1, max(Fm / 3.0, LEAST_AMPLITUDE)),
                        vsm=np.ravel(data.nominal("vs")), width=np.ravel(lower.width))
         _, c, vs = best
         return cls(Fm=np.full(1, c[0]), bm=np.full(1, c[1]), Fsm=np.full(1, c[2]),
@@ -296,7 +189,7 @@ class MotorFriction2(AbstractEffect):
 
 
 @register_effect
-class ActuatorLag2(AbstractEffect):
+class ActuatorLag2(AbstractSecondOrderInput):
     """``actuator_lag`` of order 2: a second-order lag between commanded and applied torque
     (a current loop of natural frequency 1/T and damping zeta),
 
@@ -337,20 +230,13 @@ class ActuatorLag2(AbstractEffect):
         zeta = min(max(T1 / (2.0 * T), 0.3), 1.4)
         return cls(T=np.full(1, T), zeta=np.full(1, zeta))
 
-    def aux_init(self, n: int) -> Array:
-        return jnp.zeros((2, n))
-
-    def aux_steady(self, tau: Array) -> Array:
-        tau = jnp.asarray(tau)
-        return jnp.stack([tau, jnp.zeros_like(tau)])
-
-    def aux_rhs(self, aux: Array, tau: Array, x: PlantState) -> Array:
-        a, r = aux[0], aux[1]
-        return jnp.stack([r, (tau - a - 2.0 * self.zeta * self.T * r) / self.T**2])
+    def filter_coefficients(self) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
+        """(2 zeta T [s], T^2 [s^2])."""
+        return 2.0 * self.zeta * self.T, self.T**2
 
     def applied_torque(self, tau: Array, aux: Array) -> Float[Array, " n"]:
         return aux[0]
 
 
 __all__ = ["ActuatorLag2", "Cogging2", "Cogging3", "MotorCogging2", "MotorCogging3",
-           "MotorFriction2", "harmonic_series"]
+           "MotorFriction2"]
