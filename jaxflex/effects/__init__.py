@@ -36,13 +36,15 @@ its own registered class whose ``from_lower`` starts it from a fitted order k; d
 a higher order only when it pays (``family_orders``).
 
 Modules: ``base`` (``AbstractEffect``, ``ResidualStart`` and the registry), ``library`` (the
-paper's named effects), ``orders`` (the higher orders of their families), ``extra`` (effects of real joints beyond the paper's model, opt-in
-discovery candidates), ``compose`` (the hooks summed over a plant's effects, ``Gated``).
+paper's named effects), ``ripple`` (cogging on either side and its harmonic orders),
+``orders`` (the higher orders of the friction and lag families), ``extra`` (effects of real
+joints beyond the paper's model, opt-in discovery candidates), ``compose`` (the hooks
+summed over a plant's effects, ``Gated``).
 
 Concrete effects register themselves by their docs/spec.md section 8 name in ``EFFECTS``; the
 discrepancy workflow looks them up there (importing this package registers those of
-``library`` and ``extra``). Every effect's parameters are array leaves so that ``grad``
-reaches them.
+``library``, ``ripple``, ``orders`` and ``extra``). Every effect's parameters are array leaves
+so that ``grad`` reaches them.
 """
 
 
@@ -56,17 +58,14 @@ from jaxflex.effects.base import (
     register_effect,
 )
 from jaxflex.effects.library import (
-    AbstractRipple,
     ActuatorLag,
     AsymmetricFriction,
     Backlash,
-    Cogging,
     EncoderScale,
     EncoderSkew,
     Gravity,
     HardeningSpring,
     JointDamping,
-    MotorCogging,
     MotorFriction,
     TimeDelay,
     TorqueOffset,
@@ -76,12 +75,17 @@ from jaxflex.effects.extra import (
     LoadFriction,
     SpringHysteresis,
 )
-from jaxflex.effects.orders import (
-    ActuatorLag2,
+from jaxflex.effects.ripple import (
+    AbstractRipple,
+    Cogging,
     Cogging2,
     Cogging3,
+    MotorCogging,
     MotorCogging2,
     MotorCogging3,
+)
+from jaxflex.effects.orders import (
+    ActuatorLag2,
     MotorFriction2,
 )
 from jaxflex.effects.compose import (

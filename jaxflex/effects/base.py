@@ -24,6 +24,10 @@ EFFECTS: dict[str, type[AbstractEffect]] = {}
 #: for T > 0.36 h; the classes' own bound, 1.5 ms, is this at 1 ms samples.
 STEP_FLOOR: float = 1.5
 
+#: The least amplitude [N m] a fitted amplitude starts from: a positive parameter is fitted
+#: as exp(u), whose slope vanishes with the value.
+LEAST_AMPLITUDE: float = 1e-3
+
 
 class ResidualStart(Protocol):
     """What a discovery run offers an effect class for its first guess

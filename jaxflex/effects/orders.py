@@ -1,18 +1,14 @@
-"""The higher orders of the library's effect families (docs/spec.md section 8): a ripple as a
-harmonic series (``cogging``, ``motor_cogging``: the fundamental, then its 2nd and 3rd
-harmonics), rotor friction with a Stribeck term (``motor_friction``: Coulomb and viscous, then
-the Stribeck excess) and a lag of order two (``actuator_lag``: first order, then a
-second-order current loop).
+"""The higher orders of the library's friction and lag families (docs/spec.md section 8):
+rotor friction with a Stribeck term (``motor_friction``: Coulomb and viscous, then the
+Stribeck excess) and a lag of order two (``actuator_lag``: first order, then a second-order
+current loop). The ripple's orders are with the ripple (``jaxflex.effects.ripple``).
 
 Each order is one registered final class with its ``family``, ``order`` and the ``higher``
 order's name, and ``from_lower``, its first guess from a fitted instance of the order below.
-A ripple's orders declare only their names, constraints and fields: the series, its checks,
-starts and ``from_lower`` are ``AbstractRipple``'s for every order, the side and hook their
-family base's (``AbstractCogging``, ``AbstractMotorCogging``). The lag of order two shares
-its filter state with ``time_delay`` (``AbstractSecondOrderInput``).
-None is a discovery candidate of its own (``candidate = False``): ``discover`` reaches an
-order k + 1 only from an added order k, and keeps it when it pays by the criterion that adds
-an effect.
+The lag of order two shares its filter state with ``time_delay``
+(``AbstractSecondOrderInput``). None is a discovery candidate of its own
+(``candidate = False``): ``discover`` reaches an order k + 1 only from an added order k, and
+keeps it when it pays by the criterion that adds an effect.
 """
 
 from __future__ import annotations
@@ -24,11 +20,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxflex.effects.base import STEP_FLOOR, AbstractEffect, ResidualStart, register_effect
-from jaxflex.effects.library import (
+from jaxflex.effects.base import (
     LEAST_AMPLITUDE,
-    AbstractCogging,
-    AbstractMotorCogging,
+    STEP_FLOOR,
+    AbstractEffect,
+    ResidualStart,
+    register_effect,
+)
+from jaxflex.effects.library import (
     AbstractSecondOrderInput,
     ActuatorLag,
     MotorFriction,
@@ -36,84 +35,6 @@ from jaxflex.effects.library import (
 )
 from jaxflex.state import PlantState
 from jaxflex.validation import as_param, check_nonnegative, check_positive
-
-
-@register_effect
-class Cogging2(AbstractCogging):
-    """``cogging`` of order 2: a link ripple and its 2nd harmonic, link_torque =
-    A sin(N q1 + phi) + A2 sin(2 N q1 + phi2) [N m]. A, A2 [N m] >= 0; N [1/rad] > 0 (fixed,
-    the fundamental of the order below); phi, phi2 [rad]."""
-
-    name: ClassVar[str] = "cogging_2"
-    constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free",
-                                             "A2": "positive", "phi2": "free"}
-    candidate: ClassVar[bool] = False
-    order: ClassVar[int] = 2
-    higher: ClassVar[str | None] = "cogging_3"
-    A: Float[Array, " n"] = eqx.field(converter=as_param)
-    N: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi: Float[Array, " n"] = eqx.field(converter=as_param)
-    A2: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi2: Float[Array, " n"] = eqx.field(converter=as_param)
-
-
-@register_effect
-class Cogging3(AbstractCogging):
-    """``cogging`` of order 3: ``cogging_2`` plus the 3rd harmonic A3 sin(3 N q1 + phi3)
-    [N m] on the link. A3 [N m] >= 0, phi3 [rad]; the rest as ``cogging_2``."""
-
-    name: ClassVar[str] = "cogging_3"
-    constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "fixed", "phi": "free",
-                                             "A2": "positive", "phi2": "free",
-                                             "A3": "positive", "phi3": "free"}
-    candidate: ClassVar[bool] = False
-    order: ClassVar[int] = 3
-    A: Float[Array, " n"] = eqx.field(converter=as_param)
-    N: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi: Float[Array, " n"] = eqx.field(converter=as_param)
-    A2: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi2: Float[Array, " n"] = eqx.field(converter=as_param)
-    A3: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi3: Float[Array, " n"] = eqx.field(converter=as_param)
-
-
-@register_effect
-class MotorCogging2(AbstractMotorCogging):
-    """``motor_cogging`` of order 2: a rotor ripple and its 2nd harmonic, rotor_torque =
-    A sin(N q2 + phi) + A2 sin(2 N q2 + phi2) [N m], q2 the link-referred rotor angle.
-    A, A2 [N m] >= 0; N [1/rad] > 0 (fitted, as in ``motor_cogging``); phi, phi2 [rad]."""
-
-    name: ClassVar[str] = "motor_cogging_2"
-    constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free",
-                                             "A2": "positive", "phi2": "free"}
-    candidate: ClassVar[bool] = False
-    order: ClassVar[int] = 2
-    higher: ClassVar[str | None] = "motor_cogging_3"
-    A: Float[Array, " n"] = eqx.field(converter=as_param)
-    N: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi: Float[Array, " n"] = eqx.field(converter=as_param)
-    A2: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi2: Float[Array, " n"] = eqx.field(converter=as_param)
-
-
-@register_effect
-class MotorCogging3(AbstractMotorCogging):
-    """``motor_cogging`` of order 3: ``motor_cogging_2`` plus the 3rd harmonic
-    A3 sin(3 N q2 + phi3) [N m] on the rotor. A3 [N m] >= 0, phi3 [rad]."""
-
-    name: ClassVar[str] = "motor_cogging_3"
-    constraints: ClassVar[dict[str, str]] = {"A": "positive", "N": "positive", "phi": "free",
-                                             "A2": "positive", "phi2": "free",
-                                             "A3": "positive", "phi3": "free"}
-    candidate: ClassVar[bool] = False
-    order: ClassVar[int] = 3
-    A: Float[Array, " n"] = eqx.field(converter=as_param)
-    N: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi: Float[Array, " n"] = eqx.field(converter=as_param)
-    A2: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi2: Float[Array, " n"] = eqx.field(converter=as_param)
-    A3: Float[Array, " n"] = eqx.field(converter=as_param)
-    phi3: Float[Array, " n"] = eqx.field(converter=as_param)
 
 
 #: The Stribeck velocities [rad/s] ``MotorFriction2.from_lower`` tries (log-spaced).
@@ -238,5 +159,4 @@ class ActuatorLag2(AbstractSecondOrderInput):
         return aux[0]
 
 
-__all__ = ["ActuatorLag2", "Cogging2", "Cogging3", "MotorCogging2", "MotorCogging3",
-           "MotorFriction2"]
+__all__ = ["ActuatorLag2", "MotorFriction2"]
