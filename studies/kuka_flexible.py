@@ -27,7 +27,7 @@ and so are ``-K off`` and ``c``: fitting all four makes the information matrix s
 every standard error meaningless. So the fit is done in two stated steps:
 
 1. *Skew* (a separate estimate, per log): the same equation divided by K, i.e. with the
-   residual in the deflection ``(tau_hat - tau) / K`` (``deflection_fit_residuals``), fitted
+   residual in the deflection ``(tau_hat - tau) / K`` (``jaxflex.identify.torque.torque_residuals``), fitted
    with bm pinned at 0, c at 0 and the scale at 0 (free: J, K, Fm, skew, off). The skew is
    then the velocity coefficient of the deflection, "skew - bm/K" with bm := 0: the encoder
    time skew if the viscous friction passes through the spring (reported with its standard
@@ -90,7 +90,6 @@ import json
 from pathlib import Path
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -109,35 +108,6 @@ WIDTH = 1e-4  # motor-friction tanh width [rad/s]
 MAX_STEPS = 1000
 
 
-class TorqueFit(eqx.Module):
-    """Data of an equation-error fit: parameter space, measured motion, residual scale
-    (torque [N m] or deflection [rad])."""
-
-    space: Any
-    motion: dict
-    scale: float = eqx.field(static=True)
-
-
-def torque_fit_residuals(theta: dict, data: TorqueFit) -> jax.Array:
-    """Torque-domain residuals (tau_hat - tau) / scale over the samples (scale [N m])."""
-    from jaxflex.validate import predicted_torque
-
-    plant = data.space.plant(theta)
-    return ((predicted_torque(plant, "rotor", data.motion) - data.motion["tau"]) / data.scale
-            ).reshape(-1)
-
-
-def deflection_fit_residuals(theta: dict, data: TorqueFit) -> jax.Array:
-    """Deflection-domain residuals (tau_hat - tau) / (K scale) over the samples (scale [rad]):
-    the rotor equation solved for q2 - q1c, so the misfit is measured where the encoder noise
-    enters."""
-    from jaxflex.validate import predicted_torque
-
-    plant = data.space.plant(theta)
-    r = predicted_torque(plant, "rotor", data.motion) - data.motion["tau"]
-    return (r / (plant.K * data.scale)).reshape(-1)
-
-
 def fit(params: Any, log: Any, free: tuple[str, ...], *, deflection: bool = False,
         max_steps: int = MAX_STEPS, scaling: str = "identity",
         ) -> tuple[Any, dict[str, float], Any, dict[str, Any]]:
@@ -151,14 +121,19 @@ def fit(params: Any, log: Any, free: tuple[str, ...], *, deflection: bool = Fals
     constraint boundary (positive ones below 1e-100 of their start or above 1e100 times it,
     bounded ones within 1e-6 of their range from an end))."""
     from jaxflex.fit import ParamSpace, constraint_of, covariance, least_squares, set_values
-    from jaxflex.identify.torque import integrated_autocorrelation
+    from jaxflex.identify.torque import (
+        TorqueData,
+        integrated_autocorrelation,
+        torque_residuals,
+    )
     from jaxflex.validate import motion_of
 
     motion = {k: jnp.asarray(v) for k, v in motion_of(log, "rotor").items()}
     space = ParamSpace.build(params.to_plant(), list(free))
-    fn = deflection_fit_residuals if deflection else torque_fit_residuals
+    fn = torque_residuals
     scale = float(np.std(log.q2 - log.q1) if deflection else np.std(log.tau))
-    data = TorqueFit(space=space, motion=motion, scale=scale)
+    data = TorqueData(space=space, motion=motion, scale=jnp.asarray([scale]),
+                      deflection=deflection)
     sol = least_squares(data, space.theta0(), fn=fn, max_steps=max_steps, scaling=scaling)
     r = np.asarray(fn(sol.y, data))
     tau_int = integrated_autocorrelation(r)
