@@ -120,6 +120,7 @@ def _rotor(log: Log, init: Params | None, free: Sequence[str] | None,
            **options: Any) -> Identification:
     """``identify_log`` for the rotor kind: ``identify_rotor`` (options: ``pin``,
     ``max_steps``), the outputs the measured and predicted torque [N m]."""
+    from jaxflex.fit import get_value
     from jaxflex.identify.torque import identify_rotor
     from jaxflex.validate import torque_prediction
 
@@ -131,7 +132,7 @@ def _rotor(log: Log, init: Params | None, free: Sequence[str] | None,
     tau_hat = np.asarray(torque_prediction(res.params, log, kind="rotor"))
     resid = np.asarray(log.tau) - tau_hat
     stderr = {k: np.asarray(v, float) for k, v in res.fit.stderr.items()}
-    values = {k: np.abs(np.atleast_1d(np.asarray(_value_of(res.params, k), float)))
+    values = {k: np.abs(np.atleast_1d(np.asarray(get_value(res.params, k), float)))
               for k in stderr}
     rel = {k: stderr[k] / np.maximum(values[k], 1e-300) for k in stderr}
     ident = res.params.extra["identification"]
@@ -145,9 +146,3 @@ def _rotor(log: Log, init: Params | None, free: Sequence[str] | None,
         warnings=[], steps=int(res.fit.steps + (0 if res.skew is None else res.skew.steps)),
         seconds=float(res.wall_s), t=np.asarray(log.t), measured=np.asarray(log.tau),
         simulated=tau_hat, outputs=[f"tau[{j}]" for j in range(log.n)], boundaries=[])
-
-
-def _value_of(params: Params, name: str) -> Any:
-    from jaxflex.fit import get_value
-
-    return get_value(params, name)
