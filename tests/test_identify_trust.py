@@ -311,3 +311,46 @@ def test_a_friction_that_never_slides_is_named_in_the_verdict():
     spring = model_verdict(prob, (th, y0[1]), 1e6, 1.0, 4.0)
     assert len(spring["friction_never_slides"]) == 1
     assert "never slides" in spring["summary"]
+
+
+def _failed_like(sol, cost):
+    """``sol`` as a solver that broke down would return it: not converged, marked failed."""
+    import dataclasses
+
+    return dataclasses.replace(sol, converged=False, failed=True, cost=cost,
+                               reason="solver failed (non-finite values or a failed linear "
+                                      "solve)")
+
+
+def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_the_fit(
+        monkeypatch):
+    import jaxflex.identify.discretisation as disc
+    import jaxflex.identify.search as search_mod
+    from jaxflex.fit import least_squares
+    from jaxflex.identify import make_problem
+
+    p = paper_params()
+    log, _ = _offset_log(0.6)
+    prob, y0 = make_problem(log, p, ("Fc", "sigma2"), segment_length=300)
+    sol = least_squares(prob, y0, max_steps=3)
+    assert not sol.failed and sol.normal is not None
+
+    # a failed solve far above the noise stays not converged (no statistical stop)
+    monkeypatch.setattr(search_mod, "least_squares",
+                        lambda *a, **k: _failed_like(sol, 1e50))
+    s = search_mod.Search(good=1e-3, solve={}, progress=False)
+    out = s.run(prob, y0, {"start": "user"}, 3)
+    assert not out.converged and out.failed
+    assert s.attempts[-1]["converged"] is False
+
+    # a refinement that fails leaves the coarser fit as the answer, and says so
+    monkeypatch.setattr(disc, "least_squares", lambda *a, **k: _failed_like(sol, 1e50))
+    monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so: {
+        "bias_se": 50.0, "bias_rel": 0.5, "bias_mahalanobis": 50.0, "output_error": 1.0,
+        "substeps": pr.n_substeps, "shift_theta": {"Fc[0]": 1.0}, "stderr_theta": {"Fc[0]": 0.01}})
+    monkeypatch.setattr(disc, "relative_shift", lambda *a: 0.5)
+    attempts = []
+    p_out, s_out, checks = disc.refine_fit(prob, sol, refine=True, solve={}, attempts=attempts)
+    assert p_out is prob and s_out is sol
+    assert checks[-1]["refinement_failed"] > prob.n_substeps
+    assert attempts and attempts[-1]["converged"] is False

@@ -68,6 +68,9 @@ class Solution:
     decrement: float | None = None
     #: the run ended on Ctrl-C (``y`` is the last accepted point); workflows stop there
     interrupted: bool = False
+    #: the solver failed (non-finite values or a failed linear solve): ``y`` is the last
+    #: accepted point, but its ``normal`` equations may hold non-finite entries
+    failed: bool = False
 
 
 class _WithAux(eqx.Module):
@@ -344,10 +347,14 @@ def least_squares(
     else:
         reason = f"stopped at max_steps = {max_steps} without meeting the tolerance"
     converged = code in (_TOLERANCE, _DECREMENT, _XTOL) and not interrupted
+    if code == _FAILED and normal is not None and not all(
+            bool(np.all(np.isfinite(np.asarray(v)))) for v in jax.tree_util.tree_leaves(normal)):
+        normal = None  # not the equations of y: whoever needs them linearises y afresh
     return Solution(y=y, steps=steps, converged=converged,
                     cost=final, reason=reason, seconds=time.perf_counter() - t0,
                     residual=residual, normal=normal,
-                    decrement=None if dec is None else float(dec), interrupted=interrupted)
+                    decrement=None if dec is None else float(dec), interrupted=interrupted,
+                    failed=code == _FAILED and not interrupted)
 
 
 def _setup(prob: Any, y0: Any, fn: Callable, rtol: float, atol: float, scaling: str,

@@ -135,6 +135,9 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
             attempts.append({"refined_substeps": finer.n_substeps, "cost": more.cost,
                              "steps": more.steps, "converged": more.converged,
                              "reason": more.reason})
+        if more.failed:  # the finer fit broke down: the coarser answer stands, judged as is
+            checks[-1]["refinement_failed"] = finer.n_substeps
+            return prob, sol, checks
         prob = finer
         sol = dataclasses.replace(more, steps=sol.steps + more.steps,
                                   seconds=sol.seconds + more.seconds)

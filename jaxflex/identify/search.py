@@ -50,8 +50,8 @@ class Search:
         sol = least_squares(prob, y, max_steps=max_steps, **self.solve)
         if sol.interrupted:
             raise KeyboardInterrupt
-        if "warm" not in label and not sol.converged and sol.cost > self.good and (
-                sol.normal is not None):
+        if "warm" not in label and not sol.converged and not sol.failed and (
+                sol.cost > self.good and sol.normal is not None):
             # a model-limited fit creeping down a valley: converged when the step that
             # remains is small against the standard errors it reports (segment-robust)
             rem = remaining_step(prob, sol)
