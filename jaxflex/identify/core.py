@@ -29,10 +29,17 @@ import numpy as np
 from jaxflex.fit import (
     CostBound,
     Problem,
+    Solution,
     dynamic_substeps,
     set_values,
 )
-from jaxflex.identify.discretisation import BIAS_REL, BIAS_TOL, choose_substeps, refine_fit
+from jaxflex.identify.discretisation import (
+    BIAS_REL,
+    BIAS_TOL,
+    choose_substeps,
+    rechoose_substeps,
+    refine_fit,
+)
 from jaxflex.identify.links import structural_free
 from jaxflex.identify.problem import (
     MODEL_CHOICES,
@@ -219,38 +226,59 @@ def identify(
         return search.run(loose, y, {"warm": label, "warm_start": factor}, warm_steps,
                           full=False).y
 
-    ahead.wait(0)
-    for origin, y_start in starts:
-        for factor in schedules:
-            y = warmed(prob, y_start, factor, origin)
-            label = {"start": origin, "warm_start": factor}
-            sol = search.run(prob, y, label, max_steps)
-            if sol.cost <= good and not sol.converged:
-                # at the noise level but still moving: let it settle before judging
-                more = search.run(prob, sol.y, {"start": f"{origin}, continued"}, max_steps)
-                sol = dataclasses.replace(more, steps=sol.steps + more.steps,
-                                          seconds=sol.seconds + more.seconds)
+    def solve_from(prob: Problem, origin: str, y_start: Any, factor: float | None,
+                   ) -> Solution:
+        """One start solved with ``prob``'s substeps after its warm-start schedule
+        ``factor``; a solve that reaches the noise level still moving is let settle."""
+        y = warmed(prob, y_start, factor, origin)
+        label = {"start": origin, "warm_start": factor, "substeps": prob.n_substeps}
+        sol = search.run(prob, y, label, max_steps)
+        if sol.cost <= good and not sol.converged:
+            more = search.run(prob, sol.y, {"start": f"{origin}, continued"}, max_steps)
+            sol = dataclasses.replace(more, steps=sol.steps + more.steps,
+                                      seconds=sol.seconds + more.seconds)
+        return sol
+
+    def search_starts(prob: Problem) -> tuple[Solution, tuple[str, Any, float | None]]:
+        """Every start (and the vs restarts) solved with ``prob``'s substeps, until one
+        settles; the lowest end point and the run that reached it (origin, start point,
+        warm-start schedule)."""
+        best, best_run = None, None
+        runs = [(origin, y_start, factor) for origin, y_start in starts for factor in schedules]
+        for run in runs:
+            sol = solve_from(prob, *run)
             if best is None or sol.cost < best.cost:
-                best, best_factor = sol, factor
+                best, best_run = sol, run
             if is_settled(sol, good):
                 break
-        if is_settled(best, good):
-            break
-    if not is_settled(best, good) and "vs" in prob.space.names and vs_restarts:
-        # The Stribeck velocity decides where in the velocity range the friction hump lies;
-        # a fit whose vs starts on the wrong side of it lets Fs and sigma1 absorb the hump
-        # and vs stops moving: the first start again, vs on either side.
-        origin, (th0, x0) = starts[0]
-        phys = prob.space.physical_values(th0)
-        for f in vs_restarts:
-            th = prob.space.theta_of({**phys, "vs": phys["vs"] * f})
-            y = warmed(prob, (th, x0), schedules[0], f"{origin}, vs x{f:g}")
-            label = {"start": f"{origin}, vs x{f:g}", "warm_start": schedules[0]}
-            sol = search.run(prob, y, label, max_steps)
-            if sol.cost < best.cost:
-                best, best_factor = sol, schedules[0]
-            if is_settled(sol, good):
-                break
+        if not is_settled(best, good) and "vs" in prob.space.names and vs_restarts:
+            # The Stribeck velocity decides where in the velocity range the friction hump
+            # lies; a fit whose vs starts on the wrong side of it lets Fs and sigma1 absorb
+            # the hump and vs stops moving: the first start again, vs on either side.
+            origin, (th0, x0) = starts[0]
+            phys = prob.space.physical_values(th0)
+            for f in vs_restarts:
+                run = (f"{origin}, vs x{f:g}",
+                       (prob.space.theta_of({**phys, "vs": phys["vs"] * f}), x0), schedules[0])
+                sol = solve_from(prob, *run)
+                if sol.cost < best.cost:
+                    best, best_run = sol, run
+                if is_settled(sol, good):
+                    break
+        return best, best_run
+
+    ahead.wait(0)
+    best, best_run = search_starts(prob)
+    if auto:
+        # the substeps chosen at the first start judged again at the search's answer: a
+        # coarse integrator's own error can make a minimum of its own, far from the start;
+        # the run that found it is solved again from its start with the finer substeps (the
+        # other end points are replayed and weighed with the final substeps at the end)
+        finer, discretisation["at_first_answer"] = rechoose_substeps(prob, best, noise)
+        if finer is not None:
+            prob = finer
+            best = solve_from(prob, *best_run)
+    best_factor = best_run[2]
     ahead.join()
     first = finish(prob, init, best.y, steps=best.steps, converged=best.converged,
                    wall_s=time.perf_counter() - t0, rel_stderr_limit=rel_stderr_limit,

@@ -61,6 +61,22 @@ def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
         prob, coarse = refined(prob), fine
 
 
+def rechoose_substeps(prob: Problem, sol: Solution, noise: float, *,
+                      tol: float = OUTPUT_TOL, most: int = MAX_SUBSTEPS,
+                      ) -> tuple[Problem | None, dict[str, Any]]:
+    """The substeps judged again at a search's answer ``sol`` of ``prob``: its replay's
+    step-doubling error against the residual the fit leaves there (``tol`` times the larger
+    of the noise and the fit's RMS residual, ``sqrt(cost / noise)`` in noise units:
+    an integrator error far inside a model-limited residual does not move the answer), as
+    ``choose_substeps`` measures it from ``prob``'s level. ``noise``: the cost the
+    measurement noise alone gives (``noise_cost``). Returns the finer problem, or None where
+    ``prob``'s substeps hold at the answer, and the errors measured."""
+    scale = max(1.0, math.sqrt(max(float(sol.cost), 0.0) / noise))
+    finer, info = choose_substeps(prob, sol.y, tol=tol * scale, most=most)
+    info["tolerance"] = tol * scale
+    return (finer if finer.n_substeps > prob.n_substeps else None), info
+
+
 def relative_shift(prob: Problem, y: Any, shift_theta: dict[str, float]) -> float:
     """The largest relative change |dp| / |p| of a fitted physical parameter when its
     coordinates move by ``shift_theta`` ("name[j]" -> engine-coordinate shift, as
