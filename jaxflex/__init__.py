@@ -27,9 +27,6 @@ from typing import Any
 
 from jaxflex._aliases import MOVED as _MOVED
 from jaxflex._aliases import install as _install_aliases
-
-_install_aliases()
-
 from jaxflex.core.controller import CascadeController, CascadeGains
 from jaxflex.core.estimator import KalmanEstimator, KalmanTuning
 from jaxflex.core.friction import LuGre
@@ -48,6 +45,8 @@ from jaxflex.io.presets import (
     two_link_plant,
 )
 from jaxflex.sim.simulate import simulate_continuous, simulate_sampled
+
+_install_aliases()  # the module names from before the layers (``jaxflex._aliases``)
 
 #: Names of ``jaxflex.app.api`` served from the top level on first use.
 API_NAMES: tuple[str, ...] = (
