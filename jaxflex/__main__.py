@@ -1,3 +1,3 @@
-from jaxflex.cli import console
+from jaxflex.app.cli import console
 
 console()

@@ -41,7 +41,7 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
-#: The arm (jaxflex.presets.two_link_plant's values): masses [kg], lengths [m], inertias
+#: The arm (jaxflex.io.presets.two_link_plant's values): masses [kg], lengths [m], inertias
 #: about the centres of mass [kg m^2]; rotor inertias [kg m^2] and stiffnesses [N m/rad].
 LINKS: dict[str, float] = {"m1": 0.6, "m2": 0.35, "l1": 0.3, "lc1": 0.15, "lc2": 0.12,
                            "I1": 0.0045, "I2": 0.002}
@@ -191,8 +191,8 @@ def run(seconds: float = 8.0, g: float = 0.0, max_steps: int = 200,
 
     jax.config.update("jax_enable_x64", True)
     from jaxflex.identify import identify
-    from jaxflex.logs import Log
-    from jaxflex.params import Params
+    from jaxflex.io.logs import Log
+    from jaxflex.io.params import Params
 
     t0 = time.perf_counter()
     raw = simulate(seconds, g)

@@ -1,11 +1,11 @@
 """Question: does a second run of a command on the same machine compile again?
 
 The ``jaxflex`` command turns on JAX's persistent compilation cache (``$JAXFLEX_CACHE_DIR``,
-``jaxflex.cli.enable_compilation_cache``; every compilation is kept), and the traced
-programs of the fitting engine, simulator and tuner beside it (``jaxflex.tracecache``: no
+``jaxflex.app.cli.enable_compilation_cache``; every compilation is kept), and the traced
+programs of the fitting engine, simulator and tuner beside it (``jaxflex.runtime.tracecache``: no
 tracing or lowering of those in a second run). This study runs one command (``--command``:
 ``reproduce`` (a short paper experiment), ``identify`` (a 3 s closed-loop log of
-``jaxflex.datagen``, seed 7, 20-bit encoder, six LuGre parameters from 50% off) or
+``jaxflex.identify.datagen``, seed 7, 20-bit encoder, six LuGre parameters from 50% off) or
 ``discover`` (a 20 s log of the same generator with a hidden joint damping, every candidate);
 the other commands on the paper's parameters: ``certify``, ``analyse`` (with ``--floquet``),
 ``tune``, ``export --check``, ``validate`` (the identify log against the generator's
@@ -49,7 +49,7 @@ mon.register_event_duration_secs_listener(dur)
 mon.register_event_listener(ev)
 atexit.register(lambda: print("COMPILE_STATS " + json.dumps({"seconds": tot, "counts": cnt}),
                               file=sys.stderr))
-from jaxflex.cli import main
+from jaxflex.app.cli import main
 rc = main(json.loads(sys.argv[1]))
 sys.exit(rc)
 """
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> dict:
             _command(a.command, out, a.small, t_final=OTHER_LENGTH[a.command]), cache)
     with tempfile.TemporaryDirectory() as cache:
         # XLA's cache alone, every function traced again in each run: what the kept traces
-        # (jaxflex.tracecache) save. Its own folder: a traced function lowers to another
+        # (jaxflex.runtime.tracecache) save. Its own folder: a traced function lowers to another
         # program than its kept export, so the first run fills XLA's cache for it.
         first_traced = run_once(["--no-trace-cache"] + cmd, cache)
         second_traced = run_once(["--no-trace-cache"] + cmd, cache)
@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> dict:
                    "overlapping compilations add up, so the sum can exceed the wall time); every "
                    "compilation is cached (jax_persistent_cache_min_compile_time_secs 0); "
                    "the traced programs of the fitting engine, simulator and tuner are kept "
-                   "too (jaxflex.tracecache, in the cache's traces/ folder; "
+                   "too (jaxflex.runtime.tracecache, in the cache's traces/ folder; "
                    "*_no_trace_cache: two runs with --no-trace-cache in another folder); other "
                    "functions are traced in every process"}
     for k, r in (("first (empty cache)", first), ("second (same cache)", second),
@@ -189,11 +189,11 @@ def _command(name: str, out: Path, small: bool, t_final: float | None = None) ->
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
     from jaxflex.identify import DEFAULT_FREE, perturb
-    from jaxflex.logs import save_log
-    from jaxflex.params import Params, save_params
-    from jaxflex.presets import paper_params
+    from jaxflex.io.logs import save_log
+    from jaxflex.io.params import Params, save_params
+    from jaxflex.io.presets import paper_params
 
     paper = out / "paper.json"
     if name in ("certify", "tune", "export"):

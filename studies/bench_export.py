@@ -3,7 +3,7 @@
 Question: per-step compute time (median, 99th percentile, max) of the standalone controller
 written by ``jaxflex export`` for one joint, against the JAX controller called once per sample
 (``jax.jit`` of ``CascadeController.step``, the baseline a researcher would otherwise run),
-in the same process; and the deadline misses and wake-up lateness of ``jaxflex.hardware.
+in the same process; and the deadline misses and wake-up lateness of ``jaxflex.app.hardware.
 run_loop`` at 1 kHz and 5 kHz, with an in-process loopback rig (loop + controller only) and,
 at 1 kHz, with the simulated rig (plant in a separate process).
 
@@ -104,8 +104,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     from jaxflex.export import build_controller, generate_source, load_module
-    from jaxflex.hardware import LoopConfig, SimulatedRig, run_loop
-    from jaxflex.presets import paper_params
+    from jaxflex.app.hardware import LoopConfig, SimulatedRig, run_loop
+    from jaxflex.io.presets import paper_params
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

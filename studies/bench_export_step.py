@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> dict:
     from jaxflex.export import describe, generate_source, load_module, rig_controller, trace
     from jaxflex.export.cgen import C_FLAGS
     from jaxflex.export.native import export_c, find_cc, load_c
-    from jaxflex.presets import REPRODUCE_LEAK, paper_params, paper_sensing, with_estimator
+    from jaxflex.io.presets import REPRODUCE_LEAK, paper_params, paper_sensing, with_estimator
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

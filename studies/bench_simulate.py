@@ -229,10 +229,10 @@ def _single(out: dict, t_final: float, repeats: int, slow_repeats: int) -> None:
 
     import benchkit
     from jaxflex.export import build_controller, generate_source, load_module
-    from jaxflex.presets import paper_gains, paper_params, paper_plant, paper_sinusoid
-    from jaxflex.controller import CascadeController
-    from jaxflex.sensing import Sensing
-    from jaxflex.simulate import simulate_sampled
+    from jaxflex.io.presets import paper_gains, paper_params, paper_plant, paper_sinusoid
+    from jaxflex.core.controller import CascadeController
+    from jaxflex.core.sensing import Sensing
+    from jaxflex.sim.simulate import simulate_sampled
 
     out["machine_start"] = benchkit.machine_state()
     params = paper_params()
@@ -390,11 +390,11 @@ def _batched(out: dict, B: int, t_final: float, configs: list[tuple[str, int, st
     import jax
     import jax.numpy as jnp
 
-    from jaxflex.controller import CascadeController
-    from jaxflex.friction import LuGre
-    from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
-    from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid
-    from jaxflex.simulate import simulate_sampled
+    from jaxflex.core.controller import CascadeController
+    from jaxflex.core.friction import LuGre
+    from jaxflex.core.plant import DiagonalInertia, FlexibleJointPlant
+    from jaxflex.io.presets import paper_gains, paper_plant, paper_sinusoid
+    from jaxflex.sim.simulate import simulate_sampled
     from jaxflex.sweep.engine import loop_unrolls
 
     rng = np.random.default_rng(0)
@@ -475,7 +475,7 @@ def main() -> None:
 
     import jax
 
-    from jaxflex.sweep.engine import use_lean_xla_cpu
+    from jaxflex.runtime.xla import use_lean_xla_cpu
 
     if not args.xla_default:
         # before any JAX computation; the hand-written JAX scan gets them too. One closed loop

@@ -92,7 +92,7 @@ def worker(samples: int, t_final: float, chunk: int, substeps: int, method: str,
     ``loop_unrolls`` otherwise), for the comparison of layouts."""
     import jax
 
-    from jaxflex.sweep.engine import use_lean_xla_cpu
+    from jaxflex.runtime.xla import use_lean_xla_cpu
 
     if not XLA_DEFAULT:
         use_lean_xla_cpu()  # as the jaxflex command does, before any JAX computation
@@ -274,8 +274,8 @@ def components(n: int, t_final: float, substeps: int = 10) -> dict:
     import jax.numpy as jnp
 
     jax.config.update("jax_enable_x64", True)
-    from jaxflex.simulate import simulate_sampled
-    from jaxflex.step import plant_step
+    from jaxflex.sim.simulate import simulate_sampled
+    from jaxflex.sim.step import plant_step
     from jaxflex.sweep import build_models, parse_spread, sample_parameters
     from jaxflex.sweep.engine import loop_unrolls
 

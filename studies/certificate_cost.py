@@ -28,7 +28,7 @@ import numpy as np
 def certified_start(plant, gains, v_req: float, margin: float):
     """Initial gains certified up to ``v_req`` [rad/s]: the given gains with the observer gain
     Ke halved until sigma0 Psi#(v) / Ke (eq. 29) is large enough (None if 40 halvings fail)."""
-    from jaxflex.certificate import certify
+    from jaxflex.core.certificate import certify
 
     g = gains
     for _ in range(40):
@@ -54,10 +54,10 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
 
-    from jaxflex.certificate import certify
-    from jaxflex.plots import save_figure
-    from jaxflex.plots.tune import plot_lambda_min, plot_tracking_comparison, plot_tradeoff
-    from jaxflex.presets import paper_gains, paper_plant, paper_sensing, paper_sinusoid
+    from jaxflex.core.certificate import certify
+    from jaxflex.app.plots import save_figure
+    from jaxflex.app.plots.tune import plot_lambda_min, plot_tracking_comparison, plot_tradeoff
+    from jaxflex.io.presets import paper_gains, paper_plant, paper_sensing, paper_sinusoid
     from jaxflex.tune import TuneTask, evaluate, simulate_task, tune
 
     t_final = args.t_final or (0.5 if args.small else 2.0)

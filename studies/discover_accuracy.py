@@ -1,7 +1,7 @@
 """Study: how often does `discover` name the hidden effect, how often does it cry wolf on clean
 data, and how much does the named effect close the held-out gap?
 
-Generated cases (``jaxflex.datagen.generate_log``): each docs/spec.md section 8 effect hidden at
+Generated cases (``jaxflex.identify.datagen.generate_log``): each docs/spec.md section 8 effect hidden at
 moderate magnitude (the class's ``moderate``) in a closed-loop identification experiment with
 encoder quantisation, noise and a random nominal-parameter mismatch, plus clean cases (no effect).
 Reports the confusion matrix (true effect -> first effect named, or none), accuracy on effect
@@ -89,12 +89,12 @@ def main(argv: list[str] | None = None) -> None:
         _write(res["rows"], res["summary"]["confusion_labels"], Path(a.out))
         print(json.dumps(json.loads((Path(a.out) / "results.json").read_text())["summary"], indent=1))
         return
-    from jaxflex.sweep.engine import use_lean_xla_cpu
+    from jaxflex.runtime.xla import use_lean_xla_cpu
 
     use_lean_xla_cpu(small_loops=True)  # as jaxflex discover runs, before any JAX computation
     jax.config.update("jax_enable_x64", True)
     from jaxflex.discover import DiscoverConfig, discover, unexplained_limit
-    from jaxflex.effects import candidate_effects
+    from jaxflex.core.effects import candidate_effects
 
     names = a.effects.split(",") if a.effects else candidate_effects()
     hidden = a.hidden.split(",") if a.hidden else names
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> None:
     if a.simulator == "mujoco":
         from mujoco_rig import DISTURBANCES, EXCITATIONS, LOOPS, simulate_rig as generate_log
     else:
-        from jaxflex.datagen import EXCITATIONS, LOOPS, generate_log
+        from jaxflex.identify.datagen import EXCITATIONS, LOOPS, generate_log
 
     variants: list[dict] = [{} for _ in cases]
     if a.grown:

@@ -31,10 +31,10 @@ def main(argv: list[str] | None = None) -> None:
     jax.config.update("jax_enable_x64", True)
     from jaxflex.data import EMPS_IDIM_LS
     from jaxflex.discover import DiscoverConfig, discover
-    from jaxflex.logs import load_log
-    from jaxflex.params import Params, save_params
-    from jaxflex.plots import save_figures
-    from jaxflex.plots.discover import plot_report
+    from jaxflex.io.logs import load_log
+    from jaxflex.io.params import Params, save_params
+    from jaxflex.app.plots import save_figures
+    from jaxflex.app.plots.discover import plot_report
 
     if a.data is None:
         from jaxflex.data import load_emps

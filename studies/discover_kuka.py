@@ -59,7 +59,7 @@ import jax
 def nominal_params(axis: int) -> tuple[Any, dict[str, float]]:
     """The nominal model of ``axis`` (module docstring) and the numbers it came from."""
     from jaxflex.data import kuka_record, load_kuka
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
     from jaxflex.validate import rigid_torque_fit
 
     rec = kuka_record("A")

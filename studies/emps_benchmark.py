@@ -49,7 +49,7 @@ def params_of(model: EmpsRigidModel, ctrl: dict, Fs: float | None = None, vs: fl
     """A rigid EMPS parameter set (SI, load side: ``EmpsRigidModel.params_dict``, its force
     offset included) with the benchmark's controller declared; ``Fs`` [N] (None: Fc) and
     ``vs`` [m/s] the Stribeck hump."""
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     return Params.from_dict({**model.params_dict(Fs=Fs, vs=vs), "loop_controller": ctrl})
 
@@ -61,8 +61,8 @@ def main(argv: list[str] | None = None) -> dict:
     jax.config.update("jax_enable_x64", True)
     from jaxflex.data import emps_record, load_emps
     from jaxflex.identify import IdentificationWarning, identify
-    from jaxflex.plots import save_figure
-    from jaxflex.plots.validate import plot_validation_log
+    from jaxflex.app.plots import save_figure
+    from jaxflex.app.plots.validate import plot_validation_log
     from jaxflex.validate import PPCascade, closed_loop_fit, validate
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -1,19 +1,19 @@
 """Question: which q2d-derivative method and which velocity estimator make the paper's friction
 compensation help under the ideal, rig and paper sensing presets (coarse encoders)?
 
-Method: the paper's sinusoid experiment (Fig. 9-11; ``jaxflex.presets.paper_sinusoid``) on the
+Method: the paper's sinusoid experiment (Fig. 9-11; ``jaxflex.io.presets.paper_sinusoid``) on the
 paper's plant and gains (Tables 1-3, corrected Table 2; ``paper_params``), closed by
-``jaxflex.experiments.run_closed_loop`` as ``jaxflex reproduce`` does (1 kHz, 2 N m torque
+``jaxflex.loop.experiments.run_closed_loop`` as ``jaxflex reproduce`` does (1 kHz, 2 N m torque
 limit), for each sensing preset x q2d method (model, filtered, reference; docs/spec.md
 section 3) x velocity estimator ("exact" where the sensing is ideal, "filtered": the
 controller's dirty derivative, "kalman": the steady-state Kalman filter of
-``jaxflex.estimator``; and, where the encoders are coarse, "kalman_angles": the same filter
+``jaxflex.core.estimator``; and, where the encoders are coarse, "kalman_angles": the same filter
 also handing its angles to the controller, ``KalmanTuning(angles=True)``), with and without
 compensation. Per run: RMS link tracking error
 [rad], torque RMS [N m], RMS friction-estimate error F_hat - F [N m] (with compensation),
 RMS error of the link velocity the controller used [rad/s], divergence (the loop's lost-run
-flag, ``jaxflex.simulate.Metrics``), fraction of samples at the 2 N m torque limit; and the
-spectral radius of the loop linearised at rest (``jaxflex.analyse.analyse_loop``, quantisers
+flag, ``jaxflex.sim.simulate.Metrics``), fraction of samples at the 2 N m torque limit; and the
+spectral radius of the loop linearised at rest (``jaxflex.loop.analyse.analyse_loop``, quantisers
 as the identity, the estimator's state in the loop state; > 1: a growing mode, which the
 quantisation noise then drives into chatter or a limit cycle).
 Compensation "helps" when the run with it is not lost and its RMS error is below the run
@@ -54,8 +54,8 @@ def estimators_for(preset: str) -> tuple[str, ...]:
 
 def sensing_for(preset: str, estimator: str) -> Any:
     """The sensing preset with the velocity source ``estimator`` (``estimators_for``)."""
-    from jaxflex.estimator import KalmanTuning
-    from jaxflex.presets import sensing_preset
+    from jaxflex.core.estimator import KalmanTuning
+    from jaxflex.io.presets import sensing_preset
 
     base = sensing_preset(preset)
     if estimator == "kalman_angles":
@@ -67,9 +67,9 @@ def run(t_final: float, progress: Any = print) -> dict[str, Any]:
     """Every run of the grid (module docstring); JSON-ready rows and the per-preset verdict."""
     import numpy as np
 
-    from jaxflex.analyse import analyse_loop
-    from jaxflex.experiments import run_closed_loop
-    from jaxflex.presets import paper_params, paper_sinusoid
+    from jaxflex.loop.analyse import analyse_loop
+    from jaxflex.loop.experiments import run_closed_loop
+    from jaxflex.io.presets import paper_params, paper_sinusoid
 
     params = paper_params()
     plant, gains = params.to_plant(), params.to_gains()
@@ -202,7 +202,7 @@ def main() -> None:
         "question": __doc__.split("\n\n")[0],
         "config": {"trajectory": "sinusoid", "t_final_s": t_final, "dt_s": 1e-3,
                    "tau_max_Nm": 2.0, "params": "paper (Tables 1-3, corrected Table 2)",
-                   "kalman_tuning": "defaults of jaxflex.estimator.KalmanTuning",
+                   "kalman_tuning": "defaults of jaxflex.core.estimator.KalmanTuning",
                 "saturation_limit": SATURATION_LIMIT},
         **res,
         "wall_time_s": time.perf_counter() - t0,

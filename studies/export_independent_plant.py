@@ -124,14 +124,14 @@ def main(argv: list[str] | None = None) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     from jaxflex.export import generate_source, load_module, rig_controller
-    from jaxflex.presets import (
+    from jaxflex.io.presets import (
         REPRODUCE_LEAK,
         paper_params,
         paper_sensing,
         trajectory_preset,
         with_estimator,
     )
-    from jaxflex.simulate import REFERENCE_ORDER
+    from jaxflex.sim.simulate import REFERENCE_ORDER
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

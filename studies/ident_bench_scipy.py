@@ -18,7 +18,7 @@ take, and to what final cost 0.5 ||r||^2 and parameter errors?
 
 Logs (``--log``):
 
-- ``closed-loop`` (default; the target logs): ``jaxflex.datagen.generate_log((),
+- ``closed-loop`` (default; the target logs): ``jaxflex.identify.datagen.generate_log((),
   seed=--seed, t_final=T, bits=20, noise_counts=0.5)``: the cascade controller tracking a
   multisine, a 20-bit link encoder (rotor 50x finer) with half a count of white noise, 1 kHz.
   Initial guess: the six LuGre parameters 50% off (``--factors``, default
@@ -182,7 +182,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> dict:
     """Run the benchmark; returns the results dict (also written to ``results.json``)."""
     args = parse_args(argv)
-    from jaxflex.sweep.engine import use_lean_xla_cpu
+    from jaxflex.runtime.xla import use_lean_xla_cpu
 
     if not args.no_lean_xla:
         use_lean_xla_cpu()  # as the jaxflex command does, before any JAX computation
@@ -274,8 +274,8 @@ def setup_open_loop(t_final: float, args: argparse.Namespace) -> Setup:
 
     from jaxflex.identify import (DEFAULT_FREE, excitation_torque, make_problem, noise_cost,
                                   perturb, synthetic_log)
-    from jaxflex.presets import paper_params
-    from jaxflex.sensing import Sensing
+    from jaxflex.io.presets import paper_params
+    from jaxflex.core.sensing import Sensing
 
     truth = paper_params()
     res = 2 * math.pi / 2**16
@@ -295,11 +295,11 @@ def setup_closed_loop(t_final: float, args: argparse.Namespace) -> Setup:
     """The log: ``generate_log((), seed, t_final, bits=20, noise_counts=0.5)``; initial
     guess ``args.factors`` x the truth; the common start from the log's static map, as
     ``identify`` takes it; substeps and warm factor given or identify's (``identify_choice``)."""
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
     from jaxflex.fit import get_value, refined
     from jaxflex.identify import DEFAULT_FREE, make_problem, noise_cost, perturb
     from jaxflex.identify.static import start_from_static_map
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     g = generate_log((), seed=args.seed, t_final=t_final, bits=BITS, noise_counts=NOISE_COUNTS)
     truth = Params.from_dict(g.truth["plant"])
@@ -362,9 +362,9 @@ def _identify_choice_here(t_final: float, seed: int, segment: int,
                           factors: list[float]) -> dict[str, Any]:
     """``identify_choice`` in this process: identify's first and final substeps, the warm
     factor and start of its winning schedule, its outcome and wall time (incl. compilation)."""
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
     from jaxflex.identify import DEFAULT_FREE, IdentificationWarning, identify, perturb
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     g = generate_log((), seed=seed, t_final=t_final, bits=BITS, noise_counts=NOISE_COUNTS)
     truth = Params.from_dict(g.truth["plant"])

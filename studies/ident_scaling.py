@@ -1,7 +1,7 @@
 """Study: how does identification scale with the log length, and does it converge on logs of
 the lengths a lab records?
 
-Logs: closed-loop identification experiments of ``jaxflex.datagen.generate_log`` (the cascade
+Logs: closed-loop identification experiments of ``jaxflex.identify.datagen.generate_log`` (the cascade
 controller tracking a random multisine around a plant 10% off the nominal one), a fine 20-bit
 encoder with half a count of white noise, 1 kHz, of 3, 10, 20 and 60 s. Start: the six LuGre
 parameters 50% off the truth (x1.5 or x0.5). Segments of 300 samples, 2 substeps.
@@ -53,10 +53,10 @@ def main(argv: list[str] | None = None) -> dict:
     import jax.numpy as jnp
     import lineax as lx
 
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
     from jaxflex.fit.normal import dense_newton_step, shooting_newton_step
     from jaxflex.identify import DEFAULT_FREE, IdentificationWarning, identify, make_problem, perturb
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     lengths = [3.0, 6.0] if a.small else [float(s) for s in a.lengths.split(",")]
     repeat = 1 if a.small else a.repeat

@@ -28,7 +28,7 @@ def main(argv=None) -> dict:
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from jaxflex.friction import LUGRE_NAMES
+    from jaxflex.core.friction import LUGRE_NAMES
     from jaxflex.identify import (
         DEFAULT_FREE,
         IdentificationWarning,
@@ -39,10 +39,10 @@ def main(argv=None) -> dict:
         synthetic_log,
         two_step,
     )
-    from jaxflex.presets import paper_params
-    from jaxflex.plots import save_figure
-    from jaxflex.plots.identify import plot_fit, plot_static_map
-    from jaxflex.sensing import Sensing
+    from jaxflex.io.presets import paper_params
+    from jaxflex.app.plots import save_figure
+    from jaxflex.app.plots.identify import plot_fit, plot_static_map
+    from jaxflex.core.sensing import Sensing
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/ident_two_step")

@@ -1,8 +1,8 @@
 """Study: does the KUKA KR300's axes 1-3 identified as one coupled rigid-body arm (IDIM-WLS,
-``jaxflex.arm_ident``) predict the motor torques of the validation trajectories better than
+``jaxflex.identify.arm``) predict the motor torques of the validation trajectories better than
 the rigid least-squares model of each axis alone?
 
-Model (``jaxflex.arm_ident`` docstring): the six-axis chain of ``jaxflex.data.kr300`` (axes
+Model (``jaxflex.identify.arm`` docstring): the six-axis chain of ``jaxflex.data.kr300`` (axes
 4-6 at their measured motor-encoder motion, or held at their mean angle for comparison), link
 angles of axes 1-3 from the link encoders, per joint a rotor inertia on the motor
 acceleration, viscous and Coulomb friction on the motor velocity and a torque offset, and the
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxflex.arm_ident import (arm_base, consistent_fit, essential_parameters,
+    from jaxflex.identify.arm import (arm_base, consistent_fit, essential_parameters,
                                    identify_arm, kuka_arm_motion, kuka_counterbalance,
                                    torque_error_pct)
     from jaxflex.data import load_kuka

@@ -18,7 +18,7 @@ whose sliding levels come from the recordings, the rest stated assumptions:
 Gains (one rule, every joint): L1 = 10 /s, L2 = 30 /s, KD1 = KD2 = K / L2 (so that
 L2^2 KD1 KD2 = K^2 dominates the K^2 / 4 coupling of N2's e1-e2 block), Ke = 0.1 / sigma0,
 kv = 200 s/rad. N2 is evaluated for every joint over the speeds 0 to 1.3x the fastest link
-speed of trajectory A (``jaxflex.certificate.certify``).
+speed of trajectory A (``jaxflex.core.certificate.certify``).
 
 Task: a rest-to-rest move of (0.4, 0.25, -0.4) rad from the pose (0, -0.1, -0.4) rad and back
 (3 s each), the arm starting at rest with the springs holding its weight; the controller at
@@ -93,13 +93,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxflex.certificate import certify
-    from jaxflex.controller import CascadeController, CascadeGains
+    from jaxflex.core.certificate import certify
+    from jaxflex.core.controller import CascadeController, CascadeGains
     from jaxflex.data import load_named
     from jaxflex.data.kr300 import kuka_kr300_plant
-    from jaxflex.friction import LuGre
-    from jaxflex.simulate import simulate_sampled
-    from jaxflex.trajectory import RestToRest
+    from jaxflex.core.friction import LuGre
+    from jaxflex.sim.simulate import simulate_sampled
+    from jaxflex.core.trajectory import RestToRest
 
     sliding = sliding_friction()
     nominal = kuka_kr300_plant()

@@ -161,7 +161,7 @@ def fit(params: Any, log: Any, free: tuple[str, ...], *, deflection: bool = Fals
 
 def start_params(J0: float, K0: float) -> Any:
     """Start values of the rotor model: rotor inertia J0 [kg m^2], stiffness K0 [N m/rad]."""
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     return Params.from_dict({
         "plant": {"I": 1.0, "J": J0, "K": K0},

@@ -12,14 +12,14 @@ z_hat relaxes at the rate sigma0 leak / g(0).
 
 Method: the paper's plant and Table 3 gains, model-based q2d, 1 kHz, 2 N m limit; for each
 leak of a grid and each sensing (ideal = exact velocities; rig and paper = 16-bit and 0.72 deg
-encoders with the Kalman filter of ``jaxflex.estimator``): the loop linearised at rest
-(``jaxflex.analyse``: spectral radius and smallest damping ratio of its modes), the three
+encoders with the Kalman filter of ``jaxflex.core.estimator``): the loop linearised at rest
+(``jaxflex.loop.analyse``: spectral radius and smallest damping ratio of its modes), the three
 paper experiments with and without compensation (RMS link error, saturation, RMS of F_hat - F),
-the N2 certificate (``jaxflex.certificate.certify``, up to 1.5x the fastest reference speed),
-and, under the paper's sensing, the loop held at rest (``jaxflex.experiments.rest_oscillation``:
+the N2 certificate (``jaxflex.core.certificate.certify``, up to 1.5x the fastest reference speed),
+and, under the paper's sensing, the loop held at rest (``jaxflex.loop.experiments.rest_oscillation``:
 spectral peak of the error). Selection rule: the smallest leak of the grid whose rest modes all
 have a damping ratio >= 0.05 under every sensing; the study checks that it equals
-``jaxflex.presets.REPRODUCE_LEAK`` (what ``jaxflex reproduce`` uses) and says so.
+``jaxflex.io.presets.REPRODUCE_LEAK`` (what ``jaxflex reproduce`` uses) and says so.
 
 Writes ``DIR/observer_leak.json`` (all numbers) and ``DIR/observer_leak.png``.
 Usage: ``python studies/observer_leak.py --out DIR [--small]``.
@@ -55,11 +55,11 @@ def main(argv: list[str] | None = None) -> dict:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from jaxflex.analyse import rest_damping, rest_jacobian, rest_map, spectral_radius
-    from jaxflex.certificate import certify
-    from jaxflex.experiments import rest_oscillation, run_closed_loop, run_summary
+    from jaxflex.loop.analyse import rest_damping, rest_jacobian, rest_map, spectral_radius
+    from jaxflex.core.certificate import certify
+    from jaxflex.loop.experiments import rest_oscillation, run_closed_loop, run_summary
     from jaxflex.tune import reference_speed
-    from jaxflex.presets import (REPRODUCE_LEAK, TRAJECTORIES, paper_params, sensing_preset,
+    from jaxflex.io.presets import (REPRODUCE_LEAK, TRAJECTORIES, paper_params, sensing_preset,
                                  trajectory_preset, with_estimator)
 
     out = Path(args.out)

@@ -96,7 +96,7 @@ def mujoco_log(t_final: float, seed: int):
     import mujoco
     import mujoco.rollout as rollout
 
-    from jaxflex.logs import Log
+    from jaxflex.io.logs import Log
 
     model = mujoco.MjModel.from_xml_string(mjcf(TRUTH))
     data = mujoco.MjData(model)
@@ -123,8 +123,8 @@ def jaxflex_log(t_final: float, seed: int):
     """The same experiment replayed through jaxflex's rigid model (eq. 37, ``synthetic_log``,
     4 RK4 substeps per sample) with ``JAXFLEX_FRICTION``, quantised alike."""
     from jaxflex.identify import synthetic_log
-    from jaxflex.logs import Log
-    from jaxflex.params import Params
+    from jaxflex.io.logs import Log
+    from jaxflex.io.params import Params
 
     t = np.arange(int(round(t_final / LOG_DT))) * LOG_DT
     tau = multisine(t, np.random.default_rng(seed))
@@ -217,7 +217,7 @@ LUGRE_START_FACTORS: dict[str, float] = {"sigma0": 0.6, "sigma1": 1.5, "vs": 1.4
 def jaxflex_start(start: dict[str, float]):
     """The jaxflex rigid start: I, sigma2, Fc from the common start; J at its truth; Fs just
     above Fc; vs, sigma0, sigma1 ``LUGRE_START_FACTORS`` off ``JAXFLEX_FRICTION``."""
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     fr = {k: JAXFLEX_FRICTION[k] * LUGRE_START_FACTORS.get(k, 1.0) for k in JAXFLEX_FRICTION}
     fr.update(Fc=start["frictionloss"], Fs=1.05 * start["frictionloss"], sigma2=start["damping"])

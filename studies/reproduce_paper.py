@@ -4,7 +4,7 @@ motion (Fig. 15), and which of the three ways to get q2d' and q2d'' works?
 
 Writes PNG figures and results.json (RMS and max link error in rad, torque RMS in N m) to
 --out (default out/reproduce_paper). Same code path as ``jaxflex reproduce``: the paper's gains
-with the observer leakage of ``jaxflex.presets.REPRODUCE_LEAK`` by default, the paper's own
+with the observer leakage of ``jaxflex.io.presets.REPRODUCE_LEAK`` by default, the paper's own
 observer re-run beside it (``paper_observer``; ``studies/observer_leak.py``).
 """
 
@@ -14,7 +14,7 @@ import argparse
 
 import jax
 
-from jaxflex.presets import SENSING_PRESETS
+from jaxflex.io.presets import SENSING_PRESETS
 
 
 def main() -> None:
@@ -28,8 +28,8 @@ def main() -> None:
                     "paper's observer)")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
-    from jaxflex.experiments import run_paper_experiments
-    from jaxflex.reports import write_paper_experiments
+    from jaxflex.loop.experiments import run_paper_experiments
+    from jaxflex.app.reports import write_paper_experiments
 
     results = run_paper_experiments(sensing=args.sensing, estimator=args.estimator, leak=args.leak,
                                     t_final=2.0 if args.small else 10.0)

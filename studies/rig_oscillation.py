@@ -2,7 +2,7 @@
 the observer's Ke sigma0 s1 term acting as integral action, the model-based q2d' and q2d''
 (docs/spec.md section 3, correction 2), or a defect?
 
-Method: the Jacobian of the one-sample closed-loop map (``jaxflex.analyse``) at rest for each
+Method: the Jacobian of the one-sample closed-loop map (``jaxflex.loop.analyse``) at rest for each
 q2d method with and without compensation, and with exact or filtered velocities; the modes'
 frequency, damping and participating states; the rest modes as the observer gain Ke, the link
 damping KD1 and the rotor slope L2 vary; Floquet multipliers along the paper's sinusoid; and,
@@ -36,11 +36,11 @@ def main() -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from jaxflex.analyse import analyse_loop
-    from jaxflex.controller import CascadeController, CascadeGains
-    from jaxflex.presets import PAPER_GAINS, paper_plant, sensing_preset
-    from jaxflex.simulate import simulate_sampled
-    from jaxflex.trajectory import Sinusoid
+    from jaxflex.loop.analyse import analyse_loop
+    from jaxflex.core.controller import CascadeController, CascadeGains
+    from jaxflex.io.presets import PAPER_GAINS, paper_plant, sensing_preset
+    from jaxflex.sim.simulate import simulate_sampled
+    from jaxflex.core.trajectory import Sinusoid
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,7 @@ and robustly tuned gains on 1,000 held-out plausible plants.
    are drawn from the fallback spread: +-30 % on every friction
    parameter, +-15 % on I, J, K (uniform).
 2. Nominal tuning (``jaxflex.tune.tune``) on the nominal plant from the paper's gains; robust
-   tuning (``jaxflex.robust.tune_robust``, CVaR_0.9 of the per-plant cost over a fixed
+   tuning (``jaxflex.tune.robust.tune_robust``, CVaR_0.9 of the per-plant cost over a fixed
    training batch of 64 plants, certified on the whole box) warm-started at the nominal
    search's point after N steps (--iterations, default 30) and run N more; the nominal gains
    compared are those after 2N nominal steps, so both had the same number of steps. Same task for both: the paper's
@@ -66,13 +66,13 @@ def main(argv: list[str] | None = None) -> dict:
     import numpy as np
 
     from benchkit import limit_blas_threads, machine_state
-    from jaxflex.certificate import certify_box
+    from jaxflex.core.certificate import certify_box
     from jaxflex.fit.posterior import Posterior
     from jaxflex.identify import DEFAULT_FREE, excitation_torque, identify, perturb, synthetic_log
-    from jaxflex.presets import paper_gains, paper_params, sensing_of, trajectory_preset
-    from jaxflex.robust import (RiskMeasure, RobustTask, _risk_and_grad, evaluate_batch,
+    from jaxflex.io.presets import paper_gains, paper_params, sensing_of, trajectory_preset
+    from jaxflex.tune.robust import (RiskMeasure, RobustTask, _risk_and_grad, evaluate_batch,
                                 sample_batch, tune_robust)
-    from jaxflex.sensing import Sensing
+    from jaxflex.core.sensing import Sensing
     from jaxflex.sweep import parse_spread
     from jaxflex.tune import TuneTask, tune
 

@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> dict:
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
-    from jaxflex.plots import save_figures
-    from jaxflex.plots.sweep import plot_sweep
+    from jaxflex.app.plots import save_figures
+    from jaxflex.app.plots.sweep import plot_sweep
     from jaxflex.sweep import load_spread, nominal_run, run_sweep
 
     spec = load_spread(a.spread)

@@ -1,6 +1,6 @@
 """An independent simulator of a flexible joint with LuGre friction, in plain numpy (fixed-step
 RK4 of its own, not jaxflex's step): logs for the discovery tests made another way than
-``jaxflex.datagen``, with effects in forms of their own (a ripple's harmonics, a Stribeck
+``jaxflex.identify.datagen``, with effects in forms of their own (a ripple's harmonics, a Stribeck
 term on the rotor, a second-order current loop).
 
 The joint (docs/spec.md section 1, one joint): I q1'' = K (q2 - q1) - F + link(q1, q1'),
@@ -18,9 +18,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from jaxflex.logs import Log
+from jaxflex.io.logs import Log
 
-#: The true joint: the paper's parameters (``jaxflex.presets.paper_params``) off by a few
+#: The true joint: the paper's parameters (``jaxflex.io.presets.paper_params``) off by a few
 #: percent, so that discovery's nominal refit has work to do.
 TRUE = {"I": 0.074, "J": 0.0052, "K": 6.5, "Fc": 0.10, "Fs": 0.16, "vs": 0.05,
         "sigma0": 100.0, "sigma1": 0.1, "sigma2": 0.21}

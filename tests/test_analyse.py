@@ -7,12 +7,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.analyse import ClosedLoopMap, analyse_loop, jacobian_at, modes, state_names
-from jaxflex.certificate import task_bound
-from jaxflex.controller import CascadeController
-from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid, sensing_preset
-from jaxflex.simulate import lost_band, simulate_sampled
-from jaxflex.trajectory import Sinusoid
+from jaxflex.loop.analyse import ClosedLoopMap, analyse_loop, jacobian_at, modes, state_names
+from jaxflex.core.certificate import task_bound
+from jaxflex.core.controller import CascadeController
+from jaxflex.io.presets import paper_gains, paper_plant, paper_sinusoid, sensing_preset
+from jaxflex.sim.simulate import lost_band, simulate_sampled
+from jaxflex.core.trajectory import Sinusoid
 
 
 def _map(method="model", comp=True, sensing="ideal", traj=None):

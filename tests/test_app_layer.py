@@ -1,7 +1,7 @@
 """The app layer: one table of presets behind every choice list, the controller
 configuration carried from a parameter file into export and run-loop, the rig's plant apart
-from the controller's, and the import graph (edges at the edges, no private names across
-modules, nothing below ``presets`` imports it)."""
+from the controller's, and the import graph (every import points to its own layer or below,
+edges at the edges, no private names across modules, nothing below ``presets`` imports it)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxflex import presets
-from jaxflex.cli import build_parser, main
-from jaxflex.params import Params, save_params
-from jaxflex.presets import SENSING_PRESETS, TRAJECTORIES, paper_params
+from jaxflex.app.cli import build_parser, main
+from jaxflex.io import presets
+from jaxflex.io.params import Params, save_params
+from jaxflex.io.presets import SENSING_PRESETS, TRAJECTORIES, paper_params
 
 PKG = Path(__file__).resolve().parents[1] / "jaxflex"
 
@@ -73,7 +73,7 @@ def test_build_controller_follows_the_files_controller_section(tuned_file):
     import jax.numpy as jnp
 
     from jaxflex.export import build_controller
-    from jaxflex.params import ParamsError
+    from jaxflex.io.params import ParamsError
 
     c = build_controller(tuned_file)
     assert (c.q2d_method, c.dt, c.compensation) == ("filtered", 0.002, False)
@@ -156,13 +156,19 @@ def test_run_loop_uses_the_files_configuration_and_a_separate_rig_plant(tuned_fi
 
 # ----- the import graph ------------------------------------------------------------------------
 
-EDGE_PACKAGES = ("api", "cli", "plots")
-# below ``presets``: these build nothing from presets and must not import it
-BELOW_PRESETS = ("controller", "effects", "friction", "observer", "params", "plant", "sensing",
-                 "simulate", "state", "step", "trajectory", "validation", "fit/__init__",
-                 "fit/space", "fit/problem", "fit/solve", "fit/normal",
-                 "fit/levenberg_marquardt", "fit/padding", "fit/uncertainty", "fit/replay",
-                 "fit/discretisation", "fit/signal")
+#: The layers, bottom up (docs/architecture.md): a module imports from its own layer or the
+#: layers below. Each top-level folder or module of jaxflex has its place; ``__init__`` and
+#: ``_aliases`` (the package's face and its old module names) stand outside.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("runtime",), ("core",), ("sim",), ("io", "data"), ("fit",),
+    ("identify", "discover", "validate", "loop", "tune", "sweep", "export"), ("app", "__main__"))
+RANK = {top: i for i, tops in enumerate(LAYERS) for top in tops}
+FACE = ("__init__", "_aliases")
+# below ``presets``: these build nothing from presets and must not import it (the layers below
+# ``io`` cannot import it at all)
+BELOW_PRESETS = ("io/params", "fit/__init__", "fit/space", "fit/problem", "fit/solve",
+                 "fit/normal", "fit/levenberg_marquardt", "fit/padding", "fit/uncertainty",
+                 "fit/replay", "fit/discretisation", "fit/signal")
 
 
 def _modules() -> dict[str, ast.Module]:
@@ -183,10 +189,37 @@ def _imports(tree: ast.Module):
     yield from walk(tree, None)
 
 
-def test_no_module_outside_cli_and_plots_imports_matplotlib_or_argparse():
+def _top(rel: str) -> str:
+    return rel.split("/")[0].removesuffix(".py")
+
+
+def _targets(mod: str, names: tuple[str, ...]) -> list[str]:
+    """The jaxflex top-level folders or modules an import reaches."""
+    if mod == "jaxflex":
+        return list(names)
+    return [mod.split(".")[1]] if mod.startswith("jaxflex.") else []
+
+
+def test_every_module_has_a_layer():
+    assert {_top(rel) for rel in _modules()} - set(FACE) <= set(RANK)
+
+
+def test_every_import_points_to_its_own_layer_or_below():
     bad = []
     for rel, tree in _modules().items():
-        if rel.split("/")[0] in EDGE_PACKAGES:
+        if _top(rel) in FACE:
+            continue
+        for mod, names, _ in _imports(tree):
+            for top in _targets(mod, names):
+                if RANK.get(top, -1) > RANK[_top(rel)]:
+                    bad.append((rel, mod))
+    assert not bad
+
+
+def test_no_module_outside_the_app_layer_imports_matplotlib_or_argparse():
+    bad = []
+    for rel, tree in _modules().items():
+        if _top(rel) == "app":
             continue
         for mod, _, _ in _imports(tree):
             if mod.split(".")[0] in ("matplotlib", "argparse"):
@@ -213,8 +246,8 @@ def test_commands_start_without_scipy_signal_and_stats():
     scipy.special's distribution functions instead. Loading every module of the command line
     and of the workflows a command runs must not bring either in (``validate`` imports
     scipy.signal's filter only where it filters)."""
-    assert _loaded_by("jaxflex.cli, jaxflex.identify, jaxflex.discover, jaxflex.validate, "
-                      "jaxflex.robust, jaxflex.tune, jaxflex.sweep, jaxflex.experiments",
+    assert _loaded_by("jaxflex.app.cli, jaxflex.identify, jaxflex.discover, jaxflex.validate, "
+                      "jaxflex.tune.robust, jaxflex.tune, jaxflex.sweep, jaxflex.loop.experiments",
                       ("scipy.signal", "scipy.stats")) == []
 
 
@@ -223,8 +256,8 @@ def test_identify_starts_without_scipy_special():
     distribution functions are used (discover, the robust tuner, a posterior's box), not by
     the modules ``jaxflex identify`` loads before its fit (a first run compiles its solver
     behind that start)."""
-    assert _loaded_by("jaxflex.cli, jaxflex.cli.identify, jaxflex.identify, "
-                      "jaxflex.sweep.engine, jaxflex.plots.identify", ("scipy.special",)) == []
+    assert _loaded_by("jaxflex.app.cli, jaxflex.app.cli.identify, jaxflex.identify, "
+                      "jaxflex.sweep.engine, jaxflex.app.plots.identify", ("scipy.special",)) == []
 
 
 def test_no_private_name_is_imported_across_modules():
@@ -237,18 +270,14 @@ def test_no_private_name_is_imported_across_modules():
     assert not bad
 
 
-def test_nothing_below_presets_imports_it_and_no_workflow_imports_the_report_layer():
+def test_nothing_below_presets_imports_it_and_the_sweep_takes_no_experiment():
     bad = []
     for rel, tree in _modules().items():
         stem = rel.removesuffix(".py")
         for mod, _, _ in _imports(tree):
-            if stem in BELOW_PRESETS and mod == "jaxflex.presets":
+            if stem in BELOW_PRESETS and mod == "jaxflex.io.presets":
                 bad.append((rel, mod))
-            top = rel.split("/")[0].removesuffix(".py")
-            app = top in (*EDGE_PACKAGES, "reports", "__main__")
-            if not app and mod.startswith(("jaxflex.plots", "jaxflex.reports", "jaxflex.cli")):
-                bad.append((rel, mod))
-            if top == "sweep" and mod == "jaxflex.experiments":  # the sweep takes names from presets
+            if _top(rel) == "sweep" and mod == "jaxflex.loop.experiments":  # names come from presets
                 bad.append((rel, mod))
     assert not bad
 

@@ -1,4 +1,4 @@
-"""The coupled arm's identification (jaxflex.arm_ident): exact recovery of base parameters,
+"""The coupled arm's identification (jaxflex.identify.arm): exact recovery of base parameters,
 rotor inertias, friction, offsets and a known torque's scale from a log made by the chain's
 own inverse dynamics; the KUKA KR300's axes 1-3 fitted on A against the per-axis rigid
 baseline on B."""
@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.arm_ident import (
+from jaxflex.identify.arm import (
     ArmMotion,
     arm_base,
     identify_arm,
@@ -15,7 +15,7 @@ from jaxflex.arm_ident import (
     kuka_counterbalance,
     torque_error_pct,
 )
-from jaxflex.chain import SerialChain
+from jaxflex.core.chain import SerialChain
 
 JA = np.array([0.8, 0.5, 0.3])       # rotor inertias [kg m^2]
 FV = np.array([2.0, 1.5, 0.7])       # viscous [N m s/rad]
@@ -36,7 +36,7 @@ def three_link() -> SerialChain:
 
 def synthetic_motion(chain: SerialChain, N: int = 400) -> tuple[ArmMotion, np.ndarray]:
     """Sums of sines on the links, a different small deflection on the motors, exact
-    derivatives, torques by the model of jaxflex.arm_ident's docstring (noise-free)."""
+    derivatives, torques by the model of jaxflex.identify.arm's docstring (noise-free)."""
     t = np.arange(N) * 0.01
     w = np.array([[0.7, 1.9], [1.1, 2.3], [0.9, 3.1]])
     amp = np.array([[0.8, 0.3], [0.5, 0.2], [0.6, 0.25]])

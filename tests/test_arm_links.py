@@ -15,8 +15,8 @@ import pytest
 from jaxflex.fit import ParamSpace, get_value, set_values
 from jaxflex.fit.space import params_of_plant
 from jaxflex.identify.links import base_record, structural_free
-from jaxflex.params import Params, ParamsError
-from jaxflex.plant import PlanarTwoLink
+from jaxflex.io.params import Params, ParamsError
+from jaxflex.core.plant import PlanarTwoLink
 
 STUDIES = Path(__file__).resolve().parents[1] / "studies"
 
@@ -136,7 +136,7 @@ def test_independent_simulator_agrees_with_the_plant_at_the_truth():
 
     from jaxflex.fit import least_squares
     from jaxflex.identify.problem import make_problem, noise_cost
-    from jaxflex.logs import Log
+    from jaxflex.io.logs import Log
 
     sys.path.insert(0, str(STUDIES))
     import arm_two_link

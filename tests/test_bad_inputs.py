@@ -3,7 +3,7 @@ output paths, controller files, log files and interrupts.
 
 Every case asserts a non-zero exit, a message on stderr that names the problem, no traceback,
 and that an output file written before (a sentinel) is unchanged. Cases run in-process through
-``jaxflex.cli.main`` (fast); only the interrupts use subprocesses, with real signals sent to the
+``jaxflex.app.cli.main`` (fast); only the interrupts use subprocesses, with real signals sent to the
 process group as a terminal does.
 """
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from jaxflex.cli import main
+from jaxflex.app.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 GOOD = {"plant": {"I": 0.07, "J": 0.005, "K": 6.77},

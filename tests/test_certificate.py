@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from jaxflex.certificate import (
+from jaxflex.core.certificate import (
     certify,
     d_vector,
     lambda_min,
@@ -21,11 +21,11 @@ from jaxflex.certificate import (
     psi_sharp,
     ultimate_bound,
 )
-from jaxflex.controller import CascadeGains
-from jaxflex.friction import LuGre
-from jaxflex.params import save_params
-from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
-from jaxflex.presets import paper_gains, paper_params, paper_plant, paper_sinusoid
+from jaxflex.core.controller import CascadeGains
+from jaxflex.core.friction import LuGre
+from jaxflex.io.params import save_params
+from jaxflex.core.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.io.presets import paper_gains, paper_params, paper_plant, paper_sinusoid
 
 
 def _lyapunov_derivative(n: int):
@@ -205,7 +205,7 @@ def test_ultimate_bound():
 
 def _cli(capsys, *args):
     """Run ``jaxflex certify`` in-process; returns (exit code, stdout, stderr)."""
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     rc = main(["certify", *args])
     out = capsys.readouterr()
@@ -248,8 +248,8 @@ def test_certify_is_float64_without_the_global_setting():
 
     code = (
         "import jax\n"
-        "from jaxflex.certificate import certify\n"
-        "from jaxflex.presets import paper_gains, paper_plant\n"
+        "from jaxflex.core.certificate import certify\n"
+        "from jaxflex.io.presets import paper_gains, paper_plant\n"
         "r = certify(paper_plant(), paper_gains(), 5.0)\n"
         "print(r.certified, r.to_dict()['min_lambda_min'], r.lambda_min.dtype, "
         "jax.config.jax_enable_x64)\n"

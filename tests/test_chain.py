@@ -1,4 +1,4 @@
-"""SerialChain: M, C, G of a chain from DH parameters (jaxflex.chain) against closed forms,
+"""SerialChain: M, C, G of a chain from DH parameters (jaxflex.core.chain) against closed forms,
 energy conservation and the structure gravity must have."""
 
 import jax
@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.chain import SerialChain, standard_parameters
-from jaxflex.plant import FlexibleJointPlant, PlanarTwoLink
-from jaxflex.step import rk4
+from jaxflex.core.chain import SerialChain, standard_parameters
+from jaxflex.core.plant import FlexibleJointPlant, PlanarTwoLink
+from jaxflex.sim.step import rk4
 
 
 def random_chain(seed: int, joints: str = "RRRRRR", g=(0.0, 0.0, -9.81)) -> SerialChain:

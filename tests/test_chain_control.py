@@ -1,5 +1,5 @@
 """The paper's cascade law (eq. 9-16) with friction observers on a coupled three-axis flexible
-arm built from its kinematics (jaxflex.chain), closed loop, and its N2 certificate for n
+arm built from its kinematics (jaxflex.core.chain), closed loop, and its N2 certificate for n
 joints (eq. 29-31)."""
 
 import equinox as eqx
@@ -7,13 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.certificate import certify, lambda_min
-from jaxflex.chain import SerialChain
-from jaxflex.controller import CascadeController, CascadeGains
-from jaxflex.friction import LuGre
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.simulate import simulate_sampled
-from jaxflex.trajectory import RestToRest
+from jaxflex.core.certificate import certify, lambda_min
+from jaxflex.core.chain import SerialChain
+from jaxflex.core.controller import CascadeController, CascadeGains
+from jaxflex.core.friction import LuGre
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.sim.simulate import simulate_sampled
+from jaxflex.core.trajectory import RestToRest
 
 
 def three_axis_arm() -> FlexibleJointPlant:
@@ -68,7 +68,7 @@ def test_n2_certificate_on_the_three_axis_arm():
 
 
 def _joint(p: FlexibleJointPlant, i: int) -> FlexibleJointPlant:
-    from jaxflex.plant import DiagonalInertia
+    from jaxflex.core.plant import DiagonalInertia
     fr = p.friction
     one = LuGre(**{k: getattr(fr, k)[i:i + 1] for k in ("Fc", "Fs", "vs", "sigma0", "sigma1",
                                                         "sigma2")})

@@ -5,11 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.controller import CascadeController, CascadeGains
-from jaxflex.friction import LuGre
-from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
-from jaxflex.presets import paper_gains, paper_lugre, paper_plant, paper_sinusoid, two_link_plant
-from jaxflex.step import plant_step, rk4
+from jaxflex.core.controller import CascadeController, CascadeGains
+from jaxflex.core.friction import LuGre
+from jaxflex.core.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.io.presets import paper_gains, paper_lugre, paper_plant, paper_sinusoid, two_link_plant
+from jaxflex.sim.step import plant_step, rk4
 
 
 @pytest.mark.parametrize("v", [-3.0, -0.3, -0.04, -0.005, 0.002, 0.03, 0.2, 1.0, 4.0])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxflex import data
-from jaxflex.logs import Log
+from jaxflex.io.logs import Log
 
 # CI clones have the shared folder beside the repository (../shared/data); a user's clone may not.
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from jaxflex.datagen import generate_log
+from jaxflex.identify.datagen import generate_log
 from jaxflex.discover import DiscoverConfig, discover
-from jaxflex.logs import Log, load_log, save_log
-from jaxflex.presets import paper_params
+from jaxflex.io.logs import Log, load_log, save_log
+from jaxflex.io.presets import paper_params
 
 # a small candidate set keeps the default tests short (one compile shared by both logs)
 CANDS = ("backlash", "encoder_skew", "hardening_spring", "torque_offset")
@@ -177,9 +177,9 @@ def test_motor_cogging_is_told_from_link_cogging():
 def test_a_two_joint_log_gets_an_answer_per_joint(tmp_path):
     """n joints: each joint of a two-joint log is examined with its own parameters (CLI end to
     end: one report per joint and the answers side by side)."""
-    from jaxflex.cli import main
-    from jaxflex.params import Params, save_params
-    from jaxflex.presets import paper_params
+    from jaxflex.app.cli import main
+    from jaxflex.io.params import Params, save_params
+    from jaxflex.io.presets import paper_params
 
     a = generate_log(("backlash",), seed=3, t_final=8.0).log
     b = generate_log((), seed=4, t_final=8.0).log
@@ -203,7 +203,7 @@ def test_a_two_joint_log_gets_an_answer_per_joint(tmp_path):
 def test_generator_goes_beyond_the_workflows_assumptions():
     """Other loops, a slow swing in the excitation and an out-of-library disturbance give
     finite, moving logs; bad settings are named."""
-    from jaxflex.datagen import generate_log as gen
+    from jaxflex.identify.datagen import generate_log as gen
 
     for kw in ({"loop": "pd_rotor"}, {"loop": "open_loop", "excitation": "multisine_ramp"},
                {"disturbance": "friction_bump"}):
@@ -376,7 +376,7 @@ def test_time_constants_start_and_stay_where_the_replay_step_is_stable():
     the delay's Pade poles (-3 +- j sqrt 3) / T need T > 1.22 h under RK4 (at 3 ms and 4 ms
     steps the replay blew up). The workspace raises the fitted bound to STEP_FLOOR x h."""
     from jaxflex.discover import STEP_FLOOR, typical_effect, workspace
-    from jaxflex.effects import EFFECTS
+    from jaxflex.core.effects import EFFECTS
 
     for name in ("actuator_lag", "time_delay"):
         assert float(typical_effect(name, 1e-3).T[0]) == pytest.approx(3e-3)
@@ -400,7 +400,7 @@ def test_a_pinned_static_friction_is_released_to_the_nominal():
     whose Fc sits at zero, gets its Coulomb and static friction back at the workspace's
     nominal values (no solve moves a coordinate that has no slope); any other fit, None."""
     from jaxflex.discover import CandidateFit, Model, released, workspace
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     g = generate_log((), seed=4, t_final=4.0)
     true = Params.from_dict(g.truth["plant"])
@@ -436,7 +436,7 @@ def test_fitted_starts_bring_a_correct_model_to_the_noise():
 
     from jaxflex.discover import Model, fit_starts, workspace
     from jaxflex.fit import simulated_outputs
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     g = generate_log((), seed=4, t_final=4.0)
     true = Params.from_dict(g.truth["plant"])
@@ -462,7 +462,7 @@ def test_bristle_load_at_a_segment_start_is_estimated_in_stick():
     the link's inverse dynamics, as a fraction of the capacity: it matches the true z."""
     from jaxflex.discover import bristle_entries
     from jaxflex.identify.experiments import synthetic_log
-    from jaxflex.presets import paper_params
+    from jaxflex.io.presets import paper_params
 
     plant = paper_params().to_plant(with_effects=False)
     t = np.arange(4000) * 1e-3
@@ -489,7 +489,7 @@ def test_a_correct_model_replays_every_held_out_segment_to_the_noise():
     "unexplained". With the bounded start z no segment stands out."""
     from jaxflex.discover import Model, fit_starts, workspace
     from jaxflex.fit import simulated_outputs
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     g = generate_log((), seed=113, t_final=12.0, loop="pd_rotor", excitation="multisine")
     true = Params.from_dict(g.truth["plant"])
@@ -716,9 +716,9 @@ def test_a_candidate_that_cannot_change_the_replay_is_refused(tmp_path, capsys, 
     the command (exit 2)."""
     from typing import ClassVar
 
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
     from jaxflex.data import load_kuka
-    from jaxflex.effects import EFFECTS, AbstractEffect
+    from jaxflex.core.effects import EFFECTS, AbstractEffect
 
     class InputOnly(AbstractEffect):
         name: ClassVar[str] = "input_only"
@@ -808,7 +808,7 @@ def test_a_partial_explanation_is_not_the_answer():
     ("spring_hysteresis", ("backlash", "joint_damping", "hardening_spring"), "Th", 0.15),
 ])
 def test_an_effect_of_real_joints_is_named_when_it_is_a_candidate(name, rivals, param, rel):
-    """The effects of real joints beyond the paper's model (``jaxflex.effects.extra``), not
+    """The effects of real joints beyond the paper's model (``jaxflex.core.effects.extra``), not
     tried by default, are named when given as candidates beside the effects they resemble
     (a dead band beside an offset, a lag and a rotor friction; a load-dependent friction
     beside a rotor friction; a hysteresis beside the other spring effects), on a log that

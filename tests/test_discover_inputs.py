@@ -17,9 +17,9 @@ from jaxflex.discover import (
     spring_mode,
 )
 from jaxflex.data import EMPS_IDIM_LS
-from jaxflex.errors import InputError
-from jaxflex.logs import save_log
-from jaxflex.params import Params, ParamsError
+from jaxflex.io.errors import InputError
+from jaxflex.io.logs import save_log
+from jaxflex.io.params import Params, ParamsError
 
 #: The EMPS benchmark's published rigid model as a rigid identification would write it (the
 #: moving mass as I plus a tiny J, a large K), with a Stribeck hump and no force offset.
@@ -68,7 +68,7 @@ def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
     """The rigid EMPS file, its model read from the file: discover runs (it used to exit 2
     with "Eigenvalues did not converge" and leave an empty folder), reports the model and
     the final model's residual analysis with its figure."""
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
     from jaxflex.data import load_emps
 
     log = load_emps("DATA_EMPS").slice(0, 8000)
@@ -100,7 +100,7 @@ def test_a_solver_crash_is_a_solver_failure_naming_the_fit(emps_log, tmp_path, c
     model's refit here), not a bad input: the command exits 1 (not 2) and report.json records
     the failure."""
     import jaxflex.discover.fitting as fitting
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     def broken(*a, **k):
         raise np.linalg.LinAlgError("Eigenvalues did not converge")
@@ -135,7 +135,7 @@ def test_a_model_limited_file_runs_from_the_command_line_with_its_kind(tmp_path,
     """The command takes a converged, model-limited file without --accept-unconverged, says
     so in one line, and takes the file's model kind ('rigid': the input check passes and the
     refusal of a too-stiff flexible replay does not come)."""
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     import jaxflex.discover as d
 
@@ -216,10 +216,10 @@ def test_a_declared_vertical_axis_leaves_gravity_untried(monkeypatch):
     1) or prismatic: gravity cannot act there and is not tried; asked for by name it is
     refused, naming the declaration; a bad declaration is refused naming its values."""
     import jaxflex.discover.workflow as dm
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
     from jaxflex.discover import cannot_act, declared_axes
-    from jaxflex.effects import candidate_effects
-    from jaxflex.presets import paper_params
+    from jaxflex.core.effects import candidate_effects
+    from jaxflex.io.presets import paper_params
 
     d = paper_params().to_dict()
     vertical = Params.from_dict(d | {"axis": "vertical"})
@@ -245,7 +245,7 @@ def test_a_declared_vertical_axis_leaves_gravity_untried(monkeypatch):
         discover(log, vertical, progress=seen.append)
     assert "gravity" not in e.value.args[0]
     # the workspace holds the candidates and their families' higher orders
-    from jaxflex.effects import EFFECTS
+    from jaxflex.core.effects import EFFECTS
 
     assert sorted(c for c in e.value.args[0] if EFFECTS[c].order == 1) == sorted(
         c for c in candidate_effects() if c != "gravity")
@@ -259,7 +259,7 @@ def test_a_declared_vertical_axis_leaves_gravity_untried(monkeypatch):
                             "friction": {k: [v[0]] * 2 for k, v in d["friction"].items()},
                             "axis": ["vertical", "horizontal"]})
     assert declared_axes(two) == ["vertical", "horizontal"]
-    from jaxflex.logs import Log
+    from jaxflex.io.logs import Log
 
     got = []
     monkeypatch.setattr(dm, "discover", lambda lg, nom, cfg, progress: got.append(cannot_act(nom)))
@@ -275,7 +275,7 @@ def test_a_model_limited_rotor_identification_of_kuka_axis_1_runs(tmp_path, caps
     (datasheet J and K) of a vertical axis, as a new user runs it: the note, the rotor
     model's link side from the log, gravity not tried; an answer with the residual analysis
     (measured: encoder_skew, 1.8 +- 0.16 ms, held-out gap 0.0131 -> 0.0033, 69 s)."""
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
     from jaxflex.data import kuka_record, load_kuka
 
     save_log(load_kuka("C", 1), tmp_path / "k.csv")
@@ -306,7 +306,7 @@ def test_an_unconverged_identification_is_refused_unless_accepted(tmp_path, caps
     """A file whose solver did not reach a stationary point is refused by the command (exit
     2, naming the file) and taken with --accept-unconverged."""
     import jaxflex.discover as d
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     # "0": not accepted; monkeypatch restores the variable that --accept-unconverged sets
     monkeypatch.setenv("JAXFLEX_ACCEPT_UNCONVERGED", "0")

@@ -7,7 +7,7 @@ Stribeck term is answered ``motor_friction`` order 2."""
 import pytest
 
 from jaxflex.discover import DiscoverConfig, DiscoverResult, discover, effect_ties
-from jaxflex.presets import paper_params
+from jaxflex.io.presets import paper_params
 
 from independent_joint import harmonics, simulate
 

@@ -1,4 +1,4 @@
-"""Effect families with an order (``jaxflex.effects.orders``, docs/spec.md section 8): each
+"""Effect families with an order (``jaxflex.core.effects.orders``, docs/spec.md section 8): each
 order is registered and chained to the next, an order with its new parameters at zero is the
 order below, and each order's first guess (``from_lower``) reads its new parameters off a
 residual that holds them."""
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from jaxflex.discover.localisation import _ResidualStart
-from jaxflex.effects import EFFECTS, family_orders
-from jaxflex.params import Params
-from jaxflex.presets import paper_params, paper_plant
+from jaxflex.core.effects import EFFECTS, family_orders
+from jaxflex.io.params import Params
+from jaxflex.io.presets import paper_params, paper_plant
 
 FAMILIES = {"cogging": 3, "motor_cogging": 3, "motor_friction": 2, "actuator_lag": 2}
 

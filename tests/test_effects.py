@@ -9,17 +9,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.effects import EFFECTS, link_input, link_measurement
-from jaxflex.params import Params
-from jaxflex.presets import paper_params
-from jaxflex.presets import paper_plant
+from jaxflex.core.effects import EFFECTS, link_input, link_measurement
+from jaxflex.io.params import Params
+from jaxflex.io.presets import paper_params
+from jaxflex.io.presets import paper_plant
 
 SPEC_NAMES = {
     "asymmetric_friction", "gravity", "cogging", "backlash", "hardening_spring",
     "joint_damping", "motor_friction", "actuator_lag", "torque_offset", "time_delay",
     "load_friction", "spring_hysteresis", "actuator_dead_zone",
 }
-#: Effects of real joints beyond the paper's model (``jaxflex.effects.extra``), opt-in
+#: Effects of real joints beyond the paper's model (``jaxflex.core.effects.extra``), opt-in
 #: discovery candidates.
 EXTRA_NAMES = ("load_friction", "spring_hysteresis", "actuator_dead_zone")
 
@@ -143,7 +143,7 @@ def test_gated_effect_equals_the_effect_or_nothing(name):
     gate is not batched) gives the plant's accelerations and link reading with the effect
     (gate 1) or without it (gate 0), exactly; batched gates (vmap over models: both branches, then a select) give the
     same numbers."""
-    from jaxflex.effects import Gated
+    from jaxflex.core.effects import Gated
 
     eff = EFFECTS[name].typical(1)
     # typical() of a signed effect is zero: give every parameter a size
@@ -181,7 +181,7 @@ def test_gated_effects_taken_in_one_branch_per_hook_equal_the_active_effects(act
     ``applied_torque``), and the accelerations equal those of the plant holding only the
     active effects, in their order; an inactive effect's value never enters (one is given a
     parameter that makes its torque infinite); batched gates give the same numbers."""
-    from jaxflex.effects import Gated
+    from jaxflex.core.effects import Gated
 
     names = sorted(n for n, e in EFFECTS.items() if e.candidate)
     effs = {n: jax.tree_util.tree_map(lambda a: a + 0.01 if a.shape == (1,) else a,
@@ -224,8 +224,8 @@ def test_gated_states_are_warmed_only_when_their_effect_is_on(on):
     (they stay at equilibrium with the first torque: they cannot act); with one on, a replay
     of the gated universal plant equals that of the plant holding the active effects alone,
     warm-up included."""
-    from jaxflex.effects import Gated
-    from jaxflex.step import replay, warm_effects
+    from jaxflex.core.effects import Gated
+    from jaxflex.sim.step import replay, warm_effects
 
     names = ("actuator_lag", "joint_damping", "time_delay", "torque_offset")
     effs = {n: jax.tree_util.tree_map(lambda a: a + 0.01 if a.shape == (1,) else a,
@@ -311,7 +311,7 @@ def test_encoder_scale_maps_invert_and_a_rotor_fit_recovers_it():
 def test_extra_effects_carry_their_discovery_metadata_and_are_opt_in():
     """The three effects of real joints are registered with their fitting and discovery
     metadata on the class, and tried by discover only when named (not ``candidate``)."""
-    from jaxflex.effects import acts_on_replay, candidate_effects
+    from jaxflex.core.effects import acts_on_replay, candidate_effects
     from jaxflex.fit import is_fitted
 
     for name in EXTRA_NAMES:
@@ -343,7 +343,7 @@ def test_load_friction_is_a_share_of_the_transmitted_torque_against_the_rotor_mo
 def _dahl_path(e, d):
     """The hysteresis state z [N m] along a deflection path ``d`` (T,) [rad] at 1 ms steps
     (RK4 of ``aux_rhs`` with the rate of the path's linear pieces)."""
-    from jaxflex.state import PlantState
+    from jaxflex.core.state import PlantState
 
     h = 1e-3
 
@@ -409,7 +409,7 @@ def test_a_plant_with_an_extra_effect_simulates_and_its_gradient_is_finite(name)
     link motion with respect to every fitted parameter is finite and not zero (also through
     the smoothed kinks: a reversal of the rotor, the deflection or the torque)."""
     from jaxflex.fit import is_fitted
-    from jaxflex.step import replay
+    from jaxflex.sim.step import replay
 
     cls = EFFECTS[name]
     eff = cls(**{k: np.asarray(v, float) for k, v in cls.draw(np.random.default_rng(1)).items()

@@ -1,5 +1,5 @@
 """The model-based velocity estimator (coarse encoders): the steady-state Kalman
-filter of ``jaxflex.estimator`` against the dirty derivative on quantised angles, its
+filter of ``jaxflex.core.estimator`` against the dirty derivative on quantised angles, its
 convergence on exact measurements of a linear plant, its Riccati solution, its place in the
 closed loop and the closed-loop Jacobian, and the errors for bad settings."""
 
@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from jaxflex.analyse import ClosedLoopMap, jacobian_at, state_names
-from jaxflex.controller import CascadeController
-from jaxflex.estimator import (
+from jaxflex.loop.analyse import ClosedLoopMap, jacobian_at, state_names
+from jaxflex.core.controller import CascadeController
+from jaxflex.core.estimator import (
     KalmanEstimator, KalmanTuning, joint_model, kalman_for, solve_filter_riccati,
 )
-from jaxflex.presets import paper_gains, paper_plant, paper_sensing, paper_sinusoid, sensing_of
-from jaxflex.sensing import Sensing
-from jaxflex.simulate import simulate_sampled
-from jaxflex.step import plant_step
+from jaxflex.io.presets import paper_gains, paper_plant, paper_sensing, paper_sinusoid, sensing_of
+from jaxflex.core.sensing import Sensing
+from jaxflex.sim.simulate import simulate_sampled
+from jaxflex.sim.step import plant_step
 
 
 def _ctrl(plant=None, method="model", comp=True, traj=None):

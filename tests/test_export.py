@@ -23,7 +23,7 @@ from jaxflex.export import (
     parity_ok,
 )
 from jaxflex.export.pygen import function_source
-from jaxflex.presets import paper_params
+from jaxflex.io.presets import paper_params
 
 
 @pytest.fixture(scope="module")
@@ -187,7 +187,7 @@ def test_unsupported_primitive_is_named():
 
 
 def test_cli_export_check(tmp_path, capsys):
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     out = tmp_path / "controller.py"
     params = tmp_path / "p.json"
@@ -228,7 +228,7 @@ def test_translator_unrolls_static_scan():
 # ----- the certified configuration: velocity source, Kalman filter, leak, reference --------
 
 from jaxflex.export import ExportError, REFERENCE_ROWS, SampledController, rig_controller  # noqa: E402
-from jaxflex.presets import REPRODUCE_LEAK, paper_sensing, with_estimator  # noqa: E402
+from jaxflex.io.presets import REPRODUCE_LEAK, paper_sensing, with_estimator  # noqa: E402
 
 
 def _reproduce_params() -> dict:
@@ -338,7 +338,7 @@ def test_exact_velocity_refused_by_name(sensing, tmp_path, capsys):
         rig_controller(p)
     path = tmp_path / "p.json"
     path.write_text(json.dumps(p))
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     assert main(["export", "--params", str(path), "--out", str(tmp_path / "c.py")]) == 2
     assert "controller.sensing.velocity" in capsys.readouterr().err
@@ -346,7 +346,7 @@ def test_exact_velocity_refused_by_name(sensing, tmp_path, capsys):
 
 
 def test_unknown_output_suffix_refused_by_name(tmp_path, capsys):
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     assert main(["export", "--out", str(tmp_path / "controller.cpp")]) == 2
     err = capsys.readouterr().err

@@ -20,7 +20,7 @@ from jaxflex.export import (
     trace,
 )
 from jaxflex.export.native import compile_c, export_c, find_cc, load_c
-from jaxflex.presets import REPRODUCE_LEAK, paper_params, paper_sensing, with_estimator
+from jaxflex.io.presets import REPRODUCE_LEAK, paper_params, paper_sensing, with_estimator
 
 needs_cc = pytest.mark.skipif(find_cc() is None, reason="no C compiler (cc) on this machine")
 
@@ -127,7 +127,7 @@ def test_cli_export_c_check(tmp_path, capsys):
     """`export --out controller.c` writes controller.c and controller.h; --check compiles it
     and runs it in the closed loop, --check-reference also with the reference given at each
     step (or it says there is no compiler)."""
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     out = tmp_path / "controller.c"
     rc = main(["export", "--out", str(out), "--check", "--check-reference",
@@ -155,7 +155,7 @@ def test_run_loop_runs_the_c_controller(exported, tmp_path, capsys):
     """run-loop --controller controller.c: the C controller in the fixed-period loop against
     the simulated rig, lock-step, to completion with a log; with --reference the rig gives it
     another task's reference at each step."""
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     _, folder, _, _, _ = exported
     log = tmp_path / "run.csv"
@@ -167,8 +167,8 @@ def test_run_loop_runs_the_c_controller(exported, tmp_path, capsys):
     assert summary["completed"] and summary["samples"] == 300
     assert log.read_text().splitlines()[0] == "t,tau,q1,q2,q1d"
     # the rig's reference instead of the recorded one (--reference)
-    from jaxflex.cli.run_loop import rig_reference
-    from jaxflex.logs import load_log
+    from jaxflex.app.cli.run_loop import rig_reference
+    from jaxflex.io.logs import load_log
 
     log2 = tmp_path / "run_poly.csv"
     rc = main(["run-loop", "--controller", str(folder / "controller.c"), "--duration", "0.3",

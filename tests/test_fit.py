@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.effects import EFFECTS, Gated
+from jaxflex.core.effects import EFFECTS, Gated
 from jaxflex.fit import (
     CostBound,
     Padding,
@@ -24,8 +24,8 @@ from jaxflex.fit import (
 )
 from jaxflex.fit.space import _parse
 from jaxflex.identify import excitation_torque, synthetic_log
-from jaxflex.logs import Log
-from jaxflex.presets import paper_params
+from jaxflex.io.logs import Log
+from jaxflex.io.presets import paper_params
 
 
 def _gated_plant(active: tuple[str, ...] = ()):
@@ -513,7 +513,7 @@ def test_shooting_solve_equals_dense_solve_for_two_joints():
 
     from jaxflex.fit.normal import dense_newton_step, shooting_newton_step
     from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     p = Params.from_dict({
         "plant": {"I": [0.07, 0.05], "J": [0.005, 0.004], "K": [6.77, 5.0]},
@@ -606,7 +606,7 @@ def test_work_made_ahead_runs_in_order_and_a_failure_stops_nothing():
     no thread is left once joined."""
     import threading
 
-    from jaxflex.fit.ahead import THREAD_NAME, Ahead
+    from jaxflex.runtime.ahead import THREAD_NAME, Ahead
 
     ran = []
 
@@ -631,7 +631,7 @@ def test_side_by_side_keeps_order_float64_and_failures():
     raises it."""
     import threading
 
-    from jaxflex.fit.ahead import POOL_NAME, all_side_by_side, side_by_side
+    from jaxflex.runtime.ahead import POOL_NAME, all_side_by_side, side_by_side
 
     def work(k):
         if k == 2:
@@ -760,7 +760,7 @@ def test_host_side_conversions_compile_no_programs(lowerings):
     back, lowers no per-shape program (``jnp.asarray`` of a numpy array compiles a copy in
     JAX 0.10, and every new process paid those compilations again: 66 programs on a second
     ``discover`` run, 25 after). Fails if one of these paths goes back to eager jnp."""
-    from jaxflex.validation import as_param
+    from jaxflex.core.validation import as_param
 
     t = np.arange(437) * 1e-3  # shapes no other test uses
     log = Log.from_arrays(t=t, tau=np.sin(t), q1=np.cos(t), q2=np.cos(t) + 1e-3)

@@ -1,4 +1,4 @@
-"""Hardware loop runner (jaxflex.hardware): the exported controller against the simulated rig
+"""Hardware loop runner (jaxflex.app.hardware): the exported controller against the simulated rig
 in lock-step equals the JAX closed loop; protections (torque limit, NaN/range guard,
 watchdog, clean stop on exceptions and signals) always leave zero torque; docs/spec.md section 6 log."""
 
@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from jaxflex.export import build_controller, generate_source, load_module
-from jaxflex.hardware import LoopConfig, RigIO, SimulatedRig, run_loop
-from jaxflex.logs import Log, save_log
-from jaxflex.presets import paper_params
+from jaxflex.app.hardware import LoopConfig, RigIO, SimulatedRig, run_loop
+from jaxflex.io.logs import Log, save_log
+from jaxflex.io.presets import paper_params
 
 
 class FakeIO(RigIO):
@@ -109,7 +109,7 @@ def test_raising_controller_ends_at_zero_torque_and_writes_the_log(tmp_path):
     assert res.samples == 3 and np.all(res.tau == 0.7)
     # three torques, then the final zero; nothing is written for the failed sample
     assert [float(w[0]) for w in io.written] == [0.7, 0.7, 0.7, 0.0] and io.closed
-    from jaxflex.logs import load_log
+    from jaxflex.io.logs import load_log
 
     log = load_log(tmp_path / "log.csv")
     assert log.N == 3 and res.log_path == str(tmp_path / "log.csv")
@@ -146,7 +146,7 @@ def test_nan_angle_stops_at_zero_and_writes_the_log(tmp_path):
                    log_path=tmp_path / "log.csv")
     assert res.stop_reason.startswith("guard: sample 4: non-finite angle")
     assert res.log_path is not None and np.all(io.written[-1] == 0.0)
-    from jaxflex.logs import load_log
+    from jaxflex.io.logs import load_log
 
     assert load_log(tmp_path / "log.csv").N == 4  # the samples before the NaN
 
@@ -205,8 +205,8 @@ def test_exported_controller_on_simulated_rig_matches_jax(tmp_path):
     encoders) reproduces the JAX sampled-data simulation of the same run."""
     import jax
 
-    from jaxflex.sensing import Sensing
-    from jaxflex.simulate import simulate_sampled
+    from jaxflex.core.sensing import Sensing
+    from jaxflex.sim.simulate import simulate_sampled
 
     jax.config.update("jax_enable_x64", True)
     p = paper_params()
@@ -228,7 +228,7 @@ def test_exported_controller_on_simulated_rig_matches_jax(tmp_path):
     assert np.sqrt(np.mean(e_loop**2)) < 0.02  # it tracks (0.05 rad reference amplitude)
     text = (tmp_path / "run.csv").read_text().splitlines()
     assert text[0] == "t,tau,q1,q2,q1d" and len(text) == 1501
-    from jaxflex.logs import load_log
+    from jaxflex.io.logs import load_log
 
     log = load_log(tmp_path / "run.csv")
     assert log.N == 1500 and abs(log.dt - 1e-3) < 1e-12
@@ -240,9 +240,9 @@ def test_rig_reference_drives_the_exported_controller(tmp_path):
     of the controller built for the polynomial task (lock-step, simulated rig)."""
     import jax
 
-    from jaxflex.cli.run_loop import rig_reference
-    from jaxflex.sensing import Sensing
-    from jaxflex.simulate import simulate_sampled
+    from jaxflex.app.cli.run_loop import rig_reference
+    from jaxflex.core.sensing import Sensing
+    from jaxflex.sim.simulate import simulate_sampled
 
     jax.config.update("jax_enable_x64", True)
     p = paper_params()
@@ -268,7 +268,7 @@ def test_rig_reference_drives_the_exported_controller(tmp_path):
 
 @pytest.mark.slow
 def test_cli_run_loop_lockstep(tmp_path, capsys):
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     log = tmp_path / "out.csv"
     ctrl = tmp_path / "controller.py"
@@ -286,7 +286,7 @@ def test_cli_run_loop_lockstep(tmp_path, capsys):
     assert summary["completed"] and summary["samples"] == 500
     import argparse
 
-    from jaxflex.cli.run_loop import run as run_loop_cmd
+    from jaxflex.app.cli.run_loop import run as run_loop_cmd
 
     ns = argparse.Namespace(
         params=None, rig_params=None, duration=0.1, rate=500.0, log=str(log),

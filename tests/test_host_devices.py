@@ -64,7 +64,7 @@ def test_use_all_cores_refuses_a_count_below_one():
 
 
 def test_cli_exposes_every_core_before_jax_starts():
-    code = ("import sys, jax; from jaxflex.cli import main; "
+    code = ("import sys, jax; from jaxflex.app.cli import main; "
             "rc = main(['--host-devices', '2', 'sweep', 'missing.json']); "
             "print(len(jax.devices('cpu')), rc)")
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
@@ -78,7 +78,7 @@ _LEAN = textwrap.dedent("""
     import os
     import jax.numpy as jnp
     import sys
-    from jaxflex.sweep.engine import use_lean_xla_cpu
+    from jaxflex.runtime.xla import use_lean_xla_cpu
     small = sys.argv[1] == "1"
     before = use_lean_xla_cpu(small_loops=small)
     flags = os.environ.get("XLA_FLAGS", "")
@@ -95,7 +95,7 @@ def test_lean_xla_flags_are_added_before_jax_starts_and_keep_the_users(user, sma
     """``use_lean_xla_cpu`` adds its options before the backends start (XLA accepts them),
     the small-loop option only when asked, keeps an option the user set, and changes nothing
     once JAX has started."""
-    from jaxflex.sweep.engine import LEAN_XLA_CPU_FLAGS, SMALL_LOOP_XLA_CPU_FLAGS
+    from jaxflex.runtime.xla import LEAN_XLA_CPU_FLAGS, SMALL_LOOP_XLA_CPU_FLAGS
 
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": user}
     r = subprocess.run([sys.executable, "-c", _LEAN, "1" if small else "0"], env=env,
@@ -113,15 +113,15 @@ def test_lean_xla_flags_are_added_before_jax_starts_and_keep_the_users(user, sma
 _SMALL_LOOP_RUN = textwrap.dedent("""
     import sys
     import numpy as np
-    from jaxflex.sweep.engine import use_lean_xla_cpu
+    from jaxflex.runtime.xla import use_lean_xla_cpu
     use_lean_xla_cpu(small_loops=sys.argv[1] == "1")
     import jax
     jax.config.update("jax_enable_x64", True)
     import equinox as eqx
-    from jaxflex.controller import CascadeController
-    from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid
-    from jaxflex.sensing import Sensing
-    from jaxflex.simulate import simulate_sampled
+    from jaxflex.core.controller import CascadeController
+    from jaxflex.io.presets import paper_gains, paper_plant, paper_sinusoid
+    from jaxflex.core.sensing import Sensing
+    from jaxflex.sim.simulate import simulate_sampled
     plant = paper_plant()
     ctrl = CascadeController(model=plant, gains=paper_gains(), trajectory=paper_sinusoid())
     run = eqx.filter_jit(lambda p, c: simulate_sampled(p, c, 1.0,
@@ -147,9 +147,9 @@ def test_small_loop_option_runs_the_same_closed_loop(tmp_path):
 
 
 def test_small_loop_commands_are_commands():
-    """``jaxflex.cli.SMALL_LOOP_COMMANDS`` names commands the parser knows (a renamed command
+    """``jaxflex.app.cli.SMALL_LOOP_COMMANDS`` names commands the parser knows (a renamed command
     would silently lose its XLA option), and the batched sweep is not among them."""
-    from jaxflex.cli import SMALL_LOOP_COMMANDS, build_parser
+    from jaxflex.app.cli import SMALL_LOOP_COMMANDS, build_parser
 
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     assert set(SMALL_LOOP_COMMANDS) <= set(sub.choices), SMALL_LOOP_COMMANDS

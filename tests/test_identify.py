@@ -14,7 +14,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxflex.friction import LUGRE_NAMES
+from jaxflex.core.friction import LUGRE_NAMES
 from jaxflex.identify import (
     STATIC_NAMES,
     DEFAULT_FREE,
@@ -31,8 +31,8 @@ from jaxflex.identify import (
     synthetic_log,
     two_step,
 )
-from jaxflex.presets import paper_params
-from jaxflex.sensing import Sensing
+from jaxflex.io.presets import paper_params
+from jaxflex.core.sensing import Sensing
 
 FACTORS = (2.0, 0.6, 2.0, 0.5, 2.0, 0.5)  # Fc, Fs, vs, sigma0, sigma1, sigma2: up to 2x off
 
@@ -285,8 +285,8 @@ def test_studies_run_small(tmp_path, name):
 
 
 def _closed_loop_log(t_final, seed=7):
-    from jaxflex.datagen import generate_log
-    from jaxflex.params import Params
+    from jaxflex.identify.datagen import generate_log
+    from jaxflex.io.params import Params
 
     g = generate_log((), seed=seed, t_final=t_final, bits=20, noise_counts=0.5)
     return g.log, Params.from_dict(g.truth["plant"])
@@ -297,7 +297,7 @@ def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
     traced substep count: the refinement lowers no solver of its own; the solver is lowered
     once per parameter space (the first fit and each refit without an unidentified
     parameter). Static counts would lower one more per level (checked during development)."""
-    from jaxflex import tracecache
+    from jaxflex.runtime import tracecache
 
     log, truth = _closed_loop_log(1.2)
     init = perturb(truth, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
@@ -311,8 +311,8 @@ def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
     finally:
         tracecache.enable(kept)
     # the programs compiled ahead in a background thread (``compile_ahead`` on
-    # ``jaxflex.fit.ahead``) are all made before identify returns: no compilation is left running
-    from jaxflex.fit.ahead import THREAD_NAME
+    # ``jaxflex.runtime.ahead``) are all made before identify returns: no compilation is left running
+    from jaxflex.runtime.ahead import THREAD_NAME
 
     assert not any(t.name == THREAD_NAME and t.is_alive()
                    for t in threading.enumerate())
@@ -351,7 +351,7 @@ def test_an_unconverged_fit_is_reported_and_refused_downstream(tmp_path):
     import subprocess
     import sys
 
-    from jaxflex.params import load_params, save_params
+    from jaxflex.io.params import load_params, save_params
 
     log, truth = _closed_loop_log(3.0)
     init = perturb(truth, DEFAULT_FREE, (1.5, 1.5, 0.5, 1.5, 0.5, 1.5))
@@ -427,7 +427,7 @@ def test_twenty_second_closed_loop_log_converges_from_fifty_percent_off():
 
 def _two_joint_params():
     """Two independent joints: the paper's link and a lighter one with its own friction."""
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     return Params.from_dict({
         "plant": {"I": [0.07, 0.05], "J": [0.005, 0.004], "K": [6.77, 5.0]},
@@ -493,7 +493,7 @@ def test_link_subsystem_is_identified_without_a_motor_model():
     does not describe: unmodelled motor friction and a torque constant 25% off (the flexible
     model ends 27-240% off on this log, unconverged)."""
 
-    from jaxflex.effects import EFFECTS
+    from jaxflex.core.effects import EFFECTS
 
     p = paper_params()
     plant = p.to_plant().with_effects(EFFECTS["motor_friction"].typical(1))
@@ -514,7 +514,7 @@ def test_each_joint_is_weighted_by_its_own_noise():
     alone and those of its 10x larger twin (with one residual scale taken from joint 0, its
     residuals would weigh 100x less and its relative errors come out about 10x larger)."""
     from jaxflex.identify import covariance
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     c = 0.1
     p = Params.from_dict({
@@ -548,9 +548,9 @@ def test_closed_loop_log_with_the_command_defaults_converges_in_few_steps():
     155 steps in all with 4 substeps. The command's default is now substeps="auto" (the
     integrator refined until it moves no parameter by half a standard error; 4 substeps moved
     the fit by 2.1): asserted under 250 steps, within 2% and within BIAS_TOL."""
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
     from jaxflex.identify import BIAS_TOL
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
 
     g = generate_log((), seed=7, t_final=3.0, bits=20, noise_counts=0.5)
     truth = Params.from_dict(g.truth["plant"])
@@ -573,8 +573,8 @@ def test_a_fit_the_noise_does_not_explain_is_never_reported_converged(seed):
     or reported unconverged. Before the noise bound came from each channel's own noise
     (``noise_cost``), seed 10 was "converged" with vs unidentified 108% off at a cost 7x the
     optimum's."""
-    from jaxflex.datagen import generate_log
-    from jaxflex.params import Params
+    from jaxflex.identify.datagen import generate_log
+    from jaxflex.io.params import Params
 
     g = generate_log((), seed=seed, t_final=3.0, bits=20, noise_counts=0.5)
     truth = Params.from_dict(g.truth["plant"])
@@ -648,7 +648,7 @@ def test_auto_substeps_refine_until_the_integrator_does_not_move_the_fit(tmp_pat
     more than half a standard error, recorded in the file; one substep given by hand is kept
     but named in a warning with the shift it causes."""
     from jaxflex.identify import BIAS_TOL
-    from jaxflex.params import load_params, save_params
+    from jaxflex.io.params import load_params, save_params
 
     log, truth = _fine_encoder_log()
     init = perturb(truth, DEFAULT_FREE, (1.2, 1.2, 0.8, 1.2, 0.8, 1.2))
@@ -690,7 +690,7 @@ def _emps_start():
     """EMPS (DATA_EMPS) and the rigid start of ``studies/emps_benchmark.py`` (60 kg, Fc 10 N,
     Fs 12 N, vs 0.02 m/s, 100 N s/m), with its free parameters."""
     from jaxflex.data import EmpsRigidModel, emps_record, load_emps
-    from jaxflex.params import Params
+    from jaxflex.io.params import Params
     from jaxflex.validate import PPCascade
 
     rec = emps_record("DATA_EMPS")
@@ -758,7 +758,7 @@ def test_generate_log_is_float64_under_a_float32_setting():
     float32 a 17 s log's simulated time was no longer uniform (spacing 2e-6 s past 16 s, 2e-3
     of a sample) and ``Log.from_arrays`` refused it; the arrays are float64 and the same as
     the ones made under the float64 setting."""
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
 
     with jax.enable_x64(False):
         g32 = generate_log((), seed=3, t_final=17.0)

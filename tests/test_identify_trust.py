@@ -18,15 +18,15 @@ from jaxflex.identify import DEFAULT_FREE, IdentificationWarning, identify
 from jaxflex.identify.discretisation import relative_shift
 from jaxflex.identify.problem import FRICTION_CAP_FACTOR, start_hints
 from jaxflex.identify.start import StartError, start_from_data, suggest_model
-from jaxflex.logs import Log, load_log, save_log
-from jaxflex.params import Params, load_params, save_params
-from jaxflex.presets import paper_params
+from jaxflex.io.logs import Log, load_log, save_log
+from jaxflex.io.params import Params, load_params, save_params
+from jaxflex.io.presets import paper_params
 
 
 
 def _offset_log(t_final=3.0, seed=7):
     """A closed-loop log whose plant has a torque offset of 0.05 N m, and its truth."""
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
 
     g = generate_log(("torque_offset",), seed=seed, t_final=t_final, bits=20,
                      noise_counts=0.5)

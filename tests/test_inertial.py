@@ -1,12 +1,12 @@
-"""Inertial parameters (jaxflex.inertial): log-Cholesky consistency, the exact regressor, and
+"""Inertial parameters (jaxflex.core.inertial): log-Cholesky consistency, the exact regressor, and
 the base parameters of chains whose base set is known in closed form."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.chain import SerialChain
-from jaxflex.inertial import (
+from jaxflex.core.chain import SerialChain
+from jaxflex.core.inertial import (
     base_parameters,
     is_physically_consistent,
     log_cholesky_from_phi,

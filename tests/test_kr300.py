@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.chain import SerialChain
+from jaxflex.core.chain import SerialChain
 from jaxflex.data import load_kuka
 from jaxflex.data.kr300 import (
     hydraulic_counterbalance,

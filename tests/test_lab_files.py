@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from jaxflex.logs import LogError, evaluate, inspect_file, load_log, parse_mapping
+from jaxflex.io.logs import LogError, evaluate, inspect_file, load_log, parse_mapping
 
 ROOT = Path(__file__).resolve().parents[1]
 N = 200

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from jaxflex.logs import Log, LogError, load_log, parse_mapping, save_log
+from jaxflex.io.logs import Log, LogError, load_log, parse_mapping, save_log
 
 EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps" / "DATA_EMPS.mat"
 

@@ -16,9 +16,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
 
 from mujoco_rig import simulate_rig  # noqa: E402
 
-from jaxflex.effects import EFFECTS  # noqa: E402
+from jaxflex.core.effects import EFFECTS  # noqa: E402
 from jaxflex.identify.experiments import synthetic_log  # noqa: E402
-from jaxflex.params import Params  # noqa: E402
+from jaxflex.io.params import Params  # noqa: E402
 
 #: a few counts of the rig's link encoder (2^17 counts per revolution: 4.8e-5 rad)
 AGREE = 3e-4

@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.analyse import rest_jacobian, rest_map, spectral_radius
-from jaxflex.certificate import psi_sharp
-from jaxflex.controller import CascadeGains
-from jaxflex.params import Params, ParamsError
-from jaxflex.presets import paper_gains, paper_params
+from jaxflex.loop.analyse import rest_jacobian, rest_map, spectral_radius
+from jaxflex.core.certificate import psi_sharp
+from jaxflex.core.controller import CascadeGains
+from jaxflex.io.params import Params, ParamsError
+from jaxflex.io.presets import paper_gains, paper_params
 from jaxflex.tune import gains_of
 
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from jaxflex.params import (
+from jaxflex.io.params import (
     ControllerConfig,
     Params,
     ParamsError,
@@ -13,7 +13,7 @@ from jaxflex.params import (
     load_params,
     save_params,
 )
-from jaxflex.presets import paper_params
+from jaxflex.io.presets import paper_params
 
 
 def test_round_trip_exact(tmp_path):

@@ -2,7 +2,7 @@
 input, not converged, a bug), global options anywhere, suggested commands that run as
 printed, statistics that stay honest under correlated draws or noise, units and labels.
 
-Commands run in-process through ``jaxflex.cli.main`` on tiny logs and parameter files.
+Commands run in-process through ``jaxflex.app.cli.main`` on tiny logs and parameter files.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxflex.cli import build_parser, main
+from jaxflex.app.cli import build_parser, main
 
 GOOD = {"plant": {"I": 0.07, "J": 0.005, "K": 6.77},
         "friction": {"Fc": 0.11, "Fs": 0.15, "vs": 0.05, "sigma0": 100.0, "sigma1": 0.1,
@@ -196,7 +196,7 @@ def test_ctrl_c_stops_discover_even_where_a_fit_swallows_it(tmp_path, capsys, mo
 
 def test_ctrl_c_while_writing_leaves_the_whole_result(tmp_path, capsys, monkeypatch):
     """Ctrl-C as the first figure is written: the command finishes writing, then exits 130."""
-    import jaxflex.plots.validate as plots
+    import jaxflex.app.plots.validate as plots
 
     real = plots.plot_validation_log
 
@@ -236,9 +236,9 @@ def _jaxflex_refusal():
 
 
 def test_classify_tells_input_from_bugs():
-    from jaxflex.errors import InputError, NotConverged, classify
-    from jaxflex.logs import LogError
-    from jaxflex.params import ParamsError
+    from jaxflex.io.errors import InputError, NotConverged, classify
+    from jaxflex.io.logs import LogError
+    from jaxflex.io.params import ParamsError
 
     def caught(f):
         try:
@@ -264,7 +264,7 @@ def test_a_failure_inside_a_computation_is_reported_as_a_bug(tmp_path, capsys, m
     def broken(*a, **k):
         raise exc
 
-    monkeypatch.setattr("jaxflex.certificate.certify", broken)
+    monkeypatch.setattr("jaxflex.core.certificate.certify", broken)
     rc, _, err = _run(capsys, ["certify", "--params", str(_params(tmp_path))])
     assert rc == 70, err
     assert "a bug in jaxflex" in err and "please report it" in err and "Traceback" not in err
@@ -275,19 +275,19 @@ def test_a_failure_inside_a_computation_is_reported_as_a_bug(tmp_path, capsys, m
 
 
 def test_a_numpy_value_error_inside_a_computation_is_a_bug(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("jaxflex.certificate.certify", lambda *a, **k: _numpy_value_error())
+    monkeypatch.setattr("jaxflex.core.certificate.certify", lambda *a, **k: _numpy_value_error())
     rc, _, err = _run(capsys, ["certify", "--params", str(_params(tmp_path))])
     assert rc == 70 and "cannot reshape" in err
     Path(re.search(r"the full traceback is in (\S+);", err).group(1)).unlink()
 
 
 def test_a_result_that_did_not_converge_exits_3(tmp_path, capsys, monkeypatch):
-    from jaxflex.errors import NotConverged
+    from jaxflex.io.errors import NotConverged
 
     def unconverged(*a, **k):
         raise NotConverged("the tuner's search stopped at its step limit")
 
-    monkeypatch.setattr("jaxflex.certificate.certify", unconverged)
+    monkeypatch.setattr("jaxflex.core.certificate.certify", unconverged)
     rc, _, err = _run(capsys, ["certify", "--params", str(_params(tmp_path))])
     assert rc == 3 and "not converged" in err and "step limit" in err
 
@@ -459,7 +459,7 @@ def test_sweep_over_a_posterior_names_the_driver_and_warns_of_collinear_draws(tm
     from jax.flatten_util import ravel_pytree
 
     from jaxflex.fit.space import ParamSpace
-    from jaxflex.presets import paper_params
+    from jaxflex.io.presets import paper_params
 
     p = paper_params()
     names = ("Fc", "sigma2", "I")
@@ -500,8 +500,8 @@ def test_shapley_shares_of_independent_inputs_are_squared_correlations():
 
 
 def test_torque_noise_floor_matches_the_error_of_the_true_model():
-    from jaxflex.logs import Log
-    from jaxflex.params import Params
+    from jaxflex.io.logs import Log
+    from jaxflex.io.params import Params
     from jaxflex.validate import rel_error_pct, torque_noise_floor, torque_prediction
 
     p = Params.from_dict({"plant": {"I": 0.07, "J": 0.005, "K": 6.77},
@@ -552,7 +552,7 @@ def test_semicolon_csv_names_the_delimiter(tmp_path, capsys):
 
 
 def test_a_prismatic_axis_is_labelled_in_metres(tmp_path, capsys):
-    from jaxflex.logs import axis_units
+    from jaxflex.io.logs import axis_units
 
     assert axis_units({"q1": "x:mm", "q2": "x:mm"}) == ("m", "N")
     assert axis_units({"q1": "enc:deg"}) == ("rad", "N m")
@@ -711,8 +711,8 @@ def test_bad_or_odd_input_is_refused_by_name(tmp_path, capsys, case):
 def test_torque_noise_floor_counts_fast_torque_the_motion_cannot_resolve():
     """Chatter at 200 Hz on the torque (a controller on quantised angles): not white, so the
     white-noise estimate alone would miss most of it; the true model is still at the floor."""
-    from jaxflex.logs import Log
-    from jaxflex.params import Params
+    from jaxflex.io.logs import Log
+    from jaxflex.io.params import Params
     from jaxflex.validate import rel_error_pct, torque_noise_floor, torque_prediction
 
     p = Params.from_dict({"plant": {"I": 0.07, "J": 0.005, "K": 6.77},
@@ -746,8 +746,8 @@ def test_validate_reports_every_error_beside_its_noise_floor(tmp_path, capsys):
     come with their noise floor, and the true model's closed-loop position error sits near
     its floor."""
     from jaxflex.data import load_emps
-    from jaxflex.logs import Log, save_log
-    from jaxflex.params import Params, save_params
+    from jaxflex.io.logs import Log, save_log
+    from jaxflex.io.params import Params, save_params
     from jaxflex.validate import PPCascade, simulate_pp_cascade
 
     truth = Params.from_dict({
@@ -789,8 +789,8 @@ def test_ctrl_c_stops_a_real_discover_run(tmp_path):
     import sys
     import time
 
-    from jaxflex.datagen import generate_log
-    from jaxflex.logs import save_log
+    from jaxflex.identify.datagen import generate_log
+    from jaxflex.io.logs import save_log
 
     save_log(generate_log((), seed=1, t_final=4.0).log, tmp_path / "log.csv")
     out = tmp_path / "new" / "out"

@@ -4,9 +4,9 @@ import json
 
 import numpy as np
 
-from jaxflex.cli import main
-from jaxflex.params import load_params, save_params
-from jaxflex.presets import paper_params, paper_sensing
+from jaxflex.app.cli import main
+from jaxflex.io.params import load_params, save_params
+from jaxflex.io.presets import paper_params, paper_sensing
 
 
 def test_reproduce_cli_writes_results(tmp_path):

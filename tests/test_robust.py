@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.certificate import (
+from jaxflex.core.certificate import (
     N2_PARAMETERS,
     ParameterBox,
     box_lambda_min,
@@ -20,10 +20,10 @@ from jaxflex.certificate import (
 )
 from jaxflex.fit.posterior import Posterior
 from jaxflex.identify import DEFAULT_FREE, excitation_torque, identify, perturb, synthetic_log
-from jaxflex.params import load_params, save_params
-from jaxflex.presets import paper_gains, paper_params
-from jaxflex.sensing import Sensing
-from jaxflex.robust import RiskMeasure, RobustTask, spread_box, tune_robust
+from jaxflex.io.params import load_params, save_params
+from jaxflex.io.presets import paper_gains, paper_params
+from jaxflex.core.sensing import Sensing
+from jaxflex.tune.robust import RiskMeasure, RobustTask, spread_box, tune_robust
 from jaxflex.sweep import SpreadError, parse_spread, sample_parameters
 
 
@@ -168,7 +168,7 @@ def test_cli_tune_spread_writes_certified_gains_that_export_follows(tmp_path, ca
     with nothing written."""
     import json
 
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
     from jaxflex.export import load_module
 
     spread = tmp_path / "spread.json"
@@ -204,7 +204,7 @@ def test_cli_tune_spread_writes_certified_gains_that_export_follows(tmp_path, ca
 def test_a_file_whose_gains_were_edited_after_certification_is_refused(tmp_path):
     import json
 
-    from jaxflex.params import ParamsError
+    from jaxflex.io.params import ParamsError
 
     d = paper_params().to_dict()
     d["certificate"] = {"kind": "robust", "gains": dict(d["gains"])}

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxflex.cli import main
+from jaxflex.app.cli import main
 from jaxflex.data import load_kuka, load_named
 from jaxflex.identify.start import (
     ROTOR_FRICTION_WIDTH,
@@ -18,7 +18,7 @@ from jaxflex.identify.start import (
     start_from_data,
     suggest_model,
 )
-from jaxflex.logs import Log, save_log
+from jaxflex.io.logs import Log, save_log
 
 jax.config.update("jax_enable_x64", True)
 
@@ -157,7 +157,7 @@ def test_the_notebook_api_picks_and_fits_the_rotor_kind_as_the_command_line():
     """``identify_log`` on a coupled axis with the encoders of both sides: the rotor kind by
     equation error, as ``jaxflex identify`` fits it, its outputs the measured and predicted
     torque; an option the equation-error fit does not take is refused by name."""
-    from jaxflex.api import identify_log
+    from jaxflex.app.api import identify_log
     from jaxflex.data import load_named
 
     named = load_named("jaxflex:kuka/A/2")

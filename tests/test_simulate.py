@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.controller import CascadeController, CascadeGains
-from jaxflex.friction import LuGre
-from jaxflex.presets import paper_gains, paper_plant, paper_sinusoid, two_link_plant
-from jaxflex.simulate import REFERENCE_ORDER, simulate_continuous, simulate_sampled
-from jaxflex.trajectory import Multisine, RestToRest, Sinusoid, Taylor
+from jaxflex.core.controller import CascadeController, CascadeGains
+from jaxflex.core.friction import LuGre
+from jaxflex.io.presets import paper_gains, paper_plant, paper_sinusoid, two_link_plant
+from jaxflex.sim.simulate import REFERENCE_ORDER, simulate_continuous, simulate_sampled
+from jaxflex.core.trajectory import Multisine, RestToRest, Sinusoid, Taylor
 
 
 def _ctrl(plant=None, comp=True, method="model", dt=1e-3, traj=None, gains=None):
@@ -76,9 +76,9 @@ def test_rolled_rk4_stages_replay_the_same_motion(substeps):
     the same motion as the unrolled stages, to rounding, with a stateful input-path effect
     (actuator lag) and a spring effect in the plant; and it is a loop: one copy of the vector
     field in the program, not four."""
-    from jaxflex.effects import EFFECTS
-    from jaxflex.state import PlantState
-    from jaxflex.step import replay
+    from jaxflex.core.effects import EFFECTS
+    from jaxflex.core.state import PlantState
+    from jaxflex.sim.step import replay
 
     plant = paper_plant().with_effects(EFFECTS["actuator_lag"].typical(1),
                                        EFFECTS["joint_damping"].typical(1))

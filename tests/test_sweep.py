@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from jaxflex.simulate import simulate_sampled
+from jaxflex.sim.simulate import simulate_sampled
 from jaxflex.sweep import SpreadError, build_models, parse_spread, run_sweep, sample_parameters
 from jaxflex.sweep.summary import Accumulator, hist_quantiles, spearman
 
@@ -236,7 +236,7 @@ def test_vmapped_sweep_equals_a_loop_of_single_simulations(small):
 
 
 def test_cli_sweep_writes_summary_figures_and_samples(tmp_path, small):
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     spec, res = small
     f = tmp_path / "spread.json"
@@ -253,7 +253,7 @@ def test_cli_sweep_writes_summary_figures_and_samples(tmp_path, small):
 
 
 def test_cli_sweep_bad_spread_exits_2_with_message(tmp_path, capsys):
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     f = tmp_path / "spread.json"
     f.write_text(json.dumps({"uncertain": {"plant.I": {"dist": "normal", "std": 0.1}}}))

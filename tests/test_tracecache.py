@@ -1,4 +1,4 @@
-"""Traces kept across processes (``jaxflex.tracecache``, "a second run of any
+"""Traces kept across processes (``jaxflex.runtime.tracecache``, "a second run of any
 command compiles under 2 s"): a kept program gives the same numbers without tracing, the key
 changes with everything that shapes the trace, and code the key cannot cover is never kept."""
 
@@ -14,13 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex import tracecache
+from jaxflex.runtime import tracecache
 from jaxflex.fit import least_squares
 # the compiled program itself (``jaxflex.fit.residuals`` moves a problem into its bucket of
 # segment slots around it)
 from jaxflex.fit.replay import _replay as _fast_replay
 from jaxflex.identify import DEFAULT_FREE, excitation_torque, make_problem, perturb, synthetic_log
-from jaxflex.presets import paper_params
+from jaxflex.io.presets import paper_params
 
 # the engine's replay is compiled for compile speed (``fast_compile``: another code generator,
 # the same numbers to rounding); kept with XLA's defaults, as plain jit compiles it, a kept
@@ -154,12 +154,12 @@ _CHILD = textwrap.dedent("""
     mon.register_event_duration_secs_listener(
         lambda ev, s, fun_name=None, **k: traced.append(fun_name)
         if ev.endswith("jaxpr_trace_duration") else None)
-    from jaxflex import tracecache
+    from jaxflex.runtime import tracecache
     tracecache.enable(sys.argv[1])
     from jaxflex.fit import residuals
     from jaxflex.identify import DEFAULT_FREE, excitation_torque, make_problem, perturb
     from jaxflex.identify import synthetic_log
-    from jaxflex.presets import paper_params
+    from jaxflex.io.presets import paper_params
     p = paper_params()
     log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.3), substeps=1)
     prob, y0 = make_problem(log, perturb(p, DEFAULT_FREE, (1.1,) * 6), DEFAULT_FREE,

@@ -14,11 +14,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflex.certificate import certify, lambda_min_curve
-from jaxflex.controller import CascadeGains
-from jaxflex.params import load_params, save_params
-from jaxflex.presets import paper_gains, paper_params, paper_plant, paper_sinusoid, rig_sensing
-from jaxflex.sensing import Sensing
+from jaxflex.core.certificate import certify, lambda_min_curve
+from jaxflex.core.controller import CascadeGains
+from jaxflex.io.params import load_params, save_params
+from jaxflex.io.presets import paper_gains, paper_params, paper_plant, paper_sinusoid, rig_sensing
+from jaxflex.core.sensing import Sensing
 from jaxflex.tune import TuneTask, simulate_task, tracking_cost, tune
 
 T_FINAL = 1.0
@@ -93,7 +93,7 @@ def test_uncertified_initial_gains_and_bad_settings_raise():
 
 def test_straight_through_sensing_values_and_gradient():
     """The wrapper gives the wrapped sensing's values and a straight-through gradient."""
-    from jaxflex.sensing import AbstractSensing, StraightThrough
+    from jaxflex.core.sensing import AbstractSensing, StraightThrough
 
     s = rig_sensing(bits=8)
     st = StraightThrough(s)
@@ -142,7 +142,7 @@ def test_tracking_cost_gradient_matches_finite_difference():
 
 
 def test_cli_tune_writes_gains_and_report(tmp_path, capsys):
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     p = tmp_path / "p.json"
     save_params(paper_params(), p)
@@ -187,7 +187,7 @@ def test_certificate_cost_study_small(tmp_path):
 
 @pytest.mark.slow
 def test_rest_damping_constraint_is_enforced_and_reached_from_an_undamped_start():
-    """With ``min_rest_damping`` every iterate keeps the rest modes' damping (jaxflex.analyse)
+    """With ``min_rest_damping`` every iterate keeps the rest modes' damping (jaxflex.loop.analyse)
     at or above it; the paper's gains have a growing rest mode (damping about -0.3 with exact
     velocities), so asking for a damped loop moves them (a first phase ascends the damping by
     gradient) to certified gains whose rest modes are damped."""

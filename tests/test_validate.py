@@ -4,8 +4,8 @@ import jax
 import numpy as np
 import pytest
 
-from jaxflex.logs import Log
-from jaxflex.params import Params, ParamsError
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params, ParamsError
 from jaxflex.validate import (
     PPCascade,
     rel_error_pct,
@@ -128,7 +128,7 @@ def test_declared_pd_loop_reproduces_a_pd_rotor_log_and_wrong_parameters_do_not(
     """A log of ``datagen.RotorPD`` (kp 8, kd 0.4, 2 N m, 5 ms dirty derivative, on q2; 16-bit
     encoders with noise, 12-bit DAC) simulated back through the declared PD with the truth:
     measured position error 0.06% (seed 1, 2 s); K or Fc 30% off: 7-21%."""
-    from jaxflex.datagen import generate_log
+    from jaxflex.identify.datagen import generate_log
     from jaxflex.validate import PDLoop, closed_loop_errors, loop_controller
 
     gen = generate_log(seed=1, t_final=2.0, loop="pd_rotor")
@@ -190,7 +190,7 @@ def test_sampled_reference_gives_the_derivatives_the_cascade_needs():
     3rd, <= 3e-5 for the 4th)."""
     import jax.numpy as jnp
 
-    from jaxflex.trajectory import Multisine, SampledReference
+    from jaxflex.core.trajectory import Multisine, SampledReference
 
     tr = Multisine.schroeder(rms=0.15, f_min=0.1, f_max=2.0, count=6)
     dt = 1e-3
@@ -208,8 +208,8 @@ def test_declared_cascade_reproduces_a_cascade_log_and_wrong_parameters_do_not()
     0.001%, torque 0.05%; K 30% off: 12% position, Fc 30% off: 3.0%. With the generator's
     default 16-bit noisy encoders: 0.5% position (torque 21%: the logged torque holds the
     loop's response to encoder noise, which the simulation does not have)."""
-    from jaxflex.datagen import IDENT_GAINS, generate_log
-    from jaxflex.presets import paper_params
+    from jaxflex.identify.datagen import IDENT_GAINS, generate_log
+    from jaxflex.io.presets import paper_params
     from jaxflex.validate import CascadeLoop, closed_loop_errors, loop_controller
 
     nominal = paper_params()
@@ -251,7 +251,7 @@ def test_rigid_torque_fit_recovers_a_rigid_axis_and_names_bad_input():
 def test_shipped_data_sets_get_distinct_names_in_validate():
     """`jaxflex validate jaxflex:kuka/B/2 jaxflex:kuka/C/2`: the two logs' figures take the
     data sets' names with their folders, not a shared stem "2"."""
-    from jaxflex.cli.validate import log_name, output_files
+    from jaxflex.app.cli.validate import log_name, output_files
 
     assert log_name("jaxflex:kuka/B/2") == "kuka_B_2"
     assert log_name("runs/run.csv") == "run"

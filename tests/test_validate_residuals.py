@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from jaxflex.data import EMPS_IDIM_LS
-from jaxflex.logs import save_log
-from jaxflex.params import Params
+from jaxflex.io.logs import save_log
+from jaxflex.io.params import Params
 from jaxflex.validate import replay_residual_analysis
 
 EMPS_RIGID = EMPS_IDIM_LS.params_dict(Fs=22.0, sigma1=100.0, offset=False)
@@ -39,7 +39,7 @@ def test_replay_residual_analysis_of_a_rigid_model(emps_log):
 
 
 def test_validate_command_reports_and_draws_the_residual_analysis(emps_log, tmp_path, capsys):
-    from jaxflex.cli import main
+    from jaxflex.app.cli import main
 
     save_log(emps_log, tmp_path / "emps.csv")
     (tmp_path / "p.json").write_text(json.dumps(EMPS_RIGID))

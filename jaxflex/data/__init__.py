@@ -13,7 +13,7 @@ origin, citation and licence):
   variables a flexible-joint identification uses (``reduce_kuka`` made the files; every kept
   value is bit-identical to the original).
 
-Loaders return a ``jaxflex.logs.Log`` (docs/spec.md section 6: SI units, link-referred);
+Loaders return a ``jaxflex.io.logs.Log`` (docs/spec.md section 6: SI units, link-referred);
 ``emps_record`` and ``kuka_record`` give the data sets' other variables (gains, references,
 pulses, gear ratios). Host-only numpy/scipy code; nothing here imports JAX. The KR300's
 rigid-body model (kinematics, nominal inertias, the flexible axes 1-3 as a plant, the measured
@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.logs import Log
+from jaxflex.io.logs import Log
 
 DATA_DIR: Path = Path(__file__).resolve().parent
 
@@ -378,7 +378,7 @@ class NamedData:
         name: the name as given.
         axis: what gravity can do on each joint, as a parameter file declares it
             (``jaxflex.discover.config.AXES``: EMPS's prismatic axis; the KUKA axes from the
-            arm's kinematics, ``jaxflex.chain.SerialChain.axis_kinds``), or None.
+            arm's kinematics, ``jaxflex.core.chain.SerialChain.axis_kinds``), or None.
         link_side: what a single-joint model can describe of each joint's link side, as a
             parameter file declares it (``jaxflex.identify.start.LINK_SIDES``): EMPS's
             "single" (one prismatic axis); every KUKA axis "coupled" (one axis of a six-axis

@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxflex.chain import LockedJoints, SerialChain
+from jaxflex.core.chain import LockedJoints, SerialChain
 from jaxflex.data import DATA_DIR, KUKA_TRAJECTORIES, check_choice
-from jaxflex.plant import FlexibleJointPlant
+from jaxflex.core.plant import FlexibleJointPlant
 
 #: Standard DH parameters of axes 1-6: a [m], d [m], alpha [rad].
 KR300_A: tuple[float, ...] = (0.350, 1.150, 0.041, 0.0, 0.0, 0.0)

@@ -75,14 +75,14 @@ every round's tie (``effect_ties``) and the final model's residual analysis as M
 ``SolverFailure`` naming the fit, not a bad input.
 
 All candidates share one compiled model: the plant holds every candidate effect, wrapped in
-``jaxflex.effects.Gated`` (gate 0 or 1), and the engine's parameter mask says which are fitted;
+``jaxflex.core.effects.Gated`` (gate 0 or 1), and the engine's parameter mask says which are fitted;
 both are data, so the solver compiles once per log shape. The gates are run-time branches
-(``lax.cond``, one per hook for all candidates together: ``jaxflex.effects.effect_torque``),
+(``lax.cond``, one per hook for all candidates together: ``jaxflex.core.effects.effect_torque``),
 so an inactive candidate costs no arithmetic per substep. Every fit ends at the engine's
 statistical stop measured against its own residual variance (``relative_stop``), and the base
 each round compares with is settled (``settle``).
 
-Independent fits run side by side on the cores (``jaxflex.fit.ahead.side_by_side``): the
+Independent fits run side by side on the cores (``jaxflex.runtime.ahead.side_by_side``): the
 candidates' starts, screens and full fits, the polish of a contest or a tie, the two held-out
 start fits and the floor's draws. The answers do not depend on the number of workers.
 

@@ -16,13 +16,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.effects import STEP_FLOOR, AbstractEffect, EFFECTS, Gated
+from jaxflex.core.effects import STEP_FLOOR, AbstractEffect, EFFECTS, Gated
 from jaxflex.fit import ParamSpace, Problem, is_fitted, make_segments, on_slot_rows, savgol
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.tracecache import persistent_jit
-from jaxflex.validation import to_device
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.validation import to_device
 
 
 #: Nominal parameters refitted with every model.
@@ -270,7 +270,7 @@ def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
     slope); from just inside, a further solve can bring it back when the data want a partial
     load (a second solve from the entries brought back reaches the fit the true parameters
     give). Compiled (one program per bucket of segment counts, ``on_slot_rows``, kept
-    by ``jaxflex.tracecache``): run op by op it cost a dozen small compilations per shape on
+    by ``jaxflex.runtime.tracecache``): run op by op it cost a dozen small compilations per shape on
     every run."""
     return to_device(on_slot_rows(lambda x: _within_capacity(x, plant, bound), x0s))
 

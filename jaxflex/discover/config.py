@@ -11,9 +11,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from jaxflex.effects import EFFECTS
-from jaxflex.logs import Log
-from jaxflex.params import Params
+from jaxflex.core.effects import EFFECTS
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
 
 
 #: The model kinds ``discover`` takes a parameter file as (``DiscoverConfig.model``, the
@@ -53,9 +53,9 @@ def declared_axes(params: Params) -> list[str] | None:
 
     **Raises:**
 
-    `jaxflex.params.ParamsError` for a value not in ``AXES`` or a list of the wrong
+    `jaxflex.io.params.ParamsError` for a value not in ``AXES`` or a list of the wrong
     length."""
-    from jaxflex.params import ParamsError
+    from jaxflex.io.params import ParamsError
 
     a = params.extra.get("axis")
     if a is None:

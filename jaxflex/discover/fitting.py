@@ -32,12 +32,12 @@ from jaxflex.fit import (
     trace_solver,
     white_noise_std,
 )
-from jaxflex.fit.ahead import Ahead, all_side_by_side
+from jaxflex.runtime.ahead import Ahead, all_side_by_side
 from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
 from jaxflex.fit.space import set_values
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.validation import to_device
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.validation import to_device
 
 
 #: Solver tolerances of the candidate fits (relative and absolute change of unknowns/cost).
@@ -219,7 +219,7 @@ def held_out_starts(prob: Problem, theta: dict[str, jax.Array], carried: jax.Arr
 def made_ahead(ws: Workspace, nominal: Params) -> Ahead:
     """The programs of the held-out part (``fit_starts``' solver, the replay that gives the
     gap, ``gap_floor``'s finer replay) and of the training replay, made in a background
-    thread (``jaxflex.fit.ahead``) from the nominal model's start coordinates while the
+    thread (``jaxflex.runtime.ahead``) from the nominal model's start coordinates while the
     calling thread fits the nominal model: every model of the workspace shares them, and
     reading them from the cache no longer holds up the main thread."""
     train, test, theta = ws.for_model(Model(nominal, []))

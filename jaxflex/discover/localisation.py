@@ -16,12 +16,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.discover.candidates import Model
-from jaxflex.effects import AbstractEffect, EFFECTS
+from jaxflex.core.effects import AbstractEffect, EFFECTS
 from jaxflex.fit import noise_level, on_slot_rows, savgol, savgol_coeffs
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.tracecache import persistent_jit
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.runtime.tracecache import persistent_jit
 
 
 # ---------------------------------------------------------------------------- localisation
@@ -174,7 +174,7 @@ def _cleared(series: dict[str, np.ndarray], rotor: bool, vs: float | None,
 
 
 class _ResidualStart:
-    """The ``jaxflex.effects.ResidualStart`` of one model in one round: its localisation's
+    """The ``jaxflex.core.effects.ResidualStart`` of one model in one round: its localisation's
     residual ``series``, the Stribeck velocity ``vs`` [rad/s] of its friction (None: no
     Stribeck column), its ``params`` and the replay's step ``h`` [s]; each side's cleared
     residual is computed once."""
@@ -290,7 +290,7 @@ def start_effect(name: str, model: Model, series: dict[str, np.ndarray],
 
 
 def residual_start(log: Log, model: Model, h: float) -> _ResidualStart:
-    """The ``jaxflex.effects.ResidualStart`` of ``model`` on ``log``: the torque residuals
+    """The ``jaxflex.core.effects.ResidualStart`` of ``model`` on ``log``: the torque residuals
     of its nominal parameters (``localise``), its Stribeck velocity and the integration step
     ``h`` [s] (what ``AbstractEffect.from_lower`` reads)."""
     vs = float(np.ravel(model.params.friction["vs"])[0])

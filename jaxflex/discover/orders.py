@@ -18,8 +18,8 @@ from jaxflex.discover.fitting import settle
 from jaxflex.discover.localisation import residual_start
 from jaxflex.discover.ranking import autocorrelation_time
 from jaxflex.discover.screening import candidate_score, fit_candidate
-from jaxflex.effects import EFFECTS
-from jaxflex.logs import Log
+from jaxflex.core.effects import EFFECTS
+from jaxflex.io.logs import Log
 
 
 def swapped(model: Model, name: str, effect: Any) -> Model:

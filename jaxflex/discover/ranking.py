@@ -15,9 +15,9 @@ import scipy.special
 
 from jaxflex.discover.candidates import CandidateFit, Model, Workspace, fitted_count
 from jaxflex.discover.fitting import fit_model, held_out_mse, settle
-from jaxflex.effects import AbstractEffect
+from jaxflex.core.effects import AbstractEffect
 from jaxflex.fit import residuals
-from jaxflex.fit.ahead import all_side_by_side
+from jaxflex.runtime.ahead import all_side_by_side
 
 
 def paired_p_value(worse: Sequence[float], better: Sequence[float]) -> float:

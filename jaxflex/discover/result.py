@@ -14,8 +14,8 @@ from jaxflex.discover.candidates import CandidateFit, Workspace
 from jaxflex.discover.config import DiscoverConfig
 from jaxflex.discover.fitting import held_out_traces
 from jaxflex.discover.localisation import Localisation
-from jaxflex.effects import EFFECTS
-from jaxflex.params import Params
+from jaxflex.core.effects import EFFECTS
+from jaxflex.io.params import Params
 
 
 @dataclasses.dataclass

@@ -63,18 +63,18 @@ from jaxflex.discover.screening import (
     training_evidence,
     unresolved,
 )
-from jaxflex.effects import (
+from jaxflex.core.effects import (
     AbstractEffect,
     EFFECTS,
     acts_on_replay,
     candidate_effects,
     family_orders,
 )
-from jaxflex.fit.ahead import Ahead, all_side_by_side, side_by_side
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.presets import paper_params
-from jaxflex.validation import requires_float64
+from jaxflex.runtime.ahead import Ahead, all_side_by_side, side_by_side
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.io.presets import paper_params
+from jaxflex.core.validation import requires_float64
 
 
 #: Rounds ``discover`` repeats on a better base after a winner turned out not to be needed
@@ -163,7 +163,7 @@ def discover(
             raise ValueError(
                 f"candidate effect {c!r} ({EFFECTS[c].where}) does not change the motion that "
                 "discover replays nor its reading: it has none of the hooks "
-                "jaxflex.effects.REPLAY_HOOKS")
+                "jaxflex.core.effects.REPLAY_HOOKS")
     if not cfg.max_order >= 1:
         raise ValueError(f"discover: max_order must be at least 1, got {cfg.max_order}")
     run = _Run(model_note=model_note)

@@ -1,8 +1,8 @@
 """Export the certified controller to standalone Python (numpy) or C99.
 
 The single source of truth is the JAX controller as the sampled-data loop runs it
-(``SampledController``: ``jaxflex.controller.CascadeController`` with its configuration's
-velocity source -- the dirty derivative, or the Kalman filter of ``jaxflex.estimator`` with
+(``SampledController``: ``jaxflex.core.controller.CascadeController`` with its configuration's
+velocity source -- the dirty derivative, or the Kalman filter of ``jaxflex.core.estimator`` with
 its state and the DAC it predicts through -- observer leak, q2d method, torque limit, n
 joints). Its ``init`` and ``step`` are traced once with ``jax.make_jaxpr``
 (``tracing.trace``) and the jaxprs are translated by one translator with two dialects
@@ -69,12 +69,12 @@ def build_controller(
 ):
     """A ``CascadeController`` from a parameter set (``Params``, a docs/spec.md section 7 mapping, a
     path, or None for the paper's) and a trajectory (a name of
-    ``jaxflex.presets.TRAJECTORIES`` or a ``Trajectory``).
+    ``jaxflex.io.presets.TRAJECTORIES`` or a ``Trajectory``).
 
     The configuration -- ``q2d_method``, sample period ``dt`` [s], torque limit ``tau_max``
     [N m], ``compensation`` and the trajectory name -- is what the parameter file's
     ``controller`` section records (the configuration its gains were tuned for); an argument
-    left at None takes the recorded value, or ``jaxflex.presets.DEFAULT_CONTROLLER``'s where
+    left at None takes the recorded value, or ``jaxflex.io.presets.DEFAULT_CONTROLLER``'s where
     nothing is recorded (1 kHz, the rig's 2 N m, "model", compensation on, the sinusoid). An
     argument that contradicts the section raises ``ParamsError``. The model ignores the
     file's effects (as the controller does); n-joint trajectories are broadcast from the
@@ -82,10 +82,10 @@ def build_controller(
     """
     import jax.numpy as jnp
 
-    from jaxflex.controller import CascadeController
-    from jaxflex.params import Params, load_params
-    from jaxflex.presets import controller_config, paper_params, trajectory_preset
-    from jaxflex.trajectory import Trajectory
+    from jaxflex.core.controller import CascadeController
+    from jaxflex.io.params import Params, load_params
+    from jaxflex.io.presets import controller_config, paper_params, trajectory_preset
+    from jaxflex.core.trajectory import Trajectory
 
     if params is None:
         params = paper_params()
@@ -132,7 +132,7 @@ def broadcast_trajectory(traj: Any, n: int) -> Any:
     """
     import jax
 
-    from jaxflex.trajectory import RestToRest, Sinusoid
+    from jaxflex.core.trajectory import RestToRest, Sinusoid
 
     if isinstance(traj, Sinusoid):
         return jax.tree_util.tree_map(lambda a: a * np.ones(n), traj)
@@ -397,7 +397,7 @@ def _jitted() -> dict[str, Any]:
     import equinox as eqx
     import jax
 
-    from jaxflex.simulate import REFERENCE_ORDER, simulate_sampled
+    from jaxflex.sim.simulate import REFERENCE_ORDER, simulate_sampled
 
     def replay(c, ts, q1m, q2m, refs):
         at = (lambda t, R: c) if refs is None else (lambda t, R: c.with_reference(R, t))

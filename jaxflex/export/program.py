@@ -1,11 +1,11 @@
 """The controller as a rig runs it, the one program every export back end translates.
 
-``SampledController`` is the cascade controller (``jaxflex.controller.CascadeController``)
+``SampledController`` is the cascade controller (``jaxflex.core.controller.CascadeController``)
 together with what its configuration's sensing makes it compute at each sample: the
 velocity source (the controller's dirty derivative, or the steady-state Kalman filter of
-``jaxflex.estimator`` with its state), and, for the Kalman filter, the DAC's rounding of the
+``jaxflex.core.estimator`` with its state), and, for the Kalman filter, the DAC's rounding of the
 torque it predicts with. Its ``init`` and ``step`` are those of the sampled-data loop
-(``jaxflex.simulate.init_controller`` and ``controller_sample``), so that the exported
+(``jaxflex.sim.simulate.init_controller`` and ``controller_sample``), so that the exported
 controller is the certified one. ``rig_controller`` builds it from a parameter file's
 ``controller`` section and refuses, naming the entry, what an exported controller cannot
 run (``ExportError``).
@@ -22,11 +22,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.controller import CascadeController, ControllerState, LawOutput
-from jaxflex.estimator import KalmanEstimator
-from jaxflex.sensing import AbstractSensing, Sensing
-from jaxflex.simulate import REFERENCE_ORDER, controller_sample, init_controller, loop_estimator
-from jaxflex.trajectory import Taylor
+from jaxflex.core.controller import CascadeController, ControllerState, LawOutput
+from jaxflex.core.estimator import KalmanEstimator
+from jaxflex.core.sensing import AbstractSensing, Sensing
+from jaxflex.sim.simulate import REFERENCE_ORDER, controller_sample, init_controller, loop_estimator
+from jaxflex.core.trajectory import Taylor
 
 REFERENCE_ROWS: int = REFERENCE_ORDER + 1
 """Rows of the reference a rig gives the exported controller at each sample: q1d and its
@@ -99,7 +99,7 @@ class SampledController(eqx.Module):
     def with_reference(self, derivs: Float[Array, "5 n"], t: ArrayLike) -> SampledController:
         """This controller with the reference given at time t [s] by ``derivs``: rows q1d,
         q1d', ..., q1d^(4) [rad/s^k] (``REFERENCE_ROWS``), as the sampled-data loop hands it
-        (``jaxflex.trajectory.Taylor``)."""
+        (``jaxflex.core.trajectory.Taylor``)."""
         derivs = jnp.asarray(derivs)
         if derivs.shape != (REFERENCE_ROWS, self.n):
             raise ValueError(f"SampledController.with_reference: expected derivatives of shape "
@@ -134,8 +134,8 @@ def sampled_controller(controller: CascadeController | SampledController,
 
 def parity_sensing() -> Sensing:
     """Sensing of the parity run of a bare ``CascadeController``: the rig's 16-bit encoders
-    (``jaxflex.presets.rig_sensing``), velocities by the dirty derivative, no DAC."""
-    from jaxflex.presets import rig_sensing
+    (``jaxflex.io.presets.rig_sensing``), velocities by the dirty derivative, no DAC."""
+    from jaxflex.io.presets import rig_sensing
 
     return rig_sensing(dac_bits=0)
 
@@ -155,11 +155,11 @@ def rig_controller(
     **Arguments:**
 
     - ``params``: ``Params``, a docs/spec.md section 7 mapping, a path, or None (the paper's).
-    - ``trajectory``: a name of ``jaxflex.presets.TRAJECTORIES`` or a ``Trajectory``.
+    - ``trajectory``: a name of ``jaxflex.io.presets.TRAJECTORIES`` or a ``Trajectory``.
     - ``q2d_method``, ``dt`` [s], ``tau_max`` [N m], ``compensation``, ``sensing`` (a preset
       name, a mapping of ``Sensing`` fields or a ``Sensing``): as in
       ``jaxflex.export.build_controller``; None takes the section's entry, else
-      ``jaxflex.presets.DEFAULT_CONTROLLER``'s.
+      ``jaxflex.io.presets.DEFAULT_CONTROLLER``'s.
 
     **Returns:**
 
@@ -172,8 +172,8 @@ def rig_controller(
     "exact"); ``ParamsError`` for an argument that contradicts the section.
     """
     from jaxflex.export import build_controller
-    from jaxflex.params import Params, load_params
-    from jaxflex.presets import controller_config, paper_params, sensing_of
+    from jaxflex.io.params import Params, load_params
+    from jaxflex.io.presets import controller_config, paper_params, sensing_of
 
     if params is None:
         params = paper_params()

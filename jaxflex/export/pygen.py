@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.controller import CascadeController
+from jaxflex.core.controller import CascadeController
 from jaxflex.export.atoms import Program, Sym, eliminate_dead, sym_array
 from jaxflex.export.dialect import format_atom
 from jaxflex.export.fma import exact_fma

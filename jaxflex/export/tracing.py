@@ -22,12 +22,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.controller import CascadeController
+from jaxflex.core.controller import CascadeController
 from jaxflex.export.atoms import Program, Sym, eliminate_dead, sym_array
 from jaxflex.export.dialect import PYTHON, Dialect
 from jaxflex.export.program import REFERENCE_ROWS, SampledController, sampled_controller
 from jaxflex.export.translate import Translator
-from jaxflex.simulate import REFERENCE_ORDER
+from jaxflex.sim.simulate import REFERENCE_ORDER
 
 # docs/spec.md section 7 entries -> controller leaf names (the model the rig's plant defaults to)
 SPEC_ENTRIES: dict[str, str] = {

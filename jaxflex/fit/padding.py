@@ -14,7 +14,7 @@ import jax
 import numpy as np
 
 from jaxflex.fit.problem import Problem, segment_slots, slot_rows
-from jaxflex.validation import to_device
+from jaxflex.core.validation import to_device
 
 
 #: The normal-equation and Jacobian blocks of "shooting" that hold one entry per segment.

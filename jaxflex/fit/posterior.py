@@ -27,8 +27,8 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from jaxflex.fit.space import ParamSpace
-from jaxflex.params import Params
-from jaxflex.validation import to_device
+from jaxflex.io.params import Params
+from jaxflex.core.validation import to_device
 
 
 class Posterior(eqx.Module):

@@ -2,9 +2,9 @@
 shooting), used by identification, discovery and validation alike.
 
 The log is cut into S segments of L samples. Each segment starts from a state (q1, q1', [q2,
-q2'], z) and is replayed under the logged torque (zero-order hold) by ``jaxflex.step.replay``;
+q2'], z) and is replayed under the logged torque (zero-order hold) by ``jaxflex.sim.step.replay``;
 the effects' internal states are first brought into line with the W torque samples before the
-segment (``jaxflex.step.warm_effects``). Two ways to start a segment:
+segment (``jaxflex.sim.step.warm_effects``). Two ways to start a segment:
 
 - ``free_starts=True`` (identification, discovery): the start states are unknowns beside the
   parameters; residuals are the weighted output errors and the continuity defects
@@ -34,15 +34,15 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
-from jaxflex.effects import link_input, link_measurement
+from jaxflex.core.effects import link_input, link_measurement
 from jaxflex.fit.signal import savgol
 from jaxflex.fit.space import ParamSpace
-from jaxflex.friction import LuGre
-from jaxflex.logs import Log
-from jaxflex.state import PlantState
-from jaxflex.step import MODEL_KINDS, ModelKind, replay, warm_effects
-from jaxflex.tracecache import persistent_jit
-from jaxflex.validation import to_device
+from jaxflex.core.friction import LuGre
+from jaxflex.io.logs import Log
+from jaxflex.core.state import PlantState
+from jaxflex.sim.step import MODEL_KINDS, ModelKind, replay, warm_effects
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.validation import to_device
 
 #: Value given to a residual that is not finite (a trial that blew up is then rejected by
 #: the solver's cost comparison instead of propagating NaN).
@@ -161,8 +161,8 @@ def make_segments(
     """Non-overlapping segments of ``length`` samples within samples [start, stop) of a log
     (a tail shorter than one segment is dropped; ``length`` None: one segment). For the
     "rotor" kind ``tau`` holds (S, L, 4, n): the torque and the measured link angle, velocity
-    and acceleration (``jaxflex.step.ROTOR_INPUTS``); for the "link" kind (S, L, 3, n): the
-    measured rotor angle, velocity and acceleration (``jaxflex.step.LINK_INPUTS``).
+    and acceleration (``jaxflex.sim.step.ROTOR_INPUTS``); for the "link" kind (S, L, 3, n): the
+    measured rotor angle, velocity and acceleration (``jaxflex.sim.step.LINK_INPUTS``).
 
     Start states: angles from the log, velocities by Savitzky-Golay differentiation over
     ``window`` samples, z the steady bristle deflection of ``friction`` at that velocity
@@ -257,7 +257,7 @@ class Problem(eqx.Module):
     a traced loop count, so that every level of a coarse-to-fine refinement shares one
     compiled program); ``n_substeps`` reads it as an int on the host.
     ``rolled_stages``: the Jacobian blocks (``segment_jacobians``) replay with the RK4 stages
-    as a loop (``jaxflex.step.rk4``'s ``rolled``: the same to rounding, one copy of the
+    as a loop (``jaxflex.sim.step.rk4``'s ``rolled``: the same to rounding, one copy of the
     vector field instead of four per substep). It pays where the model is large and XLA's
     small-loop option is on (``discover``'s gated universe of candidates: a program about a
     third smaller, which compiles and loads faster) and costs run time where not
@@ -519,7 +519,7 @@ def theta_spec(theta: dict[str, Array]) -> tuple[tuple[str, tuple[int, ...]], ..
 def _segment_flat(prob: Problem, spec: tuple, dims: tuple[int, int], th: Array, v0: Array,
                   tau: Array, tau_pre: Array, rolled: bool = False) -> Array:
     """One segment's outputs and end state, flattened, from flat coordinates ``th``
-    (``rolled``: the integrator's RK4 stages as a loop, ``jaxflex.step.rk4``)."""
+    (``rolled``: the integrator's RK4 stages as a loop, ``jaxflex.sim.step.rk4``)."""
     unravel = ravel_pytree({k: jnp.zeros(shape, th.dtype) for k, shape in spec})[1]
     ys, x_end = prob._segment(unravel(th), v0.reshape(dims), tau, tau_pre, rolled)
     return jnp.concatenate([ys.reshape(-1), x_end.reshape(-1)])

@@ -12,8 +12,8 @@ import numpy as np
 
 from jaxflex.fit.padding import Padding
 from jaxflex.fit.problem import Problem
-from jaxflex.tracecache import persistent_jit
-from jaxflex.validation import to_device
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.validation import to_device
 
 
 def simulated_outputs(prob: Problem, y: Any) -> jax.Array:

@@ -43,8 +43,8 @@ from jaxflex.fit.levenberg_marquardt import LevenbergMarquardt, ScaledDampedNewt
 from jaxflex.fit.normal import gauss_newton_decrement
 from jaxflex.fit.padding import Padding
 from jaxflex.fit.problem import Problem
-from jaxflex.tracecache import persistent_jit
-from jaxflex.validation import to_device
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.validation import to_device
 
 
 @dataclasses.dataclass
@@ -209,7 +209,7 @@ def _steps_loop(solver: LevenbergMarquardt, fn: _WithAux, y: Any, state: Any, ar
 
 #: ``_steps_loop`` compiled for run speed (XLA's defaults), and for compile speed
 #: (``least_squares(small=True)``: a small fit run once, e.g. the static map's four
-#: parameters; ``jaxflex.tracecache.FAST_COMPILE_OPTIONS``). Both share one trace.
+#: parameters; ``jaxflex.runtime.tracecache.FAST_COMPILE_OPTIONS``). Both share one trace.
 _steps = persistent_jit(_steps_loop)
 _steps_small = persistent_jit(_steps_loop, fast_compile=True)
 
@@ -270,7 +270,7 @@ def least_squares(
     the data), so logs of other lengths share the compiled solver (False: its own shape).
     ``small``: a small fit that a run makes once or twice (a handful of unknowns, a cheap
     residual): its loop is compiled for compile speed, not run speed
-    (``jaxflex.tracecache.FAST_COMPILE_OPTIONS``; e.g. the static map's fit).
+    (``jaxflex.runtime.tracecache.FAST_COMPILE_OPTIONS``; e.g. the static map's fit).
     Raises ``ValueError`` for
     ``max_steps < 1`` or a negative ``decrement_tol``.
     """
@@ -393,7 +393,7 @@ def trace_solver(
     atol: float = 1e-10, scaling: str = "identity", structure: str = "auto",
     geodesic: float = 0.0, bucket: bool = True, small: bool = False, **loop_options: Any,
 ) -> bool:
-    """Trace and keep (``jaxflex.tracecache``) the compiled loop that ``least_squares(prob,
+    """Trace and keep (``jaxflex.runtime.tracecache``) the compiled loop that ``least_squares(prob,
     y0, ...)`` with the same options will run, without compiling it or taking a step: the
     part of a first solve that holds Python's interpreter lock. A caller that then hands the
     solve to a background thread (``jaxflex.identify.compile_ahead``) lets it compile on one

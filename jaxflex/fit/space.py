@@ -46,12 +46,12 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
-from jaxflex.effects import EFFECTS, unwrap
-from jaxflex.friction import LUGRE_NAMES
-from jaxflex.params import PLANT_NAMES, Params
-from jaxflex.plant import AbstractLinkDynamics, DiagonalInertia, FlexibleJointPlant
-from jaxflex.tracecache import persistent_jit
-from jaxflex.validation import to_device
+from jaxflex.core.effects import EFFECTS, unwrap
+from jaxflex.core.friction import LUGRE_NAMES
+from jaxflex.io.params import PLANT_NAMES, Params
+from jaxflex.core.plant import AbstractLinkDynamics, DiagonalInertia, FlexibleJointPlant
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.validation import to_device
 
 _FLOOR = 1e-12
 
@@ -420,7 +420,7 @@ class ParamSpace(eqx.Module):
 
     def physical_values(self, theta: dict[str, Array]) -> dict[str, np.ndarray]:
         """``physical(theta)`` evaluated on the host, as numpy arrays (one compiled program,
-        kept by ``jaxflex.tracecache``, instead of a handful of eager operations whose
+        kept by ``jaxflex.runtime.tracecache``, instead of a handful of eager operations whose
         compilations each new process pays again)."""
         return {k: np.asarray(v) for k, v in _physical_on_host(self, theta)[0].items()}
 

@@ -26,8 +26,8 @@ from jaxflex.fit.normal import arrow_solve, shooting_normal, undamped_solve, wit
 from jaxflex.fit.padding import Padding
 from jaxflex.fit.problem import Problem
 from jaxflex.fit.solve import Solution, problem_residuals
-from jaxflex.tracecache import persistent_jit
-from jaxflex.validation import to_device
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.validation import to_device
 
 
 @persistent_jit(fast_compile=True)
@@ -80,7 +80,7 @@ def covariance(
     (sum of squared output residuals, weighted units), ``defects_ss`` (the same of the
     continuity defects), ``n_res`` (output residuals), ``cov_theta`` (the covariance of the
     unconstrained coordinates theta over the flattened names, zero rows for entries not
-    fitted: where the posterior of ``jaxflex.robust`` draws, so every draw keeps the
+    fitted: where the posterior of ``jaxflex.tune.robust`` draws, so every draw keeps the
     constraints). ``solution``: the ``least_squares`` result of ``prob`` that ended at ``y``
     (same object): a multiple-shooting problem then reuses its normal equations, any other
     the Jacobian the dense solver kept (the same numbers, no second linearisation and

@@ -58,7 +58,7 @@ from jaxflex.identify.static import (
     start_from_static_map,
     static_map_from_log,
 )
-from jaxflex.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
+from jaxflex.sim.step import MODEL_KINDS, replay, rigid_step, rigid_vector_field
 
 __all__ = [
     "BIAS_TOL", "DECREMENT_TOL", "DEFAULT_FREE", "GEODESIC", "MAX_SUBSTEPS", "MODEL_KINDS",

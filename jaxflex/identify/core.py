@@ -68,11 +68,11 @@ from jaxflex.identify.search import (
 )
 from jaxflex.identify.start import StartError, check_model, start_from_data
 from jaxflex.identify.verdict import model_verdict
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.state import PlantState
-from jaxflex.validation import requires_float64
-from jaxflex.step import ModelKind, replay
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.state import PlantState
+from jaxflex.core.validation import requires_float64
+from jaxflex.sim.step import ModelKind, replay
 
 #: identify's solver settings (``least_squares``): geodesic acceleration's bound on
 #: 2 |a| / |v|, and the statistical stop (Gauss-Newton decrement, chi-square units)
@@ -104,7 +104,7 @@ def identify(
             "<effect>.<param>" of an effect ``init`` lacks adds the effect, started from the
             data's estimate (a torque offset) or the effect's typical value.
         model: "flexible" (eq. 3), "rigid" (eq. 37, Jx = I + J), "rotor", "link"
-            (``jaxflex.step.MODEL_KINDS``), or "auto": the kind the encoders suggest
+            (``jaxflex.sim.step.MODEL_KINDS``), or "auto": the kind the encoders suggest
             (``suggest_model``: one encoder, q1 = q2, is rigid).
         segment_length: samples per multiple-shooting segment (None: single shooting), or
             "auto": two mechanical time constants of the start model

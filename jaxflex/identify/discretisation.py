@@ -20,7 +20,7 @@ from jaxflex.fit import (
     simulated_outputs,
     step_doubling_error,
 )
-from jaxflex.validation import to_device
+from jaxflex.core.validation import to_device
 
 #: Automatic substeps (``choose_substeps``, ``identify(substeps="auto")``): the first choice
 #: keeps the replay's step-doubling error below OUTPUT_TOL of the noise (weighted RMS: the

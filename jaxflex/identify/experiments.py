@@ -3,7 +3,7 @@
 - ``excitation_torque``: an open-loop torque with slow reversals and long low-speed dwell,
   the excitation that makes vs, sigma0, sigma1 identifiable (docs/spec.md section 9, last pitfall);
 - ``synthetic_log``: replay a torque through a plant and sense it (encoder quantisation and
-  noise from ``jaxflex.simulate.Sensing``) into a ``Log``;
+  noise from ``jaxflex.sim.simulate.Sensing``) into a ``Log``;
 - ``static_map_experiment``: constant-velocity runs (eq. 35 data): for each velocity a stiff
   PD loop drives the rigid model (eq. 37) along a ramp with a quantised encoder and a DAC;
   friction is the mean torque over the steady part, velocity the encoder slope;
@@ -28,11 +28,11 @@ from jaxflex.fit import get_value, set_values
 from jaxflex.identify.core import identify
 from jaxflex.identify.result import IdentResult
 from jaxflex.identify.static import STATIC_NAMES, StaticMap, fit_static_map
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.sensing import Sensing
-from jaxflex.step import ModelKind, replay, rigid_step
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.core.sensing import Sensing
+from jaxflex.sim.step import ModelKind, replay, rigid_step
 
 
 def excitation_torque(

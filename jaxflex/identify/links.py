@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.fit.space import link_field
-from jaxflex.params import Params
-from jaxflex.plant import AbstractLinkDynamics, DiagonalInertia
+from jaxflex.io.params import Params
+from jaxflex.core.plant import AbstractLinkDynamics, DiagonalInertia
 
 #: Relative singular-value threshold under which a link field adds no base parameter.
 RANK_RTOL: float = 1e-9

@@ -22,10 +22,10 @@ from jaxflex.fit import (
     output_columns,
 )
 from jaxflex.identify.start import DataStart
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.validation import to_device
-from jaxflex.step import MODEL_KINDS, ModelKind
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.validation import to_device
+from jaxflex.sim.step import MODEL_KINDS, ModelKind
 
 DEFAULT_FREE: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma0", "sigma1", "sigma2")
 #: The friction levels Fc and Fs - Fc of a fit stay below this many times the largest torque
@@ -148,7 +148,7 @@ def with_named_effects(init: Params, free: Sequence[str], data: Params | None) -
     """``init`` with every effect that ``free`` names ("<effect>.<param>") and ``init`` lacks,
     started from the data's start where it has the effect, else from the effect's
     ``typical`` instance (a torque offset from zero)."""
-    from jaxflex.effects import EFFECTS
+    from jaxflex.core.effects import EFFECTS
 
     missing = [k.partition(".")[0] for k in free if "." in k]
     missing = [e for e in dict.fromkeys(missing) if e not in init.effects and e in EFFECTS]

@@ -22,8 +22,8 @@ from jaxflex.fit import (
     simulated_outputs,
 )
 from jaxflex.identify.links import base_record
-from jaxflex.logs import Log
-from jaxflex.params import Params
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
 
 class IdentificationWarning(UserWarning):
     """Raised (as a warning) for parameters the data cannot identify."""
@@ -267,7 +267,7 @@ def posterior_record(prob: Problem, theta: dict[str, Any], cov: dict[str, Any],
     in ``exclude`` left out: their rows are dropped, i.e. marginalised), ``labels`` (one per
     flattened entry, "name[j]"), ``theta`` (the estimate), ``matrix`` (its covariance) and
     ``friction_cap`` (the space's bound on the friction levels [N m], None: none).
-    ``jaxflex.robust.Posterior`` draws from it; every draw maps to physical values that keep
+    ``jaxflex.tune.robust.Posterior`` draws from it; every draw maps to physical values that keep
     the constraints (positivity, Fs >= Fc)."""
     fitted = prob.space.fitted_flat()
     # flattened entries in ravel_pytree's order (sorted names, then joints), as fitted_flat

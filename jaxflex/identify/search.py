@@ -21,13 +21,13 @@ from jaxflex.fit import (
     remaining_step,
     trace_solver,
 )
-from jaxflex.fit.ahead import Ahead
+from jaxflex.runtime.ahead import Ahead
 from jaxflex.identify.problem import make_problem
 from jaxflex.identify.result import IdentResult, finish, is_settled
 from jaxflex.identify.start import DataStart
 from jaxflex.identify.static import start_from_static_map
-from jaxflex.logs import Log
-from jaxflex.params import Params
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
 
 #: A model-limited solve that ends at its step cap is converged when a full Gauss-Newton step
 #: would move no parameter by more than this many of its reported standard errors.
@@ -213,7 +213,7 @@ def best_at_final(search: Search, prob: Problem, r_prob: Problem, r_sol: Solutio
 
 def compile_ahead(prob: Problem, y0: Any, solve: dict[str, Any]) -> Ahead:
     """The compiled programs of ``prob``'s fit (its solver, then its covariance and
-    discretisation check), made in a background thread (``jaxflex.fit.ahead``) while
+    discretisation check), made in a background thread (``jaxflex.runtime.ahead``) while
     ``identify`` does the work that comes before them: the static map's own fit and the
     choice of substeps. On the two cores of the project's machine the two compilations
     overlap; the solver is the same program at every level of substeps

@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.effects.library import EncoderScale
+from jaxflex.core.effects.library import EncoderScale
 from jaxflex.fit import noise_level, savgol
-from jaxflex.logs import Log
-from jaxflex.params import Params
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
 
 #: Savitzky-Golay window [samples] of the derivatives the inverse dynamics use.
 WINDOW: int = 31
@@ -160,7 +160,7 @@ def check_model(log: Log, model: str, link_side: list[str] | None = None) -> tup
 
     Arguments:
         log: the log.
-        model: "auto" or one of ``jaxflex.step.MODEL_KINDS``.
+        model: "auto" or one of ``jaxflex.sim.step.MODEL_KINDS``.
         link_side: each joint's declared link side (``suggest_model``), or None.
 
     Returns:

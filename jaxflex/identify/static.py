@@ -17,12 +17,12 @@ import numpy as np
 
 from jaxflex.fit import (ParamSpace, covariance, get_value, least_squares, on_slot_rows,
                          savgol, slot_rows)
-from jaxflex.friction import LuGre
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.plant import DiagonalInertia, FlexibleJointPlant
-from jaxflex.tracecache import persistent_jit
-from jaxflex.validation import to_device
+from jaxflex.core.friction import LuGre
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.plant import DiagonalInertia, FlexibleJointPlant
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.validation import to_device
 
 STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")
 

@@ -47,9 +47,9 @@ import numpy as np
 
 from jaxflex.fit import CostBound, ParamSpace, constraint_of, covariance, least_squares, set_values
 from jaxflex.identify.start import ROTOR_EFFECTS, StartError, start_from_data
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.validation import requires_float64
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.validation import requires_float64
 
 #: The names the torque step fits by default (module docstring, step 2).
 ROTOR_FREE: tuple[str, ...] = ("J", "K", "motor_friction.Fm", "motor_friction.bm",

@@ -12,7 +12,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxflex.errors import InputError
+from jaxflex.io.errors import InputError
 
 _DIST_FIELDS: dict[str, tuple[set[str], ...]] = {
     # each tuple entry is one accepted set of fields (besides 'dist')

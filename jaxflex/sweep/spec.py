@@ -28,7 +28,7 @@ true plant of each sample is drawn from the spread (robustness, not adaptation).
 
 Names: ``plant.{I,J,K}``, ``friction.{Fc,Fs,vs,sigma0,sigma1,sigma2}``,
 ``sensing.{q1_noise,q2_noise,q1_resolution,q2_resolution}``, ``limits.tau_max`` and
-``effects.<effect>.<parameter>`` for any registered effect (``jaxflex.effects.EFFECTS``);
+``effects.<effect>.<parameter>`` for any registered effect (``jaxflex.core.effects.EFFECTS``);
 ``group.*`` applies one distribution to every name of a group. A name with n joints gives n
 columns (``friction.Fc[0]``, ...), each drawn independently. ``name[j]`` targets one joint.
 
@@ -53,19 +53,19 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.controller import Q2D_METHODS
+from jaxflex.core.controller import Q2D_METHODS
 from jaxflex.fit.posterior import Posterior
-from jaxflex.friction import LUGRE_NAMES
-from jaxflex.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
-from jaxflex.presets import SENSING_PRESETS, TRAJECTORIES, paper_params, sensing_of
-from jaxflex.sensing import SENSING_FIELDS
+from jaxflex.core.friction import LUGRE_NAMES
+from jaxflex.io.params import PLANT_NAMES, Params, ParamsError, load_params, read_json_file
+from jaxflex.io.presets import SENSING_PRESETS, TRAJECTORIES, paper_params, sensing_of
+from jaxflex.core.sensing import SENSING_FIELDS
 from jaxflex.sweep.distributions import (
     Distribution,
     SpreadError,
     parse_distribution,
     spread_number,
 )
-from jaxflex.validation import check_keys, did_you_mean
+from jaxflex.core.validation import check_keys, did_you_mean
 
 SENSING_NAMES: tuple[str, ...] = ("q1_noise", "q2_noise", "q1_resolution", "q2_resolution")
 LIMIT_NAMES: tuple[str, ...] = ("tau_max",)
@@ -297,7 +297,7 @@ def _split_index(key: str) -> tuple[str, int | None]:
 
 def parse_spread(d: Any, base: Path | None = None) -> SweepSpec:
     """Validate a spread mapping (see the module docstring); raises ``SpreadError``."""
-    from jaxflex.effects import EFFECTS
+    from jaxflex.core.effects import EFFECTS
 
     if not isinstance(d, dict):
         raise SpreadError(f"a spread must be a JSON object, got {type(d).__name__}")

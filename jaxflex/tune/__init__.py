@@ -6,7 +6,7 @@ simulated tracking cost over a task, subject to
     lambda_min(N2(v)) >= margin   for all link speeds |v| <= v_task                 (eq. 29-31)
 
 The cost is the mean squared link error of the sampled-data closed loop
-(``jaxflex.simulate.simulate_sampled``) over one or more reference trajectories, with encoder
+(``jaxflex.sim.simulate.simulate_sampled``) over one or more reference trajectories, with encoder
 and DAC quantisation, filtered velocities and a torque limit, plus an optional torque penalty.
 
 How it works:
@@ -14,7 +14,7 @@ How it works:
 - Gains are positive, so the search runs in log-space, theta = log(gains), inside a box of
   +-log(box) around the initial gains; the objective is log(cost), whose gradient has no
   scale. Gradients go through the whole simulation (``jax.value_and_grad`` of a
-  ``lax.scan``); quantisers use a straight-through gradient (``jaxflex.sensing.StraightThrough``),
+  ``lax.scan``); quantisers use a straight-through gradient (``jaxflex.core.sensing.StraightThrough``),
   since rounding has zero derivative and would cut every feedback path out of the gradient.
 - Adam steps, with the certificate *enforced* at every iterate: a step that leaves the
   certified set is cut back (halved) along the segment from the last certified point, and a
@@ -22,13 +22,13 @@ How it works:
   against the cost.
 - Multi-start: the initial gains (which must themselves be certified) and random log-normal
   perturbations of them, each pulled back toward the initial gains if uncertified.
-- Final check: the best candidate must pass ``jaxflex.certificate.certify`` up to
+- Final check: the best candidate must pass ``jaxflex.core.certificate.certify`` up to
   max(v_task, fastest simulated link speed); otherwise the next best is taken.
 
 Modules: ``task`` (what is tuned for, its cost and runs), ``search`` (Adam under the
 certificate), ``workflow`` (``tune``), ``compare`` (gain sets side by side).
 
-Units: gains as in ``jaxflex.controller.CascadeGains``; speeds [rad/s]; cost [rad^2].
+Units: gains as in ``jaxflex.core.controller.CascadeGains``; speeds [rad/s]; cost [rad^2].
 """
 
 

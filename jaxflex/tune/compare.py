@@ -9,13 +9,13 @@ from typing import Any, Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.certificate import DEFAULT_EPS, certify, lambda_min_curve, ultimate_bound
-from jaxflex.controller import CascadeGains
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.simulate import SimResult, tracking_summary
+from jaxflex.core.certificate import DEFAULT_EPS, certify, lambda_min_curve, ultimate_bound
+from jaxflex.core.controller import CascadeGains
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.sim.simulate import SimResult, tracking_summary
 from jaxflex.tune.task import TuneTask, simulate_task
 from jaxflex.tune.workflow import TuneResult
-from jaxflex.validation import requires_float64
+from jaxflex.core.validation import requires_float64
 
 
 @requires_float64

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from jaxflex.controller import CascadeGains
+from jaxflex.core.controller import CascadeGains
 
 
 @dataclasses.dataclass
@@ -36,7 +36,7 @@ def adam_search(
     *, iterations: int, starts: int, learning_rate: float, spread: float, lo: Array, hi: Array,
     seed: int, progress: Callable[[int, int, float], None] | None = None,
 ) -> tuple[list[tuple[float, np.ndarray]], list[StartRecord], float, int]:
-    """The multi-start Adam search of ``tune`` and ``jaxflex.robust.tune_robust`` in
+    """The multi-start Adam search of ``tune`` and ``jaxflex.tune.robust.tune_robust`` in
     log-gains theta, with every iterate kept in the certified set.
 
     ``value_and_grad(theta)`` returns ((log cost, (cost, aux)), gradient) with ``aux``
@@ -120,7 +120,7 @@ def ascend_feasibility(theta: Array, value_and_grad: Callable, feasible: Callabl
     """First phase of a certified search: Adam ascent of a differentiable constraint
     ``value_and_grad(theta) -> (c, dc/dtheta)`` from ``theta`` inside [lo, hi] until
     ``feasible(theta)`` holds with a little room; returns (theta, steps). Used by ``tune``
-    (N2 and rest damping) and ``jaxflex.robust.tune_robust`` (N2 over a box)."""
+    (N2 and rest damping) and ``jaxflex.tune.robust.tune_robust`` (N2 over a box)."""
     if feasible(theta)[0]:
         return theta, 0
     m = jnp.zeros_like(theta)

@@ -10,13 +10,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxflex.controller import CascadeController, CascadeGains
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.presets import rig_sensing
-from jaxflex.sensing import AbstractSensing
-from jaxflex.simulate import SimResult, simulate_sampled
-from jaxflex.tracecache import persistent_jit
-from jaxflex.trajectory import Trajectory
+from jaxflex.core.controller import CascadeController, CascadeGains
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.io.presets import rig_sensing
+from jaxflex.core.sensing import AbstractSensing
+from jaxflex.sim.simulate import SimResult, simulate_sampled
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.trajectory import Trajectory
 
 
 def reference_speed(trajectories: Sequence[Trajectory], t_final: float, dt: float) -> float:
@@ -46,7 +46,7 @@ class TuneTask:
     limit); velocity_factor: the
     certificate must hold up to velocity_factor x the fastest reference speed;
     min_rest_damping: if set, every mode of the closed loop linearised at rest (plant,
-    observer, controller, velocity estimator: ``jaxflex.analyse.rest_damping``) must have at
+    observer, controller, velocity estimator: ``jaxflex.loop.analyse.rest_damping``) must have at
     least this damping ratio, so that no oscillation persists at rest (None: not required).
     """
 

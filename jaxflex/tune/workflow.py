@@ -13,14 +13,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.certificate import DEFAULT_EPS, certify, lambda_min_curve
-from jaxflex.controller import CascadeGains
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.sensing import StraightThrough
-from jaxflex.tracecache import persistent_jit
+from jaxflex.core.certificate import DEFAULT_EPS, certify, lambda_min_curve
+from jaxflex.core.controller import CascadeGains
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.core.sensing import StraightThrough
+from jaxflex.runtime.tracecache import persistent_jit
 from jaxflex.tune.search import StartRecord, adam_search, ascend_feasibility, gains_of
 from jaxflex.tune.task import TuneTask, max_link_speed, tracking_cost
-from jaxflex.validation import requires_float64
+from jaxflex.core.validation import requires_float64
 
 
 @dataclasses.dataclass
@@ -189,9 +189,9 @@ def task_rest_map(plant: FlexibleJointPlant, model: FlexibleJointPlant, gains: C
 
     **Returns:**
 
-    ``jaxflex.analyse.rest_map``'s map.
+    ``jaxflex.loop.analyse.rest_map``'s map.
     """
-    from jaxflex.analyse import rest_map
+    from jaxflex.loop.analyse import rest_map
 
     return rest_map(plant, gains, model=model, sensing=task.sensing, q2d_method=task.q2d_method,
                     dt=task.dt, tau_max=task.tau_max, substeps=task.substeps)
@@ -200,7 +200,7 @@ def task_rest_map(plant: FlexibleJointPlant, model: FlexibleJointPlant, gains: C
 def rest_damping_of(theta: jax.Array, rest: Any) -> jax.Array:
     """Smallest damping ratio of the rest modes of ``rest`` (``task_rest_map``) with the
     gains exp(theta), theta = log(gains) (``gains_of``)."""
-    from jaxflex.analyse import rest_damping
+    from jaxflex.loop.analyse import rest_damping
 
     g = gains_of(theta, rest.controller.gains.leak)
     return rest_damping(eqx.tree_at(lambda m: m.controller.gains, rest, g))

@@ -21,7 +21,7 @@ at its floor says "as good as this log can tell", not "97% wrong":
   (the parameter file's top-level ``loop_controller`` section, ``LOOP_TYPES``: ``PPCascade``,
   the EMPS P position / P velocity cascade; ``PDLoop``, a PD on the rotor or link angle;
   ``CascadeLoop``, jaxflex's own cascade) and the log has a reference ``q1d``. Every declared
-  loop is a ``SampledLaw`` run by one sampled-data scan around ``jaxflex.step.model_step``
+  loop is a ``SampledLaw`` run by one sampled-data scan around ``jaxflex.sim.step.model_step``
   (rigid or flexible model), the log's q1d sampled as the reference (floors:
   ``closed_loop_noise_floor``).
 
@@ -32,7 +32,7 @@ Ljung-Box whiteness).
 Modules: ``loops`` (the declared controllers and the one sampled-data loop), ``closed_loop``
 (closed-loop errors and fit), ``replay`` (torque prediction, segment gap, noise floors,
 residual analysis), ``workflow`` (``validate``). Returns plain dicts; figures and files are
-written by ``jaxflex.cli.validate``; ``jaxflex.validate_model`` wraps ``validate`` in a typed
+written by ``jaxflex.app.cli.validate``; ``jaxflex.validate_model`` wraps ``validate`` in a typed
 result.
 """
 

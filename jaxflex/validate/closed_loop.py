@@ -20,8 +20,8 @@ from jaxflex.fit import (
     ParamSpace,
     savgol,
 )
-from jaxflex.logs import Log
-from jaxflex.params import Params
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
 from jaxflex.validate.loops import (
     SampledLaw,
     check_loop_kind,

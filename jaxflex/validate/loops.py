@@ -2,7 +2,7 @@
 ``loop_controller`` section): the sampled laws (``SampledLaw``: ``PPLaw``, ``PDLaw``,
 ``CascadeLaw``), their file records (``LOOP_TYPES``: ``PPCascade``, ``PDLoop``,
 ``CascadeLoop``) and the one sampled-data loop that runs any of them around
-``jaxflex.step.model_step`` (``simulate_loop``).
+``jaxflex.sim.step.model_step`` (``simulate_loop``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxflex.controller import (
+from jaxflex.core.controller import (
     GAIN_NAMES,
     Q2D_METHODS,
     CascadeController,
@@ -28,13 +28,13 @@ from jaxflex.controller import (
     dirty_derivative,
     pd_torque,
 )
-from jaxflex.params import Params, ParamsError
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.state import PlantState
-from jaxflex.step import model_step
-from jaxflex.tracecache import persistent_jit
-from jaxflex.trajectory import SampledReference
-from jaxflex.validation import check_keys
+from jaxflex.io.params import Params, ParamsError
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.core.state import PlantState
+from jaxflex.sim.step import model_step
+from jaxflex.runtime.tracecache import persistent_jit
+from jaxflex.core.trajectory import SampledReference
+from jaxflex.core.validation import check_keys
 
 #: Top-level parameter-file section declaring the controller that ran during a log.
 LOOP_SECTION = "loop_controller"
@@ -108,8 +108,8 @@ class PPLaw(SampledLaw):
 
 
 class PDLaw(SampledLaw):
-    """``PDLoop``'s law: ``jaxflex.controller.pd_torque`` on the angle ``on`` ("q1" or "q2")
-    with its dirty derivative (``jaxflex.controller.dirty_derivative``, time constant
+    """``PDLoop``'s law: ``jaxflex.core.controller.pd_torque`` on the angle ``on`` ("q1" or "q2")
+    with its dirty derivative (``jaxflex.core.controller.dirty_derivative``, time constant
     velocity_tc [s]); kp [N m/rad], kd [N m s/rad], tau_max [N m]; sample period dt [s]."""
 
     kp: Array
@@ -135,7 +135,7 @@ class PDLaw(SampledLaw):
 
 class CascadeLaw(SampledLaw):
     """``CascadeLoop``'s law: jaxflex's ``CascadeController`` (its reference a
-    ``jaxflex.trajectory.SampledReference`` of the logged q1d, so r is not read here) with
+    ``jaxflex.core.trajectory.SampledReference`` of the logged q1d, so r is not read here) with
     velocities by its own filtered differentiation of the angles; plus the disturbance [N m]."""
 
     controller: CascadeController
@@ -191,7 +191,7 @@ class PPCascade:
 @dataclasses.dataclass(frozen=True)
 class PDLoop:
     """A PD loop toward the link reference on one measured angle (the rotor's, as
-    ``jaxflex.datagen.RotorPD``, or the link's):
+    ``jaxflex.identify.datagen.RotorPD``, or the link's):
 
         q'(k) = (tc q'(k-1) + q(k) - q(k-1)) / (tc + dt)        (tc = 0: backward difference)
         tau(k) = clip(kp (q1d(k) - q(k)) - kd q'(k), -tau_max, tau_max) + d(k)   [N m]
@@ -238,9 +238,9 @@ _CASCADE_OTHERS: tuple[str, ...] = ("gains", "model", "q2d_method", "compensatio
 
 @dataclasses.dataclass(frozen=True)
 class CascadeLoop:
-    """jaxflex's own cascade (``jaxflex.controller.CascadeController``, paper eq. 9-22) as
+    """jaxflex's own cascade (``jaxflex.core.controller.CascadeController``, paper eq. 9-22) as
     the loop that ran, sampled at the log's period, following the logged q1d (interpolated
-    by ``jaxflex.trajectory.SampledReference`` for the reference's derivatives).
+    by ``jaxflex.core.trajectory.SampledReference`` for the reference's derivatives).
 
     Declared as ``"loop_controller": {"type": "cascade"}`` with optional keys: ``gains``
     (a ``gains`` section, docs/spec.md section 7; default the parameter file's own),
@@ -374,7 +374,7 @@ def sampled_loop(plant: FlexibleJointPlant, kind: str, law: SampledLaw, r: jax.A
                   substeps: int) -> tuple[jax.Array, jax.Array]:
     """The sampled-data loop of a declared controller around the model ``kind``: at t_k = k dt
     the law reads the plant's angles and its torque is held over the sample while
-    ``jaxflex.step.model_step`` advances the plant. Returns (q1 before each step, torque),
+    ``jaxflex.sim.step.model_step`` advances the plant. Returns (q1 before each step, torque),
     each (N, n)."""
     def body(carry, inp):
         x, c = carry
@@ -396,7 +396,7 @@ def simulate_loop(
     ``params`` (one joint, ``kind`` "rigid" or "flexible") following ``q_ref`` [rad or m],
     sample period ``dt`` [s], ``disturbance`` added to the controller output (V for the P/P
     cascade, N m for the others); the plant starts at rest at q_ref[0] and is advanced by
-    ``jaxflex.step.model_step`` in ``substeps`` substeps. Returns (position (N,), torque (N,)
+    ``jaxflex.sim.step.model_step`` in ``substeps`` substeps. Returns (position (N,), torque (N,)
     [N m or N]) at the sample instants (position before each step)."""
     need_float64("simulate_loop")
     check_loop_kind(kind)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.effects import link_input
+from jaxflex.core.effects import link_input
 from jaxflex.fit import (
     ParamSpace,
     Problem,
@@ -28,11 +28,11 @@ from jaxflex.fit import (
     simulated_outputs,
 )
 from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
-from jaxflex.logs import Log
-from jaxflex.params import Params
-from jaxflex.plant import FlexibleJointPlant
-from jaxflex.state import PlantState
-from jaxflex.step import MODEL_KINDS
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
+from jaxflex.core.plant import FlexibleJointPlant
+from jaxflex.core.state import PlantState
+from jaxflex.sim.step import MODEL_KINDS
 from jaxflex.validate.loops import need_float64
 
 
@@ -222,7 +222,7 @@ def replay_residual_analysis(params: Params, log: Log, *, kind: str = "flexible"
 
     - `params`: the parameters judged.
     - `log`: the log.
-    - `kind`: the model structure (``jaxflex.step.MODEL_KINDS``).
+    - `kind`: the model structure (``jaxflex.sim.step.MODEL_KINDS``).
     - `length`: samples per segment (default: 0.5 s, at least 20).
     - `substeps`: integrator substeps per sample.
     - `lags`: the largest lag [samples] (at most a segment's half less one; MATLAB's

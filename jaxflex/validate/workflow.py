@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.logs import Log
-from jaxflex.params import Params
+from jaxflex.io.logs import Log
+from jaxflex.io.params import Params
 from jaxflex.validate.closed_loop import closed_loop_errors, rel_error_pct
 from jaxflex.validate.replay import (
     replay_residual_analysis,

@@ -45,16 +45,16 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
-from jaxflex.datagen import draw_effect
-from jaxflex.logs import Log
-from jaxflex.presets import paper_params
+from jaxflex.identify.datagen import draw_effect
+from jaxflex.io.logs import Log
+from jaxflex.io.presets import paper_params
 
 LOOPS: tuple[str, ...] = ("drive", "open_loop")
 EXCITATIONS: tuple[str, ...] = ("moves", "chirp")
 DISTURBANCES: tuple[str, ...] = ("vibration", "stiffness_ripple")
 @dataclasses.dataclass
 class RigLog:
-    """A log of the MuJoCo rig (``jaxflex.logs.Log``) and its truth: hidden effects with
+    """A log of the MuJoCo rig (``jaxflex.io.logs.Log``) and its truth: hidden effects with
     their parameters, the true plant, the experiment and the sensing."""
 
     log: Log

@@ -1,0 +1,5 @@
+import sys
+
+from jaxflex.app.cli import main
+
+sys.exit(main())

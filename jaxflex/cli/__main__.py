@@ -1,5 +1,0 @@
-import sys
-
-from jaxflex.cli import main
-
-sys.exit(main())

@@ -1,0 +1,162 @@
+"""The higher orders of the library's friction and lag families (docs/spec.md section 8):
+rotor friction with a Stribeck term (``motor_friction``: Coulomb and viscous, then the
+Stribeck excess) and a lag of order two (``actuator_lag``: first order, then a second-order
+current loop). The ripple's orders are with the ripple (``jaxflex.core.effects.ripple``).
+
+Each order is one registered final class with its ``family``, ``order`` and the ``higher``
+order's name, and ``from_lower``, its first guess from a fitted instance of the order below.
+The lag of order two shares its filter state with ``time_delay``
+(``AbstractSecondOrderInput``). None is a discovery candidate of its own
+(``candidate = False``): ``discover`` reaches an order k + 1 only from an added order k, and
+keeps it when it pays by the criterion that adds an effect.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxflex.core.effects.base import (
+    LEAST_AMPLITUDE,
+    STEP_FLOOR,
+    AbstractEffect,
+    ResidualStart,
+    register_effect,
+)
+from jaxflex.core.effects.library import (
+    AbstractSecondOrderInput,
+    ActuatorLag,
+    MotorFriction,
+    smooth_sign,
+)
+from jaxflex.core.state import PlantState
+from jaxflex.core.validation import as_param, check_nonnegative, check_positive
+
+
+#: The Stribeck velocities [rad/s] ``MotorFriction2.from_lower`` tries (log-spaced).
+STRIBECK_GRID: np.ndarray = np.geomspace(0.005, 1.0, 16)
+
+
+@register_effect
+class MotorFriction2(AbstractEffect):
+    """``motor_friction`` of order 2: Coulomb, viscous and Stribeck friction on the rotor
+    side (the static map of eq. 35 on the rotor velocity q2'),
+
+        rotor_torque = -((Fm + Fsm exp(-(q2' / vsm)^2)) tanh(q2' / width) + bm q2')   [N m]
+
+    Fm [N m] >= 0 the Coulomb level, Fsm [N m] >= 0 the static excess over it (breakaway
+    Fm + Fsm), vsm [rad/s] > 0 the Stribeck velocity, bm [N m s/rad] >= 0 viscous (all
+    link-referred); width [rad/s] > 0 smoothing of sign(q2'), not fitted."""
+
+    name: ClassVar[str] = "motor_friction_2"
+    where: ClassVar[str] = "rotor torque"
+    constraints: ClassVar[dict[str, str]] = {"Fm": "positive", "bm": "positive",
+                                             "Fsm": "positive", "vsm": "positive",
+                                             "width": "fixed"}
+    candidate: ClassVar[bool] = False
+    telling: ClassVar[str | None] = "rotor velocity"
+    family: ClassVar[str] = "motor_friction"
+    order: ClassVar[int] = 2
+    Fm: Float[Array, " n"] = eqx.field(converter=as_param)
+    bm: Float[Array, " n"] = eqx.field(converter=as_param)
+    Fsm: Float[Array, " n"] = eqx.field(converter=as_param)
+    vsm: Float[Array, " n"] = eqx.field(converter=as_param)
+    width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
+
+    def __check_init__(self) -> None:
+        check_nonnegative("motor_friction_2", Fm=self.Fm, bm=self.bm, Fsm=self.Fsm)
+        check_positive("motor_friction_2", vsm=self.vsm, width=self.width)
+
+    @classmethod
+    def typical(cls, n: int) -> MotorFriction2:
+        return cls(Fm=np.full(n, 2e-3), bm=np.full(n, 1e-3), Fsm=np.full(n, 1e-3),
+                   vsm=np.full(n, 0.05))
+
+    @classmethod
+    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> MotorFriction2:
+        """For each Stribeck velocity of ``STRIBECK_GRID``, the linear fit of the rotor
+        residual by the three friction columns (-tanh(q2'/width), -q2', -tanh(q2'/width)
+        exp(-(q2'/vsm)^2)); the best fit with all three levels positive gives Fm, bm, Fsm and
+        vsm. Where none has, ``lower``'s fitted Fm and bm with a Stribeck excess of a third
+        of Fm at the model's link Stribeck velocity."""
+        if not isinstance(lower, MotorFriction):
+            raise TypeError(f"{cls.name}.from_lower: expected a MotorFriction, got {type(lower).__name__}")
+        width = float(np.ravel(lower.width)[0])
+        best: tuple[float, np.ndarray, float] | None = None
+        for vs in STRIBECK_GRID:
+            def columns(q: np.ndarray, v: np.ndarray, vs: float = float(vs)) -> np.ndarray:
+                sgn = np.tanh(v / width)
+                return -np.column_stack([sgn, v, sgn * np.exp(-((v / vs) ** 2))])
+            e, c = data.column_fits("rotor", columns)
+            if e > 0 and np.all(c > 0) and (best is None or e > best[0]):
+                best = (e, c, float(vs))
+        if best is None:
+            Fm = float(np.ravel(lower.Fm)[0])
+            return cls(Fm=np.ravel(lower.Fm), bm=np.ravel(lower.bm),
+                       Fsm=np.full(1, max(Fm / 3.0, LEAST_AMPLITUDE)),
+                       vsm=np.ravel(data.nominal("vs")), width=np.ravel(lower.width))
+        _, c, vs = best
+        return cls(Fm=np.full(1, c[0]), bm=np.full(1, c[1]), Fsm=np.full(1, c[2]),
+                   vsm=np.full(1, vs), width=np.ravel(lower.width))
+
+    def rotor_torque(self, x: PlantState) -> Float[Array, " n"]:
+        v = x.dq2
+        level = self.Fm + self.Fsm * jnp.exp(-jnp.square(v / self.vsm))
+        return -(level * smooth_sign(v, self.width) + self.bm * v)
+
+
+@register_effect
+class ActuatorLag2(AbstractSecondOrderInput):
+    """``actuator_lag`` of order 2: a second-order lag between commanded and applied torque
+    (a current loop of natural frequency 1/T and damping zeta),
+
+        T^2 a'' + 2 zeta T a' + a = tau,     applied torque = a      [N m]
+
+    with the same mean delay 2 zeta T [s] as a first-order lag of that time constant.
+    T [s] > 0 (fitted with T >= 1.5e-3, in ``discover`` T >= 1.5 h: RK4 keeps the poles
+    (-zeta +- sqrt(zeta^2 - 1)) / T stable for zeta up to the bound); zeta [-] in
+    (0.2, 1.5). Aux state (a, a') per joint."""
+
+    name: ClassVar[str] = "actuator_lag_2"
+    where: ClassVar[str] = "input (applied torque, internal state)"
+    constraints: ClassVar[dict[str, str]] = {"T": "positive>=1.5e-3", "zeta": "bounded:0.2,1.5"}
+    candidate: ClassVar[bool] = False
+    telling: ClassVar[str | None] = "frequency"
+    step_bounded: ClassVar[tuple[str, ...]] = ("T",)
+    family: ClassVar[str] = "actuator_lag"
+    order: ClassVar[int] = 2
+    T: Float[Array, " n"] = eqx.field(converter=as_param)
+    zeta: Float[Array, " n"] = eqx.field(converter=as_param)
+
+    def __check_init__(self) -> None:
+        check_positive("actuator_lag_2", T=self.T, zeta=self.zeta)
+
+    @classmethod
+    def typical(cls, n: int) -> ActuatorLag2:
+        return cls(T=np.full(n, 3e-3), zeta=np.full(n, 0.9))
+
+    @classmethod
+    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> ActuatorLag2:
+        """The fitted first-order time constant T1 as the mean delay 2 zeta T: critically
+        damped (T = T1 / 2, zeta = 1), or, where T1 / 2 is below twice the step bound
+        (``STEP_FLOOR``), T at that and zeta = T1 / (2 T) (within its bounds)."""
+        if not isinstance(lower, ActuatorLag):
+            raise TypeError(f"{cls.name}.from_lower: expected a ActuatorLag, got {type(lower).__name__}")
+        T1 = float(np.ravel(lower.T)[0])
+        T = max(T1 / 2.0, 2.0 * STEP_FLOOR * data.h)
+        zeta = min(max(T1 / (2.0 * T), 0.3), 1.4)
+        return cls(T=np.full(1, T), zeta=np.full(1, zeta))
+
+    def filter_coefficients(self) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
+        """(2 zeta T [s], T^2 [s^2])."""
+        return 2.0 * self.zeta * self.T, self.T**2
+
+    def applied_torque(self, tau: Array, aux: Array) -> Float[Array, " n"]:
+        return aux[0]
+
+
+__all__ = ["ActuatorLag2", "MotorFriction2"]
