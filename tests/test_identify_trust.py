@@ -354,3 +354,29 @@ def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_
     assert p_out is prob and s_out is sol
     assert checks[-1]["refinement_failed"] > prob.n_substeps
     assert attempts and attempts[-1]["converged"] is False
+
+
+def test_the_substeps_are_judged_again_against_the_residual_the_answer_leaves():
+    from jaxflex.fit import Solution, dynamic_substeps
+    from jaxflex.identify import make_problem
+    from jaxflex.identify.discretisation import choose_substeps, rechoose_substeps
+    from jaxflex.identify.problem import noise_cost
+
+    p = paper_params()
+    log, _ = _offset_log(0.6)
+    prob, y0 = make_problem(log, p, ("Fc", "sigma2"), segment_length=300,
+                            substeps=dynamic_substeps(1))
+    noise = noise_cost(log, prob)
+    one = choose_substeps(prob, y0, tol=0.0, most=2)[1]["output_error"][1]
+    assert one > 0.0
+
+    def answer(cost):
+        return Solution(y=y0, steps=1, converged=True, cost=cost, reason="", seconds=0.0)
+
+    # a residual at the noise: the replay's own error must be below half of it
+    finer, info = rechoose_substeps(prob, answer(noise), noise, tol=one / 2)
+    assert finer is not None and finer.n_substeps > prob.n_substeps
+    assert info["tolerance"] == pytest.approx(one / 2)
+    # a residual 100x the noise's cost (10x its RMS): the same error is inside it
+    finer, info = rechoose_substeps(prob, answer(100 * noise), noise, tol=one / 2)
+    assert finer is None and info["tolerance"] == pytest.approx(5 * one)
