@@ -380,3 +380,5 @@ def test_the_substeps_are_judged_again_against_the_residual_the_answer_leaves():
     # a residual 100x the noise's cost (10x its RMS): the same error is inside it
     finer, info = rechoose_substeps(prob, answer(100 * noise), noise, tol=one / 2)
     assert finer is None and info["tolerance"] == pytest.approx(5 * one)
+    # by default, an error above the residual itself
+    assert rechoose_substeps(prob, answer(noise), noise)[1]["tolerance"] == pytest.approx(1.0)

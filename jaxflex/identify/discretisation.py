@@ -61,14 +61,20 @@ def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
         prob, coarse = refined(prob), fine
 
 
+#: ``rechoose_substeps``: the search's answer is an artefact of the integrator where its
+#: replay's own error exceeds the residual the fit leaves there (this share of it).
+ARTEFACT_TOL: float = 1.0
+
+
 def rechoose_substeps(prob: Problem, sol: Solution, noise: float, *,
-                      tol: float = OUTPUT_TOL, most: int = MAX_SUBSTEPS,
+                      tol: float = ARTEFACT_TOL, most: int = MAX_SUBSTEPS,
                       ) -> tuple[Problem | None, dict[str, Any]]:
     """The substeps judged again at a search's answer ``sol`` of ``prob``: its replay's
     step-doubling error against the residual the fit leaves there (``tol`` times the larger
-    of the noise and the fit's RMS residual, ``sqrt(cost / noise)`` in noise units:
-    an integrator error far inside a model-limited residual does not move the answer), as
-    ``choose_substeps`` measures it from ``prob``'s level. ``noise``: the cost the
+    of the noise and the fit's RMS residual, ``sqrt(cost / noise)`` in noise units), as
+    ``choose_substeps`` measures it from ``prob``'s level. An error above that residual
+    makes the answer a minimum of the integrator rather than of the data; one inside a
+    model-limited residual is left to ``refine_fit``, which continues the fit. ``noise``: the cost the
     measurement noise alone gives (``noise_cost``). Returns the finer problem, or None where
     ``prob``'s substeps hold at the answer, and the errors measured."""
     scale = max(1.0, math.sqrt(max(float(sol.cost), 0.0) / noise))
