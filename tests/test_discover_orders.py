@@ -80,3 +80,34 @@ def test_a_rotor_friction_with_a_stribeck_term_is_named_motor_friction_order_2()
     p = rep["effect_params"]["motor_friction_2"]
     for k, v in (("Fm", 0.02), ("Fsm", 0.03), ("vsm", 0.1), ("bm", 0.01)):
         assert p[k]["value"] == pytest.approx(v, rel=0.15), k
+
+
+def test_a_higher_order_is_built_only_once_its_order_below_is_in_a_model():
+    """The run's workspaces (``Workspaces``): the first holds the candidates alone; one that
+    holds a family's order 2 is built when asked for and kept; a fit made in the first
+    replays the same (to rounding) read in the wider one (``Workspace.theta_of``), and a
+    model with an effect outside a universe is refused."""
+    import numpy as np
+
+    from jaxflex.identify.datagen import generate_log
+    from jaxflex.discover import Model, Workspaces, fit_model, output_residuals
+    from jaxflex.core.effects import EFFECTS
+    from jaxflex.io.params import Params
+
+    g = generate_log(("torque_offset",), seed=4, t_final=3.0)
+    true = Params.from_dict(g.truth["plant"])
+    built = []
+    wss = Workspaces(g.log, true, ("torque_offset", "motor_friction"), prepare=built.append,
+                     segment=0.3, train_frac=0.5, substeps=1, max_effects=1)
+    first = wss.holding()
+    assert first.universe == ("motor_friction", "torque_offset") and built == [first]
+    assert wss.holding(["torque_offset"]) is first
+    fit = fit_model(first, Model(true, [EFFECTS["motor_friction"].typical(1)]), max_steps=3)
+    wide = wss.holding(["motor_friction", "motor_friction_2"])
+    assert "motor_friction_2" in wide.universe and built == [first, wide]
+    assert wss.holding(["motor_friction_2"]) is wide
+    assert set(fit.theta) != set(wide.space.names)
+    np.testing.assert_allclose(output_residuals(wide, fit), output_residuals(first, fit),
+                               rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="not in the workspace's universe"):
+        first.for_model(Model(true, [EFFECTS["motor_friction_2"].typical(1)]))

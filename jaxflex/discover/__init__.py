@@ -78,7 +78,10 @@ All candidates share one compiled model: the plant holds every candidate effect,
 ``jaxflex.core.effects.Gated`` (gate 0 or 1), and the engine's parameter mask says which are fitted;
 both are data, so the solver compiles once per log shape. The gates are run-time branches
 (``lax.cond``, one per hook for all candidates together: ``jaxflex.core.effects.effect_torque``),
-so an inactive candidate costs no arithmetic per substep. Every fit ends at the engine's
+so an inactive candidate costs no arithmetic per substep. A family's higher order is not a
+candidate: its workspace (the candidates and that order, ``Workspaces``) is built only once
+the order below is in the model, so that the rounds' programs and Jacobians carry no order a
+run does not reach. Every fit ends at the engine's
 statistical stop measured against its own residual variance (``relative_stop``), and the base
 each round compares with is settled (``settle``).
 
@@ -86,7 +89,8 @@ Independent fits run side by side on the cores (``jaxflex.runtime.ahead.side_by_
 candidates' starts, screens and full fits, the polish of a contest or a tie, the two held-out
 start fits and the floor's draws. The answers do not depend on the number of workers.
 
-The modules, bottom up: ``candidates`` (``Model``, the gated ``Workspace``, ``CandidateFit``),
+The modules, bottom up: ``candidates`` (``Model``, the gated ``Workspace`` and the run's
+``Workspaces``, ``CandidateFit``),
 ``fitting`` (fits, held-out starts, the gap floor), ``localisation`` (residual signatures and
 the candidates' first guesses), ``ranking`` (select, contest, ties, evidence weights),
 ``config`` (``DiscoverConfig``, the nominal model's kind), ``screening`` (screen, shortlist,
@@ -106,6 +110,7 @@ from jaxflex.discover.candidates import (
     within_capacity,
     Workspace,
     workspace,
+    Workspaces,
 )
 from jaxflex.discover.fitting import (
     DECREMENT,
@@ -211,4 +216,5 @@ __all__ = [
     "STEP_FLOOR", "tie_by_output", "tied", "trace_fit",
     "training_evidence", "typical_effect", "unexplained_limit", "unresolved", "welch",
     "with_held_out", "within_capacity", "without_effect", "Workspace", "workspace",
+    "Workspaces",
 ]

@@ -1,7 +1,9 @@
 """The candidates' shared ground: a ``Model`` (nominal parameters plus named effects), the
 ``Workspace`` whose plant holds every candidate effect behind a gate (so every candidate shares
-one compiled program), the log's segments and their first start states (``bristle_entries``),
-and a ``CandidateFit``, the outcome of fitting one model.
+one compiled program), the run's workspaces by the effects they hold (``Workspaces``: a
+family's next order only once its order below is in a model), the log's segments and their
+first start states (``bristle_entries``), and a ``CandidateFit``, the outcome of fitting one
+model.
 """
 
 from __future__ import annotations
@@ -9,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import equinox as eqx
 import jax
@@ -71,8 +73,9 @@ def _gate(on: bool) -> jax.Array:
 
 
 class Workspace(eqx.Module):
-    """The compiled shape of one discovery run: the gated universal parameter space (every
-    candidate effect present, gated), the training and held-out problems."""
+    """The compiled shape of one universe of effects (``universe``, registered names): the
+    gated universal parameter space (every effect of the universe present, gated), the
+    training and held-out problems."""
 
     space: ParamSpace
     train: Problem
@@ -86,8 +89,14 @@ class Workspace(eqx.Module):
 
     def for_model(self, model: Model) -> tuple[Problem, Problem, dict[str, jax.Array]]:
         """Training and held-out problems of ``model`` (gates and mask set) and its start
-        coordinates."""
+        coordinates.
+
+        **Raises:** ``ValueError`` for a model with an effect outside the universe or with
+        more fitted parameters than the Jacobian's columns."""
         act = model.active
+        if missing := sorted(set(act) - set(self.universe)):
+            raise ValueError(f"discover: the model's effects {missing} are not in the "
+                             f"workspace's universe {list(self.universe)}")
         effs = []
         for name in self.universe:
             e = act.get(name) or model.starts.get(name) or typical_effect(name, self.step)
@@ -103,6 +112,16 @@ class Workspace(eqx.Module):
         train = eqx.tree_at(lambda p: p.space, self.train, space)
         test = eqx.tree_at(lambda p: p.space, self.test, space)
         return train, test, theta0
+
+    def theta_of(self, fit: CandidateFit) -> dict[str, jax.Array]:
+        """``fit``'s engine coordinates in this workspace: as they are when the fit was made
+        in a workspace of the same universe; from another of the run's workspaces
+        (``Workspaces``), its entries kept and those of the effects only this universe holds
+        (gated off in the fit's model, so the replay does not read them) at their starts."""
+        if set(fit.theta) == set(self.space.names):
+            return fit.theta
+        _, _, theta0 = self.for_model(fit.model)
+        return {k: fit.theta.get(k, v) for k, v in theta0.items()}
 
 
 def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: float,
@@ -129,7 +148,8 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     universe = tuple(sorted(universe))
     # the most entries a model fits: the nominal ones and the largest max_effects effects
     # (``discover`` adds at most max_effects; a tie's rivals are swapped in, not added), each
-    # family at its largest order (a family's orders are swapped in, one at a time)
+    # family at the largest order the universe holds (a family's orders are swapped in, one
+    # at a time)
     family: dict[str, int] = {}
     for n in universe:
         f = EFFECTS[n].family_name()
@@ -179,6 +199,46 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     return Workspace(space=space, train=problem(train_segs, jac_columns),
                      test=problem(test_segs, 0),
                      universe=universe)
+
+
+class Workspaces:
+    """The workspaces of one discovery run, each built when first asked for (``holding``):
+    the candidates' own, and, once a family's order k is in a model, one that also holds its
+    order k + 1 (``jaxflex.discover.orders.grow``). Every gated effect of a universe is
+    traced into each of its programs and the largest fitted families set its Jacobian's
+    width (``workspace``'s ``jac_columns``), so an order that a run never reaches costs it
+    nothing. A model is fitted in any workspace that holds its effects: an effect gated off
+    adds nothing to a replay.
+
+    **Arguments:**
+
+    - `log`, `nominal`: as ``workspace``.
+    - `candidates`: the registered names every workspace holds (the run's candidates).
+    - `prepare`: called with each workspace once it is built (the run's compilation ahead:
+      ``jaxflex.discover.fitting.trace_fit``, ``made_ahead``), or None.
+    - `build`: ``workspace``'s keyword arguments (``segment``, ``train_frac``, ``substeps``,
+      ``max_effects``)."""
+
+    def __init__(self, log: Log, nominal: Params, candidates: Iterable[str], *,
+                 prepare: Callable[[Workspace], None] | None = None, **build: float) -> None:
+        self.log, self.nominal, self.prepare, self.build = log, nominal, prepare, build
+        self.candidates = frozenset(candidates)
+        self.built: list[Workspace] = []
+
+    def holding(self, names: Iterable[str] = ()) -> Workspace:
+        """The workspace that holds the candidates and the registered effects ``names``: the
+        smallest built one that does, else a new one of exactly those (``workspace``).
+
+        **Raises:** ``ValueError`` as ``workspace`` (a log too short for its segments)."""
+        need = self.candidates | set(names)
+        have = [ws for ws in self.built if need <= set(ws.universe)]
+        if have:
+            return min(have, key=lambda ws: len(ws.universe))
+        ws = workspace(self.log, self.nominal, sorted(need), **self.build)  # type: ignore[arg-type]
+        self.built.append(ws)
+        if self.prepare is not None:
+            self.prepare(ws)
+        return ws
 
 
 @persistent_jit(fast_compile=True)

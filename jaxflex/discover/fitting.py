@@ -188,9 +188,10 @@ def with_held_out(ws: Workspace, fit: CandidateFit) -> CandidateFit:
         return fit
     t0 = time.perf_counter()
     _, test, _ = ws.for_model(fit.model)
-    x_test = held_out_starts(test, fit.theta, fit.test_starts)
-    return dataclasses.replace(fit, test_starts=x_test,
-                               gap_test=float(gap(test, (fit.theta, x_test))),
+    theta = ws.theta_of(fit)
+    x_test = held_out_starts(test, theta, fit.test_starts)
+    return dataclasses.replace(fit, theta=theta, test_starts=x_test,
+                               gap_test=float(gap(test, (theta, x_test))),
                                seconds=fit.seconds + time.perf_counter() - t0)
 
 
@@ -366,7 +367,7 @@ def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     """Simulated outputs (S, L, 2) = (q1, q2) [rad] of a fitted model on the held-out
     segments (for plots)."""
     _, test, _ = ws.for_model(fit.model)
-    return np.asarray(simulated_outputs(test, fit.y_test))
+    return np.asarray(simulated_outputs(test, (ws.theta_of(fit), fit.test_starts)))
 
 
 def residual_analysis(ws: Workspace, fit: CandidateFit,
@@ -389,7 +390,7 @@ def residual_analysis(ws: Workspace, fit: CandidateFit,
     ``{"part", "input", "residual", "lags", "confidence", "channels": {"q1": summary,
     "q2": summary}}``, each summary ``ResidualAnalysis.summary`` (curves included)."""
     _, test, _ = ws.for_model(fit.model)
-    sim = np.asarray(simulated_outputs(test, fit.y_test))
+    sim = np.asarray(simulated_outputs(test, (ws.theta_of(fit), fit.test_starts)))
     meas = np.asarray(test.segs.y_meas)
     u = np.asarray(test.segs.tau)[..., 0]
     if test.segs.active is not None:  # padding slots hold no data
@@ -422,13 +423,13 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
     Returns ``floor`` (mean over ``draws``), ``floor_sd`` (their spread), ``noise_std`` and
     ``step`` [rad] per output (q1, q2), ``segments`` used."""
     _, test, _ = ws.for_model(fit.model)
-    th = fit.theta
+    th = ws.theta_of(fit)
     chans = [np.asarray(log.q1, float)[:, 0], np.asarray(log.q2, float)[:, 0]]
     steps = [noise_level(c)["step"] for c in chans]
     sig = [math.sqrt(max(white_noise_std(c) ** 2 - st**2 / 12.0, 0.0))
            for c, st in zip(chans, steps)]
     fine = finer(test)
-    y_true = np.asarray(simulated_outputs(fine, fit.y_test))  # (S, L, 2)
+    y_true = np.asarray(simulated_outputs(fine, (th, fit.test_starts)))  # (S, L, 2)
     x_true = within_capacity(fit.test_starts, test.space.plant(th))
     rng = np.random.default_rng(seed)
     synthetic = []

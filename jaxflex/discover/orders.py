@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from jaxflex.discover.candidates import CandidateFit, Model, Workspace
+from jaxflex.discover.candidates import CandidateFit, Model, Workspaces
 from jaxflex.discover.config import DiscoverConfig
 from jaxflex.discover.fitting import settle
 from jaxflex.discover.localisation import residual_start
@@ -28,14 +28,15 @@ def swapped(model: Model, name: str, effect: Any) -> Model:
                  model.starts)
 
 
-def grow(log: Log, ws: Workspace, fit: CandidateFit, name: str, cfg: DiscoverConfig,
+def grow(log: Log, wss: Workspaces, fit: CandidateFit, name: str, cfg: DiscoverConfig,
          say: Callable[[str], None] = lambda s: None,
          ) -> tuple[CandidateFit, str, list[dict[str, Any]]]:
     """The order of effect ``name``'s family that ``log`` asks for, from ``fit`` (a polished
     model holding ``name``): order k + 1 (``EFFECTS[name].higher``) started from the fitted
     order k (``from_lower``, its new parameters from the residual of ``fit``'s model on
     ``log``), fitted with every shared parameter (``fit_candidate``, the residual
-    autocorrelation time of ``fit``) and scored against ``fit`` as a candidate is against its
+    autocorrelation time of ``fit``) in a workspace that holds both orders
+    (``Workspaces.holding``: built when first needed) and scored against ``fit`` as a candidate is against its
     base (``candidate_score``); when significant it is polished (``settle``) and kept if it
     is still significant and its held-out gap is lower; then the order above, up to
     ``cfg.max_order``.
@@ -43,7 +44,7 @@ def grow(log: Log, ws: Workspace, fit: CandidateFit, name: str, cfg: DiscoverCon
     **Arguments:**
 
     - `log`: the one-joint log of the run.
-    - `ws`: the run's workspace (its universe holds the family's orders).
+    - `wss`: the run's workspaces.
     - `fit`: the polished fit holding the effect ``name``.
     - `name`: the registered name of the effect whose family grows.
     - `cfg`: the run's settings (``alpha``, ``min_gain``, ``max_steps``, ``max_order``).
@@ -56,8 +57,7 @@ def grow(log: Log, ws: Workspace, fit: CandidateFit, name: str, cfg: DiscoverCon
     ``gain``, ``gap_test``) and the fitted values, or ``failed`` with the reason)."""
     records: list[dict[str, Any]] = []
     while (higher := EFFECTS[name].higher) is not None and EFFECTS[higher].order <= cfg.max_order:
-        if higher not in ws.universe:
-            break
+        ws = wss.holding([*fit.model.active, higher])
         tau_int = autocorrelation_time(ws, fit)
         n_eff = fit.n_res / tau_int
         lower = next(e for e in fit.model.effects if e.name == name)
@@ -96,7 +96,7 @@ def _record(s: dict[str, Any], f: CandidateFit, name: str) -> dict[str, Any]:
                        if k.startswith(name + ".")}}
 
 
-def grow_tie(log: Log, ws: Workspace, fits: dict[str, CandidateFit], tied: Sequence[str],
+def grow_tie(log: Log, wss: Workspaces, fits: dict[str, CandidateFit], tied: Sequence[str],
              winner: str, cfg: DiscoverConfig, say: Callable[[str], None] = lambda s: None,
              ) -> tuple[str, bool, dict[str, CandidateFit], dict[str, str], dict[str, Any]]:
     """A tie of equally sized candidates ``tied`` (polished fits ``fits``, ``winner`` the
@@ -108,7 +108,7 @@ def grow_tie(log: Log, ws: Workspace, fits: dict[str, CandidateFit], tied: Seque
     orders and, for each grown member, its score against each other member)."""
     grown, names, record = {}, {}, {"members": {}, "against": {}}
     for k in tied:
-        grown[k], names[k], recs = grow(log, ws, fits[k], k, cfg, say)
+        grown[k], names[k], recs = grow(log, wss, fits[k], k, cfg, say)
         record["members"][k] = {"grown": names[k], "order": EFFECTS[names[k]].order,
                                 "orders": recs}
     best = None
@@ -119,7 +119,7 @@ def grow_tie(log: Log, ws: Workspace, fits: dict[str, CandidateFit], tied: Seque
         for o in tied:
             if o == k or not grown[k].n_par > grown[o].n_par:
                 continue  # the criterion compares a model with one of fewer parameters
-            tau_int = autocorrelation_time(ws, grown[o])
+            tau_int = autocorrelation_time(wss.holding(grown[o].model.active), grown[o])
             scores[o] = _record(candidate_score(grown[o], grown[k], grown[o].n_res / tau_int,
                                                 cfg), grown[k], names[k])
         record["against"][k] = scores

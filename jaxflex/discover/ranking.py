@@ -61,7 +61,8 @@ def output_residuals(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     units of the segments' RMS motion (the problem's output weight)."""
     train, _, _ = ws.for_model(fit.model)
     S, L = train.segs.count, train.segs.length
-    return np.asarray(residuals(train, fit.y_train))[: train.n_out].reshape(S, L, -1)
+    y = (ws.theta_of(fit), fit.starts)
+    return np.asarray(residuals(train, y))[: train.n_out].reshape(S, L, -1)
 
 
 def autocorrelation_time(ws: Workspace, fit: CandidateFit) -> float:

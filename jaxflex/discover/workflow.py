@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.discover.candidates import Model, fitted_names, workspace
+from jaxflex.discover.candidates import Model, Workspace, Workspaces, fitted_names
 from jaxflex.discover.config import (
     DiscoverConfig,
     STABLE_MODE_STEP,
@@ -68,7 +68,6 @@ from jaxflex.core.effects import (
     EFFECTS,
     acts_on_replay,
     candidate_effects,
-    family_orders,
 )
 from jaxflex.runtime.ahead import Ahead, all_side_by_side, side_by_side
 from jaxflex.io.logs import Log
@@ -172,18 +171,18 @@ def discover(
     except (np.linalg.LinAlgError, FloatingPointError) as e:
         raise SolverFailure(run.stage, e) from e
     finally:
-        if run.ahead is not None:  # no thread is left running, a failed run's included
-            run.ahead.join()
+        for ahead in run.aheads:  # no thread is left running, a failed run's included
+            ahead.join()
 
 
 @dataclasses.dataclass
 class _Run:
     """Where a ``discover`` run is: the fit under way (for ``SolverFailure``), its
-    background work (``made_ahead``), and how its nominal model was read
+    background work (``made_ahead``, one per workspace), and how its nominal model was read
     (``nominal_for_model``'s note)."""
 
     stage: str = "the nominal model's refit"
-    ahead: Ahead | None = None
+    aheads: list[Ahead] = dataclasses.field(default_factory=list)
     model_note: str = ""
 
 
@@ -197,12 +196,19 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         say(f"note: the file's effects ({', '.join(nominal.effects)}) are set aside: "
             "discover starts from the model without them and tries them as candidates")
     nominal.effects = {}
-    # the workspace holds each candidate's family up to ``max_order`` (``grow``)
-    universe = list(dict.fromkeys(o for c in cands for o in family_orders(c, cfg.max_order)))
-    ws = workspace(log, nominal, universe, segment=cfg.segment, train_frac=cfg.train_frac,
-                   substeps=cfg.substeps, max_effects=cfg.max_effects)
-    trace_fit(ws, Model(nominal, []))
-    ahead = run.ahead = made_ahead(ws, nominal)
+
+    def prepare(ws: Workspace) -> None:
+        # the solver traced first, then the held-out programs made in the background
+        # (``made_ahead``) while this thread fits
+        trace_fit(ws, Model(nominal, []))
+        run.aheads.append(made_ahead(ws, nominal))
+
+    # the candidates' workspace; a family's order k + 1 is in a workspace built once its
+    # order k is in the model (``grow``)
+    wss = Workspaces(log, nominal, cands, prepare=prepare, segment=cfg.segment,
+                     train_frac=cfg.train_frac, substeps=cfg.substeps,
+                     max_effects=cfg.max_effects)
+    ws = wss.holding()
     current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2, held_out=False)
     # the base every candidate is compared with must not keep a load that the first solve's
     # long early steps pushed past the capacity (``settle``). Its stops stay in the units of
@@ -232,6 +238,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
     S, L = ws.train.segs.count, ws.train.segs.length
     while len(added) < cfg.max_effects:
         run.stage = f"round {len(rounds) + 1}: the candidates' screens and fits"
+        ws = wss.holding(current.model.active)
         tau_int = autocorrelation_time(ws, current)
         n_eff = current.n_res / tau_int
         series = loc_current.series
@@ -389,7 +396,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
                 members = {k: polished if k == winner else polished_fits.get(k, fits[k])
                            for k in rounds[-1]["tied"]}
                 pick, told, grown_fits, names, record = grow_tie(
-                    log, ws, members, rounds[-1]["tied"], winner, cfg, say)
+                    log, wss, members, rounds[-1]["tied"], winner, cfg, say)
                 rounds[-1]["tie_orders"] = record
                 if told:
                     rounds[-1]["tied"] = [pick]
@@ -397,7 +404,8 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
                 winner, polished, grown = pick, grown_fits[pick], names[pick]
                 rounds[-1]["winner"] = winner
             else:
-                polished, grown, rounds[-1]["orders"] = grow(log, ws, polished, winner, cfg, say)
+                polished, grown, rounds[-1]["orders"] = grow(log, wss, polished, winner, cfg,
+                                                             say)
         rounds[-1]["added"] = grown
         added.append(grown)
         if len(rounds[-1]["tied"]) > 1 and grown == winner:
@@ -408,6 +416,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         loc_current = localise(log, current.model.params)
         say(f"added {EFFECTS[grown].label()}: held-out gap {current.gap_test:.4f}")
     run.stage = "the second look at a tie on the final model"
+    ws = wss.holding(current.model.active)
     for at, rnd, rivals in open_ties:
         if at == len(added) - 1:
             continue  # judged on the final base already
@@ -424,7 +433,8 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         current = polished[now]
         loc_current = localise(log, current.model.params)
         say(f"tie of {sorted(rivals)} judged again with {added}: {now}, still tied {rnd['tied']}")
-    ahead.join()  # long done: no thread is left running when discover returns
+    for ahead in run.aheads:  # long done: no thread is left running when discover returns
+        ahead.join()
     run.stage = "the gap floor's bootstrap (replays of the final model)"
     fl = gap_floor(log, ws, current)
     # "unexplained": the final gap stays significantly above what noise, start errors and
