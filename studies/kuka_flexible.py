@@ -126,9 +126,9 @@ def fit(params: Any, log: Any, free: tuple[str, ...], *, deflection: bool = Fals
         integrated_autocorrelation,
         torque_residuals,
     )
-    from jaxflex.validate import motion_of
+    from jaxflex.fit.inverse import measured_motion
 
-    motion = {k: jnp.asarray(v) for k, v in motion_of(log, "rotor").items()}
+    motion = jax.tree.map(jnp.asarray, measured_motion(log, kind="rotor"))
     space = ParamSpace.build(params.to_plant(), list(free))
     fn = torque_residuals
     scale = float(np.std(log.q2 - log.q1) if deflection else np.std(log.tau))

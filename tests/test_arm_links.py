@@ -5,8 +5,6 @@ identification of a two-link arm from an independent simulator (``studies/arm_tw
 slow)."""
 
 import json
-import sys
-from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -18,7 +16,6 @@ from jaxflex.identify.links import base_record, structural_free
 from jaxflex.io.params import Params, ParamsError
 from jaxflex.core.plant import PlanarTwoLink
 
-STUDIES = Path(__file__).resolve().parents[1] / "studies"
 
 ARM = {"type": "planar_two_link", "m1": 0.6, "m2": 0.35, "l1": 0.3, "lc1": 0.15, "lc2": 0.12,
        "I1": 0.0045, "I2": 0.002, "g": 0.0}
@@ -138,8 +135,7 @@ def test_independent_simulator_agrees_with_the_plant_at_the_truth():
     from jaxflex.identify.problem import make_problem, noise_cost
     from jaxflex.io.logs import Log
 
-    sys.path.insert(0, str(STUDIES))
-    import arm_two_link
+    from studies import arm_two_link
 
     log = Log.from_arrays(**arm_two_link.simulate(2.0))
     truth = Params.from_dict(arm_two_link.truth_params(0.0))
@@ -158,8 +154,7 @@ def test_independent_simulator_agrees_with_the_plant_at_the_truth():
 def test_study_recovers_the_arm(tmp_path):
     """The study's check on the 8 s log, from a start 20-40% off: the base parameters, J, K,
     Fc and sigma2 of both joints within 5%."""
-    sys.path.insert(0, str(STUDIES))
-    import arm_two_link
+    from studies import arm_two_link
 
     res = arm_two_link.main(["--out", str(tmp_path), "--seconds", "8"])
     assert (tmp_path / "results.json").exists()
@@ -174,8 +169,7 @@ def test_study_recovers_the_arm(tmp_path):
                    strict=False)
 def test_study_recovers_every_friction_parameter(tmp_path):
     """The whole check: every parameter within 5% and the fit converged at the noise."""
-    sys.path.insert(0, str(STUDIES))
-    import arm_two_link
+    from studies import arm_two_link
 
     res = arm_two_link.main(["--out", str(tmp_path), "--seconds", "8"])
     assert res["converged"] and res["model"] == "adequate"

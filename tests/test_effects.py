@@ -5,6 +5,7 @@ import dataclasses
 import math
 
 import jax
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -266,6 +267,7 @@ def test_encoder_scale_maps_invert_and_a_rotor_fit_recovers_it():
     torque-domain rotor fit recovers a planted scale (and K) from the motion a rotor with
     that link-encoder scale needs, where a fit without it cannot."""
     from jaxflex.fit import ParamSpace, least_squares
+    from jaxflex.fit.inverse import Motion
     from jaxflex.validate import predicted_torque
 
     e = EFFECTS["encoder_scale"](scale=4e-4)
@@ -287,16 +289,16 @@ def test_encoder_scale_maps_invert_and_a_rotor_fit_recovers_it():
     fr = {"Fc": 1.0, "Fs": 1.0, "vs": 0.1, "sigma0": 1e5, "sigma1": 0.0, "sigma2": 0.0}
     truth = Params.from_dict({"plant": {"I": 1.0, "J": 600.0, "K": 4e6}, "friction": fr,
                               "effects": {"encoder_scale": {"scale": [5e-4]}}})
-    motion = {"q1": q1 / (1 + 5e-4), "d1": d1 / (1 + 5e-4), "dd1": dd1 / (1 + 5e-4),
-              "q2": q2, "d2": d2, "dd2": dd2, "tau": np.zeros_like(q1)}
-    motion = {k: jnp.asarray(v).reshape(-1, 1) for k, v in motion.items()}
-    motion["tau"] = predicted_torque(truth.to_plant(), "rotor", motion)
+    cols = (q1 / (1 + 5e-4), d1 / (1 + 5e-4), dd1 / (1 + 5e-4), q2, d2, dd2, np.zeros_like(q1))
+    motion = Motion(*(jnp.asarray(v).reshape(-1, 1) for v in cols))
+    motion = eqx.tree_at(lambda m: m.tau, motion,
+                         predicted_torque(truth.to_plant(), "rotor", motion))
 
     def fitted(free, scale0):
         start = Params.from_dict({"plant": {"I": 1.0, "J": 600.0, "K": 2e6}, "friction": fr,
                                   "effects": {"encoder_scale": {"scale": [scale0]}}})
         space = ParamSpace.build(start.to_plant(), free)
-        res = lambda th, m: (predicted_torque(space.plant(th), "rotor", m) - m["tau"]).ravel()
+        res = lambda th, m: (predicted_torque(space.plant(th), "rotor", m) - m.tau).ravel()
         sol = least_squares(motion, space.theta0(), fn=res, max_steps=200)
         return sol, {k: float(np.asarray(v)[0]) for k, v in space.physical(sol.y).items()}
 

@@ -5,16 +5,12 @@ an experiment; jaxflex replays the logged torque open loop through the true para
 the hidden effect, and far from them without it (so a sign or a convention that differs
 between the two would fail here)."""
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 pytest.importorskip("mujoco")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
 
-from mujoco_rig import simulate_rig  # noqa: E402
+from studies.mujoco_rig import simulate_rig  # noqa: E402
 
 from jaxflex.core.effects import EFFECTS  # noqa: E402
 from jaxflex.identify.experiments import synthetic_log  # noqa: E402

@@ -230,9 +230,9 @@ def _numpy_value_error():
 
 
 def _jaxflex_refusal():
-    from jaxflex.validate import motion_of
+    from jaxflex.fit.inverse import measured_motion
 
-    motion_of(None, kind="bogus")  # a plain ValueError raised by the library's own check
+    measured_motion(None, kind="bogus")  # a plain ValueError raised by the library's own check
 
 
 def test_classify_tells_input_from_bugs():

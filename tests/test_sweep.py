@@ -350,8 +350,7 @@ def test_two_process_run_on_localhost_equals_a_single_process_run(tmp_path):
 
 @pytest.mark.slow
 def test_robustness_study_runs_at_small_size(tmp_path):
-    sys.path.insert(0, str(ROOT / "studies"))
-    import sweep_robustness
+    from studies import sweep_robustness
 
     r = sweep_robustness.main(["--small", "--out", str(tmp_path), "--no-progress"])
     assert set(r["runs"]) == {"with compensation", "without compensation"}

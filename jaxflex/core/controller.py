@@ -16,12 +16,15 @@ q2d' and q2d'' are not measurable; ``q2d_method`` chooses how to get them (docs/
 
 The same control law serves the continuous closed loop (``continuous``) and the sampled-data
 controller (``init``/``step``), which also estimates velocities from encoder angles when they
-are not given and saturates the torque.
+are not given and saturates the torque. Every sampled control law of jaxflex (this cascade, a
+log's declared loop in ``jaxflex.validate``, the data generator's PD) implements
+``AbstractControlLaw``, the one interface the sampled-data loops call.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+import abc
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -134,6 +137,16 @@ class ControllerState(eqx.Module):
     ddq2d: Array
     estimator: EstimatorState | None = None
 
+    @classmethod
+    def at_rest(cls, q1: Array, q2: Array, dq2: Array | None = None) -> ControllerState:
+        """The state of a law at the angles q1, q2 [rad] (its last samples), every estimate
+        zero but the rotor velocity ``dq2`` [rad/s] where given."""
+        q1, q2 = jnp.asarray(q1, float), jnp.asarray(q2, float)
+        zero = jnp.zeros_like(q1)
+        return cls(z_hat=zero, q1_prev=q1, q2_prev=q2, dq1=zero,
+                   dq2=zero if dq2 is None else jnp.asarray(dq2, float), q2d_prev=zero,
+                   dq2d=zero, ddq2d=zero)
+
 
 class LawOutput(eqx.Module):
     """Control-law result with its intermediate signals (for logging and plots)."""
@@ -145,8 +158,52 @@ class LawOutput(eqx.Module):
     s1: Array
     e1: Array
 
+    @classmethod
+    def of_torque(cls, tau: Array, *, q2d: Array | None = None,
+                  e1: Array | None = None) -> LawOutput:
+        """The output of a law that has only a torque [N m] (and, where it has them, a
+        rotor set point q2d [rad] and a link error e1 [rad]); the cascade's other signals
+        are zero."""
+        zero = jnp.zeros_like(tau)
+        return cls(tau=tau, z_hat_dot=zero, F_hat=zero, q2d=zero if q2d is None else q2d,
+                   s1=zero, e1=zero if e1 is None else e1)
 
-class CascadeController(eqx.Module):
+
+class AbstractControlLaw(eqx.Module):
+    """A sampled control law: what every sampled-data loop of jaxflex calls once per sample
+    (``jaxflex.sim.simulate.simulate_sampled``, ``jaxflex.validate.sampled_loop``).
+
+    ``init(t0, q1, q2, dq1=None, dq2=None)`` gives the law's state at the first sample from the
+    link and rotor angles [rad] (and velocities [rad/s] where a sensor gives them);
+    ``step(state, t, q1, q2, dq1=None, dq2=None)`` the next state and a ``LawOutput`` whose
+    ``tau`` [N m] is held over the sample. The law reads its reference itself (a trajectory
+    or logged samples), so every loop passes it only the time and the measurements.
+    """
+
+    @abc.abstractmethod
+    def init(self, t0: ArrayLike, q1: Array, q2: Array, dq1: Array | None = None,
+             dq2: Array | None = None) -> Any:
+        """The law's state at the first sample, time ``t0`` [s]."""
+
+    @abc.abstractmethod
+    def step(self, state: Any, t: ArrayLike, q1: Array, q2: Array, dq1: Array | None = None,
+             dq2: Array | None = None) -> tuple[Any, LawOutput]:
+        """One sample at time ``t`` [s]: (next state, output)."""
+
+
+class AbstractTrackingLaw(AbstractControlLaw):
+    """A sampled control law that follows a ``Trajectory`` with a nominal plant ``model``,
+    at the sample period ``dt`` [s], its torque saturated at ``tau_max`` [N m]: what
+    ``jaxflex.sim.simulate.simulate_sampled`` runs (it starts the plant at the trajectory's
+    first point, checks the model's joint count against the plant's, records the state's
+    z_hat and velocities and keeps a Kalman estimator's state in it: the law's state is a
+    ``ControllerState``, ``ControllerState.at_rest`` where it needs none of them). A subclass
+    declares
+    the four as its fields (``model: FlexibleJointPlant``, ``trajectory: Trajectory``,
+    ``dt: float``, ``tau_max: Array``), in the order its constructor takes them."""
+
+
+class CascadeController(AbstractTrackingLaw):
     """The paper's cascade controller for a ``FlexibleJointPlant`` model and a ``Trajectory``.
 
     ``model`` is the controller's nominal plant (its links, J, K and LuGre parameters; its

@@ -184,3 +184,29 @@ class SampledReference(Trajectory):
                 for j in range(6)]
         window = jax.lax.dynamic_slice_in_dim(y, i.astype(int) - 2, 6, axis=0)
         return jnp.stack(rows) @ window
+
+
+class HeldSamples(eqx.Module):
+    """A signal known by uniformly spaced samples and held over each sample period (a logged
+    reference or disturbance as a sampled-data controller reads it): ``at(t)`` is the sample
+    nearest to ``t``, the first before the log and the last after it.
+
+    samples shape (N, n) in the signal's unit; dt [s] the sample period; t0 [s] the time of
+    the first sample.
+    """
+
+    samples: Float[Array, "N n"] = eqx.field(converter=lambda a: jnp.asarray(a, float))
+    dt: float = eqx.field(static=True)
+    t0: float = eqx.field(static=True, default=0.0)
+
+    def __check_init__(self) -> None:
+        if self.samples.ndim != 2 or self.samples.shape[0] < 1:
+            raise ValueError("HeldSamples: need samples of shape (N, n), got "
+                             f"{self.samples.shape}")
+        if not self.dt > 0:
+            raise ValueError(f"HeldSamples: dt must be > 0 s, got {self.dt}")
+
+    def at(self, t: ArrayLike) -> Array:
+        """The sample (n,) held at time ``t`` [s]."""
+        k = jnp.round((jnp.asarray(t) - self.t0) / self.dt).astype(int)
+        return self.samples[jnp.clip(k, 0, self.samples.shape[0] - 1)]

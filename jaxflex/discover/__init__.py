@@ -139,7 +139,6 @@ from jaxflex.discover.fitting import (
     without_effect,
 )
 from jaxflex.discover.localisation import (
-    inverse_dynamics,
     Localisation,
     localise,
     start_effect,
@@ -206,7 +205,7 @@ __all__ = [
     "effect_ties", "effective_count", "evidence_weights", "explained_fraction", "final_answer",
     "finer", "fit_candidate", "fit_model", "fit_record", "FIT_SOLVER", "fit_starts",
     "fitted_count", "fitted_names", "gap_floor", "held_out_mse", "held_out_starts",
-    "held_out_traces", "inverse_dynamics", "Localisation", "localise", "made_ahead",
+    "held_out_traces", "Localisation", "localise", "made_ahead",
     "MAX_REBASE", "Model", "model_kind_of", "NOMINAL_FIT", "nominal_for_model",
     "output_evidence", "output_residuals", "paired_p_value", "PINNED", "PINNED_FC",
     "progress_stop", "relative_stop", "released", "representative", "residual_analysis",

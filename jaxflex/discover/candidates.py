@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.core.effects import STEP_FLOOR, AbstractEffect, EFFECTS, Gated
-from jaxflex.fit import ParamSpace, Problem, is_fitted, make_segments, on_slot_rows, savgol
+from jaxflex.fit import ParamSpace, Problem, is_fitted, make_segments, on_slot_rows
+from jaxflex.fit.inverse import Motion, measured_motion, model_residuals
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
 from jaxflex.core.plant import FlexibleJointPlant
@@ -242,23 +243,16 @@ class Workspaces:
 
 
 @persistent_jit(fast_compile=True)
-def _bristle_residuals(plant: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
-                       q2: jax.Array, v2: jax.Array, a2: jax.Array,
-                       u: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """(capacity g(q1') / sigma0 [rad], link residual at z = 0, at z = capacity [N m]) at each
-    sample of ``bristle_entries`` (the residual is affine in z: F = sigma0 z + sigma1 z' +
-    sigma2 q1'), in one compiled program."""
+def _bristle_residuals(plant: FlexibleJointPlant, *cols: jax.Array
+                       ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(capacity g(q1') / sigma0 [rad], link residual at z = 0, at z = capacity [N m]), each
+    (N, 1), at the samples ``cols`` (a ``Motion``'s columns) of ``bristle_entries`` (the
+    residual is affine in z: F = sigma0 z + sigma1 z' + sigma2 q1'), in one compiled
+    program."""
+    motion = Motion(*cols)
     fr = plant.friction
-    cap = fr.g(v1) / fr.sigma0[0]
-
-    def r_link(z):
-        def one(q1_, v1_, a1_, q2_, v2_, a2_, u_, z_):
-            x = plant.init_state(q1=q1_, dq1=v1_, q2=q2_, dq2=v2_)
-            x = eqx.tree_at(lambda s: s.z, x, jnp.atleast_1d(z_))
-            return plant.torque_residuals(x, jnp.atleast_1d(a1_), jnp.atleast_1d(a2_),
-                                          jnp.atleast_1d(u_))[0][0]
-        return jax.vmap(one)(q1, v1, a1, q2, v2, a2, u, z)
-
+    cap = fr.g(motion.v1) / fr.sigma0[0]
+    r_link = lambda z: model_residuals(plant, "flexible", motion, z)[0]
     return cap, r_link(jnp.zeros_like(cap)), r_link(cap)
 
 
@@ -274,14 +268,10 @@ def bristle_entries(log: Log, plant: FlexibleJointPlant, idx: np.ndarray,
     (only 0 or +-capacity at rest) puts the start in another basin of the fit (a segment
     that starts just after a reversal is then fitted to the opposite load, and replays
     several times worse than the noise)."""
-    dt = log.dt
-    q1s, q2s, taus = (np.asarray(c, float)[:, 0] for c in (log.q1, log.q2, log.tau))
-    q1, q2 = (savgol(q, dt, 0, window)[idx] for q in (q1s, q2s))
-    v1, v2 = (savgol(q, dt, 1, window)[idx] for q in (q1s, q2s))
-    a1, a2 = (savgol(q, dt, 2, window)[idx] for q in (q1s, q2s))
+    cols = [c[idx] for c in measured_motion(log.joint(0), window, smooth=True).columns()]
     # in the segment count's bucket: one program per bucket
-    cap, r0, r1 = on_slot_rows(functools.partial(_bristle_residuals, plant),
-                               q1, v1, a1, q2, v2, a2, taus[idx])
+    cap, r0, r1 = (a[:, 0] for a in on_slot_rows(
+        functools.partial(_bristle_residuals, plant), *cols))
     frac = -r0 / np.where(r1 != r0, r1 - r0, 1.0)
     return cap * np.clip(frac, -bound, bound)
 

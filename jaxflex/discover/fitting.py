@@ -416,9 +416,9 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
     made them, open-loop replay with the workflow's substeps, and the gap. So the floor holds
     what noise, quantisation, the fitted starts and the replay's integration error cost a
     correct model on this log, and not the model's own errors, nor a start fit that stopped
-    on its way from a far first guess (from the log's start estimates, the floor of an
-    open-loop gravity log was 0.015 against a final gap of 0.0007; the held-out part of a fit
-    has its own second guess, ``held_out_starts``).
+    on its way from a far first guess (a floor from the log's own start estimates can exceed a
+    correct model's final gap; the held-out part of a fit has its own second guess,
+    ``held_out_starts``).
 
     Returns ``floor`` (mean over ``draws``), ``floor_sd`` (their spread), ``noise_std`` and
     ``step`` [rad] per output (q1, q2), ``segments`` used."""

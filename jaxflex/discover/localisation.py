@@ -6,22 +6,18 @@ guesses of candidate effects drawn from those residuals (``start_effect``).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from typing import Any
 
 import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.discover.candidates import Model
 from jaxflex.core.effects import AbstractEffect, EFFECTS
-from jaxflex.fit import noise_level, on_slot_rows, savgol, savgol_coeffs
+from jaxflex.fit import noise_level, savgol, savgol_coeffs
+from jaxflex.fit.inverse import measured_motion, torque_residuals
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
-from jaxflex.core.plant import FlexibleJointPlant
-from jaxflex.runtime.tracecache import persistent_jit
 
 
 # ---------------------------------------------------------------------------- localisation
@@ -52,22 +48,6 @@ class Localisation:
     series: dict[str, np.ndarray]
 
 
-@persistent_jit
-def inverse_dynamics(plant: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
-                     q2: jax.Array, v2: jax.Array, a2: jax.Array,
-                     tau: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Link and rotor torque residuals [N m], (N, 1) each, of ``plant`` at the measured motion
-    (samples (N,): angles [rad], velocities [rad/s], accelerations [rad/s^2], torque [N m])
-    with z at its steady state (``FlexibleJointPlant.torque_residuals``; F = F_ss, eq. 35)."""
-    def resid(q1_, v1_, a1_, q2_, v2_, a2_, u):
-        x = plant.init_state(q1=q1_, dq1=v1_, q2=q2_, dq2=v2_)
-        x = eqx.tree_at(lambda s: s.z, x, plant.friction.z_steady(x.dq1))
-        return plant.torque_residuals(x, jnp.atleast_1d(a1_), jnp.atleast_1d(a2_),
-                                      jnp.atleast_1d(u))
-
-    return jax.vmap(resid)(q1, v1, a1, q2, v2, a2, tau)
-
-
 def welch(x: np.ndarray, dt: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
     """Welch's power spectral density of ``x`` sampled every ``dt`` [s]: frequencies [Hz] and
     one-sided density [units^2 / Hz], from periodic-Hann-windowed segments of ``nperseg``
@@ -94,15 +74,11 @@ def localise(log: Log, params: Params, window: int = 41) -> Localisation:
     the same differentiation)."""
     dt = log.dt
     plant = params.to_plant(with_effects=False)
-    q1s, q2s, taus = log.q1[:, 0], log.q2[:, 0], log.tau[:, 0]
-    q1, q2 = (savgol(q, dt, 0, window) for q in (q1s, q2s))
-    v1, v2 = (savgol(q, dt, 1, window) for q in (q1s, q2s))
-    a1, a2 = (savgol(q, dt, 2, window) for q in (q1s, q2s))
-    tau = savgol(taus, dt, 0, window)
-
-    # on the samples padded to their bucket: one program per bucket
-    r_link, r_rot = (a[:, 0] for a in on_slot_rows(functools.partial(inverse_dynamics, plant),
-                                                   q1, v1, a1, q2, v2, a2, tau))
+    q1s, q2s = log.q1[:, 0], log.q2[:, 0]
+    motion = measured_motion(log.joint(0), window, smooth=True)
+    motion = eqx.tree_at(lambda m: m.tau, motion, savgol(motion.tau, dt, 0, window))
+    r_link, r_rot = (r[:, 0] for r in torque_residuals(plant, motion))
+    q1, q2, v1, v2 = (a[:, 0] for a in (motion.q1, motion.q2, motion.v1, motion.v2))
     K, I, J = (float(np.ravel(a)[0]) for a in (plant.K, plant.links.I, plant.J))
     d, dd = q2 - q1, v2 - v1
     nf1, nf2 = noise_level(q1s), noise_level(q2s)
@@ -254,7 +230,7 @@ def _grid_fits(q: np.ndarray, r: np.ndarray, Q: np.ndarray, grid: np.ndarray,
     out = []
     for k in range(0, grid.size, 64):  # 64 frequencies at a time, each a 2-column fit
         Ns = grid[k:k + 64]
-        # E = exp(i N q), a row per N of the chunk, by repeated turns (3x faster than a sine
+        # E = exp(i N q), a row per N of the chunk, by repeated turns (cheaper than a sine
         # and a cosine each); its real part is the cosine column C, its imaginary part S
         E = np.empty((Ns.size, n), complex)
         E[0] = np.exp(1j * Ns[0] * q)

@@ -325,8 +325,7 @@ class Problem(eqx.Module):
             x0 = eqx.tree_at(lambda s: s.q1, x0, q1_start)
         x0 = warm_effects(plant, x0, tau_pre, self.dt)
         # segments and Jacobian columns run batched: unrolled substeps are faster there, up to
-        # UNROLL_SUBSTEPS (past it XLA's compile time and run time on a CPU explode: 8 / 16 /
-        # 32 unrolled substeps compiled in 1.6 / 5.2 / 62 s and the last ran 30x slower)
+        # UNROLL_SUBSTEPS (past it XLA's compile time and run time on a CPU grow steeply)
         static = isinstance(self.substeps, int)
         xs, x_end = replay(self.kind, plant, x0, tau, self.dt, self.substeps,
                            unroll=static and self.substeps <= UNROLL_SUBSTEPS, rolled=rolled)

@@ -47,6 +47,7 @@ from jaxtyping import Array, ArrayLike
 
 from jaxflex.core.chain import SerialChain
 from jaxflex.fit import savgol
+from jaxflex.fit.inverse import rigid_regressors
 from jaxflex.core.inertial import (BaseParameters, base_parameters, log_cholesky_from_phi,
                               phi_from_log_cholesky, pseudo_inertia, random_states,
                               stacked_regressor)
@@ -168,8 +169,7 @@ def joint_columns(motion: ArmMotion) -> np.ndarray:
     """The per-joint columns (N, m, 4 m) (``JOINT_TERMS`` per joint, joint-major): joint j's
     row holds qm_j'', qm_j', sign(qm_j'), 1 in its own four columns."""
     N, m = motion.tau.shape
-    cols = np.stack([motion.ddqm, motion.dqm, np.sign(motion.dqm), np.ones_like(motion.dqm)],
-                    axis=-1)                                          # (N, m, 4)
+    cols = rigid_regressors(motion.dqm, motion.ddqm)                  # (N, m, 4)
     out = np.zeros((N, m, 4 * m))
     for j in range(m):
         out[:, j, 4 * j:4 * j + 4] = cols[:, j]

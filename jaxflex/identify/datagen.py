@@ -24,7 +24,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxflex.core.controller import (
-    CascadeController, CascadeGains, ControllerState, LawOutput, dirty_derivative, pd_torque,
+    AbstractTrackingLaw, CascadeController, CascadeGains, ControllerState, LawOutput,
+    dirty_derivative, pd_torque,
 )
 from jaxflex.core.effects import EFFECTS, AbstractEffect
 from jaxflex.identify.experiments import synthetic_log
@@ -76,11 +77,11 @@ class FrictionBump(AbstractEffect):
         return -self.B * jnp.exp(-jnp.square((x.q1 - self.qb) / self.w)) * jnp.tanh(x.dq1 / 0.01)
 
 
-class RotorPD(eqx.Module):
+class RotorPD(AbstractTrackingLaw):
     """A PD loop on the rotor angle toward the link reference (sampled, dirty-derivative
     velocity): tau = kp (q1d - q2) - kd q2' [N m], saturated at tau_max
-    (``jaxflex.core.controller.pd_torque``, ``dirty_derivative``). Duck-types the
-    controller interface of ``jaxflex.sim.simulate.simulate_sampled`` (``init``, ``step``)."""
+    (``jaxflex.core.controller.pd_torque``, ``dirty_derivative``); an
+    ``AbstractTrackingLaw``."""
 
     model: FlexibleJointPlant
     trajectory: Trajectory
@@ -91,11 +92,7 @@ class RotorPD(eqx.Module):
     velocity_tc: float = eqx.field(static=True, default=0.005)
 
     def init(self, t0, q1, q2, dq1=None, dq2=None) -> ControllerState:
-        zero = jnp.zeros_like(jnp.asarray(q1, float))
-        dq2 = zero if dq2 is None else jnp.asarray(dq2, float)
-        return ControllerState(z_hat=zero, q1_prev=jnp.asarray(q1, float),
-                               q2_prev=jnp.asarray(q2, float), dq1=zero, dq2=dq2,
-                               q2d_prev=zero, dq2d=zero, ddq2d=zero)
+        return ControllerState.at_rest(q1, q2, dq2)
 
     def step(self, state: ControllerState, t, q1, q2, dq1=None, dq2=None):
         if dq2 is None:
@@ -103,9 +100,7 @@ class RotorPD(eqx.Module):
         ref = self.trajectory.position(jnp.asarray(t, q1.dtype))
         tau = pd_torque(self.kp, self.kd, self.tau_max, ref, q2, dq2)
         new = dataclasses.replace(state, q1_prev=q1, q2_prev=q2, dq2=dq2)
-        zero = jnp.zeros_like(q1)
-        return new, LawOutput(tau=tau, z_hat_dot=zero, F_hat=zero, q2d=ref, s1=zero,
-                              e1=q1 - ref)
+        return new, LawOutput.of_torque(tau, q2d=ref, e1=q1 - ref)
 
 
 @dataclasses.dataclass

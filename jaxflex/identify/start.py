@@ -38,7 +38,8 @@ from typing import Any
 import numpy as np
 
 from jaxflex.core.effects.library import EncoderScale
-from jaxflex.fit import noise_level, savgol
+from jaxflex.fit import noise_level
+from jaxflex.fit.inverse import linear_fit, measured_motion, rigid_regressors
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
 
@@ -179,30 +180,14 @@ def check_model(log: Log, model: str, link_side: list[str] | None = None) -> tup
     return model, "as given"
 
 
-def _ls(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Least squares with standard errors (white residual) and relative residual."""
-    x, *_ = np.linalg.lstsq(A, b, rcond=None)
-    r = b - A @ x
-    dof = max(A.shape[0] - A.shape[1], 1)
-    s2 = float(r @ r) / dof
-    try:
-        cov = s2 * np.linalg.inv(A.T @ A)
-        se = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    except np.linalg.LinAlgError:
-        se = np.full(x.shape, np.inf)
-    rel = math.sqrt(float(r @ r) / max(float(b @ b), 1e-300))
-    return x, se, rel
-
-
 def _joint(log: Log, j: int, model: str) -> dict[str, Any]:
     """The inverse-dynamics estimates of joint ``j`` (module docstring)."""
-    dt = log.dt
-    tau = np.asarray(log.tau, float)[:, j]
-    q1 = np.asarray(log.q1, float)[:, j]
-    w = min(WINDOW, (len(q1) // 2) * 2 - 1)
+    w = min(WINDOW, (log.N // 2) * 2 - 1)
     if w < 7:
-        raise StartError(f"joint {j}: {len(q1)} samples are too few for inverse dynamics")
-    v1, a1 = savgol(q1, dt, 1, w), savgol(q1, dt, 2, w)
+        raise StartError(f"joint {j}: {log.N} samples are too few for inverse dynamics")
+    m = measured_motion(log.joint(j), w, kind="rigid" if model == "rigid" else "flexible",
+                        smooth=True)
+    tau, q1, v1, a1 = m.tau[:, 0], log.q1[:, j], m.v1[:, 0], m.a1[:, 0]
     top = float(np.quantile(np.abs(v1), 0.99))
     if not top > 0:
         raise StartError(f"joint {j}: the link does not move")
@@ -216,20 +201,16 @@ def _joint(log: Log, j: int, model: str) -> dict[str, Any]:
     one = np.ones_like(q1)
     out: dict[str, Any] = {}
     if model == "rigid":
-        A = np.column_stack([a1, v1, sgn, one])[sel]
-        x, se, rel = _ls(A, tau[sel])
+        x, se, rel = dataclasses.astuple(linear_fit(rigid_regressors(v1, a1)[sel], tau[sel]))
         out.update(Jx=(float(x[0]), float(se[0])), sigma2=(float(x[1]), float(se[1])),
                    Fc=(float(x[2]), float(se[2])), offset=(float(-x[3]), float(se[3])))
     else:
-        q2 = np.asarray(log.q2, float)[:, j]
-        a2 = savgol(q2, dt, 2, w)
-        d = savgol(q2, dt, 0, w) - savgol(q1, dt, 0, w)
+        q1s, q2s, v2, a2 = m.q1[:, 0], m.q2[:, 0], m.v2[:, 0], m.a2[:, 0]
+        d = q2s - q1s
         if model == "rotor":
             # the rotor line with its effects (module docstring) on every interior sample
-            v2 = savgol(q2, dt, 1, w)
-            q1s = savgol(q1, dt, 0, w)
             A = np.column_stack([a2, d, np.tanh(v2 / ROTOR_FRICTION_WIDTH), v2, q1s, one])
-            x, se, rel_r = _ls(A[edge], tau[edge])
+            x, se, rel_r = dataclasses.astuple(linear_fit(A[edge], tau[edge]))
             J, K, Fm, b, Ks, c = x
             out.update(J=(float(J), float(se[0])), K=(float(K), float(se[1])),
                        Fm=(float(Fm), float(se[2])), b=(float(b), float(se[3])),
@@ -239,14 +220,14 @@ def _joint(log: Log, j: int, model: str) -> dict[str, Any]:
         else:
             # rotor line on every interior sample (no friction there)
             A = np.column_stack([a2, d, one])[edge]
-            x, se, rel_r = _ls(A, tau[edge])
+            x, se, rel_r = dataclasses.astuple(linear_fit(A, tau[edge]))
             J, K, c = x
             out.update(J=(float(J), float(se[0])), K=(float(K), float(se[1])),
                        offset=(float(-c), float(se[2])))
             spring = K * d
         # link line with the rotor line's spring torque
         A = np.column_stack([a1, v1, sgn])[sel]
-        y, sy, rel = _ls(A, spring[sel])
+        y, sy, rel = dataclasses.astuple(linear_fit(A, spring[sel]))
         out.update(I=(float(y[0]), float(sy[0])), sigma2=(float(y[1]), float(sy[1])),
                    Fc=(float(y[2]), float(sy[2])))
         out["rotor_residual"] = rel_r

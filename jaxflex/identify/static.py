@@ -7,7 +7,6 @@ inverse dynamics)."""
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Sequence
 
@@ -15,13 +14,12 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from jaxflex.fit import (ParamSpace, covariance, get_value, least_squares, on_slot_rows,
-                         savgol, slot_rows)
+from jaxflex.fit import (ParamSpace, covariance, get_value, least_squares, slot_rows)
 from jaxflex.core.friction import LuGre
+from jaxflex.fit.inverse import measured_motion, torque_residuals
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
 from jaxflex.core.plant import DiagonalInertia, FlexibleJointPlant
-from jaxflex.runtime.tracecache import persistent_jit
 from jaxflex.core.validation import to_device
 
 STATIC_NAMES: tuple[str, ...] = ("Fc", "Fs", "vs", "sigma2")
@@ -98,18 +96,6 @@ def _static_residuals(y: dict[str, jax.Array], prob: StaticMapProblem) -> jax.Ar
 
 
 
-@persistent_jit(fast_compile=True)
-def _link_residuals(bare: FlexibleJointPlant, q1: jax.Array, v1: jax.Array, a1: jax.Array,
-                    q2: jax.Array, v2: jax.Array, a2: jax.Array, tau: jax.Array) -> jax.Array:
-    """The link line of ``torque_residuals`` of the frictionless plant ``bare`` at every
-    sample (N, n) [N m]: the friction eq. 3 needs to explain the measured motion."""
-    def one(x1, w1, b1, x2, w2, b2, u):
-        x = bare.init_state(q1=x1, dq1=w1, q2=x2, dq2=w2)
-        return bare.torque_residuals(x, b1, b2, u)[0]
-
-    return jax.vmap(one)(q1, v1, a1, q2, v2, a2, tau)
-
-
 def static_map_from_log(
     log: Log, plant: FlexibleJointPlant, *, joint: int = 0, window: int = 31, bins: int = 40,
     min_speed: float | None = None,
@@ -122,15 +108,10 @@ def static_map_from_log(
     has too few moving samples in either direction."""
     if log.q2 is None or log.tau is None:
         raise ValueError("static map from a log: needs columns tau, q1 and q2")
-    dt = log.dt
-    q1, q2, tau = log.q1, log.q2, log.tau
-    v1, v2 = savgol(q1, dt, 1, window), savgol(q2, dt, 1, window)
-    a1, a2 = savgol(q1, dt, 2, window), savgol(q2, dt, 2, window)
     bare = eqx.tree_at(lambda p: p.friction, plant, None, is_leaf=lambda x: x is None)
-    # on the samples padded to their bucket: logs of other lengths share the one program
-    motion = (savgol(q1, dt, 0, window), v1, a1, savgol(q2, dt, 0, window), v2, a2, tau)
-    F = -on_slot_rows(functools.partial(_link_residuals, bare), *motion)[:, joint]
-    v = v1[:, joint]
+    motion = measured_motion(log, window, smooth=True)
+    F = -torque_residuals(bare, motion)[0][:, joint]
+    v = motion.v1[:, joint]
     top = float(np.quantile(np.abs(v), 0.99))
     lo = 0.02 * top if min_speed is None else min_speed
     vs_out, F_out = [], []

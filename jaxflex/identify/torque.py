@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.fit import CostBound, ParamSpace, constraint_of, covariance, least_squares, set_values
+from jaxflex.fit.inverse import Motion, measured_motion
 from jaxflex.identify.start import ROTOR_EFFECTS, StartError, start_from_data
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
@@ -70,12 +71,12 @@ DECREMENT_TOL: float = 1e-2
 
 class TorqueData(eqx.Module):
     """Data of an equation-error fit: the parameter space, the measured motion
-    (``jaxflex.validate.motion_of``) and each joint's residual scale (n,) (torque [N m] or
+    (``jaxflex.fit.inverse.measured_motion``) and each joint's residual scale (n,) (torque [N m] or
     deflection [rad]: every joint weighs alike); ``deflection`` selects the residual (module
     docstring)."""
 
     space: ParamSpace
-    motion: dict
+    motion: Motion
     scale: jax.Array
     deflection: bool = eqx.field(static=True, default=False)
 
@@ -86,7 +87,7 @@ def torque_residuals(theta: dict, data: TorqueData) -> jax.Array:
     from jaxflex.validate import predicted_torque
 
     plant = data.space.plant(theta)
-    r = predicted_torque(plant, "rotor", data.motion) - data.motion["tau"]
+    r = predicted_torque(plant, "rotor", data.motion) - data.motion.tau
     if data.deflection:
         return (r / (plant.K * data.scale)).reshape(-1)
     return (r / data.scale).reshape(-1)
@@ -174,11 +175,9 @@ def fit_equation_error(params: Params, log: Log, free: Sequence[str], *,
     Raises:
         ValueError: a log without q2 or tau, or a name ``params`` does not hold.
     """
-    from jaxflex.validate import motion_of
-
     if log.tau is None or log.q2 is None:
         raise ValueError("identify: the rotor model needs the columns tau, q1 and q2")
-    motion = {k: jnp.asarray(v) for k, v in motion_of(log, "rotor").items()}
+    motion = jax.tree.map(jnp.asarray, measured_motion(log, kind="rotor"))
     space = ParamSpace.build(params.to_plant(), list(free))
     x = (np.asarray(log.q2, float) - np.asarray(log.q1, float) if deflection
          else np.asarray(log.tau, float)).reshape(log.N, log.n)

@@ -229,10 +229,10 @@ def _rebuild(program: _Program, flat: list) -> Any:
 
 #: XLA options of a program compiled for compile speed (``persistent_jit(...,
 #: fast_compile=True)``): XLA CPU's older LLVM emitters instead of its fusion emitters, which
-#: compile every fused kernel as a module of its own (8-20 ms each; identify's solver loop
-#: holds about 225). The static map's solver loop and the programs a fit runs once (replay,
-#: covariance, discretisation check, constraint maps) compile about twice as fast and run
-#: slower, which is why the loops where a fit spends its time keep XLA's defaults.
+#: compile every fused kernel as a module of its own. The static map's solver loop and the
+#: programs a fit runs once (replay, covariance, discretisation check, constraint maps)
+#: compile faster and run slower, which is why the loops where a fit spends its time keep
+#: XLA's defaults.
 FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 
 

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from jaxflex.core.controller import CascadeController, ControllerState, LawOutput
+from jaxflex.core.controller import AbstractTrackingLaw, ControllerState, LawOutput
 from jaxflex.core.estimator import KalmanEstimator, kalman_for
 from jaxflex.core.sensing import AbstractSensing, Sensing
 from jaxflex.core.plant import FlexibleJointPlant, PlantState
@@ -111,7 +111,7 @@ class SimResult(eqx.Module):
     dq2_hat: Array | None = None
 
 
-def loop_estimator(controller: CascadeController, sensing: AbstractSensing
+def loop_estimator(controller: AbstractTrackingLaw, sensing: AbstractSensing
                    ) -> KalmanEstimator | None:
     """The Kalman filter the sampled-data loop runs for ``sensing`` (velocity "kalman"), built
     from the controller's nominal model and period with the encoder and DAC noise of the
@@ -124,7 +124,7 @@ def loop_estimator(controller: CascadeController, sensing: AbstractSensing
 
 
 def init_controller(
-    controller: CascadeController, estimator: KalmanEstimator | None, t0: ArrayLike,
+    controller: AbstractTrackingLaw, estimator: KalmanEstimator | None, t0: ArrayLike,
     q1: Array, q2: Array, dq1: Array, dq2: Array,
 ) -> ControllerState:
     """``controller.init`` at sensed angles q1, q2 [rad] and velocities dq1, dq2 [rad/s], with
@@ -136,7 +136,7 @@ def init_controller(
 
 
 def controller_sample(
-    controller: CascadeController, sensing: AbstractSensing, estimator: KalmanEstimator | None,
+    controller: AbstractTrackingLaw, sensing: AbstractSensing, estimator: KalmanEstimator | None,
     c: ControllerState, t: Array, q1m: Array, q2m: Array, dq1: Array, dq2: Array,
 ) -> tuple[ControllerState, LawOutput, Array]:
     """One controller sample of the loop at time t [s] from the sensed angles q1m, q2m [rad]:
@@ -186,7 +186,7 @@ def _blown(x: PlantState, bound: float = 1e3) -> Array:
 
 def simulate_sampled(
     plant: FlexibleJointPlant,
-    controller: CascadeController,
+    controller: AbstractTrackingLaw,
     t_final: float,
     *,
     x0: PlantState | None = None,
@@ -207,16 +207,10 @@ def simulate_sampled(
     blows up is flagged in ``metrics.diverged`` and its state frozen, never an exception.
     ``unroll_substeps``: the plant's substep loop (``jaxflex.sim.step.model_step``): True
     unrolled, False rolled, an int k: k substeps per trip of the loop (default 2); same
-    numbers, another speed. Unrolled is faster under ``vmap`` on a CPU (the sweep engine
-    decides per control law); for one run slower under XLA's default options (a 10 s loop of
-    the paper plant at 10 substeps: 59 -> 81 ms) but faster under its small-loop option
-    (``jaxflex.runtime.xla.use_lean_xla_cpu(small_loops=True)``), except through a gradient
-    (``jaxflex tune``: 5.1 -> 7.3 s warm, its first run 15.5 -> 30 s). Two substeps per trip
-    take most of that gain for one run at a smaller program (``studies/bench_simulate.py
-    --part single``, 7 paired rounds: 22.9 ms against 23.5 ms for the hand-written JAX scan,
-    rolled 24.3 against 23.4 ms; first call 0.98 s, rolled 0.77 s, unrolled 1.2-1.6 s); through
-    a gradient pass False (``jaxflex.tune`` and ``jaxflex.tune.robust`` do: two per trip made
-    ``jaxflex tune`` 10% slower warm). ``unroll``: samples per trip of the time loop
+    numbers, another speed. Unrolled pays under ``vmap`` on a CPU (the sweep engine decides
+    per control law); two per trip is the default for one run (as fast as a plain
+    ``lax.scan`` of the same loop, ``studies/bench_simulate.py --part single``); through a
+    gradient pass False (``jaxflex.tune`` does). ``unroll``: samples per trip of the time loop
     (``lax.scan``'s ``unroll``); same numbers. More than one pays on a GPU, where each trip
     of a loop costs a round trip to the host (``jaxflex.sweep.engine.loop_unrolls``).
     Pure and jit/vmap/grad friendly; wrap in ``eqx.filter_jit`` at the call site.
@@ -323,7 +317,7 @@ class ContinuousResult(eqx.Module):
 
 def simulate_continuous(
     plant: FlexibleJointPlant,
-    controller: CascadeController,
+    controller: AbstractTrackingLaw,
     t_final: float,
     *,
     x0: PlantState | None = None,

@@ -162,11 +162,10 @@ def model_step(
     Strang splitting per substep: exact z half-step (velocity frozen), RK4 on the rest with z
     frozen, exact z half-step; the half-steps that meet between substeps are taken as one
     step. Without friction this is plain RK4. ``unroll``: unroll the substep loop (an int k:
-    k substeps per trip of the loop, a static count only); on a CPU
-    10-20% faster under ``vmap`` (batched sweeps) when ``tau`` is cheap to compute, slower
-    when it is not (XLA copies its computation into every unrolled substep; the sweep engine
-    decides per controller: ``jaxflex.sweep.engine.loop_unrolls``), about 1.4x slower
-    for a single run. The numbers are the same either
+    k substeps per trip of the loop, a static count only); on a CPU faster under ``vmap``
+    (batched sweeps) when ``tau`` is cheap to compute, slower when it is not (XLA copies its
+    computation into every unrolled substep; the sweep engine decides per controller:
+    ``jaxflex.sweep.engine.loop_unrolls``) and for a single run. The numbers are the same either
     way. ``rolled``: the RK4 stages as a loop (``rk4``; the same to rounding).
     """
     f = _vector_field(kind, plant)

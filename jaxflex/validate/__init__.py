@@ -21,8 +21,8 @@ at its floor says "as good as this log can tell", not "97% wrong":
   (the parameter file's top-level ``loop_controller`` section, ``LOOP_TYPES``: ``PPCascade``,
   the EMPS P position / P velocity cascade; ``PDLoop``, a PD on the rotor or link angle;
   ``CascadeLoop``, jaxflex's own cascade) and the log has a reference ``q1d``. Every declared
-  loop is a ``SampledLaw`` run by one sampled-data scan around ``jaxflex.sim.step.model_step``
-  (rigid or flexible model), the log's q1d sampled as the reference (floors:
+  loop is a ``jaxflex.core.controller.AbstractControlLaw`` run by one sampled-data scan
+  around ``jaxflex.sim.step.model_step`` (rigid or flexible model), the log's q1d sampled as the reference (floors:
   ``closed_loop_noise_floor``).
 
 Beside them, the segment replay's residual analysis as MATLAB's ``resid`` gives it
@@ -46,7 +46,6 @@ from jaxflex.validate.loops import (
     PDLoop,
     PPCascade,
     PPLaw,
-    SampledLaw,
     check_loop_kind,
     loop_controller,
     loop_start,
@@ -71,7 +70,6 @@ from jaxflex.validate.closed_loop import (
 )
 from jaxflex.validate.replay import (
     fast_energy,
-    motion_of,
     noise_std,
     predicted_torque,
     replay_residual_analysis,
@@ -98,7 +96,6 @@ __all__ = [
     "PPLaw",
     "RIGID_TERMS",
     "ROBUST_BLOCKS",
-    "SampledLaw",
     "benchmark_derivative",
     "check_loop_kind",
     "closed_loop_errors",
@@ -108,7 +105,6 @@ __all__ = [
     "fast_energy",
     "loop_controller",
     "loop_start",
-    "motion_of",
     "need_float64",
     "noise_std",
     "predicted_torque",

@@ -20,10 +20,11 @@ from jaxflex.fit import (
     ParamSpace,
     savgol,
 )
+from jaxflex.core.controller import AbstractControlLaw
+from jaxflex.fit.inverse import RIGID_TERMS, linear_fit, rigid_regressors
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
 from jaxflex.validate.loops import (
-    SampledLaw,
     check_loop_kind,
     loop_controller,
     loop_start,
@@ -43,16 +44,11 @@ def benchmark_derivative(q: np.ndarray, dt: float) -> np.ndarray:
     return np.gradient(filtfilt(b, a, q), dt)
 
 
-#: Coefficients of ``rigid_torque_fit``, in the order of its regressors.
-RIGID_TERMS: tuple[str, ...] = ("Jt", "Fv", "Fc", "offset")
-
-
 def _rigid_regressors(log: Log, joint: int, window: int) -> np.ndarray:
     if not 0 <= joint < log.n:
         raise ValueError(f"rigid torque model: joint {joint} not in a {log.n}-joint log")
     q = (log.q2 if log.q2 is not None else log.q1)[:, joint]
-    v, a = savgol(q, log.dt, 1, window), savgol(q, log.dt, 2, window)
-    return np.stack([a, v, np.sign(v), np.ones_like(v)], axis=1)
+    return rigid_regressors(savgol(q, log.dt, 1, window), savgol(q, log.dt, 2, window))
 
 
 def rigid_torque_fit(log: Log, joint: int = 0, window: int = 31) -> dict[str, float]:
@@ -66,9 +62,8 @@ def rigid_torque_fit(log: Log, joint: int = 0, window: int = 31) -> dict[str, fl
     or a log without torque."""
     if log.tau is None:
         raise ValueError("rigid_torque_fit: the log has no torque column")
-    coef, *_ = np.linalg.lstsq(_rigid_regressors(log, joint, window), log.tau[:, joint],
-                               rcond=None)
-    return dict(zip(RIGID_TERMS, map(float, coef)))
+    fit = linear_fit(_rigid_regressors(log, joint, window), log.tau[:, joint])
+    return dict(zip(RIGID_TERMS, map(float, fit.x)))
 
 
 def rigid_torque(coef: Mapping[str, float], log: Log, joint: int = 0,
@@ -125,13 +120,13 @@ def closed_loop_noise_floor(log: Log, drop: int = 49, seed: int = 0) -> dict[str
 
 class ClosedLoopFit(eqx.Module):
     """Data of a closed-loop output-error fit (``closed_loop_fit``): the parameter space, the
-    declared loop's sampled law, the reference and disturbance (N, 1), the measured position
+    declared loop's sampled law (holding the reference and disturbance), the reference (N, 1)
+    (its first sample starts the plant), the measured position
     and torque, the weights of the two outputs and the simulation settings."""
 
     space: ParamSpace
-    law: SampledLaw
+    law: AbstractControlLaw
     r: jax.Array
-    d: jax.Array
     q: jax.Array
     tau: jax.Array
     w: jax.Array
@@ -146,8 +141,8 @@ def closed_loop_residuals(theta: dict, data: ClosedLoopFit) -> jax.Array:
     [(q - q_sim) w_q, (tau - tau_sim) w_tau] after the first ``drop`` samples (the benchmark
     metric's two outputs, each weighted by ``w``)."""
     plant = data.space.plant(theta)
-    q_sim, tau_sim = sampled_loop(plant, data.kind, data.law, data.r, data.d,
-                                   loop_start(plant, data.r[0]), data.dt, data.substeps)
+    q_sim, tau_sim = sampled_loop(plant, data.kind, data.law, loop_start(plant, data.r[0]),
+                                  data.dt, data.substeps, data.r.shape[0])
     q_sim, tau_sim = q_sim[:, 0], tau_sim[:, 0]
     k = data.drop
     return jnp.concatenate([(data.q[k:] - q_sim[k:]) * data.w[0],
@@ -230,9 +225,10 @@ def closed_loop_fit(
     plant = params.to_plant()
     space = ParamSpace.build(plant, list(free))
     r = jnp.asarray(log.q1d[:, :1], float)
-    d = jnp.zeros_like(r) if disturbance is None else jnp.asarray(disturbance, float).reshape(-1, 1)
+    d = None if disturbance is None else jnp.asarray(disturbance, float).reshape(-1, 1)
     q, tau = jnp.asarray(log.q1[:, 0], float), jnp.asarray(log.tau[:, 0], float)
-    data = ClosedLoopFit(space=space, law=ctrl.law(params, r, float(log.dt)), r=r, d=d, q=q, tau=tau, w=jnp.ones(2),
+    data = ClosedLoopFit(space=space, law=ctrl.law(params, r, float(log.dt), d), r=r, q=q,
+                         tau=tau, w=jnp.ones(2),
                          kind=kind, dt=float(log.dt), substeps=int(substeps), drop=int(drop))
     r0 = np.asarray(closed_loop_residuals(space.theta0(), data))
     m = len(r0) // 2

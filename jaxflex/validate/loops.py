@@ -1,13 +1,12 @@
 """The controllers that ran during a log, as a parameter file declares them (its
-``loop_controller`` section): the sampled laws (``SampledLaw``: ``PPLaw``, ``PDLaw``,
-``CascadeLaw``), their file records (``LOOP_TYPES``: ``PPCascade``, ``PDLoop``,
+``loop_controller`` section): the sampled laws (``PPLaw``, ``PDLaw``, ``CascadeLaw``, each a
+``jaxflex.core.controller.AbstractControlLaw``), their file records (``LOOP_TYPES``: ``PPCascade``, ``PDLoop``,
 ``CascadeLoop``) and the one sampled-data loop that runs any of them around
 ``jaxflex.sim.step.model_step`` (``simulate_loop``).
 """
 
 from __future__ import annotations
 
-import abc
 import dataclasses
 import math
 from collections.abc import Mapping
@@ -17,14 +16,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from jaxflex.core.controller import (
     GAIN_NAMES,
     Q2D_METHODS,
+    AbstractControlLaw,
     CascadeController,
     CascadeGains,
     ControllerState,
+    LawOutput,
     dirty_derivative,
     pd_torque,
 )
@@ -33,7 +34,7 @@ from jaxflex.core.plant import FlexibleJointPlant
 from jaxflex.core.state import PlantState
 from jaxflex.sim.step import model_step
 from jaxflex.runtime.tracecache import persistent_jit
-from jaxflex.core.trajectory import SampledReference
+from jaxflex.core.trajectory import HeldSamples, SampledReference
 from jaxflex.core.validation import check_keys
 
 #: Top-level parameter-file section declaring the controller that ran during a log.
@@ -66,89 +67,91 @@ def _numbers(d: Mapping[str, Any], kind: str, required: tuple[str, ...],
     return out
 
 
-class SampledLaw(eqx.Module):
-    """A declared loop's controller at the sample instants, as ``sampled_loop`` runs it:
-    ``init(t0, q1, q2)`` gives its state at the first sample, ``step(state, t, r, q1, q2, d)``
-    its next state and the torque [N m or N] applied over the sample, from the time t [s],
-    the reference sample r, the plant's angles q1, q2 [rad or m] (each (n,)) and the
-    disturbance d added to the controller output (in the controller's output unit)."""
-
-    @abc.abstractmethod
-    def init(self, t0: Array, q1: Array, q2: Array) -> Any:
-        """The controller state at the first sample."""
-
-    @abc.abstractmethod
-    def step(self, state: Any, t: Array, r: Array, q1: Array, q2: Array,
-             d: Array) -> tuple[Any, Array]:
-        """One sample: (next state, applied torque)."""
-
-
-class PPLaw(SampledLaw):
+class PPLaw(AbstractControlLaw):
     """``PPCascade``'s law (its docstring) with constants kp [1/s], kv [V s/m], gtau [N/V],
-    vmax [V]; on the link position q1; sample period dt [s]."""
+    vmax [V]; on the link position q1 toward the held reference samples ``r``, with the
+    held disturbance ``d`` [V] added to its output; sample period dt [s]."""
 
     kp: Array
     kv: Array
     gtau: Array
     vmax: Array
+    r: HeldSamples
+    d: HeldSamples
     dt: float = eqx.field(static=True)
 
-    def init(self, t0: Array, q1: Array, q2: Array) -> tuple[Array, Array]:
+    def init(self, t0: ArrayLike, q1: Array, q2: Array, dq1: Array | None = None,
+             dq2: Array | None = None) -> tuple[Array, Array]:
         """(last position, last filtered position) [m or rad], both the current position."""
         return q1, q1
 
-    def step(self, state: Any, t: Array, r: Array, q1: Array, q2: Array,
-             d: Array) -> tuple[Any, Array]:
+    def step(self, state: Any, t: ArrayLike, q1: Array, q2: Array, dq1: Array | None = None,
+             dq2: Array | None = None) -> tuple[Any, LawOutput]:
         """EMPS P/P cascade: the half-sum filter, the velocity P loop, the saturation in V."""
         q_prev, qf_prev = state
+        r = self.r.at(t)
         qf = 0.5 * q1 + 0.5 * q_prev
         v = jnp.clip(self.kp * self.kv * (r - q1) - self.kv * (qf - qf_prev) / self.dt,
-                     -self.vmax, self.vmax) + d
-        return (q1, qf), self.gtau * v
+                     -self.vmax, self.vmax) + self.d.at(t)
+        return (q1, qf), LawOutput.of_torque(self.gtau * v, e1=q1 - r)
 
 
-class PDLaw(SampledLaw):
+class PDLaw(AbstractControlLaw):
     """``PDLoop``'s law: ``jaxflex.core.controller.pd_torque`` on the angle ``on`` ("q1" or "q2")
-    with its dirty derivative (``jaxflex.core.controller.dirty_derivative``, time constant
-    velocity_tc [s]); kp [N m/rad], kd [N m s/rad], tau_max [N m]; sample period dt [s]."""
+    toward the held reference samples ``r``, with its dirty derivative
+    (``jaxflex.core.controller.dirty_derivative``, time constant velocity_tc [s]); kp [N m/rad],
+    kd [N m s/rad], tau_max [N m]; the held disturbance ``d`` [N m] added; sample period
+    dt [s]."""
 
     kp: Array
     kd: Array
     tau_max: Array
     velocity_tc: Array
+    r: HeldSamples
+    d: HeldSamples
     on: str = eqx.field(static=True)
     dt: float = eqx.field(static=True)
 
-    def init(self, t0: Array, q1: Array, q2: Array) -> tuple[Array, Array]:
+    def init(self, t0: ArrayLike, q1: Array, q2: Array, dq1: Array | None = None,
+             dq2: Array | None = None) -> tuple[Array, Array]:
         """(last angle [rad], velocity estimate [rad/s]): the current angle, at rest."""
         q = q1 if self.on == "q1" else q2
         return q, jnp.zeros_like(q)
 
-    def step(self, state: Any, t: Array, r: Array, q1: Array, q2: Array,
-             d: Array) -> tuple[Any, Array]:
+    def step(self, state: Any, t: ArrayLike, q1: Array, q2: Array, dq1: Array | None = None,
+             dq2: Array | None = None) -> tuple[Any, LawOutput]:
         """The PD torque toward the reference sample, plus the disturbance [N m]."""
         q = q1 if self.on == "q1" else q2
         q_prev, dq_prev = state
+        r = self.r.at(t)
         dq = dirty_derivative(dq_prev, q, q_prev, self.velocity_tc, self.dt)
-        return (q, dq), pd_torque(self.kp, self.kd, self.tau_max, r, q, dq) + d
+        tau = pd_torque(self.kp, self.kd, self.tau_max, r, q, dq) + self.d.at(t)
+        return (q, dq), LawOutput.of_torque(tau, e1=q1 - r)
 
 
-class CascadeLaw(SampledLaw):
+class CascadeLaw(AbstractControlLaw):
     """``CascadeLoop``'s law: jaxflex's ``CascadeController`` (its reference a
-    ``jaxflex.core.trajectory.SampledReference`` of the logged q1d, so r is not read here) with
-    velocities by its own filtered differentiation of the angles; plus the disturbance [N m]."""
+    ``jaxflex.core.trajectory.SampledReference`` of the logged q1d) with velocities by its own
+    filtered differentiation of the angles, plus the held disturbance ``d`` [N m]."""
 
     controller: CascadeController
+    d: HeldSamples
 
-    def init(self, t0: Array, q1: Array, q2: Array) -> ControllerState:
+    def init(self, t0: ArrayLike, q1: Array, q2: Array, dq1: Array | None = None,
+             dq2: Array | None = None) -> ControllerState:
         """``CascadeController.init`` at the angles, at rest."""
         return self.controller.init(t0, q1, q2)
 
-    def step(self, state: Any, t: Array, r: Array, q1: Array, q2: Array,
-             d: Array) -> tuple[Any, Array]:
+    def step(self, state: Any, t: ArrayLike, q1: Array, q2: Array, dq1: Array | None = None,
+             dq2: Array | None = None) -> tuple[Any, LawOutput]:
         """``CascadeController.step`` (saturated at its tau_max), plus the disturbance."""
         state, out = self.controller.step(state, t, q1, q2)
-        return state, out.tau + d
+        return state, eqx.tree_at(lambda o: o.tau, out, out.tau + self.d.at(t))
+
+
+def _held(x: Float[Array, "N n"] | None, like: Float[Array, "N n"], dt: float) -> HeldSamples:
+    """``x`` (zeros shaped as ``like`` when None) as held samples of period ``dt`` [s]."""
+    return HeldSamples(samples=jnp.zeros_like(like) if x is None else x, dt=dt)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,10 +185,14 @@ class PPCascade:
         """[kp, kv, gtau, vmax] as the simulated loop takes them."""
         return jnp.asarray([self.kp, self.kv, self.gtau, self.vmax], float)
 
-    def law(self, params: Params, q_ref: Float[Array, "N n"], dt: float) -> PPLaw:
-        """The sampled law for a loop of period ``dt`` [s] (``params``, ``q_ref`` unused)."""
+    def law(self, params: Params, q_ref: Float[Array, "N n"], dt: float,
+            disturbance: Float[Array, "N n"] | None = None) -> PPLaw:
+        """The sampled law for a loop of period ``dt`` [s] following the samples ``q_ref``
+        [m or rad] (N, n), ``disturbance`` [V] (N, n) added to its output (none when None);
+        ``params`` unused."""
         kp, kv, gtau, vmax = self.constants()
-        return PPLaw(kp=kp, kv=kv, gtau=gtau, vmax=vmax, dt=float(dt))
+        return PPLaw(kp=kp, kv=kv, gtau=gtau, vmax=vmax, r=_held(q_ref, q_ref, dt),
+                     d=_held(disturbance, q_ref, dt), dt=float(dt))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,10 +233,15 @@ class PDLoop:
             del d["tau_max"]
         return d
 
-    def law(self, params: Params, q_ref: Float[Array, "N n"], dt: float) -> PDLaw:
-        """The sampled law for a loop of period ``dt`` [s] (``params``, ``q_ref`` unused)."""
+    def law(self, params: Params, q_ref: Float[Array, "N n"], dt: float,
+            disturbance: Float[Array, "N n"] | None = None) -> PDLaw:
+        """The sampled law for a loop of period ``dt`` [s] following the samples ``q_ref``
+        [rad] (N, n), ``disturbance`` [N m] (N, n) added to its output (none when None);
+        ``params`` unused."""
         c = jnp.asarray([self.kp, self.kd, self.tau_max, self.velocity_tc], float)
-        return PDLaw(kp=c[0], kd=c[1], tau_max=c[2], velocity_tc=c[3], on=self.on, dt=float(dt))
+        return PDLaw(kp=c[0], kd=c[1], tau_max=c[2], velocity_tc=c[3],
+                     r=_held(q_ref, q_ref, dt), d=_held(disturbance, q_ref, dt), on=self.on,
+                     dt=float(dt))
 
 
 #: Keys of a ``{"type": "cascade"}`` section besides the numbers.
@@ -304,9 +316,11 @@ class CascadeLoop:
         d = {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
         return {"type": "cascade", **d}
 
-    def law(self, params: Params, q_ref: Float[Array, "N n"], dt: float) -> CascadeLaw:
+    def law(self, params: Params, q_ref: Float[Array, "N n"], dt: float,
+            disturbance: Float[Array, "N n"] | None = None) -> CascadeLaw:
         """The sampled law for a loop of period ``dt`` [s] following the samples ``q_ref``
-        [rad] (N, n), with the gains and nominal model of the class docstring. Raises
+        [rad] (N, n), with the gains and nominal model of the class docstring,
+        ``disturbance`` [N m] (N, n) added to its output (none when None). Raises
         ``ValueError`` when no gains are declared here or in the parameter file."""
         cfg = params.controller
         if self.gains is not None:
@@ -328,7 +342,7 @@ class CascadeLoop:
             q2d_method=pick(self.q2d_method, "q2d_method", "model"), dt=float(dt),
             velocity_tc=self.velocity_tc, derivative_tc=self.derivative_tc,
             tau_max=pick(self.tau_max, "tau_max", math.inf))
-        return CascadeLaw(controller=controller)
+        return CascadeLaw(controller=controller, d=_held(disturbance, q_ref, dt))
 
 
 DeclaredLoop = PPCascade | PDLoop | CascadeLoop
@@ -369,22 +383,20 @@ def need_float64(what: str) -> None:
 
 
 @persistent_jit
-def sampled_loop(plant: FlexibleJointPlant, kind: str, law: SampledLaw, r: jax.Array,
-                  d: jax.Array, x0: PlantState, dt: float,
-                  substeps: int) -> tuple[jax.Array, jax.Array]:
-    """The sampled-data loop of a declared controller around the model ``kind``: at t_k = k dt
-    the law reads the plant's angles and its torque is held over the sample while
-    ``jaxflex.sim.step.model_step`` advances the plant. Returns (q1 before each step, torque),
-    each (N, n)."""
-    def body(carry, inp):
+def sampled_loop(plant: FlexibleJointPlant, kind: str, law: AbstractControlLaw, x0: PlantState,
+                 dt: float, substeps: int, n_samples: int) -> tuple[jax.Array, jax.Array]:
+    """The sampled-data loop of a control law around the model ``kind``: at t_k = k dt
+    (k < ``n_samples``) the law reads the plant's angles and its torque is held over the
+    sample while ``jaxflex.sim.step.model_step`` advances the plant in ``substeps`` steps.
+    Returns (q1 before each step, torque), each (N, n)."""
+    def body(carry, t):
         x, c = carry
-        t, rk, dk = inp
-        c, tau = law.step(c, t, rk, x.q1, x.q2, dk)
-        return (model_step(kind, plant, x, tau, dt, substeps), c), (x.q1, tau)
+        c, out = law.step(c, t, x.q1, x.q2)
+        return (model_step(kind, plant, x, out.tau, dt, substeps), c), (x.q1, out.tau)
 
-    ts = jnp.arange(r.shape[0]) * dt
+    ts = jnp.arange(n_samples) * dt
     c0 = law.init(ts[0], x0.q1, x0.q2)
-    _, (q, tau) = jax.lax.scan(body, (x0, c0), (ts, r, d))
+    _, (q, tau) = jax.lax.scan(body, (x0, c0), ts)
     return q, tau
 
 
@@ -405,10 +417,10 @@ def simulate_loop(
         raise ValueError(f"closed loop: the declared loop drives one joint, parameters have "
                          f"{plant.n}")
     r = jnp.asarray(q_ref, float).reshape(-1, 1)
-    d = jnp.zeros_like(r) if disturbance is None else jnp.asarray(disturbance, float).reshape(-1, 1)
-    law = ctrl.law(params, r, float(dt))
-    q, tau = sampled_loop(plant, kind, law, r, d, loop_start(plant, r[0]), float(dt),
-                           int(substeps))
+    d = None if disturbance is None else jnp.asarray(disturbance, float).reshape(-1, 1)
+    law = ctrl.law(params, r, float(dt), d)
+    q, tau = sampled_loop(plant, kind, law, loop_start(plant, r[0]), float(dt), int(substeps),
+                          r.shape[0])
     return np.asarray(q[:, 0]), np.asarray(tau[:, 0])
 
 

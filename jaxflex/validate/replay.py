@@ -7,7 +7,6 @@ analysis (``replay_residual_analysis``).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
 from typing import Any
 
 import equinox as eqx
@@ -15,7 +14,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.core.effects import link_input
 from jaxflex.fit import (
     ParamSpace,
     Problem,
@@ -27,46 +25,21 @@ from jaxflex.fit import (
     savgol_coeffs,
     simulated_outputs,
 )
+from jaxflex.fit.inverse import Motion, measured_motion, model_residuals
 from jaxflex.fit.residual_analysis import CONFIDENCE, analyse_segments
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
 from jaxflex.core.plant import FlexibleJointPlant
-from jaxflex.core.state import PlantState
-from jaxflex.sim.step import MODEL_KINDS
 from jaxflex.validate.loops import need_float64
 
 
-def motion_of(log: Log, kind: str = "flexible", window: int = 31) -> dict[str, np.ndarray]:
-    """The measured motion of a log for ``predicted_torque``: q1, q2 [rad] and their first
-    and second Savitzky-Golay derivatives (``jaxflex.fit.savgol``), and tau [N m]; (N, n)
-    each (q2 = q1 for the rigid model)."""
-    if kind not in MODEL_KINDS:
-        raise ValueError(f"validate: model must be one of {MODEL_KINDS}, got {kind!r}")
-    if kind != "rigid" and log.q2 is None:
-        raise ValueError(f"validate: the {kind} model needs the motor angle q2 in the log")
-    dt = log.dt
-    q1 = log.q1
-    q2 = q1 if kind == "rigid" else log.q2
-    return {"q1": q1, "d1": savgol(q1, dt, 1, window), "dd1": savgol(q1, dt, 2, window),
-            "q2": q2, "d2": savgol(q2, dt, 1, window), "dd2": savgol(q2, dt, 2, window),
-            "tau": log.tau}
-
-
-def predicted_torque(plant: FlexibleJointPlant, kind: str,
-                     motion: Mapping[str, Any]) -> jax.Array:
-    """Torque [N m] (N, n) the model needs for a measured ``motion`` (``motion_of``), from
-    ``FlexibleJointPlant.torque_residuals`` (module docstring); traceable in the plant."""
-    def one(a1, v1, ac1, a2, v2, ac2, tau):
-        if kind == "rotor":
-            a1, v1 = link_input(plant.effects, a1, v1, ac1)
-        z = plant.friction.z_steady(v1) if plant.friction is not None else jnp.zeros_like(v1)
-        aux = tuple(e.aux_steady(tau) for e in plant.effects) if plant.effects else None
-        x = PlantState(q1=a1, dq1=v1, q2=a2, dq2=v2, z=z, aux=aux)
-        r_link, r_rotor = plant.torque_residuals(x, ac1, ac2, tau)
-        return tau + (r_link + r_rotor if kind == "rigid" else r_rotor)
-
-    keys = ("q1", "d1", "dd1", "q2", "d2", "dd2", "tau")
-    return jax.vmap(one)(*[jnp.asarray(motion[k]) for k in keys])
+def predicted_torque(plant: FlexibleJointPlant, kind: str, motion: Motion) -> jax.Array:
+    """Torque [N m] (N, n) the model needs for a measured ``motion``
+    (``jaxflex.fit.inverse.measured_motion``): the logged torque plus the rotor line's
+    residual, both lines' for the rigid kind, whose one body carries both
+    (``jaxflex.fit.inverse.model_residuals``, eq. 2-3); traceable in the plant."""
+    r_link, r_rotor = model_residuals(plant, kind, motion)
+    return jnp.asarray(motion.tau) + (r_link + r_rotor if kind == "rigid" else r_rotor)
 
 
 def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
@@ -74,7 +47,7 @@ def torque_prediction(params: Params, log: Log, *, kind: str = "flexible",
     """Torque [N m] the model needs for the measured motion of ``log`` (module docstring),
     (N, n)."""
     need_float64("torque_prediction")
-    motion = motion_of(log, kind, window)
+    motion = measured_motion(log, window, kind=kind)
     return np.asarray(eqx.filter_jit(predicted_torque)(params.to_plant(), kind, motion))
 
 
