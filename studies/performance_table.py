@@ -165,7 +165,7 @@ def simulate_rows(d: dict, command: str) -> list[Row]:
         scipy.append(f"numba {_t(tab['numba']['min_s'])}: jaxflex_lean "
                      f"{_x(tab['jaxflex_lean']['ratio_numba_over_this_min'])} min")
     rows.append(Row(f"`simulate_sampled`, {loop}, {opts}, against scipy", "; ".join(scipy),
-                    f"`{s['baseline']}`", machine, command))
+                    s["baseline"], machine, command))
     return rows
 
 
@@ -202,6 +202,9 @@ def compile_cache_rows(folder: Path, command: str) -> list[Row]:
         d = json.loads(path.read_text())
         tag = path.stem[len("results_"):]
         cmd = command if tag == "reproduce" else f"{command} --command {tag}"
+        if any("--duration 1 " in r["command"] or "--samples 64 " in r["command"]
+               for r in (d["commands"].values() if "commands" in d else [d])):
+            cmd += " --small"  # the script's --small: a 1 s experiment, 64 sweep samples
         for r in d["commands"].values() if "commands" in d else [d]:
             first, second = r["first_empty_cache"], r["second_same_cache"]
             fig = [_compile("second run:", second), _compile("first run (empty cache):", first)]
@@ -222,20 +225,23 @@ def compile_cache_rows(folder: Path, command: str) -> list[Row]:
 def sweep_rows(d: dict, command: str) -> list[Row]:
     """``bench_sweep.py``: batched sweep against the solve_ivp (and numba) loop; host devices."""
     machine = (f"{d['cpu_count']} cores, load {_load(d['load_avg_start'], d['load_avg_end'])}, "
-               f"{_blas(d.get('blas_threads'))}, the workers' XLA options as `jaxflex sweep`'s")
+               f"{_blas(d.get('blas_threads'))}, {_xla(d.get('xla_flags'))}")
+    if d["chunk"] == 32:  # the script's --small: 0.05 s loops in chunks of 32
+        command += " --small"
     rows = []
     if "ratio" in d:
         r = d["ratio"]
         fig = (f"{r['batched_steps_per_s_best']:.3g} controller steps/s (median "
                f"{r['batched_steps_per_s_median']:.3g}, {r['batched_repeats']} runs) against "
                f"solve_ivp's {r['solve_ivp_steps_per_s']:.3g}: "
-               f"{_x(r['speedup_vs_solve_ivp'])} best")
+               f"{_x(r['speedup_vs_solve_ivp'])} best, "
+               f"{_x(r['batched_steps_per_s_median'] / r['solve_ivp_steps_per_s'])} median")
         if "numba_steps_per_s" in r:
             fig += (f"; numba {r['numba_steps_per_s']:.3g} steps/s: "
                     f"{_x(r['speedup_vs_numba'])}")
         first = [x["first_chunk_s"] for x in d.get("scaling", [])]
         if first:
-            fig += f"; first chunk (compilation) {_t(first[0])} apart"
+            fig += f"; a worker's first chunk (with compilation) {_t(first[0])} apart"
         rows.append(Row(f"`run_sweep`, chunks of {d['chunk']} closed loops of "
                         f"{d['horizon_s']:g} s, float64, 10 substeps, "
                         f"{r['batched_devices']} device(s)", fig,
@@ -244,7 +250,8 @@ def sweep_rows(d: dict, command: str) -> list[Row]:
                                                            in r else ""), machine, command))
     if "devices" in d:
         v = d["devices"]
-        rows.append(Row(f"`run_sweep` on 2 host devices against 1, closed loops of "
+        n = v["runs"]["1"][0]["samples"]
+        rows.append(Row(f"`run_sweep` on 2 host devices against 1, {n} closed loops of "
                         f"{d['horizon_s']:g} s",
                         f"{_x(v['ratio_2_over_1_best'])} best, "
                         f"{_x(v['ratio_2_over_1_median'])} median",
@@ -255,6 +262,8 @@ def sweep_rows(d: dict, command: str) -> list[Row]:
 
 def ident_scipy_rows(d: dict, command: str) -> list[Row]:
     """``ident_bench_scipy.py``: identification against scipy's least squares, per log length."""
+    if list(d["lengths"]) == ["1"] and d["segment_length"] == 250:
+        command += " --small"  # the script's --small: a 1 s log, segments of 250 samples
     rows = []
     for length, r in d["lengths"].items():
         if r["equal_cost"]:
