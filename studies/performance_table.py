@@ -71,7 +71,8 @@ class Row(NamedTuple):
 
 class Source(NamedTuple):
     """One benchmark's JSON: the option that names it, its default path, the command that
-    writes it, what its row says when it is missing, and the function that reads it."""
+    writes it, what its row says when it is missing, and the function that turns the JSON into
+    rows."""
 
     option: str
     default: str
@@ -194,13 +195,13 @@ def _compile(label: str, x: dict) -> str:
             f"{x['lower_s']:.2f}, XLA {x['backend_compile_s']:.2f}), wall {x['wall_s']:.1f} s")
 
 
-def compile_cache_rows(folder: Path, command: str) -> list[Row]:
-    """``bench_compile_cache.py``: one row per command in each ``results_COMMAND.json`` of
-    ``folder`` (``--command all`` holds every command, first and second run only)."""
+def compile_cache_rows(files: dict[str, dict], command: str) -> list[Row]:
+    """``bench_compile_cache.py``: one row per command in each of its ``results_COMMAND.json``
+    (``files``: file name -> JSON; ``--command all`` holds every command, first and second run
+    only)."""
     rows = []
-    for path in sorted(folder.glob("results_*.json")):
-        d = json.loads(path.read_text())
-        tag = path.stem[len("results_"):]
+    for name, d in sorted(files.items()):
+        tag = name.removeprefix("results_").removesuffix(".json")
         cmd = command if tag == "reproduce" else f"{command} --command {tag}"
         if any("--duration 1 " in r["command"] or "--samples 64 " in r["command"]
                for r in (d["commands"].values() if "commands" in d else [d])):
@@ -310,16 +311,20 @@ SOURCES: tuple[Source, ...] = (
 )
 
 
+def _read(path: Path) -> Any:
+    """A JSON file's content; for a folder, its ``results_*.json`` by name (empty: none)."""
+    if path.is_dir():
+        return {p.name: json.loads(p.read_text()) for p in path.glob("results_*.json")}
+    return json.loads(path.read_text())
+
+
 def collect(paths: dict[str, Path]) -> list[Row]:
     """The rows of every source: read from its JSON (``paths``: option name -> path), or one
     "not measured" row where the JSON is missing."""
     rows: list[Row] = []
     for src in SOURCES:
         path = paths[src.option]
-        if src.option == "compile_cache":
-            got = compile_cache_rows(path, src.command) if path.is_dir() else []
-        else:
-            got = src.rows(json.loads(path.read_text()), src.command) if path.is_file() else []
+        got = src.rows(_read(path), src.command) if path.exists() else []
         rows += got or [Row(src.what, f"not measured: run `{src.command}`", "", "",
                             src.command)]
     return rows
