@@ -51,12 +51,11 @@ JSON is missing says "not measured" and how to measure it.
 
 Each figure is set against a baseline the benchmark ran side by side (in the same process, in
 paired rounds where the script has them, or in fresh processes taking turns, as the baseline
-column says): min and median where the JSON has them,
-"x" ratios as baseline time over jaxflex time (above 1: jaxflex is faster), compilation or
-first call stated apart. The machine column is what each JSON records: cores, load average at
-start and end, BLAS threads, XLA options. The machine is shared and its speed varies over a
-day: compare the figures within a row, not across rows or machines. Tests never assert
-wall-clock limits.
+column says): min and median where the JSON has them, "x" ratios as baseline time over jaxflex
+time (above 1: jaxflex is faster), compilation or first call stated apart. The machine column
+is what each JSON records: cores, load average at start and end, BLAS threads, XLA options.
+The machine is shared and its speed varies over a day: compare the figures within a row, not
+across rows or machines. Tests never assert wall-clock limits.
 """
 
 
