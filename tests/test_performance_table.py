@@ -1,0 +1,57 @@
+"""studies/performance_table.py: rows from a benchmark's JSON, "not measured" for a missing one."""
+
+import json
+
+from studies import benchkit, performance_table
+
+
+def _simulate_json(path):
+    """A tiny results.json in bench_simulate's layout (``--part single --xla-default``), its
+    tables built by the same ``benchkit.ratio_table`` the benchmark uses."""
+    base = "scipy_solve_ivp+numpy_ctrl"
+    times = {base: [0.8], "jaxflex_save": [0.05, 0.06, 0.07], "jaxflex_lean": [0.04, 0.05, 0.06],
+             "hand_jax_save": [0.1, 0.12, 0.14], "hand_jax_lean": [0.08, 0.1, 0.12]}
+    cpu = {k: [2 * t for t in v] for k, v in times.items()}
+    extra = ("hand_jax_lean", "hand_jax_save")
+    machine = {"load_avg": [0.5, 0.4, 0.3], "cpu_count": 2, "XLA_FLAGS": ""}
+    d = {"device": "cpu:0", "blas_threads": {"env": {"OPENBLAS_NUM_THREADS": "1"}},
+         "xla_flags": "", "machine": machine, "machine_start": machine,
+         "machine_end": {**machine, "load_avg": [0.7, 0.4, 0.3]},
+         "single": {"t_final_s": 10.0, "samples": 10000, "substeps": 10,
+                    "baseline": f"{base} (solve_ivp RK45 per sample)",
+                    "compile_or_first_call_s": {"jaxflex_save": 1.5, "jaxflex_lean": 1.25,
+                                                "hand_jax_save": 2.5, "hand_jax_lean": 2.25},
+                    "times_s": times, "table": benchkit.ratio_table(times, base, extra),
+                    "cpu_times_s": cpu, "table_cpu": benchkit.ratio_table(cpu, base, extra)}}
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps(d))
+
+
+def test_rows_from_json_and_not_measured(tmp_path):
+    sim = tmp_path / "sim" / "results.json"
+    _simulate_json(sim)
+    doc, out = tmp_path / "performance.md", tmp_path / "out"
+    missing = [f"--{o}={tmp_path / 'missing' / o}" for o in
+               ("simulate", "export-step", "compile-cache", "sweep", "ident-scipy")]
+    rows = performance_table.main([f"--simulate-default={sim}", *missing, f"--doc={doc}",
+                                   f"--out={out}"])
+    text = doc.read_text()
+    assert text.startswith(performance_table.HEADER)
+    assert "never assert" in text
+
+    save = next(r for r in rows if "saved trajectories, XLA's default" in r.what)
+    # jaxflex 50 ms (median 60) against the hand-written scan's 100 ms (120): x2 both
+    assert save.figure.startswith("wall 50 ms (median 60 ms) against 100 ms (120 ms): x2 min, "
+                                  "x2 median; CPU time 100 ms")
+    assert "compile or first call 1.5 s against 2.5 s" in save.figure
+    assert "hand_jax_save" in save.baseline and "load 0.50-0.70" in save.machine
+    scipy = next(r for r in rows if r.what.endswith("against scipy"))
+    assert "jaxflex_lean 40 ms (median 50 ms): x20 min, x16 median" in scipy.figure
+    assert f"| {save.what} | {save.figure} |" in text
+
+    not_measured = [r for r in rows if r.figure.startswith("not measured")]
+    assert len(not_measured) == 5
+    export = next(r for r in not_measured if "bench_export_step" in r.command)
+    assert export.figure == "not measured: run `python studies/bench_export_step.py`"
+    assert export.figure in text
+    assert json.loads((out / "table.json").read_text())[0]["figure"] == save.figure
