@@ -307,8 +307,6 @@ def test_an_unconverged_identification_is_refused_unless_accepted(tmp_path, caps
     import jaxflex.discover as d
     from jaxflex.app.cli import main
 
-    # "0": not accepted; monkeypatch restores the variable that --accept-unconverged sets
-    monkeypatch.setenv("JAXFLEX_ACCEPT_UNCONVERGED", "0")
     monkeypatch.setattr(d, "discover", lambda *a, **k: (_ for _ in ()).throw(InputError("ran")))
     from jaxflex.data import load_emps
 

@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from jaxflex.io.errors import ConfigError
 from jaxflex.core.effects import EFFECTS
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
@@ -210,3 +211,30 @@ class DiscoverConfig:
     explained_min: float = 0.75
     model: str = "flexible"
     max_order: int = 3
+
+    def __post_init__(self) -> None:
+        """Refuse a setting outside its range (``ConfigError`` naming it)."""
+        ranges = {  # setting -> (lowest, highest, lowest excluded)
+            "segment": (0.0, math.inf, True), "train_frac": (0.1, 0.9, False),
+            "max_steps": (1, math.inf, False), "substeps": (1, 16, False),
+            "alpha": (0.0, 1.0, True), "min_gain": (0.0, math.inf, False),
+            "max_effects": (0, math.inf, False), "parsimony": (0.0, math.inf, False),
+            "unexplained_factor": (1.0, math.inf, False), "decisive": (0.0, math.inf, False),
+            "tie_alpha": (0.0, 1.0, True), "screen_steps": (0, math.inf, False),
+            "screen_keep": (0.0, 1.0, False), "screen_least": (0, math.inf, False),
+            "contest": (0.0, math.inf, False), "explained_min": (0.0, 1.0, False),
+            "max_order": (1, math.inf, False),
+        }
+        for name, (lo, hi, open_lo) in ranges.items():
+            v = getattr(self, name)
+            integral = isinstance(lo, int) and not isinstance(v, bool)
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            ok = ok and (v > lo if open_lo else v >= lo) and v <= hi
+            if integral and ok and int(v) != v:
+                ok = False
+            if not ok:
+                left = "(" if open_lo else "["
+                raise ConfigError(name, f"must be {'an integer ' if integral else ''}in "
+                                        f"{left}{lo:g}, {hi:g}], got {v!r}")
+        if self.model not in DISCOVER_MODELS:
+            raise ConfigError("model", f"must be one of {DISCOVER_MODELS}, got {self.model!r}")

@@ -1,7 +1,7 @@
 """Identification experiments in simulation and the paper's two-step procedure (section 5).
 
 - ``excitation_torque``: an open-loop torque with slow reversals and long low-speed dwell,
-  the excitation that makes vs, sigma0, sigma1 identifiable (docs/spec.md section 9, last pitfall);
+  the excitation that makes vs, sigma0, sigma1 identifiable (docs/spec.md section 9, "Identifiability");
 - ``synthetic_log``: replay a torque through a plant and sense it (encoder quantisation and
   noise from ``jaxflex.sim.simulate.Sensing``) into a ``Log``;
 - ``static_map_experiment``: constant-velocity runs (eq. 35 data): for each velocity a stiff

@@ -28,6 +28,19 @@ class InputError(ValueError):
     names the input and says what is wrong with it."""
 
 
+class ConfigError(InputError):
+    """A setting of a configuration class outside its range; ``field`` names the setting
+    (the command line names the option made of it: ``train_frac``, ``--train-frac``)."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(f"{field}: {message}")
+        self.field = field
+
+    def option(self) -> str:
+        """The message with the setting named as its command-line option."""
+        return f"--{self.field.replace('_', '-')}: {str(self).partition(': ')[2]}"
+
+
 class NotConverged(RuntimeError):
     """A computation on valid input that did not converge; its result must not be used as if
     it had (the message says what did not converge)."""

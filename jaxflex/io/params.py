@@ -18,6 +18,8 @@ saving then loading is exact (floats are written with ``repr`` precision by ``js
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import difflib
 import json
@@ -25,7 +27,7 @@ import math
 import os
 import warnings
 from pathlib import Path
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 from jaxtyping import ArrayLike
@@ -472,20 +474,41 @@ def identification_problems(params: Params, rel_limit: float = 0.5) -> list[str]
     return out
 
 
+_ACCEPT_UNCONVERGED: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "accept_unconverged", default=False)
+
+
+@contextlib.contextmanager
+def accepting_unconverged(accept: bool = True) -> Iterator[None]:
+    """Within the block, ``load_params`` takes identification files that did not converge
+    (as the command line's ``--accept-unconverged`` does for a whole command), wherever the
+    library loads one (a sweep's spread, an export, a workflow given a path).
+
+    **Arguments:**
+
+    - ``accept``: take them (True) or refuse them (False) within the block.
+    """
+    token = _ACCEPT_UNCONVERGED.set(bool(accept))
+    try:
+        yield
+    finally:
+        _ACCEPT_UNCONVERGED.reset(token)
+
+
 def load_params(path: str | os.PathLike, *, accept_unconverged: bool | None = None) -> Params:
     """Read and validate a parameter file (docs/spec.md section 7).
 
     A file written by ``identify`` that did not converge, or that holds parameters the data
     could not determine without marking them, is refused (``ParamsError`` naming why) unless
-    ``accept_unconverged`` is true. ``None`` reads the environment variable
-    ``JAXFLEX_ACCEPT_UNCONVERGED`` (set by the command line's ``--accept-unconverged``)."""
+    ``accept_unconverged`` is true. ``None`` takes the setting of the enclosing
+    ``accepting_unconverged`` block (refused outside one)."""
     d = read_json_file(path, ParamsError, "parameter file")
     try:
         params = Params.from_dict(d)
     except ParamsError as e:
         raise ParamsError(f"{path}: {e}") from None
     if accept_unconverged is None:
-        accept_unconverged = os.environ.get("JAXFLEX_ACCEPT_UNCONVERGED", "") not in ("", "0")
+        accept_unconverged = _ACCEPT_UNCONVERGED.get()
     problems = [] if accept_unconverged else identification_problems(params)
     if problems:
         raise ParamsError(

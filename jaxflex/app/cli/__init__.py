@@ -34,6 +34,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from jaxflex.io.params import accepting_unconverged
 from jaxflex.app.cli.outputs import add_force_option
 
 # worked examples of the commands whose modules do not define EXAMPLE yet
@@ -246,7 +247,10 @@ def main(argv: list[str] | None = None) -> int:
     answer (e.g. not certified), 2 bad input, 3 a result that did not converge, 70 a bug
     (traceback saved to a file), 130 interrupted."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a malformed command line (2), its message printed
+        return int(e.code or 0) if isinstance(e.code, (int, type(None))) else EXIT_INPUT
     args.argv = argv
     import jax
 
@@ -264,14 +268,11 @@ def main(argv: list[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)
     if not args.no_cache:
         enable_compilation_cache(traces=not args.no_trace_cache)
-    old_accept = os.environ.get("JAXFLEX_ACCEPT_UNCONVERGED")
-    if args.accept_unconverged:
-        os.environ["JAXFLEX_ACCEPT_UNCONVERGED"] = "1"
     new_folders = _output_folders(args)
     old_show = warnings.showwarning
     warnings.showwarning = _show_warning(args.command)  # one line, no source excerpt
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), accepting_unconverged(args.accept_unconverged):
             # numpy's overflow/invalid warnings in a fit's rejected trial steps are expected
             warnings.filterwarnings("ignore", "overflow encountered", RuntimeWarning)
             warnings.filterwarnings("ignore", "invalid value encountered", RuntimeWarning)
@@ -285,10 +286,6 @@ def main(argv: list[str] | None = None) -> int:
         return handle_failure(args.command, argv, e)
     finally:
         warnings.showwarning = old_show
-        if old_accept is None:
-            os.environ.pop("JAXFLEX_ACCEPT_UNCONVERGED", None)
-        else:
-            os.environ["JAXFLEX_ACCEPT_UNCONVERGED"] = old_accept
 
 
 def console() -> None:

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import argparse
 
+from jaxflex.app.cli.spans import span
+
 EXAMPLE = "jaxflex discover log.csv --params nominal.json --out out/discover"
 #: The files ``discover`` writes in its output folder (one joint; n joints add
 #: ``params_joint<j>.json`` and ``joint<j>/``): an existing one needs ``--force``.
@@ -45,7 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--candidates", default=None,
                    help="comma-separated effect names to try (default: all known)")
-    p.add_argument("--segment", type=float, default=0.3, help="segment length [s] (default 0.3)")
+    p.add_argument("--segment", type=span, default=span("0.3s"),
+                   help="segment length in samples (300) or seconds (0.3s) (default 0.3s)")
     p.add_argument("--train-frac", type=float, default=0.7, help="training fraction (0.7)")
     p.add_argument("--max-steps", type=int, default=30, help="LM steps per candidate (30)")
     p.add_argument("--alpha", type=float, default=1e-3, help="F-test significance level")
@@ -72,6 +75,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run discovery and write the report; returns the exit code."""
+    import dataclasses
     import importlib
     import json
     import sys
@@ -87,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.data import is_named, load_named
     from jaxflex.core.effects import EFFECTS
     from jaxflex.runtime.ahead import Ahead
+    from jaxflex.io.errors import ConfigError, InputError
     from jaxflex.io.logs import load_log, parse_mapping
     from jaxflex.io.params import load_params, save_params
     from jaxflex.io.presets import paper_params
@@ -94,18 +99,22 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.app.cli.outputs import check_outputs, interrupts_stop, writing
 
     check_outputs(args.force, folders=[args.out], marker=OUTPUT_FILES)
-    if not 0.1 <= args.train_frac <= 0.9:
-        raise ValueError(f"--train-frac must be in [0.1, 0.9], got {args.train_frac}")
-    if args.segment <= 0:
-        raise ValueError(f"--segment must be > 0 s, got {args.segment}")
-    if not 1 <= args.substeps <= 16:
-        raise ValueError(f"--substeps must be an integer in [1, 16], got {args.substeps}")
     # a converged, model-limited identification is taken with load_params's one-line note
     nominal = load_params(args.params) if args.params else paper_params()
     model = args.model or model_kind_of(nominal) or "flexible"
     if model not in DISCOVER_MODELS:  # e.g. a link subsystem's identification
         print(f"note: the identification's model {model!r} is replayed as a flexible joint")
         model = "flexible"
+    cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
+    try:  # the settings checked before the log is read; the segment in seconds once it is
+        cfg = DiscoverConfig(
+            segment=float(args.segment.value), train_frac=args.train_frac,
+            max_steps=args.max_steps, alpha=args.alpha, min_gain=args.min_gain,
+            max_effects=args.max_effects, candidates=cands, max_order=args.max_order,
+            substeps=args.substeps, model=model,
+        )
+    except ConfigError as e:  # named as the option the user typed
+        raise InputError(e.option()) from None
     joint_axes = None
     if is_named(args.log):  # a shipped data set by name, as identify takes it
         if args.map:
@@ -123,13 +132,7 @@ def run(args: argparse.Namespace) -> int:
         required = ("t", "tau", "q1") if model == "rigid" else None
         log = load_log(args.log, parse_mapping(args.map), **({"required": required}
                                                               if required else {}))
-    cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
-    cfg = DiscoverConfig(
-        segment=args.segment, train_frac=args.train_frac, max_steps=args.max_steps,
-        alpha=args.alpha, min_gain=args.min_gain, max_effects=args.max_effects, candidates=cands,
-        max_order=args.max_order,
-        substeps=args.substeps, model=model,
-    )
+    cfg = dataclasses.replace(cfg, segment=args.segment.seconds(log.dt))
     out = Path(args.out)  # created once there is a result to write (no empty folder on Ctrl-C)
     if log.n > 1:
         return _run_joints(args, log, nominal, cfg, out, joint_axes)

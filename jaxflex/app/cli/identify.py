@@ -19,6 +19,8 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
+from jaxflex.app.cli.spans import span_or_auto
+
 EXAMPLE = ("jaxflex identify jaxflex:emps/DATA_EMPS --out emps.json\n"
            "  jaxflex identify jaxflex:emps/DATA_EMPS --out emps_cl.json --closed-loop\n"
            "  jaxflex identify DATA_EMPS.mat --map 't=t,tau=gtau*vir,q1=qm,q2=qm' --out emps.json\n"
@@ -44,10 +46,8 @@ def _count_or_auto(least: int, what: str) -> Callable[[str], int | str]:
     return parse
 
 
-#: ``--substeps``: a positive integer or "auto"; ``--segment``: samples >= 0 (0: the whole
-#: log) or "auto".
+#: ``--substeps``: a positive integer or "auto".
 _substeps = _count_or_auto(1, "a positive integer")
-_segment = _count_or_auto(0, "a number of samples >= 0")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -104,8 +104,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "it; with two encoders --model auto then picks rotor). Default: the "
                         "start file's top-level link_side, else the shipped data set's "
                         "(KUKA: coupled; EMPS: single), else single")
-    p.add_argument("--segment", type=_segment, default="auto",
-                   help="samples per multiple-shooting segment (0: whole log), or 'auto' "
+    p.add_argument("--segment", type=span_or_auto, default="auto",
+                   help="multiple-shooting segment length in samples (250) or seconds (0.2s); "
+                        "0: the whole log; or 'auto' "
                         "(default): two mechanical time constants of the start model "
                         "(inertia / sigma2) on a grid of 125 x 2^k samples within 0.1-2 s")
     p.add_argument("--substeps", type=_substeps, default="auto",
@@ -233,7 +234,8 @@ def run(args: argparse.Namespace) -> int:
         how = (f" (auto: {SEGMENT_TIME_CONSTANTS:g} x the smallest time constant of "
                f"{', '.join(f'{t:.3g}' for t in rec['time_constants_s'])} s)")
     else:
-        seg, how = (None if args.segment <= 0 else min(args.segment, log.N)), ""
+        k = args.segment.samples(log.dt)
+        seg, how = (None if k <= 0 else min(k, log.N)), ""
     say(f"[identify] {log.N} samples at {1e3 * log.dt:g} ms, {log.n} joint(s), model "
         f"{model} ({why}), free {free}, segments of {seg or log.N} samples{how}")
     say(f"[identify] {start_note}")

@@ -35,6 +35,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from jaxflex.app.cli.spans import span
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``validate`` subcommand."""
@@ -54,8 +56,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="expression on the log file's variables added to the controller output "
                         "in the closed loop [V for pp_cascade, N m otherwise], e.g. pulses_N (default: none; a file without "
                         "the variable runs without it)")
-    p.add_argument("--segment", type=int, default=None,
-                   help="samples per replay segment (default: 0.5 s)")
+    p.add_argument("--segment", type=span, default=None,
+                   help="replay segment length in samples (500) or seconds (0.5s) "
+                        "(default: 0.5s)")
     p.add_argument("--substeps", type=int, default=4, help="integrator substeps per sample (4)")
     p.add_argument("--linear", action="store_true",
                    help="prismatic joint: label m and N (implied by a --map that converts q1 or "
@@ -94,8 +97,6 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.io.params import load_params
     from jaxflex.validate import loop_controller, validate
 
-    if args.segment is not None and args.segment < 2:
-        raise InputError(f"--segment must be at least 2 samples, got {args.segment}")
     if args.substeps < 1:
         raise InputError(f"--substeps must be an integer >= 1, got {args.substeps}")
     stems = [log_name(f) for f in args.logs]
@@ -137,11 +138,17 @@ def run(args: argparse.Namespace) -> int:
                     raise
                 print(f"note: {f} has no '{args.disturbance}'; no disturbance for it")
         logs.append((log_name(f), log, d))
+    segments = {}
+    for name, log, _ in logs:
+        segments[name] = None if args.segment is None else args.segment.samples(log.dt)
+        if segments[name] is not None and segments[name] < 2:
+            raise InputError(f"--segment must be at least 2 samples, got {args.segment} "
+                             f"({segments[name]} samples of {name})")
     results = []  # everything is computed before the folder is created
     for name, log, d in logs:
         for which, p in sets.items():
             p, nuisance = per_log_sensors(p, log, args.model)
-            res = validate(p, log, kind=args.model, segment=args.segment,
+            res = validate(p, log, kind=args.model, segment=segments[name],
                            substeps=args.substeps, disturbance=d)
             if nuisance is not None:
                 res["per_log"] = nuisance
