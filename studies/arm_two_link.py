@@ -202,8 +202,10 @@ def run(seconds: float = 8.0, g: float = 0.0, max_steps: int = 200,
     t0 = time.perf_counter()
     # identify's own starts besides the user's: the log's static map (friction) and its
     # inverse dynamics (J, K and friction per joint; the link fields keep the user's)
+    from jaxflex.io.progress import Printer
+
     res = identify(log, Params.from_dict(start), free_names(g), max_steps=max_steps,
-                   progress=progress)
+                   progress=Printer(every=progress, prefix="  [identify] ") if progress else None)
     wall = time.perf_counter() - t0
     ident = res.params.extra["identification"]
     out_links = ident.get("links", {})

@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> None:
     nominal = Params.from_dict(EMPS_IDIM_LS.params_dict(Fs=22.0, sigma1=100.0, J=half, K=K,
                                                         offset=False))
     cands = ["torque_offset", "asymmetric_friction", "motor_friction"] if a.small else None
-    res = discover(log, nominal, DiscoverConfig(candidates=cands), progress=print)
+    res = discover(log, nominal, DiscoverConfig(candidates=cands), progress=lambda d, t, m: print(m))
     rep = res.to_json()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -28,11 +28,12 @@ def main() -> None:
                     "paper's observer)")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
+    from jaxflex.io.progress import Printer
     from jaxflex.loop.experiments import run_paper_experiments
     from jaxflex.app.reports import write_paper_experiments
 
     results = run_paper_experiments(sensing=args.sensing, estimator=args.estimator, leak=args.leak,
-                                    t_final=2.0 if args.small else 10.0)
+                                    t_final=2.0 if args.small else 10.0, progress=Printer())
     write_paper_experiments(results, args.out)
 
 

@@ -244,7 +244,7 @@ def test_a_declared_vertical_axis_leaves_gravity_untried(monkeypatch):
     monkeypatch.setattr(dc, "workspace", tried)
     seen = []
     with pytest.raises(Tried) as e:
-        discover(log, vertical, progress=seen.append)
+        discover(log, vertical, progress=lambda d, t, m: seen.append(m))
     assert "gravity" not in e.value.args[0]
     # the first workspace holds the candidates alone: a family's higher order only once its
     # order below is in a model (``Workspaces``)

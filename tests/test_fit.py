@@ -560,7 +560,7 @@ def test_a_stalled_run_ends_early_and_says_it_did_not_converge():
     plain = least_squares(k, y0, fn=_rosenbrock, max_steps=2000)
     costs = []
     stalled = least_squares(k, y0, fn=_rosenbrock, max_steps=2000, stall=(5, 1e-2),
-                            progress=lambda i, c: costs.append(c))
+                            progress=lambda i, t, m: costs.append(float(m.split()[-1])))
     assert not stalled.converged and stalled.reason.startswith("stalled"), stalled.reason
     assert 5 < stalled.steps < plain.steps, (stalled.steps, plain.steps)
     assert 2 * (costs[-6] - costs[-1]) < 1e-2
@@ -587,8 +587,8 @@ def test_an_interrupt_returns_the_point_reached_marked_unconverged():
 
     seen = []
 
-    def interrupt(i, c):
-        seen.append((i, c))
+    def interrupt(i, t, m):
+        seen.append((i, m))
         if i == 3:
             raise KeyboardInterrupt
 

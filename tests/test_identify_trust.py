@@ -338,7 +338,7 @@ def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_
     # a failed solve far above the noise stays not converged (no statistical stop)
     monkeypatch.setattr(search_mod, "least_squares",
                         lambda *a, **k: _failed_like(sol, 1e50))
-    s = search_mod.Search(good=1e-3, solve={}, progress=False)
+    s = search_mod.Search(good=1e-3, solve={})
     out = s.run(prob, y0, {"start": "user"}, 3)
     assert not out.converged and out.failed
     assert s.attempts[-1]["converged"] is False

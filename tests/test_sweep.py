@@ -37,10 +37,19 @@ SMALL = {
 }
 
 
+REPORTS: list[tuple[int, int | None]] = []  # what ``small``'s sweep reported
+
+
 @pytest.fixture(scope="module")
 def small():
     spec = parse_spread(SMALL)
-    return spec, run_sweep(spec, chunk_size=4, progress=False)
+    return spec, run_sweep(spec, chunk_size=4,
+                           progress=lambda done, total, msg: REPORTS.append((done, total)))
+
+
+def test_a_sweep_reports_its_chunks_to_any_reporter(small):
+    """The one progress protocol (``jaxflex.io.progress``): each chunk of the 12 samples."""
+    assert REPORTS == [(1, 3), (2, 3), (3, 3)]
 
 
 # ----- spread validation (no simulation) -----------------------------------------------------

@@ -73,6 +73,7 @@ from jaxflex.runtime.ahead import Ahead, all_side_by_side, side_by_side
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
 from jaxflex.io.presets import paper_params
+from jaxflex.io.progress import Progress, silent
 from jaxflex.core.validation import requires_float64
 
 
@@ -84,23 +85,23 @@ MAX_REBASE = 1
 @requires_float64
 def discover_joints(
     log: Log, nominal: Params | None = None, config: DiscoverConfig | None = None,
-    progress: Callable[[str], None] | None = None, axes: Sequence[str] | None = None,
+    progress: Progress | None = None, axes: Sequence[str] | None = None,
 ) -> list[DiscoverResult]:
     """``discover`` on each joint of an n-joint log, with that joint's parameters (a
     parameter file describes independent joints, ``Params.joint``): one answer per joint. A
     coupling between joints that the file does not describe shows up in the joints it
     couples, as an effect or as ``unexplained``. ``axes``: what gravity can do on each of
     the log's joints (``declared_axes``' words, one per joint), where ``nominal`` declares
-    nothing (a shipped data set's kinematics)."""
+    nothing (a shipped data set's kinematics). ``progress``: as ``discover``'s, and each
+    joint's start as joint j of n."""
     nominal = nominal or paper_params()
     if nominal.n not in (1, log.n):
         raise ValueError(f"discover: the parameters have {nominal.n} joints, the log {log.n}")
     if axes is not None and len(axes) != log.n:
         raise ValueError(f"discover: {len(axes)} axis kinds for a {log.n}-joint log")
-    say = progress or (lambda s: None)
     out = []
     for j in range(log.n):
-        say(f"joint {j}")
+        (progress or silent)(j, log.n, f"joint {j}")
         one = nominal.joint(j if nominal.n > 1 else 0)
         declared = declared_axes(nominal)
         if declared:  # the declaration of this joint (``joint`` drops the extra keys)
@@ -114,9 +115,11 @@ def discover_joints(
 @requires_float64
 def discover(
     log: Log, nominal: Params | None = None, config: DiscoverConfig | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
 ) -> DiscoverResult:
     """Run the workflow of the module docstring on a one-joint log (columns t, tau, q1, q2).
+    ``progress`` (``jaxflex.io.progress.Progress``) gets each line of the run's account (no
+    total); None: silent.
 
     Raises ``ValueError`` for a multi-joint log or parameters, a log without q2, an unknown
     candidate or one that does not change the replayed outputs (``acts_on_replay``: an
@@ -128,7 +131,7 @@ def discover(
                          f"log {log.n} (use discover_joints for an n-joint log)")
     if log.tau is None or log.q1 is None:
         raise ValueError("discover: the log needs columns tau, q1 and q2")
-    say = progress or (lambda s: None)
+    say = lambda s: (progress or silent)(0, None, s)
     excluded = cannot_act(nominal)
     h = log.dt / cfg.substeps
     nominal, log, model_note = nominal_for_model(nominal, cfg.model, log, h)

@@ -45,6 +45,7 @@ from jaxflex.fit.padding import Padding
 from jaxflex.fit.problem import Problem
 from jaxflex.runtime.tracecache import persistent_jit
 from jaxflex.core.validation import to_device
+from jaxflex.io.progress import Progress
 
 
 @dataclasses.dataclass
@@ -236,7 +237,7 @@ def cost(prob: Problem, y: Any, fn: Callable = problem_residuals) -> float:
 def least_squares(
     prob: Any, y0: Any, *, fn: Callable = problem_residuals, rtol: float = 1e-10,
     atol: float = 1e-10, max_steps: int = 200, scaling: str = "identity",
-    structure: str = "auto", progress: Callable[[int, float], None] | None = None,
+    structure: str = "auto", progress: Progress | None = None,
     decrement_tol: float | Callable[[float], float] | None = None, geodesic: float = 0.0,
     bucket: bool = True, stall: tuple[int, float | Callable[[float], float]] | None = None,
     small: bool = False,
@@ -250,7 +251,8 @@ def least_squares(
     the damping matrix of ``ScaledDampedNewtonDescent`` ("identity" or "marquardt");
     ``structure``: "dense", "shooting" (free-start multiple shooting, linear in the log
     length) or "auto" (shooting for a ``Problem`` with free starts and several segments);
-    ``progress(step, cost)`` is called after every step. Besides optimistix's test, the run
+    ``progress`` (``jaxflex.io.progress.Progress``) gets every step, of ``max_steps``, with
+    its cost. Besides optimistix's test, the run
     ends converged when a rejected trial leaves the trust region below the tolerance on the
     unknowns (MINPACK's xtol test; see ``_one_step``). ``decrement_tol``: a statistical stop for
     residuals in units of their noise standard deviation: the run also ends converged at an
@@ -305,7 +307,8 @@ def least_squares(
             steps += k  # before the progress calls: y and state are k steps on already
             if progress is not None:
                 for i, ci in enumerate(np.asarray(trace)[:k]):
-                    progress(steps - k + i + 1, float(ci))
+                    progress(steps - k + i + 1, max_steps,
+                             f"step {steps - k + i + 1:4d}  cost {float(ci):.6e}")
             # about a second a call: an interrupt is seen between calls
             chunk = int(np.clip(1.0 / max((time.perf_counter() - t_call) / max(k, 1), 1e-6),
                                 1, _CHUNK))

@@ -68,6 +68,7 @@ from jaxflex.identify.search import (
 )
 from jaxflex.identify.start import StartError, check_model, start_from_data
 from jaxflex.identify.verdict import model_verdict
+from jaxflex.io.progress import Progress, silent
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
 from jaxflex.core.state import PlantState
@@ -89,7 +90,7 @@ def identify(
     warm_start: float | None | Sequence[float | None] = (1e-3, 1e-2, None),
     warm_steps: int = 40, accept_cost: float = 4.0,
     rtol: float = 1e-10, atol: float = 1e-10, max_steps: int = 200,
-    rel_stderr_limit: float = 0.5, progress: bool | int = False, static_start: bool = True,
+    rel_stderr_limit: float = 0.5, progress: Progress | None = None, static_start: bool = True,
     decrement_tol: float | None = DECREMENT_TOL, geodesic: float = GEODESIC,
     vs_restarts: Sequence[float] = (3.0, 1.0 / 3.0), data_start: bool = True,
     pin: Mapping[str, float | Sequence[float]] | None = None,
@@ -129,7 +130,9 @@ def identify(
         data_start: also start from the log's inverse dynamics when ``init`` is given.
         pin: names (as ``free``) set to these values on the start and not fitted (a value
             or one per joint).
-        progress: print the cost every ``progress`` steps (True: every step).
+        progress: the reporter (``jaxflex.io.progress.Progress``) of each solver step (its
+            number of the solve's ``max_steps``, and its cost) and each start's end (no
+            total); None: silent.
 
     Returns:
         An ``IdentResult`` whose file records every attempt's cost and how it ended
@@ -203,17 +206,13 @@ def identify(
     discretisation: dict[str, Any] = {"mode": "auto" if auto else "given"}
     if auto:
         prob, discretisation["first"] = choose_substeps(prob, starts[0][1])
-    every = int(progress)
-    say = None
-    if progress:
-        say = lambda k, c: print(f"  [identify] step {k:4d}  cost {c:.6e}") if k % every == 0 else None
     schedules = list(warm_start) if isinstance(warm_start, (list, tuple)) else [warm_start]
     if not schedules:
         raise ValueError("identify: warm_start needs at least one schedule (a factor or None)")
     if prob.segs.count == 1:  # one segment: nothing to loosen
         schedules = [None]
     good = accept_cost * noise
-    search = Search(good, dict(options, progress=say), progress)
+    search = Search(good, dict(options, progress=progress), progress or silent)
     t0 = time.perf_counter()
     best, best_factor = None, None
 

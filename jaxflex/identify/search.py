@@ -28,6 +28,7 @@ from jaxflex.identify.start import DataStart
 from jaxflex.identify.static import start_from_static_map
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
+from jaxflex.io.progress import Progress, silent
 
 #: A model-limited solve that ends at its step cap is converged when a full Gauss-Newton step
 #: would move no parameter by more than this many of its reported standard errors.
@@ -38,7 +39,7 @@ class Search:
     """Every solve of one identification: the attempts written to the file and the end
     points of the full problem's solves, from which the best is taken at the end."""
 
-    def __init__(self, good: float, solve: dict[str, Any], progress: bool | int):
+    def __init__(self, good: float, solve: dict[str, Any], progress: Progress = silent):
         self.good, self.solve, self.progress = good, solve, progress
         self.attempts: list[dict[str, Any]] = []
         self.ends: list[tuple[int, Any]] = []  # (attempt index, y) of the full problem
@@ -64,9 +65,9 @@ class Search:
                               "converged": sol.converged, "reason": sol.reason})
         if full:
             self.ends.append((len(self.attempts) - 1, sol.y))
-        if self.progress and "start" in label:
-            print(f"  [identify] {label['start']}: cost {sol.cost:.6e} (noise explains <= "
-                  f"{self.good:.3e}); {sol.reason}")
+        if "start" in label:
+            self.progress(len(self.attempts), None, f"{label['start']}: cost {sol.cost:.6e} "
+                          f"(noise explains <= {self.good:.3e}); {sol.reason}")
         return sol
 
 

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -57,6 +56,7 @@ from jaxflex.core.sensing import AbstractSensing
 from jaxflex.sim.simulate import SimResult, simulate_sampled, tracking_summary
 from jaxflex.runtime.tracecache import persistent_jit
 from jaxflex.core.trajectory import Trajectory
+from jaxflex.io.progress import Progress, silent
 
 COMPENSATION_KEYS: tuple[str, ...] = ("without_compensation", "with_compensation")
 METRICS: tuple[str, ...] = ("rms_error", "max_error", "tau_rms", "diverged", "saturation_fraction",
@@ -197,7 +197,7 @@ def run_paper_experiments(
     *, params: Params | None = None, sensing: str = "paper", estimator: str | None = "kalman",
     q2d_method: str = "model", leak: float | None = None,
     t_final: float = 10.0, compare_q2d: bool = True, tasks: list[str] | None = None,
-    progress: Callable[[str], None] | None = print,
+    progress: Progress | None = None,
 ) -> PaperExperiments:
     """Run the paper's experiments (``tasks``: trajectory names, default all of
     ``jaxflex.io.presets.TRAJECTORIES``) with and without compensation under the sensing preset
@@ -207,7 +207,8 @@ def run_paper_experiments(
     (``CascadeGains.leak``); None takes the parameter file's, or ``REPRODUCE_LEAK`` for the
     paper's parameters (whose file records none); 0 is the paper's observer. With leak > 0 the
     compensated runs and the loop at rest are repeated with the paper's observer
-    (``PaperExperiments.paper_observer``). Writes nothing (see
+    (``PaperExperiments.paper_observer``). ``progress`` (``jaxflex.io.progress.Progress``)
+    gets a line as each run starts; None: silent. Writes nothing (see
     ``jaxflex.app.reports.write_paper_experiments``).
     """
     if leak is not None and not (np.isfinite(leak) and leak >= 0):
@@ -222,7 +223,7 @@ def run_paper_experiments(
                             jnp.full(gains.n, float(leak), gains.Ke.dtype))
     leak_used = [float(x) for x in np.broadcast_to(np.asarray(gains.leak), (gains.n,))]
     sens = with_estimator(sensing_preset(sensing), estimator)
-    say = progress or (lambda s: None)
+    say = lambda s: (progress or silent)(0, None, s)
     config = {
         "params": params.to_dict(), "sensing": sensing, "estimator": sens.velocity,
         "q2d_method": q2d_method, "observer_leak": leak_used,

@@ -45,6 +45,7 @@ from jaxflex.core.plant import FlexibleJointPlant
 from jaxflex.io.presets import trajectory_preset
 from jaxflex.core.sensing import Sensing
 from jaxflex.sim.simulate import simulate_sampled
+from jaxflex.io.progress import Bar, Progress, silent
 from jaxflex.sweep.spec import SweepSpec
 from jaxflex.sweep.summary import Accumulator, SweepResult, band_bins
 
@@ -350,7 +351,7 @@ def run_sweep(
     shard: bool = True,
     keep_samples: bool = True,
     n_worst: int = 10,
-    progress: bool = True,
+    progress: Progress | bool = True,
     float32: bool = False,
     resume: SweepCheckpoint | None = None,
     on_chunk: Callable[[SweepCheckpoint], None] | None = None,
@@ -368,7 +369,9 @@ def run_sweep(
     Interrupts (single process): Ctrl-C or SIGTERM stop the sweep between chunks; the result
     then summarises the chunks done, with ``summary["partial"] = True`` (``None`` if no chunk
     was done). ``on_chunk`` gets a ``SweepCheckpoint`` after each chunk (the CLI saves it);
-    ``resume`` continues from one (refused if it belongs to another run).
+    ``resume`` continues from one (refused if it belongs to another run). ``progress``
+    (``jaxflex.io.progress.Progress``) gets each chunk done of this process's chunks; True:
+    a tqdm bar, False: silent.
     """
     n_samples = spec.samples if samples is None else int(samples)
     if n_samples < 1:
@@ -404,13 +407,12 @@ def run_sweep(
     stops = _deferred_interrupts() if nproc == 1 else contextlib.nullcontext({"stop": False, "critical": False})
     with ctx, stops as state:
         bar = None
+        report: Progress = progress if callable(progress) else silent
         try:
             fn = make_chunk_fn(spec, float32)
-            if progress:
-                from tqdm.auto import tqdm
-
-                bar = tqdm(total=len(mine), initial=len(mine) - len(todo), unit="chunk",
-                           desc=f"sweep[{pid}/{nproc}]" if nproc > 1 else "sweep")
+            if progress is True:
+                bar = report = Bar(f"sweep[{pid}/{nproc}]" if nproc > 1 else "sweep",
+                                   unit="chunk", initial=len(mine) - len(todo))
             for k, c in enumerate(todo):
                 idx = np.arange(c * chunk_size, (c + 1) * chunk_size)
                 valid = idx < n_samples
@@ -427,8 +429,7 @@ def run_sweep(
                 if on_chunk is not None:
                     on_chunk(SweepCheckpoint(run_id, list(done), acc))
                 state["critical"] = False
-                if bar is not None:
-                    bar.update(1)
+                report(len(mine) - len(todo) + k + 1, len(mine), "")
                 if state["stop"]:
                     raise KeyboardInterrupt
         except KeyboardInterrupt:

@@ -72,6 +72,7 @@ from jaxflex.io.presets import trajectory_preset
 from jaxflex.tune import (StartRecord, adam_search, ascend_feasibility, gains_of,
                           certify_speed, reference_speed)
 from jaxflex.core.validation import requires_float64
+from jaxflex.io.progress import Progress
 
 RISKS: tuple[str, ...] = ("mean", "quantile", "cvar")
 
@@ -335,7 +336,7 @@ def tune_robust(
     iterations: int = 20, starts: int = 2, learning_rate: float = 0.1, spread: float = 0.3,
     box: float = 100.0, seed: int = 0, eps: float = DEFAULT_EPS, grid: int = 33,
     feasibility_iterations: int = 300,
-    progress: Callable[[int, int, float], None] | None = None,
+    progress: Progress | None = None,
 ) -> RobustResult:
     """Tune the cascade gains for every plant of ``task`` (module docstring).
 

@@ -13,6 +13,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from jaxflex.core.controller import CascadeGains
+from jaxflex.io.progress import Progress
 
 
 @dataclasses.dataclass
@@ -34,7 +35,7 @@ class StartRecord:
 def adam_search(
     theta_init: Array, value_and_grad: Callable, feasible: Callable[[Array], tuple[bool, float]],
     *, iterations: int, starts: int, learning_rate: float, spread: float, lo: Array, hi: Array,
-    seed: int, progress: Callable[[int, int, float], None] | None = None,
+    seed: int, progress: Progress | None = None,
 ) -> tuple[list[tuple[float, np.ndarray]], list[StartRecord], float, int]:
     """The multi-start Adam search of ``tune`` and ``jaxflex.tune.robust.tune_robust`` in
     log-gains theta, with every iterate kept in the certified set.
@@ -45,7 +46,9 @@ def adam_search(
     a non-finite cost is undone with half the learning rate. The first start is
     ``theta_init`` (certified), the others log-normal perturbations (``spread``) inside
     [lo, hi], pulled back toward it if uncertified. Returns (candidates as (cost, theta),
-    per-start records, the cost at ``theta_init``, evaluations)."""
+    per-start records, the cost at ``theta_init``, evaluations). ``progress``
+    (``jaxflex.io.progress.Progress``) gets every iteration as one of ``starts`` x
+    (``iterations`` + 1), with its start, iteration and cost."""
 
     def pull_back(theta_from, cand, max_halvings=30):
         """Largest certified point on the segment from a certified theta_from toward cand."""
@@ -92,7 +95,8 @@ def adam_search(
             rec.constraint.append(feasible(theta)[1])
             candidates.append((cost, np.asarray(theta)))
             if progress is not None:
-                progress(si, it, cost)
+                progress(si * (iterations + 1) + it + 1, starts * (iterations + 1),
+                         f"start {si} iteration {it}: cost {cost:.3e}")
             if it == iterations:
                 break
             m = b1 * m + (1 - b1) * g

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any, Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -21,6 +21,7 @@ from jaxflex.runtime.tracecache import persistent_jit
 from jaxflex.tune.search import StartRecord, adam_search, ascend_feasibility, gains_of
 from jaxflex.tune.task import TuneTask, max_link_speed, tracking_cost
 from jaxflex.core.validation import requires_float64
+from jaxflex.io.progress import Progress
 
 
 @dataclasses.dataclass
@@ -74,7 +75,7 @@ def tune(
     model: FlexibleJointPlant | None = None,
     eps: float = DEFAULT_EPS,
     grid: int = 33,
-    progress: Callable[[int, int, float], None] | None = None,
+    progress: Progress | None = None,
 ) -> TuneResult:
     """Tune the cascade gains on ``task`` under the N2 certificate (module docstring).
 
@@ -83,7 +84,7 @@ def tune(
     Adam steps per start, ``starts`` starts (the first at ``initial``), ``learning_rate`` in
     log units, ``spread`` the log-normal spread of the other starts, ``box`` the factor by which
     a gain may move from its initial value, ``grid`` speeds on which the constraint is checked.
-    ``progress(start, iteration, cost)`` is called after every iteration.
+    ``progress`` (``jaxflex.io.progress.Progress``) gets every iteration of every start.
 
     Raises ``ValueError`` on bad settings or when ``initial`` is not certified with ``margin``.
     """

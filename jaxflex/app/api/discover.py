@@ -11,6 +11,7 @@ from jaxflex.app.api.result import Result
 from jaxflex.discover import DiscoverConfig, discover
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
+from jaxflex.io.progress import Progress
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -76,7 +77,8 @@ class Discovery(Result):
         return figs[which]
 
 
-def discover_effects(log: Log, nominal: Params | None = None, *, progress: Any = None,
+def discover_effects(log: Log, nominal: Params | None = None, *,
+                     progress: Progress | None = None,
                      **config: Any) -> Discovery:
     """Find the named effect ``nominal`` misses on a one-joint ``log``, add it and refit,
     until nothing significant is left (``jaxflex.discover.discover``).
@@ -87,7 +89,8 @@ def discover_effects(log: Log, nominal: Params | None = None, *, progress: Any =
       ``model="rigid"``).
     - `nominal`: the model to start from (e.g. ``identify_log(log).params``); None: the
       paper's plant.
-    - `progress`: called with a line of text at each step; None: silent.
+    - `progress`: the reporter of each line of the run's account
+      (``jaxflex.io.progress.Progress``, e.g. ``Printer()``); None: silent.
     - `config`: fields of ``jaxflex.discover.DiscoverConfig`` (``candidates``,
       ``max_effects``, ``model``, ``segment``, ...).
 

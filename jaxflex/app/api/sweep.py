@@ -10,6 +10,7 @@ import numpy as np
 
 from jaxflex.app.api.result import Result
 from jaxflex.sweep import SweepSpec, load_spread, parse_spread, run_sweep
+from jaxflex.io.progress import Progress
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -57,7 +58,7 @@ class Sweep(Result):
 
 
 def sweep_spread(spread: SweepSpec | dict[str, Any] | str | os.PathLike, *,
-                 samples: int | None = None, progress: bool = False,
+                 samples: int | None = None, progress: Progress | bool = False,
                  **options: Any) -> Sweep:
     """Run the closed loop on plants drawn from ``spread`` and summarise the errors
     (``jaxflex.sweep.run_sweep``).
@@ -67,7 +68,8 @@ def sweep_spread(spread: SweepSpec | dict[str, Any] | str | os.PathLike, *,
     - `spread`: a ``SweepSpec``, a spread mapping or a spread file (docs/spec.md; examples
       in ``studies/spreads/``).
     - `samples`: how many plants; None: the spread's own count.
-    - `progress`: show a progress bar.
+    - `progress`: a reporter of the chunks done (``jaxflex.io.progress.Progress``), True: a
+      progress bar, False: silent.
     - `options`: keywords of ``run_sweep`` (``chunk_size``, ``shard``, ``keep_samples``,
       ``float32``, ...).
 

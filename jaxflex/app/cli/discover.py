@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         [lambda: importlib.import_module("jaxflex.app.plots.discover")])
     try:
         with interrupts_stop() as check:  # a fit ends on Ctrl-C; the command stops too
-            res = discover(log, nominal, cfg, progress=lambda m: (check(), print(m)))
+            res = discover(log, nominal, cfg, progress=lambda d, t, m: (check(), print(m)))
     except SolverFailure as e:
         # a numerical failure of a fit, not a bad input: said so, and recorded in the folder
         with writing():
@@ -209,7 +209,7 @@ def _run_joints(args: argparse.Namespace, log, nominal, cfg, out,
     from jaxflex.app.cli.outputs import interrupts_stop, writing
 
     with interrupts_stop() as check:  # a fit ends on Ctrl-C; the command stops too
-        results = discover_joints(log, nominal, cfg, progress=lambda m: (check(), print(m)),
+        results = discover_joints(log, nominal, cfg, progress=lambda d, t, m: (check(), print(m)),
                                   axes=joint_axes)
     reps = []
     with writing():  # the whole result or nothing, Ctrl-C included

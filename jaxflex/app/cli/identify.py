@@ -165,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxflex.identify.start import StartError, check_model, link_sides, start_from_data
     from jaxflex.io.logs import REQUIRED_COLUMNS, load_log, parse_mapping
     from jaxflex.io.params import load_params, save_params
+    from jaxflex.io.progress import Printer
 
     from jaxflex.app.cli.outputs import check_outputs
 
@@ -251,7 +252,8 @@ def run(args: argparse.Namespace) -> int:
                            pin=pins,
                            segment_length="auto" if args.segment == "auto" else seg,
                            substeps=args.substeps, max_steps=args.max_steps,
-                           progress=False if args.quiet else 5)
+                           progress=None if args.quiet else Printer(every=5,
+                                                                    prefix="  [identify] "))
         except (np.linalg.LinAlgError, FloatingPointError) as e:
             # the fit ran into non-finite values (a diverged replay): a result that did not
             # converge, not a bad input; nothing is written

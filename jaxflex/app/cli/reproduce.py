@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the experiments and print a table of the results."""
     from jaxflex.loop.experiments import run_paper_experiments
     from jaxflex.io.params import load_params
+    from jaxflex.io.progress import Printer
     from jaxflex.app.cli.outputs import check_outputs, writing
     from jaxflex.io.errors import InputError
     from jaxflex.app.reports import write_paper_experiments
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     results = run_paper_experiments(
         params=params, sensing=args.sensing, estimator=args.estimator, q2d_method=args.q2d,
         t_final=args.duration, leak=args.leak,
-        compare_q2d=not args.no_q2d_comparison, tasks=args.tasks,
+        compare_q2d=not args.no_q2d_comparison, tasks=args.tasks, progress=Printer(),
     )
     with writing():  # the whole result or nothing, Ctrl-C included
         res = write_paper_experiments(results, args.out)

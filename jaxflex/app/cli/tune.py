@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from jaxflex.io.presets import SENSING_DESCRIPTIONS, SENSING_PRESETS, TRAJECTORIES
+from jaxflex.io.progress import Bar
 
 
 EXAMPLE = ("jaxflex tune --params identified.json --out tuned.json --trajectory sinusoid "
@@ -122,22 +123,13 @@ def run(args: argparse.Namespace) -> int:
                     sensing=sensing_of(cfg.sensing), tau_max=cfg.tau_max, dt=cfg.dt,
                     q2d_method=cfg.q2d_method, torque_weight=args.torque_weight,
                     velocity_factor=args.velocity_factor, min_rest_damping=args.min_rest_damping)
-    total = args.starts * (args.iterations + 1)
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, desc="tune", unit="sim")
-
-    def progress(start: int, it: int, cost: float) -> None:
+    bar = None if args.quiet else Bar("tune", unit="sim")
+    try:
+        res = tune(plant, initial, task, margin=args.margin, iterations=args.iterations,
+                   starts=args.starts, learning_rate=args.lr, seed=args.seed, progress=bar)
+    finally:
         if bar is not None:
-            bar.update(1)
-            bar.set_postfix(start=start, cost=f"{cost:.3e}")
-
-    res = tune(plant, initial, task, margin=args.margin, iterations=args.iterations,
-               starts=args.starts, learning_rate=args.lr, seed=args.seed, progress=progress)
-    if bar is not None:
-        bar.close()
+            bar.close()
     comparison = compare(plant, res, task)
     with writing():  # the whole result or nothing, Ctrl-C included
         save_params(dataclasses.replace(params, gains=res.gains.to_dict(), controller=cfg), out)
@@ -178,22 +170,14 @@ def run_robust(args: argparse.Namespace, out: Path, report_dir: Path) -> int:
                       resample=args.resample, torque_weight=args.torque_weight,
                       velocity_factor=args.velocity_factor, confidence=args.confidence)
     initial = load_params(args.params).to_gains() if args.params else None
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(total=args.starts * (args.iterations + 1), desc="tune (robust)", unit="step")
-
-    def progress(start: int, it: int, cost: float) -> None:
+    bar = None if args.quiet else Bar("tune (robust)", unit="step")
+    try:
+        res = tune_robust(task, initial, margin=args.margin, iterations=args.iterations,
+                          starts=args.starts, learning_rate=args.lr, seed=args.seed,
+                          progress=bar)
+    finally:
         if bar is not None:
-            bar.update(1)
-            bar.set_postfix(start=start, risk=f"{cost:.3e}")
-
-    res = tune_robust(task, initial, margin=args.margin, iterations=args.iterations,
-                      starts=args.starts, learning_rate=args.lr, seed=args.seed,
-                      progress=progress)
-    if bar is not None:
-        bar.close()
+            bar.close()
     summary = res.summary()
     if not res.certified:
         print(f"refused: no candidate is certified on the spread's box with margin {args.margin} "
