@@ -260,13 +260,15 @@ def screens(rep: dict[str, Any], family: str) -> list[dict[str, Any] | None]:
 
 def plot(results: dict[str, Any], path: Path) -> None:
     """The held-out gap before and after each copy's effects, over its floor, the planted
-    copies marked by their score."""
+    copies marked by their score (no figure when every copy failed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     names = [k for k, r in results["copies"].items() if "failed" not in r]
+    if not names:  # every copy failed: their errors are in results.json
+        return
     fig, ax = plt.subplots(figsize=(1.2 * len(names) + 3, 4))
     x = np.arange(len(names))
     r = [results["copies"][n] for n in names]
