@@ -58,6 +58,7 @@ import dataclasses
 import json
 import os
 import sys
+import textwrap
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -269,7 +270,7 @@ def plot(results: dict[str, Any], path: Path) -> None:
     names = [k for k, r in results["copies"].items() if "failed" not in r]
     if not names:  # every copy failed: their errors are in results.json
         return
-    fig, ax = plt.subplots(figsize=(1.2 * len(names) + 3, 4))
+    fig, ax = plt.subplots(figsize=(1.6 * len(names) + 3, 5))
     x = np.arange(len(names))
     r = [results["copies"][n] for n in names]
     ax.bar(x - 0.2, [c["gap_before"] for c in r], 0.4, label="nominal refit")
@@ -277,8 +278,8 @@ def plot(results: dict[str, Any], path: Path) -> None:
     ax.scatter(x, [c["gap_floor"] for c in r], color="k", marker="_", s=400, label="floor",
                zorder=3)
     ax.set_yscale("log")
-    ax.set_xticks(x, [f"{n}\n{c['answer'][:28]}\nnamed {c['named']}" for n, c in zip(names, r)],
-                  fontsize=7)
+    ax.set_xticks(x, [f"{n}\n{textwrap.fill(c['answer'], 22)}\nnamed {c['named']}"
+                      for n, c in zip(names, r)], fontsize=7)
     ax.set_ylabel("held-out gap")
     ax.set_title("Planted effects on real recordings: are they named?")
     ax.legend(fontsize=8)
