@@ -120,6 +120,32 @@ def test_a_solver_crash_is_a_solver_failure_naming_the_fit(emps_log, tmp_path, c
     assert rep["failed"]["kind"] == "solver failure" and rep["effect"] is None
 
 
+def test_a_fit_that_runs_a_parameter_out_of_range_is_a_solver_failure_naming_it(
+        emps_log, monkeypatch):
+    """A solve that runs a fitted parameter to a non-finite value (an inertia grown until the
+    replay no longer feels it: the residual stays finite there, its Jacobian does not) is a
+    ``SolverFailure`` that names the parameter, not a linear-algebra error of its
+    covariance."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    import jaxflex.discover.fitting as fitting
+
+    solve = fitting.least_squares
+
+    def runaway(prob, y0, **kw):
+        sol = solve(prob, y0, **kw)
+        theta, starts = sol.y
+        theta = dict(theta) | {"I": jnp.full_like(theta["I"], 1e4)}  # I = exp(1e4) = inf
+        return dataclasses.replace(sol, y=(theta, starts))
+
+    monkeypatch.setattr(fitting, "least_squares", runaway)
+    with pytest.raises(SolverFailure, match="nominal model's refit.*ran I to inf"):
+        discover(emps_log, _rigid(), DiscoverConfig(candidates=("torque_offset",),
+                                                    model="rigid"))
+
+
 def test_the_model_kind_is_read_from_the_identification():
     """From ``identification.start.kind`` beside the model's verdict, or from
     ``identification.model`` where that is the kind's name (files without a verdict)."""

@@ -135,6 +135,23 @@ def trace_fit(ws: Workspace, model: Model) -> bool:
     return trace_solver(train, (theta0, x_train), **FIT_SOLVER)
 
 
+def check_bounded(space: Any, theta: Any) -> None:
+    """Refuse a fit that ran a fitted parameter of ``space`` to a non-finite value at the
+    unknowns ``theta`` (an inertia grown until the replay no longer feels it: the residual
+    stays finite along such a direction, its Jacobian and covariance do not).
+
+    **Raises:** ``FloatingPointError`` naming the parameters and their values (a candidate's
+    own failure, ``candidate_error``)."""
+    phys = space.physical_values(theta)
+    runaway = {k: float(np.ravel(phys[k])[0]) for k in space.fitted_names()
+               if not np.all(np.isfinite(np.asarray(phys[k])))}
+    if runaway:
+        raise FloatingPointError(
+            "the fit ran " + ", ".join(f"{k} to {v}" for k, v in runaway.items())
+            + ": the log does not bound it from this start (the model does not describe the "
+            "log, or the start is far from where it does)")
+
+
 def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: float = 1.0,
               starts: tuple[jax.Array, jax.Array] | None = None,
               held_out: bool = True, catch_up: float | None = None) -> CandidateFit:
@@ -149,7 +166,10 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
     training residual sum of squares of a fit this one competes with (``settle``'s fresh
     solve): the solve also ends, not converged, once its last STALL_WINDOW steps gained less
     than that many steps' share of what it still lacks to reach it (at that rate it would
-    not catch up within ``max_steps``)."""
+    not catch up within ``max_steps``).
+
+    **Raises:** ``FloatingPointError`` when the solve runs a fitted parameter to a non-finite
+    value (``check_bounded``)."""
     t0 = time.perf_counter()
     train, test, theta0, x_train, x_test = _fit_start(ws, model, starts)
     sol = least_squares(train, (theta0, x_train), max_steps=max_steps,
@@ -157,12 +177,13 @@ def fit_model(ws: Workspace, model: Model, *, max_steps: int = 15, tau_int: floa
                         stall=(STALL_WINDOW, progress_stop(train.n_out, tau_int, max_steps,
                                                            catch_up)), **FIT_SOLVER)
     theta, x_train = sol.y
-    cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
-    if held_out:
-        x_test = fit_starts(test, theta, x_test)
     space = train.space
     phys = space.physical_values(theta)
     fitted = space.fitted_names()
+    check_bounded(space, theta)
+    cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
+    if held_out:
+        x_test = fit_starts(test, theta, x_test)
     values = {k: float(np.ravel(phys[k])[0]) for k in fitted}
     stderr = {k: float(np.ravel(cov["stderr"][k])[0]) for k in fitted}
     plant = space.plant(theta)

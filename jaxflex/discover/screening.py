@@ -22,7 +22,13 @@ from jaxflex.discover.candidates import (
     within_capacity,
 )
 from jaxflex.discover.config import DiscoverConfig
-from jaxflex.discover.fitting import FIT_SOLVER, fit_model, relative_stop, segment_errors
+from jaxflex.discover.fitting import (
+    FIT_SOLVER,
+    check_bounded,
+    fit_model,
+    relative_stop,
+    segment_errors,
+)
 from jaxflex.fit import covariance, least_squares
 
 
@@ -91,6 +97,7 @@ def screen(ws: Workspace, base: CandidateFit, model: Model, name: str, *, steps:
         for tag, value in (("screen", rss), ("predicted", pred)):
             ev = training_evidence(base.rss, value, k, n_par, base.n_res, n_eff)
             out |= {f"{tag}_{key}": v for key, v in ev.items()}
+        check_bounded(train.space, sol.y[0])
         cov = covariance(train, sol.y, inflation=tau_int, solution=sol)
         phys = train.space.physical_values(sol.y[0])
         out["params"] = {p.split(".", 1)[1]: {"value": float(np.ravel(phys[p])[0]),
