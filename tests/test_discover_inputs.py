@@ -143,7 +143,7 @@ def test_a_fit_that_runs_a_parameter_out_of_range_is_a_solver_failure_naming_it(
     monkeypatch.setattr(fitting, "least_squares", runaway)
     with pytest.raises(SolverFailure, match="nominal model's refit.*ran I to inf"):
         discover(emps_log, _rigid(), DiscoverConfig(candidates=("torque_offset",),
-                                                    model="rigid"))
+                                                    model="rigid", max_steps=3))
 
 
 def test_the_model_kind_is_read_from_the_identification():
