@@ -99,6 +99,13 @@ def kuka_kr300_arm(q_wrist: tuple[float, float, float] = (0.0, 0.0, 0.0),
     return LockedJoints(chain=kuka_kr300_chain(payload), q_held=q_held, free=(0, 1, 2))
 
 
+def kuka_kr300_links(payload: float, q4: float, q5: float, q6: float) -> LockedJoints:
+    """The links a parameter file names ``{"type": "kuka_kr300", "payload": ..., "q4": ...,
+    "q5": ..., "q6": ...}`` (``jaxflex.io.params.LINK_TYPES``): ``kuka_kr300_arm`` with the
+    payload [kg] and the wrist held at q4, q5, q6 [rad] (recorded convention)."""
+    return kuka_kr300_arm((q4, q5, q6), payload)
+
+
 def kuka_kr300_plant(q_wrist: tuple[float, float, float] = (0.0, 0.0, 0.0),
                      payload: float = KR300_PAYLOAD, friction=None) -> FlexibleJointPlant:
     """Axes 1-3 as a flexible-joint arm (eq. 3): ``kuka_kr300_arm`` links, rotor inertias

@@ -187,8 +187,6 @@ const char *jaxflex_info(void);
     helpers = []
     if "jf_sign(" in code:
         helpers.append(_SIGN)
-    if "jf_solve(" in code:
-        helpers.append(_SOLVE.replace("NMAX1", str(n + 1)).replace("NMAX", str(max(n, 1))))
     source = comment + f"""#include <math.h>
 #include "{header_name}"
 
@@ -253,34 +251,6 @@ const char *jaxflex_info(void)
 _SIGN = """static double jf_sign(double x)
 {
     return x > 0 ? 1.0 : (x < 0 ? -1.0 : x);
-}
-
-"""
-
-_SOLVE = """/* x with A x = b (A row-major), Gaussian elimination with partial pivoting. */
-static void jf_solve(int n, const double *a, const double *b, double *const *x)
-{
-    double A[NMAX][NMAX1], y[NMAX];
-    int i, j, k;
-    for (i = 0; i < n; i++) {
-        for (j = 0; j < n; j++) A[i][j] = a[i * n + j];
-        A[i][n] = b[i];
-    }
-    for (k = 0; k < n; k++) {
-        int piv = k;
-        for (i = k + 1; i < n; i++) if (fabs(A[i][k]) > fabs(A[piv][k])) piv = i;
-        if (piv != k) for (j = 0; j <= n; j++) { double tmp = A[k][j]; A[k][j] = A[piv][j]; A[piv][j] = tmp; }
-        for (i = k + 1; i < n; i++) {
-            double f = A[i][k] / A[k][k];
-            for (j = k; j <= n; j++) A[i][j] -= f * A[k][j];
-        }
-    }
-    for (i = n - 1; i >= 0; i--) {
-        double acc = 0.0;
-        for (j = i + 1; j < n; j++) acc += A[i][j] * y[j];
-        y[i] = (A[i][n] - acc) / A[i][i];
-    }
-    for (i = 0; i < n; i++) *x[i] = y[i];
 }
 
 """

@@ -66,16 +66,6 @@ _BINARY: dict[str, str] = {
 }
 
 
-def _py_solve(n: int, names: list[str], targets: list[str]) -> str:
-    return f"_solve({n}, ({', '.join(names[: n * n])},), ({', '.join(names[n * n:])},))"
-
-
-def _c_solve(n: int, names: list[str], targets: list[str]) -> str:
-    return (f"jf_solve({n}, (const double[]){{{', '.join(names[: n * n])}}}, "
-            f"(const double[]){{{', '.join(names[n * n:])}}}, "
-            f"(double *[]){{{', '.join('&' + t for t in targets)}}})")
-
-
 @dataclass(frozen=True)
 class Dialect:
     """How a back end spells the translator's operations (one traced jaxpr, several back ends).
@@ -84,8 +74,8 @@ class Dialect:
     ``literal``: a constant's source; ``select2``/``select_n``: two-way and n-way selects
     ({0}: predicate; ``select_n`` takes the case index); ``to_bool``/``to_int``/``to_float``:
     conversions (``to_float`` None: no code, the value is already a float); ``int_div``:
-    integer division; ``round_even``/``round_away``: the two rounding methods; ``solve``:
-    the statement of a linear solve (size, operand names, target names).
+    integer division; ``round_even``/``round_away``: the two rounding methods; ``fma``: a fused
+    multiply-add.
     """
 
     name: str
@@ -100,7 +90,6 @@ class Dialect:
     int_div: str
     round_even: str
     round_away: str
-    solve: Callable[[int, list[str], list[str]], str]
     fma: str
 
 
@@ -108,11 +97,11 @@ PYTHON = Dialect(
     name="python", unary=_UNARY, binary=_BINARY, literal=_PY_LITERAL,
     select2="({2} if {0} else {1})", select_n="({{1}} if {{0}} == {i} else {{2}})",
     to_bool="bool({0})", to_int="int({0})", to_float="float({0})", int_div="int({0} / {1})",
-    round_even="float(round({0}))", round_away="_round_away({0})", solve=_py_solve,
+    round_even="float(round({0}))", round_away="_round_away({0})",
     fma="exact_fma({0}, {1}, {2})",
 )
 """Python on floats with ``math`` (``_m``); the generated module defines ``_sign``,
-``_round_away``, ``_solve`` and ``exact_fma`` (the source of ``jaxflex.export.fma.exact_fma``)."""
+``_round_away`` and ``exact_fma`` (the source of ``jaxflex.export.fma.exact_fma``)."""
 
 _C_UNARY: dict[str, str] = {
     **{k: f"{k}({{0}})" for k in ("sin", "cos", "tan", "asin", "acos", "atan", "sinh", "cosh",
@@ -137,11 +126,11 @@ C99 = Dialect(
     name="c99", unary=_C_UNARY, binary=_C_BINARY, literal=_C_LITERAL,
     select2="({0} ? {2} : {1})", select_n="({{0}} == {i} ? {{1}} : {{2}})",
     to_bool="({0} != 0)", to_int="trunc({0})", to_float=None, int_div="trunc({0} / {1})",
-    round_even="nearbyint({0})", round_away="round({0})", solve=_c_solve,
+    round_even="nearbyint({0})", round_away="round({0})",
     fma="fma({0}, {1}, {2})",
 )
 """C99 on doubles with libm (every value, booleans and integers included, is a double);
-the generated file defines ``jf_sign`` and ``jf_solve``."""
+the generated file defines ``jf_sign``."""
 
 
 def format_atom(a: Atom, dialect: Dialect = PYTHON) -> str:

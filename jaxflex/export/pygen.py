@@ -279,21 +279,6 @@ def _ieee(fn, *args):
 def _round_away(x):
     return float(_m.copysign(_m.floor(abs(x) + 0.5), x))
 
-
-def _solve(n, a, b):
-    """x with A x = b (A row-major), Gaussian elimination with partial pivoting."""
-    A = [list(a[i * n:(i + 1) * n]) + [b[i]] for i in range(n)]
-    for k in range(n):
-        piv = max(range(k, n), key=lambda i: abs(A[i][k]))
-        A[k], A[piv] = A[piv], A[k]
-        for i in range(k + 1, n):
-            f = A[i][k] / A[k][k]
-            for j in range(k, n + 1):
-                A[i][j] -= f * A[k][j]
-    x = [0.0] * n
-    for i in range(n - 1, -1, -1):
-        x[i] = (A[i][n] - sum(A[i][j] * x[j] for j in range(i + 1, n))) / A[i][i]
-    return tuple(x)
 '''
 
 _BODY = '''{prelude}

@@ -58,6 +58,15 @@ _CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint", "cus
 _IDENTITY = ("stop_gradient", "copy", "copy_p", "optimization_barrier", "reduce_precision")
 
 
+def _constant_indices(idx: np.ndarray, prim: str) -> np.ndarray:
+    """The index operand of a gather or scatter as integers; refused when it depends on the
+    signals (a data-dependent index has no straight-line translation here)."""
+    flat = idx.reshape(-1)
+    if not all(is_const(a) for a in flat):
+        raise UnsupportedPrimitive(f"primitive '{prim}' with data-dependent indices")
+    return np.array([int(a) for a in flat], dtype=np.int32).reshape(idx.shape)
+
+
 def _is_int_dtype(aval: Any) -> bool:
     return np.issubdtype(np.dtype(aval.dtype), np.integer)
 
@@ -100,19 +109,6 @@ class Translator:
         (self.static_stmts if static else self.dyn_stmts).append(Stmt((s.name,), code, uses, static))
         self.cse[code] = s
         return s
-
-    def emit_multi(self, code_fn: Callable[[list[str], list[str]], str], args: Sequence[Atom],
-                   nout: int) -> list[Sym]:
-        """A statement with several targets (e.g. a linear solve); ``code_fn`` gets the
-        operands' and the targets' names."""
-        names = [a.name if isinstance(a, Sym) else self.d.literal(a) for a in args]
-        static = all(a.static for a in args if isinstance(a, Sym))
-        outs = [self._new(static) for _ in range(nout)]
-        code = code_fn(names, [o.name for o in outs])
-        uses = tuple(a.name for a in args if isinstance(a, Sym))
-        st = Stmt(tuple(o.name for o in outs), code, uses, static)
-        (self.static_stmts if static else self.dyn_stmts).append(st)
-        return outs
 
     # ----- scalar operations with simplification ----------------------------------------------
 
@@ -412,6 +408,15 @@ class Translator:
             return [out]
         if prim == "dot_general":
             return [self.dot_general(ins[0], ins[1], p["dimension_numbers"])]
+        if prim == "unstack":
+            axis = int(p["axis"])
+            return [np.take(x, i, axis=axis) for i in range(x.shape[axis])]
+        if prim == "gather":
+            return [self.gather(p, ins[0], ins[1], out_avals[0])]
+        if prim in ("scatter", "scatter-add", "scatter_add"):
+            return [self.scatter(prim, p, ins[0], ins[1], ins[2])]
+        if prim == "sort" and all(is_const(a) for a in ins[0].reshape(-1)):
+            return self.sort_constants(p, ins)
         if prim == "lu":
             return [np.full(tuple(a.shape), Opaque("LU factorisation"), dtype=object) for a in out_avals]
         if prim == "custom_linear_solve":
@@ -422,6 +427,51 @@ class Translator:
             "(reshape, broadcast, slice, concatenate, pad, transpose), reductions, dot_general, "
             "cumulative sums, jnp.linalg.solve and nested calls"
         )
+
+    def gather(self, p: dict, x: np.ndarray, idx: np.ndarray, aval: Any) -> np.ndarray:
+        """``lax.gather`` at indices known at generation time (``x[i]``, ``M[idx][:, idx]``):
+        the primitive itself, run on the operand's element numbers, says which element each
+        output is; an index out of bounds gives the mode's fill."""
+        import jax
+
+        ids = jax.lax.gather_p.bind(
+            np.arange(1, x.size + 1, dtype=np.int32).reshape(x.shape),
+            _constant_indices(idx, "gather"), **{**p, "fill_value": 0})
+        fill = p.get("fill_value")
+        fill = (math.nan if np.issubdtype(np.dtype(aval.dtype), np.inexact) else 0) \
+            if fill is None else fill
+        flat = x.reshape(-1)
+        return np.vectorize(lambda i: flat[i - 1] if i > 0 else fill, otypes=[object])(
+            np.asarray(ids)).reshape(tuple(aval.shape))
+
+    def scatter(self, prim: str, p: dict, x: np.ndarray, idx: np.ndarray,
+                upd: np.ndarray) -> np.ndarray:
+        """``lax.scatter`` (``.at[i].set``) and ``scatter-add`` (``.at[i].add``, the transpose
+        of a gather) at indices known at generation time. The primitive, run on one-hot
+        updates, says where each update goes; the sums are taken in the updates' order, as
+        XLA's scatter loop adds them."""
+        import jax
+        import jax.numpy as jnp
+
+        kw = {k: v for k, v in p.items() if k not in ("update_jaxpr", "update_consts")}
+        onehot = np.eye(upd.size, dtype=np.int32).reshape((upd.size, *upd.shape))
+        where = jax.vmap(lambda u: jax.lax.scatter_add_p.bind(
+            jnp.zeros(x.shape, jnp.int32), _constant_indices(idx, prim), u,
+            update_jaxpr=None, update_consts=(), **kw))(onehot)
+        where = np.asarray(where).reshape(upd.size, x.size)
+        out = x.reshape(-1).copy()
+        for j, u in enumerate(upd.reshape(-1)):
+            for t in np.flatnonzero(where[j]):  # none where the mode drops the update
+                out[t] = u if prim == "scatter" else self.binary("add", out[t], u)
+        return out.reshape(x.shape)
+
+    def sort_constants(self, p: dict, ins: list[np.ndarray]) -> list[np.ndarray]:
+        """``lax.sort`` of operands known at generation time (e.g. a permutation of constant
+        pivots)."""
+        import jax
+
+        vals = [np.vectorize(lambda a: a, otypes=[type(x.reshape(-1)[0])])(x) for x in ins]
+        return [const_array(o) for o in jax.lax.sort_p.bind(*vals, **p)]
 
     def scan(self, p: dict, ins: list[np.ndarray]) -> list[np.ndarray]:
         """``lax.scan`` with a static length, unrolled (for short loops such as substeps)."""
@@ -456,9 +506,14 @@ class Translator:
         rows = int(np.prod(A.shape[nb:nb + len(lf)], dtype=int))
         cols = int(np.prod(B.shape[nb:nb + len(rf)], dtype=int))
         matvec = int(np.prod(bshape, dtype=int)) == 1 and rows >= 2 and cols == 1
+        # a product of two or three terms, other than a dot of two vectors, is the first
+        # product and then fused multiply-adds in XLA's CPU emitter, batched or not (the
+        # chain's 3 x 3 rotations and inertias)
+        matvec = matvec or (csize in (2, 3) and rows * cols > 1)
         for bi in np.ndindex(bshape):
-            Ab = A[bi].reshape(A[bi].shape[: len(lf)] + (csize,))
-            Bb = B[bi].reshape(B[bi].shape[: len(rf)] + (csize,))
+            Ab, Bb = A[(*bi, ...)], B[(*bi, ...)]  # arrays also where an operand is 0-d
+            Ab = Ab.reshape(Ab.shape[: len(lf)] + (csize,))
+            Bb = Bb.reshape(Bb.shape[: len(rf)] + (csize,))
             for i in np.ndindex(Ab.shape[:-1]):
                 for j in np.ndindex(Bb.shape[:-1]):
                     if matvec:
@@ -489,6 +544,26 @@ class Translator:
         if all(is_const(a) and a == 0 for a in off):
             # diagonal A: LU with partial pivoting reduces to b_i / A_ii
             return np.array([self.binary("div", b[i], A[i, i]) for i in range(n)], dtype=object)
-        flat = [A[i, j] for i in range(n) for j in range(n)] + [b[i] for i in range(n)]
-        outs = self.emit_multi(lambda nm, tg: self.d.solve(n, nm, tg), flat, n)
-        return np.array(outs, dtype=object)
+        return np.array(self.eliminate([[*A[i], b[i]] for i in range(n)]), dtype=object)
+
+    def eliminate(self, rows: list[list[Atom]]) -> list[Atom]:
+        """x with A x = b from the rows [A_i, b_i]: Gaussian elimination with partial
+        pivoting, written out (a row moves up where its entry in the pivot column is larger
+        in magnitude, so ties keep the upper row), then back substitution. Its factors of A
+        are shared by every right-hand side (common subexpressions), as an LU is."""
+        n = len(rows)
+        R = [list(r) for r in rows]
+        for k in range(n):
+            for i in range(k + 1, n):
+                up = self.binary("gt", self.unary("abs", R[i][k]), self.unary("abs", R[k][k]))
+                R[k], R[i] = ([self.select(up, [x, y]) for x, y in zip(R[k], R[i])],
+                              [self.select(up, [y, x]) for x, y in zip(R[k], R[i])])
+            for i in range(k + 1, n):
+                f = self.binary("div", R[i][k], R[k][k])
+                for j in range(k + 1, n + 1):
+                    R[i][j] = self.binary("sub", R[i][j], self.binary("mul", f, R[k][j]))
+        x: list[Atom] = [0.0] * n
+        for i in range(n - 1, -1, -1):
+            acc = self.total([self.binary("mul", R[i][j], x[j]) for j in range(i + 1, n)])
+            x[i] = self.binary("div", self.binary("sub", R[i][n], acc), R[i][i])
+        return x

@@ -27,12 +27,13 @@ import math
 import os
 import warnings
 from pathlib import Path
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 from jaxtyping import ArrayLike
 
 from jaxflex.core.controller import GAIN_NAMES, Q2D_METHODS, CascadeGains
+from jaxflex.data.kr300 import kuka_kr300_links
 from jaxflex.core.effects import EFFECTS
 from jaxflex.core.friction import LUGRE_NAMES, LuGre
 from jaxflex.core.plant import AbstractLinkDynamics, DiagonalInertia, FlexibleJointPlant, PlanarTwoLink
@@ -40,11 +41,15 @@ from jaxflex.core.sensing import SENSING_FIELDS, Sensing
 from jaxflex.core.validation import check_keys, did_you_mean
 
 PLANT_NAMES: tuple[str, ...] = ("I", "J", "K")
-#: The coupled link models a parameter file's ``links`` section may name (its ``type``), and
-#: each one's fields (all required; docs/spec.md section 7).
-LINK_TYPES: dict[str, type[AbstractLinkDynamics]] = {"planar_two_link": PlanarTwoLink}
+#: The coupled link models a parameter file's ``links`` section may name (its ``type``): each
+#: one's builder, called with the fields as keywords, and its fields (all required;
+#: docs/spec.md section 7). A shipped arm is built by its data module from its own tables.
+LINK_TYPES: dict[str, Callable[..., AbstractLinkDynamics]] = {
+    "planar_two_link": PlanarTwoLink, "kuka_kr300": kuka_kr300_links,
+}
 LINK_FIELDS: dict[str, tuple[str, ...]] = {
     "planar_two_link": ("m1", "m2", "l1", "lc1", "lc2", "I1", "I2", "g"),
+    "kuka_kr300": ("payload", "q4", "q5", "q6"),
 }
 
 
@@ -55,7 +60,9 @@ class ParamsError(ValueError):
 def build_links(links: Mapping[str, Any]) -> AbstractLinkDynamics:
     """The coupled link model of a ``links`` section: ``{"type": <LINK_TYPES key>, <field>:
     value, ...}`` (a ``PlanarTwoLink``: masses [kg], lengths [m], inertias [kg m^2], g
-    [m/s^2]). Raises ``ParamsError`` naming an unknown type or a missing or unknown field."""
+    [m/s^2]; the KUKA KR300's axes 1-3, ``jaxflex.data.kr300.kuka_kr300_links``: payload
+    [kg], wrist angles [rad]). Raises ``ParamsError`` naming an unknown type (and the known
+    ones) or a missing or unknown field."""
     kind = links.get("type")
     if kind not in LINK_TYPES:
         raise ParamsError(f"links.type: expected one of {sorted(LINK_TYPES)}, got {kind!r}")
