@@ -178,6 +178,28 @@ def test_translator_primitives_match_jax():
     np.testing.assert_allclose(out, ref, rtol=1e-13, atol=1e-14)
 
 
+def test_translator_indexing_and_pivoted_solve_match_jax():
+    """Indexing at constant indices (gather, ``.at[].set`` and ``.at[].add`` scatters, a
+    locked chain's free-joint selection) and a linear solve whose pivots move rows (a
+    coupled arm's mass matrix) translate, and equal JAX's results."""
+    idx = np.array([2, 0, 1])
+
+    def f(x, A):
+        M = A[idx][:, idx] + jnp.diag(x[:3])
+        q = jnp.zeros(6).at[jnp.array([0, 2, 4])].set(x[:3]).at[1].add(x[3])
+        return jnp.linalg.solve(M, x[1:]), q, x[idx], jnp.stack(jnp.unstack(A, axis=1))
+
+    rng = np.random.default_rng(1)
+    # the largest entry of each column below the diagonal, so partial pivoting swaps rows
+    A = np.array([[0.1, 2.0, 0.3], [3.0, 0.2, 0.5], [0.4, 5.0, 0.1]])
+    args = rng.normal(size=4), A
+    ns: dict = {}
+    exec(function_source(f, *args), ns)
+    out = np.array(ns["f"](*[v for a in args for v in np.ravel(a)]))
+    ref = np.concatenate([np.ravel(o) for o in f(*args)])
+    np.testing.assert_allclose(out, ref, rtol=1e-13, atol=1e-14)
+
+
 def test_unsupported_primitive_is_named():
     def f(x):
         return jax.lax.while_loop(lambda c: c[0] < 10.0, lambda c: c * 2.0, x)
