@@ -24,6 +24,9 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 
@@ -116,6 +119,80 @@ def kuka_kr300_plant(q_wrist: tuple[float, float, float] = (0.0, 0.0, 0.0),
     K = np.load(DATA_DIR / "kuka_kr300_traj_A.npz")["c_rad_ff"].astype(float)
     return FlexibleJointPlant(links=kuka_kr300_arm(q_wrist, payload), J=J, K=K,
                               friction=friction)
+
+
+#: Sliding friction per axis 1-3, link-referred: the motor friction level Fm [N m] and viscous
+#: coefficient bm [N m s/rad] that ``jaxflex.identify.torque.identify_rotor`` fits on
+#: trajectory A of each axis (``studies/kuka_control.py``, ``sliding_friction``; standard
+#: errors 56, 177, 86 N m and 216, 747, 381 N m s/rad), to five digits.
+KR300_FM: tuple[float, float, float] = (413.75, 504.07, 459.20)
+KR300_BM: tuple[float, float, float] = (1752.4, 1517.8, 226.48)
+#: The LuGre quantities the recordings do not determine (assumed): Fs / Fc, the Stribeck
+#: speed vs [rad/s], the presliding range Fc / sigma0 [rad] and the bristles' damping ratio
+#: against the link inertia M_ii at the pose.
+KR300_FS_OVER_FC: float = 1.2
+KR300_VS: float = 0.01
+KR300_PRESLIDING: float = 1e-4
+KR300_BRISTLE_DAMPING: float = 0.05
+#: The cascade's gain rule on the arm, one for every joint: L1, L2 [1/s]; KD1 = KD2 = K / L2
+#: so that L2^2 KD1 KD2 = K^2 dominates the K^2 / 4 coupling of N2's e1-e2 block (eq. 31);
+#: Ke = KE_SIGMA0 / sigma0; kv [s/rad].
+KR300_L1: float = 10.0
+KR300_L2: float = 30.0
+KR300_KE_SIGMA0: float = 0.1
+KR300_KV: float = 200.0
+#: The arm's controller section: the paper's rest-to-rest task (every axis the same move),
+#: a torque limit twice the recordings' largest link-referred torque (5.1e3 N m, axis 2 of
+#: trajectory B), exact angles and dirty-derivative velocities.
+KR300_CONTROLLER: Mapping[str, Any] = MappingProxyType({
+    "trajectory": "polynomial", "tau_max": 1e4, "sensing": {"velocity": "filtered"}})
+
+
+def kuka_kr300_params(pose: tuple[float, float, float] = (0.0, -0.1, -0.4),
+                      payload: float = KR300_PAYLOAD,
+                      controller: Mapping[str, Any] | None = KR300_CONTROLLER) -> dict[str, Any]:
+    """Axes 1-3 of the KR300 as one coupled flexible-joint arm under the cascade controller,
+    as a parameter file (docs/spec.md section 7).
+
+    **Arguments:**
+
+    - ``pose`` [rad]: the link angles of axes 1-3 at which the bristles' damping is set
+      (sigma1 = 2 zeta sqrt(sigma0 M_ii), eq. 4-6; the wrist held at zero).
+    - ``payload`` [kg]: at the flange (``kuka_kr300_chain``).
+    - ``controller``: the ``controller`` section (``jaxflex.io.params.ControllerConfig``
+      entries; default ``KR300_CONTROLLER``); None: none (the defaults of
+      ``jaxflex.io.presets.DEFAULT_CONTROLLER``, the paper's rig).
+
+    **Returns:**
+
+    The mapping: ``plant`` (J, K of ``kuka_kr300_plant``), ``links`` (type ``kuka_kr300``),
+    ``friction`` (LuGre per axis: Fc = ``KR300_FM``, sigma2 = ``KR300_BM`` and the assumed
+    rest), ``gains`` (the ``KR300_L1`` ... rule), and ``controller`` where given.
+    """
+    import jax
+
+    plant = kuka_kr300_plant(payload=payload)
+    with jax.enable_x64(True):
+        M = np.diag(np.asarray(plant.links.mass_matrix(np.asarray(pose, float))))
+    K = np.asarray(plant.K, float)
+    Fc = np.asarray(KR300_FM)
+    sigma0 = Fc / KR300_PRESLIDING
+    p = {
+        "plant": {"J": np.asarray(plant.J, float).tolist(), "K": K.tolist()},
+        "links": {"type": "kuka_kr300", "payload": float(payload), "q4": 0.0, "q5": 0.0,
+                  "q6": 0.0},
+        "friction": {"Fc": Fc.tolist(), "Fs": (KR300_FS_OVER_FC * Fc).tolist(),
+                     "vs": [KR300_VS] * 3, "sigma0": sigma0.tolist(),
+                     "sigma1": (2 * KR300_BRISTLE_DAMPING * np.sqrt(sigma0 * M)).tolist(),
+                     "sigma2": list(KR300_BM)},
+        "gains": {"Ke": (KR300_KE_SIGMA0 / sigma0).tolist(), "KD1": (K / KR300_L2).tolist(),
+                  "KD2": (K / KR300_L2).tolist(), "kv": [KR300_KV] * 3,
+                  "L1": [KR300_L1] * 3, "L2": [KR300_L2] * 3},
+    }
+    if controller is not None:
+        p["controller"] = {k: (dict(v) if isinstance(v, dict) else v)
+                           for k, v in controller.items()}
+    return p
 
 
 def hydraulic_counterbalance(q2: np.ndarray) -> np.ndarray:
