@@ -134,12 +134,27 @@ def d_vector(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike, z: Ar
     return jnp.concatenate([gains.L1 * s01 * w, s01 * w, zero, zero, last])
 
 
+def smallest_eigenvalue(N2: Float[Array, "5n 5n"]) -> Float[Array, ""]:
+    """lambda_min of an N2 (``n2_of``) from its joints' 5 x 5 blocks.
+
+    N2 is the direct sum of one block per joint, on rho_i = [e1_i, e1'_i, e2_i, e2'_i,
+    eta_i], up to a permutation of rho; its eigenvalues are the blocks'. A symmetric
+    eigensolver is accurate to eps ||A||, and N2's entries span many decades (p55 =
+    sigma0 Psi# / Ke reaches 1e17 on a KR300 axis): solved as one matrix, a joint's
+    eigenvalue takes the largest joint's error (sign flips near lambda_min ~ 1e5 there),
+    solved per block only its own.
+    """
+    n = N2.shape[0] // 5
+    idx = jnp.arange(5)[None, :] * n + jnp.arange(n)[:, None]  # (n, 5): joint i's entries
+    return jnp.min(jnp.linalg.eigvalsh(N2[idx[:, :, None], idx[:, None, :]])[:, 0])
+
+
 @requires_float64
 def lambda_min(plant: FlexibleJointPlant, gains: CascadeGains, v: ArrayLike,
                eps: float = DEFAULT_EPS) -> Float[Array, ""]:
     """Smallest eigenvalue of N2(v) (eq. 29, 31); ``v`` [rad/s] (n,) or a scalar for all joints.
     Positive means V' < 0 outside the ball of eq. 32."""
-    return jnp.linalg.eigvalsh(n2_matrix(plant, gains, v, eps))[0]
+    return smallest_eigenvalue(n2_matrix(plant, gains, v, eps))
 
 
 @requires_float64
@@ -319,7 +334,7 @@ def box_lambda_min(box: dict[str, tuple[Array, Array]], gains: CascadeGains, v: 
            sharp_of(lambda s: jnp.max(corners(s), 0), v, gains, eps)]
     p55 = (s0[0] * psi[0] / gains.Ke, s0[1] * psi[1] / gains.Ke)
     s01 = (s0[0] * s1[0], s0[1] * s1[1])
-    lams = [jnp.linalg.eigvalsh(n2_of(k, s, p, gains))[0] for k in K for s in s01 for p in p55]
+    lams = [smallest_eigenvalue(n2_of(k, s, p, gains)) for k in K for s in s01 for p in p55]
     return jnp.min(jnp.stack(lams))
 
 
