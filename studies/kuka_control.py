@@ -15,7 +15,8 @@ whose sliding levels come from the recordings, the rest stated assumptions:
   sigma1 giving the bristles a damping ratio of 0.05 against the link inertia M_ii at the
   start pose.
 
-Gains (one rule, every joint): L1 = 10 /s, L2 = 30 /s, KD1 = KD2 = K / L2 (so that
+Gains (one rule, every joint; ``jaxflex.data.kr300``'s ``KR300_L1`` ..., which
+``kuka_kr300_params`` also uses): L1 = 10 /s, L2 = 30 /s, KD1 = KD2 = K / L2 (so that
 L2^2 KD1 KD2 = K^2 dominates the K^2 / 4 coupling of N2's e1-e2 block), Ke = 0.1 / sigma0,
 kv = 200 s/rad. N2 is evaluated for every joint over the speeds 0 to 1.3x the fastest link
 speed of trajectory A (``jaxflex.core.certificate.certify``).
@@ -41,16 +42,17 @@ from typing import Any
 
 import jax
 
-#: Assumed LuGre quantities (module docstring).
-FS_OVER_FC: float = 1.2
-VS: float = 0.01
-PRESLIDING: float = 1e-4
-BRISTLE_DAMPING: float = 0.05
-#: Gain rule (module docstring).
-L1: float = 10.0
-L2: float = 30.0
-KE_SIGMA0: float = 0.1
-KV: float = 200.0
+from jaxflex.data.kr300 import (
+    KR300_BRISTLE_DAMPING as BRISTLE_DAMPING,
+    KR300_FS_OVER_FC as FS_OVER_FC,
+    KR300_KE_SIGMA0 as KE_SIGMA0,
+    KR300_KV as KV,
+    KR300_L1 as L1,
+    KR300_L2 as L2,
+    KR300_PRESLIDING as PRESLIDING,
+    KR300_VS as VS,
+)
+
 #: Task: start pose, move [rad], segment duration [s]; controller period [s]; substeps.
 POSE: tuple[float, float, float] = (0.0, -0.1, -0.4)
 MOVE: tuple[float, float, float] = (0.4, 0.25, -0.4)

@@ -49,8 +49,8 @@ from jaxflex.export.pygen import generate_source
 from jaxflex.export.tracing import Traced, trace
 
 __all__ = [
-    "ExportError", "PARITY_RELATIVE", "ParityResult", "REFERENCE_ROWS", "SampledController", "Traced",
-    "UnsupportedPrimitive", "broadcast_trajectory", "build_controller", "check_exportable",
+    "ExportError", "PARITY_RELATIVE", "ParityResult", "REFERENCE_ROWS", "SampledController",
+    "Traced", "UnsupportedPrimitive", "broadcast_trajectory", "build_controller", "check_exportable",
     "check_parity", "describe", "describe_sensing", "export_controller", "generate_source",
     "load_module", "parity_ok", "parity_sensing", "parity_tolerance", "rig_controller",
     "sampled_controller", "trace",
@@ -257,7 +257,8 @@ def check_parity(
 
     **Returns:**
 
-    A ``ParityResult`` (docs/spec.md: 1e-12 N m in float64, ``unfused_diff``).
+    A ``ParityResult`` (docs/spec.md section 7.1: ``unfused_diff`` within
+    ``parity_tolerance``, 1e-12 N m or 1e-14 of the largest torque, in float64).
 
     **Raises:**
 
@@ -364,7 +365,7 @@ def parity_ok(result: ParityResult, tol: float = 1e-12, floor_factor: float = 4.
     **Arguments:**
 
     - ``result``: a ``check_parity`` result.
-    - ``tol`` [N m]: the parity tolerance (docs/spec.md: 1e-12).
+    - ``tol`` [N m]: the absolute parity tolerance (docs/spec.md: 1e-12).
     - ``floor_factor``: how far above XLA's own floor the difference may be.
     - ``rel``: the tolerance relative to the largest torque where that is larger
       (``parity_tolerance``).
