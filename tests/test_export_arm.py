@@ -104,3 +104,33 @@ def test_cli_export_check_of_the_arm(arm_file, tmp_path, capsys):
     assert 1e-12 < tol <= 1e-14 * KR300_CONTROLLER["tau_max"]
     assert r.unfused_diff <= tol, str(r)
     assert parity_ok(r), str(r)
+
+
+@pytest.mark.slow
+def test_c_export_of_the_arm_equals_the_python_export(tmp_path):
+    """The C99 export of the arm's controller (``jaxflex export --out controller.c``) meets
+    the same parity and equals the Python export of the same traced program bit for bit."""
+    from jaxflex.export import (
+        check_parity,
+        generate_source,
+        load_module,
+        parity_ok,
+        parity_tolerance,
+        rig_controller,
+        trace,
+    )
+    from jaxflex.export.native import export_c, find_cc, load_c
+
+    if find_cc() is None:
+        pytest.skip("no C compiler")
+    sc = rig_controller(Params.from_dict(kuka_kr300_params()))
+    tr = trace(sc)
+    export_c(sc, tmp_path / "controller.c", traced=tr)
+    cmod = load_c(tmp_path / "controller.c")
+    py = load_module(generate_source(sc, traced=tr))
+    assert cmod.N_JOINTS == 3 and cmod.STATE_NAMES == py.STATE_NAMES
+    r = check_parity(sc, cmod, t_final=0.5)
+    assert r.unfused_diff <= parity_tolerance(r) and parity_ok(r), str(r)
+    ctrl = py.Controller()
+    tau_py = np.array([ctrl.step(k * 1e-3, r.q1_meas[k], r.q2_meas[k]) for k in range(500)])
+    np.testing.assert_array_equal(r.tau_export, tau_py)
