@@ -33,7 +33,7 @@ from typing import Any
 from jaxtyping import ArrayLike
 
 from jaxflex.core.controller import GAIN_NAMES, Q2D_METHODS, CascadeGains
-from jaxflex.data.kr300 import kuka_kr300_links
+from jaxflex.io.arms import kuka_kr300_links
 from jaxflex.core.effects import EFFECTS
 from jaxflex.core.friction import LUGRE_NAMES, LuGre
 from jaxflex.core.plant import AbstractLinkDynamics, DiagonalInertia, FlexibleJointPlant, PlanarTwoLink
@@ -60,7 +60,7 @@ class ParamsError(ValueError):
 def build_links(links: Mapping[str, Any]) -> AbstractLinkDynamics:
     """The coupled link model of a ``links`` section: ``{"type": <LINK_TYPES key>, <field>:
     value, ...}`` (a ``PlanarTwoLink``: masses [kg], lengths [m], inertias [kg m^2], g
-    [m/s^2]; the KUKA KR300's axes 1-3, ``jaxflex.data.kr300.kuka_kr300_links``: payload
+    [m/s^2]; the KUKA KR300's axes 1-3, ``jaxflex.io.arms.kuka_kr300_links``: payload
     [kg], wrist angles [rad]). Raises ``ParamsError`` naming an unknown type (and the known
     ones) or a missing or unknown field."""
     kind = links.get("type")
