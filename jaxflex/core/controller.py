@@ -198,8 +198,7 @@ class AbstractTrackingLaw(AbstractControlLaw):
     first point, checks the model's joint count against the plant's, records the state's
     z_hat and velocities and keeps a Kalman estimator's state in it: the law's state is a
     ``ControllerState``, ``ControllerState.at_rest`` where it needs none of them). A subclass
-    declares
-    the four as its fields (``model: FlexibleJointPlant``, ``trajectory: Trajectory``,
+    declares the four as its fields (``model: FlexibleJointPlant``, ``trajectory: Trajectory``,
     ``dt: float``, ``tau_max: Array``), in the order its constructor takes them."""
 
 

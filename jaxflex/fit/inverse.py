@@ -9,9 +9,9 @@ Savitzky-Golay (``savgol``) over one window of samples.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -57,8 +57,8 @@ def measured_motion(log: Log, window: int = 31, *, kind: str = "flexible",
     """The ``Motion`` of ``log`` under the model ``kind`` (``MODEL_KINDS``): velocities and
     accelerations by Savitzky-Golay differentiation over ``window`` samples (``savgol``);
     the torque as logged; the angles as logged, or smoothed by the same filter when
-    ``smooth`` (the motion the derivatives describe). The rigid
-    kind takes both sides from the link column q1. Raises ``ValueError`` for an unknown kind,
+    ``smooth`` (the motion the derivatives describe). The rigid kind takes both sides from
+    the link column q1. Raises ``ValueError`` for an unknown kind,
     a log without torque, or a two-sided kind on a log without q2."""
     if kind not in MODEL_KINDS:
         raise ValueError(f"inverse dynamics: model must be one of {MODEL_KINDS}, got {kind!r}")
@@ -68,11 +68,14 @@ def measured_motion(log: Log, window: int = 31, *, kind: str = "flexible",
         raise ValueError(f"inverse dynamics: the {kind} model needs the motor angle q2 in "
                          "the log")
     dt = log.dt
-    q2 = log.q1 if kind == "rigid" else log.q2
-    angle = (lambda x: savgol(x, dt, 0, window)) if smooth else (lambda x: np.asarray(x, float))
-    return Motion(angle(log.q1), savgol(log.q1, dt, 1, window), savgol(log.q1, dt, 2, window),
-                  angle(q2), savgol(q2, dt, 1, window), savgol(q2, dt, 2, window),
-                  np.asarray(log.tau, float))
+
+    def side(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        angle = savgol(q, dt, 0, window) if smooth else np.asarray(q, float)
+        return angle, savgol(q, dt, 1, window), savgol(q, dt, 2, window)
+
+    link = side(log.q1)
+    rotor = link if kind == "rigid" else side(log.q2)
+    return Motion(*link, *rotor, np.asarray(log.tau, float))
 
 
 def model_residuals(plant: FlexibleJointPlant, kind: str, motion: Motion,
@@ -80,8 +83,8 @@ def model_residuals(plant: FlexibleJointPlant, kind: str, motion: Motion,
     """Link and rotor torque residuals [N m], (N, n) each, of ``plant`` at the measured
     ``motion`` (``FlexibleJointPlant.torque_residuals``, eq. 2-3): what the model lacks to
     follow it. The friction's bristle deflection is ``z`` (N, n) [rad] where given, else at
-    its steady state (F = F_ss, eq. 35); the effects' states are at theirs; the rotor kind reads the link motion through the effects' link maps
-    (``link_input``). A plant without friction leaves the friction the motion needs in the
+    its steady state (F = F_ss, eq. 35); the effects' states are at theirs; the rotor kind
+    reads the link motion through the effects' link maps (``link_input``). A plant without friction leaves the friction the motion needs in the
     link line. Traceable in the plant; ``torque_residuals`` runs it on a log."""
     def one(a1, v1, ac1, a2, v2, ac2, tau, z):
         if kind == "rotor":
@@ -118,8 +121,7 @@ def rigid_regressors(v: np.ndarray, a: np.ndarray) -> np.ndarray:
     return np.stack([np.asarray(a, float), v, np.sign(v), np.ones_like(v)], axis=-1)
 
 
-@dataclasses.dataclass(frozen=True)
-class LinearFit:
+class LinearFit(NamedTuple):
     """A least-squares fit ``b ~ A x``: coefficients ``x``, their standard errors ``se`` (a
     white residual assumed; inf where ``A`` is rank deficient) and the relative residual
     ``rel`` = ||b - A x|| / ||b||."""

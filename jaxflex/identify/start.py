@@ -201,7 +201,7 @@ def _joint(log: Log, j: int, model: str) -> dict[str, Any]:
     one = np.ones_like(q1)
     out: dict[str, Any] = {}
     if model == "rigid":
-        x, se, rel = dataclasses.astuple(linear_fit(rigid_regressors(v1, a1)[sel], tau[sel]))
+        x, se, rel = tuple(linear_fit(rigid_regressors(v1, a1)[sel], tau[sel]))
         out.update(Jx=(float(x[0]), float(se[0])), sigma2=(float(x[1]), float(se[1])),
                    Fc=(float(x[2]), float(se[2])), offset=(float(-x[3]), float(se[3])))
     else:
@@ -210,7 +210,7 @@ def _joint(log: Log, j: int, model: str) -> dict[str, Any]:
         if model == "rotor":
             # the rotor line with its effects (module docstring) on every interior sample
             A = np.column_stack([a2, d, np.tanh(v2 / ROTOR_FRICTION_WIDTH), v2, q1s, one])
-            x, se, rel_r = dataclasses.astuple(linear_fit(A[edge], tau[edge]))
+            x, se, rel_r = tuple(linear_fit(A[edge], tau[edge]))
             J, K, Fm, b, Ks, c = x
             out.update(J=(float(J), float(se[0])), K=(float(K), float(se[1])),
                        Fm=(float(Fm), float(se[2])), b=(float(b), float(se[3])),
@@ -220,14 +220,14 @@ def _joint(log: Log, j: int, model: str) -> dict[str, Any]:
         else:
             # rotor line on every interior sample (no friction there)
             A = np.column_stack([a2, d, one])[edge]
-            x, se, rel_r = dataclasses.astuple(linear_fit(A, tau[edge]))
+            x, se, rel_r = tuple(linear_fit(A, tau[edge]))
             J, K, c = x
             out.update(J=(float(J), float(se[0])), K=(float(K), float(se[1])),
                        offset=(float(-c), float(se[2])))
             spring = K * d
         # link line with the rotor line's spring torque
         A = np.column_stack([a1, v1, sgn])[sel]
-        y, sy, rel = dataclasses.astuple(linear_fit(A, spring[sel]))
+        y, sy, rel = tuple(linear_fit(A, spring[sel]))
         out.update(I=(float(y[0]), float(sy[0])), sigma2=(float(y[1]), float(sy[1])),
                    Fc=(float(y[2]), float(sy[2])))
         out["rotor_residual"] = rel_r

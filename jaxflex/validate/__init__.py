@@ -22,8 +22,8 @@ at its floor says "as good as this log can tell", not "97% wrong":
   the EMPS P position / P velocity cascade; ``PDLoop``, a PD on the rotor or link angle;
   ``CascadeLoop``, jaxflex's own cascade) and the log has a reference ``q1d``. Every declared
   loop is a ``jaxflex.core.controller.AbstractControlLaw`` run by one sampled-data scan
-  around ``jaxflex.sim.step.model_step`` (rigid or flexible model), the log's q1d sampled as the reference (floors:
-  ``closed_loop_noise_floor``).
+  around ``jaxflex.sim.step.model_step`` (rigid or flexible model), the log's q1d sampled as
+  the reference (floors: ``closed_loop_noise_floor``).
 
 Beside them, the segment replay's residual analysis as MATLAB's ``resid`` gives it
 (``replay_residual_analysis``: autocorrelation and torque cross-correlation with 99% bands,

@@ -1,7 +1,7 @@
 """The controllers that ran during a log, as a parameter file declares them (its
 ``loop_controller`` section): the sampled laws (``PPLaw``, ``PDLaw``, ``CascadeLaw``, each a
-``jaxflex.core.controller.AbstractControlLaw``), their file records (``LOOP_TYPES``: ``PPCascade``, ``PDLoop``,
-``CascadeLoop``) and the one sampled-data loop that runs any of them around
+``jaxflex.core.controller.AbstractControlLaw``), their file records (``LOOP_TYPES``:
+``PPCascade``, ``PDLoop``, ``CascadeLoop``) and the one sampled-data loop that runs any of them around
 ``jaxflex.sim.step.model_step`` (``simulate_loop``).
 """
 
@@ -150,7 +150,8 @@ class CascadeLaw(AbstractControlLaw):
 
 
 def _held(x: Float[Array, "N n"] | None, like: Float[Array, "N n"], dt: float) -> HeldSamples:
-    """``x`` (zeros shaped as ``like`` when None) as held samples of period ``dt`` [s]."""
+    """A disturbance ``x`` (zeros shaped as ``like`` when None) as held samples of period
+    ``dt`` [s]."""
     return HeldSamples(samples=jnp.zeros_like(like) if x is None else x, dt=dt)
 
 
@@ -191,7 +192,7 @@ class PPCascade:
         [m or rad] (N, n), ``disturbance`` [V] (N, n) added to its output (none when None);
         ``params`` unused."""
         kp, kv, gtau, vmax = self.constants()
-        return PPLaw(kp=kp, kv=kv, gtau=gtau, vmax=vmax, r=_held(q_ref, q_ref, dt),
+        return PPLaw(kp=kp, kv=kv, gtau=gtau, vmax=vmax, r=HeldSamples(samples=q_ref, dt=dt),
                      d=_held(disturbance, q_ref, dt), dt=float(dt))
 
 
@@ -240,8 +241,8 @@ class PDLoop:
         ``params`` unused."""
         c = jnp.asarray([self.kp, self.kd, self.tau_max, self.velocity_tc], float)
         return PDLaw(kp=c[0], kd=c[1], tau_max=c[2], velocity_tc=c[3],
-                     r=_held(q_ref, q_ref, dt), d=_held(disturbance, q_ref, dt), on=self.on,
-                     dt=float(dt))
+                     r=HeldSamples(samples=q_ref, dt=dt), d=_held(disturbance, q_ref, dt),
+                     on=self.on, dt=float(dt))
 
 
 #: Keys of a ``{"type": "cascade"}`` section besides the numbers.
