@@ -135,7 +135,7 @@ def judge(result_path: Path) -> dict[str, Any]:
     res = json.loads(result_path.read_text())
     ident = res["identification"]
     fitted = res["friction"]
-    stderr = ident.get("stderr", {})
+    stderr = res.get("stderr", {})
     out: dict[str, Any] = {"verdict": {k: ident.get(k) for k in
                                        ("solver", "model", "converged", "substeps",
                                         "steps") if k in ident}}

@@ -30,6 +30,7 @@ from jaxflex.fit import (
     CostBound,
     Problem,
     Solution,
+    cost,
     dynamic_substeps,
     set_values,
 )
@@ -47,6 +48,7 @@ from jaxflex.identify.problem import (
     default_free,
     make_problem,
     noise_cost,
+    noise_spread,
     segments_of,
     start_hints,
     with_named_effects,
@@ -79,6 +81,9 @@ from jaxflex.sim.step import ModelKind, replay
 #: 2 |a| / |v|, and the statistical stop (Gauss-Newton decrement, chi-square units)
 GEODESIC: float = 0.3
 DECREMENT_TOL: float = 1e-2
+#: A start's solve that ends within this many standard deviations of the noise's own cost
+#: (``noise_spread``) ends the search: no other minimum can lie lower by what the data tell.
+NOISE_BAND_Z: float = 4.0
 
 @requires_float64
 def identify(
@@ -212,6 +217,7 @@ def identify(
     if prob.segs.count == 1:  # one segment: nothing to loosen
         schedules = [None]
     good = accept_cost * noise
+    band = noise * (1.0 + NOISE_BAND_Z * noise_spread(log, prob))
     search = Search(good, dict(options, progress=progress), progress or silent)
     t0 = time.perf_counter()
     best, best_factor = None, None
@@ -239,22 +245,37 @@ def identify(
         return sol
 
     def search_starts(prob: Problem) -> tuple[Solution, tuple[str, Any, float | None]]:
-        """Every start (and the vs restarts) solved with ``prob``'s substeps, until one
-        settles; the lowest end point and the run that reached it (origin, start point,
-        warm-start schedule)."""
+        """Every start, the lowest first, solved with ``prob``'s substeps and the first
+        warm-start schedule until one ends within the noise's own band (``NOISE_BAND_Z``):
+        a start that settles only within ``accept_cost`` times the noise may sit in a
+        minimum of its own and does not stop the others. Then, until one settles, the other
+        schedules, the lowest start's first, and the vs restarts from the lowest start. The lowest end point and the run that reached it
+        (origin, start point, warm-start schedule)."""
         best, best_run = None, None
-        runs = [(origin, y_start, factor) for origin, y_start in starts for factor in schedules]
-        for run in runs:
+        ends = []
+        for origin, y_start in sorted(starts, key=lambda s: cost(prob, s[1])):
+            run = (origin, y_start, schedules[0])
             sol = solve_from(prob, *run)
+            ends.append((sol.cost, run))
             if best is None or sol.cost < best.cost:
                 best, best_run = sol, run
-            if is_settled(sol, good):
+            if is_settled(best, band):
                 break
+        for _, (origin, y_start, _f) in sorted(ends, key=lambda e: e[0]):
+            if is_settled(best, good):
+                break
+            for factor in schedules[1:]:
+                run = (origin, y_start, factor)
+                sol = solve_from(prob, *run)
+                if sol.cost < best.cost:
+                    best, best_run = sol, run
+                if is_settled(sol, good):
+                    break
         if not is_settled(best, good) and "vs" in prob.space.names and vs_restarts:
             # The Stribeck velocity decides where in the velocity range the friction hump
             # lies; a fit whose vs starts on the wrong side of it lets Fs and sigma1 absorb
-            # the hump and vs stops moving: the first start again, vs on either side.
-            origin, (th0, x0) = starts[0]
+            # the hump and vs stops moving: the lowest start again, vs on either side.
+            origin, (th0, x0), _ = min(ends, key=lambda e: e[0])[1]
             phys = prob.space.physical_values(th0)
             for f in vs_restarts:
                 run = (f"{origin}, vs x{f:g}",

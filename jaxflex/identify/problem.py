@@ -250,6 +250,17 @@ def segments_of(log: Log, length: int | None) -> dict[str, Any]:
     return {"samples": L, "seconds": L * log.dt, "segments": log.N // L}
 
 
+def _noise_terms(log: Log, prob: Problem) -> tuple[int, np.ndarray]:
+    """Samples per output column of ``prob`` and each column's noise variance in the
+    problem's weighted units, (sigma w)^2 (``noise_cost``)."""
+    L = int(prob.segs.y_meas.shape[0] * prob.segs.y_meas.shape[1])
+    w = np.asarray(prob.w_y, float).reshape(-1)
+    sig = [max(noise_level(np.asarray(getattr(log, c), float).reshape(log.N, log.n)[:, j])
+               ["total_std"], 1e-6) for c in prob.outputs for j in range(log.n)]
+    w = np.broadcast_to(w, (len(sig),))
+    return L, (np.asarray(sig) * w) ** 2
+
+
 def noise_cost(log: Log, prob: Problem) -> float:
     """The cost 0.5 ||r||^2 that measurement noise alone gives ``prob`` (a ``make_problem``
     problem of ``log``), in its weighted units: 0.5 sum over the output columns (channel,
@@ -257,9 +268,14 @@ def noise_cost(log: Log, prob: Problem) -> float:
     1e-6 rad, the floor of ``make_problem``'s scale) and w its weight. About n_out / 2 when
     every channel is as noisy as the one that set the scale; less for a finer second encoder
     (a 20-bit link encoder with the motor's far finer one: about n_out / 4)."""
-    N = int(prob.segs.y_meas.shape[0] * prob.segs.y_meas.shape[1])
-    w = np.asarray(prob.w_y, float).reshape(-1)
-    sig = [max(noise_level(np.asarray(getattr(log, c), float).reshape(log.N, log.n)[:, j])
-               ["total_std"], 1e-6) for c in prob.outputs for j in range(log.n)]
-    w = np.broadcast_to(w, (len(sig),))
-    return 0.5 * N * float(np.sum((np.asarray(sig) * w) ** 2))
+    L, a = _noise_terms(log, prob)
+    return 0.5 * L * float(np.sum(a))
+
+
+def noise_spread(log: Log, prob: Problem) -> float:
+    """The relative standard deviation of the cost white Gaussian noise gives ``prob``
+    (``noise_cost``): each residual's 0.5 e^2 has variance 0.5 (sigma w)^4, so the spread
+    is sqrt(2 / L) sqrt(sum a^2) / sum a over the columns' a = (sigma w)^2, L samples each;
+    sqrt(2 / n_out) when every column is alike."""
+    L, a = _noise_terms(log, prob)
+    return math.sqrt(2.0 / L) * math.sqrt(float(np.sum(a ** 2))) / float(np.sum(a))
