@@ -16,8 +16,9 @@ Writes ``DIR/results.json`` (the truth, the start, per log: wall time, exit code
 per-parameter values, relative errors and standard errors, machine load and BLAS threads) and
 ``DIR/ident_independent.png`` (relative error per parameter and log).
 
-Usage: ``python studies/ident_independent.py --out DIR [--small] [--cold]``; ``--small`` runs
-the 20 s log only, ``--cold`` gives each command an empty compilation cache.
+Three logs: 20 s and 60 s with the true angles quantised, and 20 s with a count of white noise
+added before the quantisation. Usage: ``python studies/ident_independent.py --out DIR [--small]
+[--cold]``; ``--small`` runs the 20 s logs only, ``--cold`` gives each command an empty compilation cache.
 """
 
 from __future__ import annotations
@@ -80,16 +81,22 @@ def quantise(q: float) -> float:
     return float(np.floor(q / step + 0.5) * step)
 
 
-def simulate(duration: float) -> dict[str, np.ndarray]:
+def simulate(duration: float, noise_counts: float = 0.0, seed: int = 0,
+             ) -> dict[str, np.ndarray]:
     """The closed loop for ``duration`` seconds: PD on the rotor encoder, the velocity by a
-    backward difference of its readings, torque held over each sample."""
+    backward difference of its readings, torque held over each sample. ``noise_counts``:
+    white Gaussian noise of this many encoder counts (std) added to each angle before it is
+    quantised (``seed`` its generator); 0: the readings are the true angles quantised."""
+    rng = np.random.default_rng(seed)
+    noise = noise_counts * 2 * np.pi / COUNTS
     n = int(round(duration / DT))
     x = np.zeros(5)
     t = np.arange(n) * DT
     log = {"t": t, "tau": np.zeros(n), "q1": np.zeros(n), "q2": np.zeros(n)}
     prev = 0.0
     for k in range(n):
-        q1m, q2m = quantise(x[0]), quantise(x[2])
+        n1, n2 = rng.normal(0.0, noise, 2) if noise else (0.0, 0.0)
+        q1m, q2m = quantise(x[0] + n1), quantise(x[2] + n2)
         dq2m = (q2m - prev) / DT if k else 0.0
         prev = q2m
         qd, dqd = reference(t[k])
@@ -146,6 +153,8 @@ def judge(result_path: Path) -> dict[str, Any]:
         out[k] = {"value": value, "rel_error_pct": 100 * (value - true) / true,
                   "stderr": se, "in_stderr": None if not se else (value - true) / se}
     out["max_abs_rel_error_pct"] = max(abs(out[k]["rel_error_pct"]) for k in TRUTH)
+    out["max_abs_in_stderr"] = max((abs(out[k]["in_stderr"]) for k in TRUTH
+                                    if out[k]["in_stderr"] is not None), default=float("nan"))
     return out
 
 
@@ -182,7 +191,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = ap.parse_args(argv)
     if not args.out.is_dir():
         raise SystemExit(f"ident_independent: output folder {args.out} does not exist")
-    durations = (20.0,) if args.small else (20.0, 60.0)
+    #: (name, duration [s], encoder noise [counts]): the readings quantised, and quantised
+    #: after a count of white noise (dithered: the quantisation error no longer follows the
+    #: motion, the noise is larger)
+    runs = [("20s", 20.0, 0.0), ("20s_noisy", 20.0, 1.0)] + (
+        [] if args.small else [("60s", 60.0, 0.0)])
     start = start_file(args.out / "start.json")
     results: dict[str, Any] = {
         "truth": {"plant": PLANT, "friction": TRUTH}, "start": start,
@@ -192,12 +205,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                       "reference": REFERENCE},
         "blas": BLAS, "cold_cache": args.cold, "logs": {},
     }
-    for duration in durations:
-        name = f"{int(duration)}s"
+    for name, duration, noise_counts in runs:
         log_path = args.out / f"log_{name}.csv"
         if not log_path.exists():
             t0 = time.perf_counter()
-            write_log(simulate(duration), log_path)
+            write_log(simulate(duration, noise_counts), log_path)
             print(f"{name}: simulated in {time.perf_counter() - t0:.1f} s", flush=True)
         entry: dict[str, Any] = {"machine_before": benchkit.machine_state()}
         with tempfile.TemporaryDirectory() as cache:
@@ -207,10 +219,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         entry["machine_after"] = benchkit.machine_state()
         if (args.out / f"identified_{name}.json").exists():
             entry["judged"] = judge(args.out / f"identified_{name}.json")
+        entry["noise_counts"] = noise_counts
         results["logs"][name] = entry
         j = entry.get("judged", {})
         print(f"{name}: {entry['run']['wall_s']:.1f} s wall, exit {entry['run']['exit']}, "
-              f"max |rel error| {j.get('max_abs_rel_error_pct', float('nan')):.2f}%", flush=True)
+              f"max |rel error| {j.get('max_abs_rel_error_pct', float('nan')):.2f}%, "
+              f"max |error| {j.get('max_abs_in_stderr', float('nan')):.2f} stderr", flush=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
     figure(results, args.out / "ident_independent.png")
     return results
