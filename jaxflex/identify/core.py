@@ -249,7 +249,7 @@ def identify(
         warm-start schedule until one ends within the noise's own band (``NOISE_BAND_Z``):
         a start that settles only within ``accept_cost`` times the noise may sit in a
         minimum of its own and does not stop the others. Then, until one settles, the other
-        schedules, the lowest start's first, and the vs restarts from the lowest start. The lowest end point and the run that reached it
+        schedules, the lowest start's first, and the vs restarts from the first start. The lowest end point and the run that reached it
         (origin, start point, warm-start schedule)."""
         best, best_run = None, None
         ends = []
@@ -274,8 +274,9 @@ def identify(
         if not is_settled(best, good) and "vs" in prob.space.names and vs_restarts:
             # The Stribeck velocity decides where in the velocity range the friction hump
             # lies; a fit whose vs starts on the wrong side of it lets Fs and sigma1 absorb
-            # the hump and vs stops moving: the lowest start again, vs on either side.
-            origin, (th0, x0), _ = min(ends, key=lambda e: e[0])[1]
+            # the hump and vs stops moving: the first start again (the static map's, which
+            # placed vs from the log's own friction map, when there is one), vs on either side.
+            origin, (th0, x0) = starts[0]
             phys = prob.space.physical_values(th0)
             for f in vs_restarts:
                 run = (f"{origin}, vs x{f:g}",
