@@ -266,3 +266,24 @@ def test_certify_is_float64_without_the_global_setting():
     assert float(lam) == pytest.approx(float(certify(paper_plant(), paper_gains(), 5.0)
                                              .to_dict()["min_lambda_min"]), rel=1e-6)
     assert float(lam) > 0.5
+
+
+def test_lambda_min_of_a_graded_n2_holds_its_digits():
+    """On the shipped KR300 arm just above eps, p55 = sigma0 Psi# / Ke is about 1e21 while
+    lambda_min is about 1e5: an eigensolver on the block is wrong by up to its own size (it
+    showed a failing band of speeds that does not exist). ``lambda_min`` agrees with a
+    60-digit eigensolution to 1e-9, and the arm's gain rule is certified on a fine grid."""
+    import mpmath
+
+    from jaxflex.data.kr300 import kuka_kr300_params
+    from jaxflex.io.params import Params
+
+    p = Params.from_dict(kuka_kr300_params())
+    plant, gains = p.to_plant(), p.to_gains()
+    mpmath.mp.dps = 60
+    for v in (1.05e-3, 1.2e-3, 1.4e-3):
+        N = np.asarray(n2_matrix(plant, gains, v))
+        exact = min(min(float(e) for e in mpmath.eigsy(mpmath.matrix(
+            N[j::3, j::3].tolist()))[0]) for j in range(3))
+        assert float(lambda_min(plant, gains, v)) == pytest.approx(exact, rel=1e-9)
+    assert certify(plant, gains, vmax=0.05, num=2001).certified

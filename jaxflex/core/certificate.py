@@ -138,15 +138,33 @@ def smallest_eigenvalue(N2: Float[Array, "5n 5n"]) -> Float[Array, ""]:
     """lambda_min of an N2 (``n2_of``) from its joints' 5 x 5 blocks.
 
     N2 is the direct sum of one block per joint, on rho_i = [e1_i, e1'_i, e2_i, e2'_i,
-    eta_i], up to a permutation of rho; its eigenvalues are the blocks'. A symmetric
-    eigensolver is accurate to eps ||A||, and N2's entries span many decades (p55 =
-    sigma0 Psi# / Ke reaches 1e17 on a KR300 axis): solved as one matrix, a joint's
-    eigenvalue takes the largest joint's error (sign flips near lambda_min ~ 1e5 there),
-    solved per block only its own.
+    eta_i], up to a permutation of rho; its eigenvalues are the blocks'. A block's entries
+    span many decades (p55 = sigma0 Psi# / Ke reaches 1e21 on a KR300 axis just above eps,
+    where lambda_min is about 1e5), and a symmetric eigensolver's error is eps ||B||: solved
+    directly, lambda_min comes out wrong by up to its own size, either sign. A positive
+    definite block (its form scaled to a unit diagonal has positive eigenvalues) is solved
+    as 1 / lambda_max(B^-1), B^-1 formed from that scaled form's eigensystem (well
+    conditioned, so accurate): the largest eigenvalue carries a relative error of eps only.
+    A block that is not positive definite gives its eigensolver's lambda_min, at most 0.
+    The derivative (the tuner's constraint) is the eigensolver's.
     """
     n = N2.shape[0] // 5
     idx = jnp.arange(5)[None, :] * n + jnp.arange(n)[:, None]  # (n, 5): joint i's entries
-    return jnp.min(jnp.linalg.eigvalsh(N2[idx[:, :, None], idx[:, None, :]])[:, 0])
+    blocks = N2[idx[:, :, None], idx[:, None, :]]
+    direct = jnp.linalg.eigvalsh(blocks)[:, 0]
+    b = jax.lax.stop_gradient(blocks)
+    d = jnp.diagonal(b, axis1=-2, axis2=-1)
+    pos = jnp.all(d > 0, axis=-1)
+    scale = 1.0 / jnp.sqrt(jnp.where(pos[:, None], d, 1.0))
+    w, u = jnp.linalg.eigh(b * scale[:, :, None] * scale[:, None, :])  # unit diagonal
+    pd = pos & (w[:, 0] > 0)
+    # B^-1 = S U diag(1/w) U' S, S the scaling: its largest eigenvalue to relative eps
+    inv = jnp.einsum("ni,nij,nj,nkj,nk->nik", scale, u, 1.0 / jnp.where(pd[:, None], w, 1.0),
+                     u, scale)
+    top = jnp.linalg.eigvalsh(0.5 * (inv + jnp.swapaxes(inv, -1, -2)))[:, -1]
+    accurate = jnp.where(pd, 1.0 / top, jnp.minimum(jax.lax.stop_gradient(direct), 0.0))
+    # the value to working precision, its derivative the eigensolver's (the same eigenvector)
+    return jnp.min(direct + jax.lax.stop_gradient(accurate - direct))
 
 
 @requires_float64
