@@ -47,6 +47,7 @@ def test_certify_gains_takes_the_gains_of_a_parameter_set():
         assert jaxflex.certify_gains(p, vmax=1.0, num=5).velocities.shape == (5,)
 
 
+@pytest.mark.slow
 def test_sweep_tune_and_validate_results_draw_and_save(tmp_path):
     jax.config.update("jax_enable_x64", True)
     from matplotlib.figure import Figure

@@ -68,7 +68,8 @@ def test_compiles_cleanly_as_c99(exported, tmp_path):
 
 
 @needs_cc
-@pytest.mark.parametrize("experiment", ["sinusoid", "polynomial", "fast"])
+@pytest.mark.parametrize("experiment", ["sinusoid", pytest.param("polynomial", marks=pytest.mark.slow),
+                                        "fast"])
 def test_c_parity_with_jax_and_python(exported, experiment, tmp_path):
     """The C controller in reproduce's full 10 s closed loop of each of the paper's
     experiments under the paper's sensing, with the Kalman filter and the leak: equal to the

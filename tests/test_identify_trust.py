@@ -258,6 +258,7 @@ def test_rig_logs_at_other_rates_with_an_offset_the_start_lacks(tmp_path, rate, 
         assert abs(got[k][0] / truth[k][0] - 1) < 0.02, (k, got[k], truth[k])
 
 
+@pytest.mark.slow
 def test_a_flipped_torque_sign_gets_a_hint_and_no_crash_from_the_command_line(tmp_path):
     """With a start file, a log whose torque sign is flipped: the hint names the sign before
     the fit, and a fit that then fails numerically is a result that did not converge (exit

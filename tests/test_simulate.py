@@ -101,6 +101,7 @@ def test_rolled_rk4_stages_replay_the_same_motion(substeps):
     assert size[True] < 0.6 * size[False], size
 
 
+@pytest.mark.slow
 def test_sampled_loop_converges_to_continuous_loop_as_period_shrinks():
     p = paper_plant()
     T = 0.3
