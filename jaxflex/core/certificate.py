@@ -161,8 +161,8 @@ def smallest_eigenvalue(N2: Float[Array, "5n 5n"]) -> Float[Array, ""]:
     # B^-1 = S U diag(1/w) U' S, S the scaling: its largest eigenvalue to relative eps
     inv = jnp.einsum("ni,nij,nj,nkj,nk->nik", scale, u, 1.0 / jnp.where(pd[:, None], w, 1.0),
                      u, scale)
-    top = jnp.linalg.eigvalsh(0.5 * (inv + jnp.swapaxes(inv, -1, -2)))[:, -1]
-    accurate = jnp.where(pd, 1.0 / top, jnp.minimum(jax.lax.stop_gradient(direct), 0.0))
+    top = jnp.linalg.eigvalsh(inv)[:, -1]
+    accurate = jnp.where(pd, 1.0 / top, jnp.minimum(direct, 0.0))
     # the value to working precision, its derivative the eigensolver's (the same eigenvector)
     return jnp.min(direct + jax.lax.stop_gradient(accurate - direct))
 

@@ -47,8 +47,7 @@ from jaxflex.identify.problem import (
     choose_segment_length,
     default_free,
     make_problem,
-    noise_cost,
-    noise_spread,
+    noise_statistics,
     segments_of,
     start_hints,
     with_named_effects,
@@ -82,7 +81,7 @@ from jaxflex.sim.step import ModelKind, replay
 GEODESIC: float = 0.3
 DECREMENT_TOL: float = 1e-2
 #: A start's solve that ends within this many standard deviations of the noise's own cost
-#: (``noise_spread``) ends the search: no other minimum can lie lower by what the data tell.
+#: (``noise_statistics``) ends the search: no other minimum can lie lower by what the data tell.
 NOISE_BAND_Z: float = 4.0
 
 @requires_float64
@@ -201,7 +200,7 @@ def identify(
     # noise's, or more for a model-limited fit: cost / noise cost), is below 0.1 of the
     # standard errors that residual gives; on a real rig's log the noise's own units would
     # run every solve to its step cap
-    noise = noise_cost(log, prob)
+    noise, spread = noise_statistics(log, prob)
     stop = (None if decrement_tol is None
             else CostBound(decrement_tol / noise, 0.0, (0.0, decrement_tol)))
     # the solver options every solve of this fit shares (they key its compiled program)
@@ -217,7 +216,7 @@ def identify(
     if prob.segs.count == 1:  # one segment: nothing to loosen
         schedules = [None]
     good = accept_cost * noise
-    band = noise * (1.0 + NOISE_BAND_Z * noise_spread(log, prob))
+    band = noise * (1.0 + NOISE_BAND_Z * spread)
     search = Search(good, dict(options, progress=progress), progress or silent)
     t0 = time.perf_counter()
     best, best_factor = None, None
@@ -249,8 +248,9 @@ def identify(
         warm-start schedule until one ends within the noise's own band (``NOISE_BAND_Z``):
         a start that settles only within ``accept_cost`` times the noise may sit in a
         minimum of its own and does not stop the others. Then, until one settles, the other
-        schedules, the lowest start's first, and the vs restarts from the first start. The lowest end point and the run that reached it
-        (origin, start point, warm-start schedule)."""
+        schedules, the lowest start's first, and the vs restarts from the first start.
+        Returns the lowest end point and the run that reached it (origin, start point,
+        warm-start schedule)."""
         best, best_run = None, None
         ends = []
         for origin, y_start in sorted(starts, key=lambda s: cost(prob, s[1])):

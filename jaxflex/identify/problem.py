@@ -250,32 +250,28 @@ def segments_of(log: Log, length: int | None) -> dict[str, Any]:
     return {"samples": L, "seconds": L * log.dt, "segments": log.N // L}
 
 
-def _noise_terms(log: Log, prob: Problem) -> tuple[int, np.ndarray]:
-    """Samples per output column of ``prob`` and each column's noise variance in the
-    problem's weighted units, (sigma w)^2 (``noise_cost``)."""
+def noise_statistics(log: Log, prob: Problem) -> tuple[float, float]:
+    """The cost 0.5 ||r||^2 that white Gaussian measurement noise alone gives ``prob`` (a
+    ``make_problem`` problem of ``log``), in its weighted units, and that cost's relative
+    standard deviation.
+
+    The cost is 0.5 sum over the output columns (channel, joint) of L samples x a, a =
+    (sigma w)^2, sigma the column's own noise (``noise_level``, at least 1e-6 rad, the floor
+    of ``make_problem``'s scale) and w its weight: about n_out / 2 when every channel is as
+    noisy as the one that set the scale; less for a finer second encoder (a 20-bit link
+    encoder with the motor's far finer one: about n_out / 4). Each residual's 0.5 e^2 has
+    variance 0.5 a^2, so the spread is sqrt(2 / L) sqrt(sum a^2) / sum a (sqrt(2 / n_out)
+    when every column is alike)."""
     L = int(prob.segs.y_meas.shape[0] * prob.segs.y_meas.shape[1])
     w = np.asarray(prob.w_y, float).reshape(-1)
     sig = [max(noise_level(np.asarray(getattr(log, c), float).reshape(log.N, log.n)[:, j])
                ["total_std"], 1e-6) for c in prob.outputs for j in range(log.n)]
-    w = np.broadcast_to(w, (len(sig),))
-    return L, (np.asarray(sig) * w) ** 2
+    a = (np.asarray(sig) * np.broadcast_to(w, (len(sig),))) ** 2
+    total = float(np.sum(a))
+    return 0.5 * L * total, math.sqrt(2.0 / L) * math.sqrt(float(np.sum(a ** 2))) / total
 
 
 def noise_cost(log: Log, prob: Problem) -> float:
-    """The cost 0.5 ||r||^2 that measurement noise alone gives ``prob`` (a ``make_problem``
-    problem of ``log``), in its weighted units: 0.5 sum over the output columns (channel,
-    joint) of samples x (sigma w)^2, sigma the column's own noise (``noise_level``, at least
-    1e-6 rad, the floor of ``make_problem``'s scale) and w its weight. About n_out / 2 when
-    every channel is as noisy as the one that set the scale; less for a finer second encoder
-    (a 20-bit link encoder with the motor's far finer one: about n_out / 4)."""
-    L, a = _noise_terms(log, prob)
-    return 0.5 * L * float(np.sum(a))
-
-
-def noise_spread(log: Log, prob: Problem) -> float:
-    """The relative standard deviation of the cost white Gaussian noise gives ``prob``
-    (``noise_cost``): each residual's 0.5 e^2 has variance 0.5 (sigma w)^4, so the spread
-    is sqrt(2 / L) sqrt(sum a^2) / sum a over the columns' a = (sigma w)^2, L samples each;
-    sqrt(2 / n_out) when every column is alike."""
-    L, a = _noise_terms(log, prob)
-    return math.sqrt(2.0 / L) * math.sqrt(float(np.sum(a ** 2))) / float(np.sum(a))
+    """The cost 0.5 ||r||^2 that measurement noise alone gives ``prob`` (``noise_statistics``,
+    its first part)."""
+    return noise_statistics(log, prob)[0]
