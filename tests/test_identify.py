@@ -706,10 +706,12 @@ def _emps_start():
 
 def test_automatic_segment_length_is_two_time_constants_on_a_grid():
     """``choose_segment_length``: two mechanical time constants (inertia / sigma2) of the
-    start model on the grid 125 x 2^k samples within 0.1-2 s: EMPS from its study's start
-    (60 kg / 100 N s/m = 0.6 s) 1000 samples, the paper's plant (0.075 kg m^2 / 0.18 N m s:
-    0.41 s) 1000, with sigma2 1.5x (0.28 s) 500; no damping (the rotor subsystem, sigma2 = 0)
-    the longest, 2 s; a log shorter than the length one segment; the file records it."""
+    start model on the grid 125 x 2^k samples within 0.1-2 s, and at most the log's mean
+    interval between velocity reversals: EMPS from its study's start (60 kg / 100 N s/m =
+    0.6 s; a reversal every 3.5 s) 1000 samples, with sigma2 2x (0.3 s) 500; no damping (the
+    rotor subsystem, sigma2 = 0) the longest, 2 s; the paper's plant under its excitation
+    (0.41 s, but a reversal every 0.21 s) 250; a log shorter than the length one segment;
+    the file records it."""
     from jaxflex.fit import set_values
     from jaxflex.identify import choose_segment_length
 
@@ -717,14 +719,38 @@ def test_automatic_segment_length_is_two_time_constants_on_a_grid():
     L, rec = choose_segment_length(log, start, "rigid")
     assert (L, rec["mode"], rec["segments"]) == (1000, "auto", log.N // 1000)
     assert rec["time_constants_s"] == pytest.approx([0.6])
+    assert rec["reversal_interval_s"] == pytest.approx(3.55, abs=0.05)
+    s2 = 2.0 * start.friction["sigma2"][0]
+    assert choose_segment_length(log, set_values(start, {"sigma2": [s2]}), "rigid")[0] == 500
+    assert choose_segment_length(log, start, "rotor")[0] == 2000
+    assert choose_segment_length(log, set_values(start, {"sigma2": [0.0]}), "rigid")[0] == 2000
     p = paper_params()
     plog, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=3.0), substeps=1)
-    assert choose_segment_length(plog, p, "flexible")[0] == 1000
-    s2 = 1.5 * p.friction["sigma2"][0]
-    assert choose_segment_length(plog, set_values(p, {"sigma2": [s2]}), "flexible")[0] == 500
-    assert choose_segment_length(plog, p, "rotor")[0] == 2000
-    assert choose_segment_length(plog, set_values(p, {"sigma2": [0.0]}), "flexible")[0] == 2000
-    assert choose_segment_length(plog.slice(0, 800), p, "flexible")[0] is None
+    L, rec = choose_segment_length(plog, p, "flexible")
+    assert L == 250 and rec["reversal_interval_s"] == pytest.approx(0.214, abs=0.01)
+    assert choose_segment_length(plog.slice(0, 200), p, "flexible")[0] is None
+
+
+def test_reversal_interval_counts_the_motion_not_the_encoder():
+    """``reversal_interval``: a sine of f Hz reverses every 1 / (2 f) s; an encoder's
+    quantisation and noise at rest count no reversal (inf); the smallest over the joints."""
+    from jaxflex.identify.problem import reversal_interval
+
+    dt, t = 1e-3, np.arange(20000) * 1e-3
+    step = 2 * np.pi / 2**16
+    sine = np.round(0.2 * np.sin(2 * np.pi * 1.5 * t) / step) * step
+    rest = np.round((1e-3 + 0.3 * step * np.random.default_rng(0).standard_normal(t.size))
+                    / step) * step
+    assert reversal_interval(sine[:, None], dt) == pytest.approx(1 / 3, rel=0.02)
+    assert reversal_interval(rest[:, None], dt) == math.inf
+    assert reversal_interval(np.stack([rest, sine], axis=1), dt) == pytest.approx(1 / 3, rel=0.02)
+
+
+def test_a_segment_length_that_is_no_number_is_refused():
+    """``identify(segment_length=...)`` takes samples, None or "auto"; another word is refused
+    naming the option."""
+    p = paper_params()
+    plog, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=3.0), substeps=1)
     with pytest.raises(ValueError, match="segment_length"):
         identify(plog, p, ["Fc"], segment_length="long")
 

@@ -21,6 +21,7 @@ from jaxflex.fit import (
     noise_level,
     output_columns,
 )
+from jaxflex.fit.signal import savgol, savgol_coeffs
 from jaxflex.identify.start import DataStart
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
@@ -37,8 +38,13 @@ FRICTION_CAP_FACTOR: float = 10.0
 #: Automatic segment length (``choose_segment_length``, ``identify(segment_length="auto")``):
 #: SEGMENT_TIME_CONSTANTS mechanical time constants of the start model (inertia over viscous
 #: friction of what the replay simulates), within [SEGMENT_MIN_S, SEGMENT_MAX_S] seconds, on
-#: a grid of SEGMENT_GRID x 2^k samples (so that logs and starts share compiled programs).
+#: a grid of SEGMENT_GRID x 2^k samples (so that logs and starts share compiled programs), and
+#: at most SEGMENT_REVERSALS x the log's mean interval between velocity reversals
+#: (``reversal_interval``; a reversal counts once the velocity crosses the largest value its
+#: noise reaches, plus REVERSAL_MARGIN of its standard deviation, on the other side of zero).
 SEGMENT_TIME_CONSTANTS: float = 2.0
+SEGMENT_REVERSALS: float = 1.0
+REVERSAL_MARGIN: float = 1.0
 SEGMENT_MIN_S: float = 0.1
 SEGMENT_MAX_S: float = 2.0
 SEGMENT_GRID: int = 125
@@ -214,8 +220,14 @@ def choose_segment_length(log: Log, init: Params, model: ModelKind = "flexible",
     it gives 500 samples at 1 kHz, on EMPS from the study's start (60 kg, 100 N s/m) 1000;
     there the fit (2 substeps) with 250 / 500 / 1000 / 2000 samples gave closed-loop force
     errors of 4.6-6.0% (DATA_EMPS), and on generated logs the answer does not depend on the
-    length (the continuity defects join the segments). Returns (length, record) with the record for
-    the result file: mode, samples, seconds, the time constants and the rule."""
+    length (the continuity defects join the segments). A segment also spans at most
+    SEGMENT_REVERSALS of the log's mean intervals between velocity reversals
+    (``reversal_interval``, of the simulated coordinate: q2 for the rotor subsystem, else q1;
+    the smallest over the joints): each reversal is a stick-slip transition whose timing
+    hangs on every friction parameter, and a replay that chains several of them makes a cost
+    with minima of its own between the starts and the answer. Returns (length, record) with
+    the record for the result file: mode, samples, seconds, the time constants, the reversal
+    interval and the rule."""
     if model not in MODEL_KINDS:
         raise ValueError(f"identify: model must be one of {MODEL_KINDS}, got {model!r}")
     if log.q1 is None or log.N < 2:
@@ -229,18 +241,48 @@ def choose_segment_length(log: Log, init: Params, model: ModelKind = "flexible",
               and model != "rotor" else np.zeros_like(inertia))
     with np.errstate(divide="ignore"):
         tau = np.where(sigma2 > 0, inertia / np.maximum(sigma2, 1e-300), np.inf)
-    span = float(np.clip(SEGMENT_TIME_CONSTANTS * np.min(tau), SEGMENT_MIN_S, SEGMENT_MAX_S))
+    column = log.q2 if (model == "rotor" and log.q2 is not None) else log.q1
+    between = reversal_interval(np.asarray(column, float).reshape(log.N, -1), log.dt)
+    span = float(np.clip(min(SEGMENT_TIME_CONSTANTS * np.min(tau), SEGMENT_REVERSALS * between),
+                         SEGMENT_MIN_S, SEGMENT_MAX_S))
     k_lo, k_hi = (math.ceil(math.log2(SEGMENT_MIN_S / log.dt / SEGMENT_GRID)),
                   math.floor(math.log2(SEGMENT_MAX_S / log.dt / SEGMENT_GRID)))
     k = round(math.log2(span / log.dt / SEGMENT_GRID))
     k = min(max(k, k_lo), k_hi) if k_lo <= k_hi else k
     L = max(int(SEGMENT_GRID * 2.0 ** k), 2)
     record = {"mode": "auto", "time_constants_s": [float(t) for t in tau],
+              "reversal_interval_s": between,
               "rule": f"{SEGMENT_TIME_CONSTANTS:g} x the smallest time constant (inertia / "
-                      f"sigma2 of the start model), within [{SEGMENT_MIN_S:g}, "
+                      f"sigma2 of the start model), at most {SEGMENT_REVERSALS:g} x the mean "
+                      f"interval between velocity reversals, within [{SEGMENT_MIN_S:g}, "
                       f"{SEGMENT_MAX_S:g}] s, on the grid {SEGMENT_GRID} x 2^k samples"}
     length = None if L >= log.N else L
     return length, {**record, **segments_of(log, length)}
+
+
+def reversal_interval(q: np.ndarray, dt: float) -> float:
+    """Mean interval [s] between velocity reversals of the angles ``q`` (N, n) [rad] sampled
+    every ``dt`` [s], the smallest over the joints (inf where a joint never reverses). The
+    velocity is ``savgol``'s derivative; a reversal counts once the velocity crosses, on the
+    other side of zero, the largest value its own noise reaches in the log (the angle's noise,
+    ``noise_level``, through the derivative's weights, times the extreme of as many independent
+    draws as the log has windows, plus ``REVERSAL_MARGIN``), so the encoder's noise and
+    quantisation at rest count none."""
+    n = q.shape[0]
+    window = min(31, n - (1 - n % 2))
+    v = savgol(q, dt, deriv=1, window=window)
+    gain = float(np.linalg.norm(savgol_coeffs(window, 3, 1, dt)))
+    # the largest of n / window independent normal draws is about sqrt(2 ln(n / window))
+    z = math.sqrt(2.0 * math.log(max(n / window, 2.0))) + REVERSAL_MARGIN
+    out = math.inf
+    for j in range(v.shape[1]):
+        level = z * gain * noise_level(q[:, j])["total_std"]
+        side = np.sign(v[:, j]) * (np.abs(v[:, j]) > level)
+        side = side[side != 0]
+        count = int(np.sum(side[1:] != side[:-1]))
+        if count:
+            out = min(out, v.shape[0] * dt / count)
+    return out
 
 
 def segments_of(log: Log, length: int | None) -> dict[str, Any]:
