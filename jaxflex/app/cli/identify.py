@@ -108,7 +108,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="multiple-shooting segment length in samples (250) or seconds (0.2s); "
                         "0: the whole log; or 'auto' "
                         "(default): two mechanical time constants of the start model "
-                        "(inertia / sigma2) on a grid of 125 x 2^k samples within 0.1-2 s")
+                        "(inertia / sigma2), at most the log's mean interval between "
+                        "velocity reversals, on a grid of 125 x 2^k samples within 0.1-2 s")
     p.add_argument("--substeps", type=_substeps, default="auto",
                    help="integrator substeps per sample, or 'auto' (default): the fewest whose "
                         "replay error is at most half the log's noise, refined until the "
