@@ -217,7 +217,8 @@ def choose_segment_length(log: Log, init: Params, model: ModelKind = "flexible",
     parameters comes in. The length is clipped to [SEGMENT_MIN_S, SEGMENT_MAX_S] (sigma2 = 0:
     the longest), put on the grid SEGMENT_GRID x 2^k samples (nearest in ratio) and at most
     the log (None: one segment, single shooting). On the paper's plant 50% off (tau 0.28 s)
-    it gives 500 samples at 1 kHz, on EMPS from the study's start (60 kg, 100 N s/m) 1000;
+    the time constants give 500 samples at 1 kHz, on EMPS from the study's start (60 kg,
+    100 N s/m) 1000;
     there the fit (2 substeps) with 250 / 500 / 1000 / 2000 samples gave closed-loop force
     errors of 4.6-6.0% (DATA_EMPS), and on generated logs the answer does not depend on the
     length (the continuity defects join the segments). A segment also spans at most
