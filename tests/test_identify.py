@@ -746,13 +746,21 @@ def test_reversal_interval_counts_the_motion_not_the_encoder():
     assert reversal_interval(np.stack([rest, sine], axis=1), dt) == pytest.approx(1 / 3, rel=0.02)
 
 
-def test_a_segment_length_that_is_no_number_is_refused():
-    """``identify(segment_length=...)`` takes samples, None or "auto"; another word is refused
-    naming the option."""
+def test_a_segment_length_that_is_no_number_is_refused(monkeypatch):
+    """``identify(segment_length=...)`` takes samples (at least 2), None or "auto"; another
+    word, a count below 2 or a fraction is refused naming the option, before the log's own
+    start is computed."""
+    import jaxflex.identify.core as core
+
+    def never(*_a, **_k):
+        raise AssertionError("the start from the data was computed before the check")
+
+    monkeypatch.setattr(core, "start_from_data", never)
     p = paper_params()
     plog, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=3.0), substeps=1)
-    with pytest.raises(ValueError, match="segment_length"):
-        identify(plog, p, ["Fc"], segment_length="long")
+    for bad in ("long", 0, 1, -5, 12.5, True):
+        with pytest.raises(ValueError, match="segment_length"):
+            identify(plog, p, ["Fc"], segment_length=bad)
 
 
 @pytest.mark.slow

@@ -31,6 +31,12 @@ def savgol_coeffs(window: int, order: int, deriv: int = 0, delta: float = 1.0) -
     return np.linalg.lstsq(vander, unit, rcond=None)[0]
 
 
+def savgol_window(window: int, n: int) -> int:
+    """The window [samples] ``savgol`` uses on ``n`` samples: ``window``, at most the log's
+    length and made odd (a shorter log takes its longest odd stretch)."""
+    return min(window, n - (1 - n % 2))
+
+
 def savgol(x: np.ndarray, dt: float, deriv: int = 0, window: int = 31, order: int = 3) -> np.ndarray:
     """Savitzky-Golay smoothing (``deriv`` = 0) or derivative of order ``deriv`` of samples
     ``x`` (along axis 0) with period ``dt`` [s]: the one numerical differentiation of logs.
@@ -40,7 +46,7 @@ def savgol(x: np.ndarray, dt: float, deriv: int = 0, window: int = 31, order: in
     test holds it; ``savgol_coeffs`` says why it is not imported)."""
     x = np.asarray(x, float)
     N = x.shape[0]
-    window = min(window, N - (1 - N % 2))
+    window = savgol_window(window, N)
     flat = x.reshape(N, -1)
     out = np.empty_like(flat)
     half = window // 2

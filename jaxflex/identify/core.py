@@ -157,6 +157,11 @@ def identify(
                          f"got {substeps!r}")
     if model not in MODEL_CHOICES:
         raise ValueError(f"identify: model must be one of {MODEL_CHOICES}, got {model!r}")
+    if not (segment_length is None or segment_length == "auto" or (
+            isinstance(segment_length, (int, np.integer))
+            and not isinstance(segment_length, bool) and segment_length >= 2)):
+        raise ValueError(f"identify: segment_length must be a number of samples (at least 2), "
+                         f"None or 'auto', got {segment_length!r}")
     model, why_kind = check_model(log, model)
     data, data_note = None, ""
     if init is None or data_start:
@@ -183,10 +188,7 @@ def identify(
     init = with_named_effects(init, free, None if data is None else data.params)
     # a coupled arm's fields beyond its base parameters: fixed before the fit, marked
     free, structural = structural_free(init, free)
-    if isinstance(segment_length, str):
-        if segment_length != "auto":
-            raise ValueError(f"identify: segment_length must be a number of samples, None or "
-                             f"'auto', got {segment_length!r}")
+    if segment_length == "auto":
         segment_length, segments = choose_segment_length(log, init, model)
     else:
         segments = {"mode": "given", **segments_of(log, segment_length)}

@@ -21,7 +21,7 @@ from jaxflex.fit import (
     noise_level,
     output_columns,
 )
-from jaxflex.fit.signal import savgol, savgol_coeffs
+from jaxflex.fit.signal import savgol, savgol_coeffs, savgol_window
 from jaxflex.identify.start import DataStart
 from jaxflex.io.logs import Log
 from jaxflex.io.params import Params
@@ -216,12 +216,9 @@ def choose_segment_length(log: Log, init: Params, model: ModelKind = "flexible",
     linearly (drift), which on a real rig is unmodelled force, and no new information on the
     parameters comes in. The length is clipped to [SEGMENT_MIN_S, SEGMENT_MAX_S] (sigma2 = 0:
     the longest), put on the grid SEGMENT_GRID x 2^k samples (nearest in ratio) and at most
-    the log (None: one segment, single shooting). On the paper's plant 50% off (tau 0.28 s)
-    the time constants give 500 samples at 1 kHz, on EMPS from the study's start (60 kg,
-    100 N s/m) 1000;
-    there the fit (2 substeps) with 250 / 500 / 1000 / 2000 samples gave closed-loop force
-    errors of 4.6-6.0% (DATA_EMPS), and on generated logs the answer does not depend on the
-    length (the continuity defects join the segments). A segment also spans at most
+    the log (None: one segment, single shooting). Where the time constants decide, the
+    answer depends little on the length: the continuity defects join the segments. A segment
+    also spans at most
     SEGMENT_REVERSALS of the log's mean intervals between velocity reversals
     (``reversal_interval``, of the simulated coordinate: q2 for the rotor subsystem, else q1;
     the smallest over the joints): each reversal is a stick-slip transition whose timing
@@ -270,7 +267,7 @@ def reversal_interval(q: np.ndarray, dt: float) -> float:
     draws as the log has windows, plus ``REVERSAL_MARGIN``), so the encoder's noise and
     quantisation at rest count none."""
     n = q.shape[0]
-    window = min(31, n - (1 - n % 2))
+    window = savgol_window(31, n)
     v = savgol(q, dt, deriv=1, window=window)
     gain = float(np.linalg.norm(savgol_coeffs(window, 3, 1, dt)))
     # the largest of n / window independent normal draws is about sqrt(2 ln(n / window))
