@@ -218,14 +218,13 @@ def choose_segment_length(log: Log, init: Params, model: ModelKind = "flexible",
     the longest), put on the grid SEGMENT_GRID x 2^k samples (nearest in ratio) and at most
     the log (None: one segment, single shooting). Where the time constants decide, the
     answer depends little on the length: the continuity defects join the segments. A segment
-    also spans at most
-    SEGMENT_REVERSALS of the log's mean intervals between velocity reversals
-    (``reversal_interval``, of the simulated coordinate: q2 for the rotor subsystem, else q1;
-    the smallest over the joints): each reversal is a stick-slip transition whose timing
-    hangs on every friction parameter, and a replay that chains several of them makes a cost
-    with minima of its own between the starts and the answer. Returns (length, record) with
-    the record for the result file: mode, samples, seconds, the time constants, the reversal
-    interval and the rule."""
+    also spans at most SEGMENT_REVERSALS of the log's mean intervals between velocity
+    reversals (``reversal_interval``, of the simulated coordinate: q2 for the rotor
+    subsystem, else q1; the smallest over the joints): each reversal is a stick-slip
+    transition whose timing hangs on every friction parameter, and a replay that chains
+    several of them makes a cost with minima of its own between the starts and the answer.
+    Returns (length, record) with the record for the result file: mode, samples, seconds, the
+    time constants, the reversal interval and the rule."""
     if model not in MODEL_KINDS:
         raise ValueError(f"identify: model must be one of {MODEL_KINDS}, got {model!r}")
     if log.q1 is None or log.N < 2:
@@ -267,9 +266,9 @@ def reversal_interval(q: np.ndarray, dt: float) -> float:
     draws as the log has windows, plus ``REVERSAL_MARGIN``), so the encoder's noise and
     quantisation at rest count none."""
     n = q.shape[0]
-    window = savgol_window(31, n)
-    v = savgol(q, dt, deriv=1, window=window)
-    gain = float(np.linalg.norm(savgol_coeffs(window, 3, 1, dt)))
+    window, order = savgol_window(31, n), 3
+    v = savgol(q, dt, deriv=1, window=window, order=order)
+    gain = float(np.linalg.norm(savgol_coeffs(window, order, 1, dt)))  # the same weights
     # the largest of n / window independent normal draws is about sqrt(2 ln(n / window))
     z = math.sqrt(2.0 * math.log(max(n / window, 2.0))) + REVERSAL_MARGIN
     out = math.inf
