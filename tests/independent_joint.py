@@ -1,12 +1,14 @@
 """An independent simulator of a flexible joint with LuGre friction, in plain numpy (fixed-step
 RK4 of its own, not jaxflex's step): logs for the discovery tests made another way than
 ``jaxflex.identify.datagen``, with effects in forms of their own (a ripple's harmonics, a Stribeck
-term on the rotor, a second-order current loop).
+term on the rotor, a second-order current loop, a spring polynomial, LuGre levels that differ
+by direction).
 
 The joint (docs/spec.md section 1, one joint): I q1'' = K (q2 - q1) - F + link(q1, q1'),
 J q2'' = a - K (q2 - q1) + rotor(q2, q2'), LuGre F (eq. 4-7); a PD loop on the rotor angle
 toward a slow large swing plus a multisine, sampled at dt with a zero-order hold, saturated at
-2 N m; the applied torque a is the command u, or u through the second-order lag
+2 N m; optionally a spring torque beyond K (q2 - q1) and LuGre levels that differ by direction;
+the applied torque a is the command u, or u through the second-order lag
 a'' = wn^2 (u - a) - 2 zeta wn a'. The log holds the command u and the angles quantised to a
 2^16-count link encoder (the rotor 50x finer) with half a count of white noise.
 """
@@ -36,7 +38,9 @@ def harmonics(terms: list[tuple[float, float, float]]) -> Callable[[float], floa
 def simulate(t_final: float = 10.0, *, seed: int = 0, dt: float = 1e-3, substeps: int = 10,
              link_ripple: Callable[[float], float] | None = None,
              rotor_friction: Callable[[float], float] | None = None,
-             lag: tuple[float, float] | None = None, swing: float = 1.2) -> Log:
+             lag: tuple[float, float] | None = None, swing: float = 1.2,
+             spring: Callable[[float], float] | None = None,
+             asymmetry: tuple[float, float] = (0.0, 0.0)) -> Log:
     """A closed-loop log of the joint of the module docstring.
 
     **Arguments:**
@@ -47,6 +51,11 @@ def simulate(t_final: float = 10.0, *, seed: int = 0, dt: float = 1e-3, substeps
     - `rotor_friction`: a torque [N m] added to the rotor equation as a function of q2' [rad/s].
     - `lag`: (wn [rad/s], zeta [-]) of a second-order lag from command to applied torque.
     - `swing`: amplitude [rad] of the slow 0.1 Hz swing of the reference.
+    - `spring`: a torque [N m] added to the spring torque K (q2 - q1) as a function of the
+      deflection q2 - q1 [rad].
+    - `asymmetry`: (dFc, dFs) [N m]: LuGre's Coulomb and static levels are Fc + dFc and
+      Fs + dFs while the link moves forward, Fc - dFc and Fs - dFs backward (inside g(v) of
+      eq. 6, not as an added torque).
 
     **Returns:**
 
@@ -61,14 +70,16 @@ def simulate(t_final: float = 10.0, *, seed: int = 0, dt: float = 1e-3, substeps
             np.sum(np.sin(2 * math.pi * freqs * t + phases)))
 
     def g(v: float) -> float:
-        return p["Fc"] + (p["Fs"] - p["Fc"]) * math.exp(-((v / p["vs"]) ** 2))
+        s = 1.0 if v >= 0.0 else -1.0
+        Fc, Fs = p["Fc"] + s * asymmetry[0], p["Fs"] + s * asymmetry[1]
+        return Fc + (Fs - Fc) * math.exp(-((v / p["vs"]) ** 2))
 
     def rhs(x: np.ndarray, u: float) -> np.ndarray:
         q1, v1, q2, v2, z, a, da = x
         applied = u if lag is None else a
         zdot = v1 - p["sigma0"] * abs(v1) * z / g(v1)
         F = p["sigma0"] * z + p["sigma1"] * zdot + p["sigma2"] * v1
-        Ts = p["K"] * (q2 - q1)
+        Ts = p["K"] * (q2 - q1) + (spring(q2 - q1) if spring else 0.0)
         acc1 = (Ts - F + (link_ripple(q1) if link_ripple else 0.0)) / p["I"]
         acc2 = (applied - Ts + (rotor_friction(v2) if rotor_friction else 0.0)) / p["J"]
         if lag is None:

@@ -2,7 +2,8 @@
 docs/spec.md section 8.1), on logs of an independent simulator (``tests/independent_joint.py``:
 numpy RK4, effects in forms of its own): a two-harmonic cogging is answered ``cogging`` order 2
 and closes the gap, a one-harmonic cogging stays at order 1, a rotor friction with a
-Stribeck term is answered ``motor_friction`` order 2."""
+Stribeck term is answered ``motor_friction`` order 2, a spring with cubic and fifth-power
+terms ``hardening_spring`` order 2 and one with the cubic term alone order 1."""
 
 import pytest
 
@@ -80,6 +81,37 @@ def test_a_rotor_friction_with_a_stribeck_term_is_named_motor_friction_order_2()
     p = rep["effect_params"]["motor_friction_2"]
     for k, v in (("Fm", 0.02), ("Fsm", 0.03), ("vsm", 0.1), ("bm", 0.01)):
         assert p[k]["value"] == pytest.approx(v, rel=0.15), k
+
+
+SPRING_CANDS = ("hardening_spring", "backlash", "joint_damping", "torque_offset")
+
+
+@pytest.mark.slow
+def test_a_spring_with_a_fifth_power_is_named_hardening_spring_order_2():
+    """K d + 70 d^3 + 7000 d^5 [N m] (deflections up to 0.13 rad): the cubic term alone
+    leaves part of the gap; the fifth power pays, closes it, and both are recovered."""
+    log = simulate(10.0, spring=lambda d: 70.0 * d**3 + 7000.0 * d**5)
+    rep = discover(log, paper_params(), DiscoverConfig(candidates=SPRING_CANDS,
+                                                       max_effects=2)).to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("hardening_spring", 2,
+                                                            ["hardening_spring_2"])
+    assert rep["explained_fraction"] >= 0.75
+    p = rep["effect_params"]["hardening_spring_2"]
+    assert p["K3"]["value"] == pytest.approx(70.0, rel=0.05)
+    assert p["K5"]["value"] == pytest.approx(7000.0, rel=0.05)
+
+
+@pytest.mark.slow
+def test_a_cubic_spring_stays_hardening_spring_order_1():
+    """K d + 120 d^3: the fifth power does not pay; the answer is order 1 with K3 recovered."""
+    log = simulate(10.0, spring=lambda d: 120.0 * d**3)
+    rep = discover(log, paper_params(), DiscoverConfig(candidates=SPRING_CANDS,
+                                                       max_effects=2)).to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("hardening_spring", 1,
+                                                            ["hardening_spring"])
+    assert not rep["rounds"][0]["orders"][0]["kept"]
+    assert rep["effect_params"]["hardening_spring"]["K3"]["value"] == pytest.approx(120.0,
+                                                                                   rel=0.05)
 
 
 def test_a_higher_order_is_built_only_once_its_order_below_is_in_a_model():

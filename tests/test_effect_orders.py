@@ -15,7 +15,8 @@ from jaxflex.core.effects import EFFECTS, family_orders
 from jaxflex.io.params import Params
 from jaxflex.io.presets import paper_params, paper_plant
 
-FAMILIES = {"cogging": 3, "motor_cogging": 3, "motor_friction": 2, "actuator_lag": 2}
+FAMILIES = {"cogging": 3, "motor_cogging": 3, "motor_friction": 2, "actuator_lag": 2,
+            "hardening_spring": 2}
 
 
 def test_each_family_is_a_chain_of_registered_orders():
@@ -71,6 +72,12 @@ def test_an_order_with_its_new_terms_at_zero_is_the_order_below(q, v):
     m2 = E["motor_friction_2"](Fm=0.0, bm=0.0, Fsm=0.02, vsm=0.1)
     assert _hooks(m2, q, v)[1] == pytest.approx(
         -0.02 * math.exp(-((v / 0.1) ** 2)) * math.tanh(v / 0.01))
+    # the spring's orders, on the deflection q (d' = v)
+    d, dd = jnp.array([q]), jnp.array([v])
+    s1, s2 = E["hardening_spring"](K3=40.0), E["hardening_spring_2"](K3=40.0, K5=0.0)
+    assert float(s2.spring_torque(d, dd)[0]) == pytest.approx(float(s1.spring_torque(d, dd)[0]))
+    s5 = E["hardening_spring_2"](K3=0.0, K5=500.0)
+    assert float(s5.spring_torque(d, dd)[0]) == pytest.approx(500.0 * q**5)
 
 
 def _transfer(e, w):
@@ -107,14 +114,15 @@ def test_second_order_lag_is_a_current_loop_with_the_mean_delay_of_its_start():
     assert float(short.T[0]) == pytest.approx(3e-3) and float(short.zeta[0]) < 1.0
 
 
-def _series(q1, r_link, q2=None, r_rotor=None, v2=None):
+def _series(q1, r_link, q2=None, r_rotor=None, v2=None, d=None):
     t = np.arange(q1.size) * 1e-3
     v1 = np.gradient(q1, t)
     q2 = q1 if q2 is None else q2
     v2 = np.gradient(q2, t) if v2 is None else v2
+    d = np.zeros_like(q1) if d is None else d
     return {"t": t, "q1": q1, "v1": v1, "r_link": r_link, "q2": q2, "v2": v2,
             "r_rotor": np.zeros_like(q1) if r_rotor is None else r_rotor,
-            "d": np.zeros_like(q1), "dd": np.zeros_like(q1)}
+            "d": d, "dd": np.gradient(d, t)}
 
 
 def test_the_next_harmonic_starts_from_the_residual_at_its_frequency():
@@ -154,3 +162,24 @@ def test_the_stribeck_order_starts_from_the_rotor_residual():
     assert float(e.Fsm[0]) == pytest.approx(0.03, rel=0.2)
     assert float(e.bm[0]) == pytest.approx(0.01, rel=0.2)
     assert 0.06 <= float(e.vsm[0]) <= 0.16
+
+
+def test_the_fifth_power_starts_from_the_link_residual_against_the_deflection():
+    """A link residual 70 d^3 + 7000 d^5 [N m] on a deflection of up to 0.1 rad (beside a
+    nominal spring's error in K d, which the fit clears): order 2 reads K3 and K5 off it;
+    a residual that asks for a negative term leaves K3 as fitted and K5 at a tenth of the
+    cubic term at the 95th-percentile deflection."""
+    t = np.arange(8000) * 1e-3
+    q = 1.2 * np.sin(2 * np.pi * 0.125 * t) + 0.05 * np.sin(2 * np.pi * 1.3 * t)
+    rng = np.random.default_rng(3)
+    d = 0.1 * np.sin(2 * np.pi * 0.7 * t + 0.4)
+    r = 70.0 * d**3 + 7000.0 * d**5 + 0.3 * d + 0.002 * rng.standard_normal(q.size)
+    data = _ResidualStart(_series(q, r, d=d), vs=0.05, h=1e-3)
+    e = EFFECTS["hardening_spring_2"].from_lower(EFFECTS["hardening_spring"](K3=150.0), data)
+    assert float(e.K3[0]) == pytest.approx(70.0, rel=0.1)
+    assert float(e.K5[0]) == pytest.approx(7000.0, rel=0.1)
+    soft = _ResidualStart(_series(q, -70.0 * d**3, d=d), vs=0.05, h=1e-3)
+    e = EFFECTS["hardening_spring_2"].from_lower(EFFECTS["hardening_spring"](K3=150.0), soft)
+    d95 = np.percentile(np.abs(d), 95)
+    assert float(e.K3[0]) == 150.0
+    assert float(e.K5[0]) == pytest.approx(15.0 / d95**2)

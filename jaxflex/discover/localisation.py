@@ -190,14 +190,29 @@ class _ResidualStart:
         if side not in ("link", "rotor"):
             raise ValueError(f"side must be 'link' or 'rotor', got {side!r}")
         s = self._series
-        q, v, r = ((s["q2"], s["v2"], s["r_rotor"]) if side == "rotor"
-                   else (s["q1"], s["v1"], s["r_link"]))
-        nuisance = np.column_stack([np.ones_like(q), s["d"], np.gradient(v, s["t"])])
+        q, v = (s["q2"], s["v2"]) if side == "rotor" else (s["q1"], s["v1"])
+        return self._fit(side, lambda m: columns(q[m], v[m]))
+
+    def deflection(self) -> np.ndarray:
+        return self._series["d"]
+
+    def deflection_fits(self, columns: Any) -> tuple[float, np.ndarray]:
+        s = self._series
+        return self._fit("link", lambda m: columns(s["d"][m], s["dd"][m]))
+
+    def _fit(self, side: str, columns: Any) -> tuple[float, np.ndarray]:
+        """The fit of ``column_fits``: ``columns(mask)`` gives the columns on the samples the
+        boolean ``mask`` keeps (the link's sliding samples, every rotor sample)."""
+        s = self._series
+        v, r = (s["v2"], s["r_rotor"]) if side == "rotor" else (s["v1"], s["r_link"])
+        keep = np.ones(v.size, bool)
         if side == "link":  # the sliding samples only, as ``_cleared``
             sliding = np.abs(v) > 2.0 * (self._vs if self._vs is not None else 0.05)
             if np.mean(sliding) > 0.1:
-                q, v, r, nuisance = q[sliding], v[sliding], r[sliding], nuisance[sliding]
-        X = np.asarray(columns(q, v), float).reshape(q.size, -1)
+                keep = sliding
+        nuisance = np.column_stack([np.ones(v.size), s["d"], np.gradient(v, s["t"])])[keep]
+        r = r[keep]
+        X = np.asarray(columns(keep), float).reshape(r.size, -1)
         Q, _ = np.linalg.qr(nuisance)
         Xc, rc = X - Q @ (Q.T @ X), r - Q @ (Q.T @ r)
         c, _, rank, _ = np.linalg.lstsq(Xc, rc, rcond=None)

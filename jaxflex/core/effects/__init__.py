@@ -31,14 +31,15 @@ on), ``start_from_residual`` (discovery's first guess), and ``moderate`` / ``sig
 ``draw`` / ``recording`` (how ``jaxflex.identify.datagen`` hides it in a synthetic log).
 
 Families: an effect may be order k of a family (``family``, ``order``, ``higher``): a harmonic
-series of a ripple, a rotor friction with a Stribeck term, a lag of order two. Order k + 1 is
+series of a ripple, a rotor friction with a Stribeck term, a spring polynomial of odd powers,
+a lag of order two. Order k + 1 is
 its own registered class whose ``from_lower`` starts it from a fitted order k; discovery keeps
 a higher order only when it pays (``family_orders``).
 
 Modules: ``base`` (``AbstractEffect``, ``ResidualStart`` and the registry), ``library`` (the
 paper's named effects), ``ripple`` (cogging on either side and its harmonic orders),
-``orders`` (the higher orders of the friction and lag families), ``extra`` (effects of real
-joints beyond the paper's model, opt-in discovery candidates), ``compose`` (the hooks
+``orders`` (the higher orders of the friction, spring and lag families), ``extra`` (effects
+of real joints beyond the paper's model, opt-in discovery candidates), ``compose`` (the hooks
 summed over a plant's effects, ``Gated``).
 
 Concrete effects register themselves by their docs/spec.md section 8 name in ``EFFECTS``; the
@@ -86,6 +87,7 @@ from jaxflex.core.effects.ripple import (
 )
 from jaxflex.core.effects.orders import (
     ActuatorLag2,
+    HardeningSpring2,
     MotorFriction2,
 )
 from jaxflex.core.effects.compose import (
@@ -118,6 +120,7 @@ __all__ = [
     "Gated",
     "Gravity",
     "HardeningSpring",
+    "HardeningSpring2",
     "JointDamping",
     "LoadFriction",
     "MotorCogging",

@@ -69,6 +69,17 @@ class ResidualStart(Protocol):
         coefficients (a missing torque T appears as r = T)."""
         ...
 
+    def deflection(self) -> np.ndarray:
+        """The spring deflection samples d = q2 - q1 [rad] of the residual's motion."""
+        ...
+
+    def deflection_fits(self, columns: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                        ) -> tuple[float, np.ndarray]:
+        """As ``column_fits`` on the link, the columns ``columns(d, d')`` (samples, k) of
+        the deflection d [rad] and its rate d' [rad/s] (a missing spring torque T appears on
+        the link as r = T; the nominal spring K d is cleared)."""
+        ...
+
 
 def candidate_effects() -> list[str]:
     """Names of the effects the discrepancy workflow tries by default (``candidate``)."""

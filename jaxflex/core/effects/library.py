@@ -167,13 +167,16 @@ class Backlash(AbstractEffect):
 
 @register_effect
 class HardeningSpring(AbstractEffect):
-    """Cubic hardening of the joint spring: spring_torque = K3 d^3 [N m], K3 [N m/rad^3] >= 0."""
+    """Cubic hardening of the joint spring: spring_torque = K3 d^3 [N m], K3 [N m/rad^3] >= 0
+    (order 1 of the spring polynomial of odd powers; order 2 adds d^5,
+    ``jaxflex.core.effects.orders.HardeningSpring2``)."""
 
     name: ClassVar[str] = "hardening_spring"
     where: ClassVar[str] = "spring torque"
     constraints: ClassVar[dict[str, str]] = {"K3": "positive"}
     telling: ClassVar[str | None] = "deflection"
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"K3": (300.0, 800.0)}
+    higher: ClassVar[str | None] = "hardening_spring_2"
     K3: Float[Array, " n"] = eqx.field(converter=as_param)
 
     def __check_init__(self) -> None:

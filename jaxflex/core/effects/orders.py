@@ -1,7 +1,9 @@
-"""The higher orders of the library's friction and lag families (docs/spec.md section 8):
-rotor friction with a Stribeck term (``motor_friction``: Coulomb and viscous, then the
-Stribeck excess) and a lag of order two (``actuator_lag``: first order, then a second-order
-current loop). The ripple's orders are with the ripple (``jaxflex.core.effects.ripple``).
+"""The higher orders of the library's friction, spring and lag families (docs/spec.md
+section 8): rotor friction with a Stribeck term (``motor_friction``: Coulomb and viscous, then
+the Stribeck excess), the spring as a polynomial of odd powers
+(``hardening_spring``: d^3, then d^5) and a lag of order two (``actuator_lag``: first order,
+then a second-order current loop). The ripple's orders are with the ripple
+(``jaxflex.core.effects.ripple``).
 
 Each order is one registered final class with its ``family``, ``order`` and the ``higher``
 order's name, and ``from_lower``, its first guess from a fitted instance of the order below.
@@ -30,6 +32,7 @@ from jaxflex.core.effects.base import (
 from jaxflex.core.effects.library import (
     AbstractSecondOrderInput,
     ActuatorLag,
+    HardeningSpring,
     MotorFriction,
     smooth_sign,
 )
@@ -159,4 +162,50 @@ class ActuatorLag2(AbstractSecondOrderInput):
         return aux[0]
 
 
-__all__ = ["ActuatorLag2", "MotorFriction2"]
+@register_effect
+class HardeningSpring2(AbstractEffect):
+    """``hardening_spring`` of order 2: the joint spring as a polynomial of odd powers up to
+    the fifth, K d + K3 d^3 + K5 d^5, added as
+
+        spring_torque = K3 d^3 + K5 d^5      [N m],   d = q2 - q1 [rad]
+
+    K3 [N m/rad^3] >= 0, K5 [N m/rad^5] >= 0 (a spring that stiffens with its deflection)."""
+
+    name: ClassVar[str] = "hardening_spring_2"
+    where: ClassVar[str] = "spring torque"
+    constraints: ClassVar[dict[str, str]] = {"K3": "positive", "K5": "positive"}
+    candidate: ClassVar[bool] = False
+    telling: ClassVar[str | None] = "deflection"
+    family: ClassVar[str] = "hardening_spring"
+    order: ClassVar[int] = 2
+    K3: Float[Array, " n"] = eqx.field(converter=as_param)
+    K5: Float[Array, " n"] = eqx.field(converter=as_param)
+
+    def __check_init__(self) -> None:
+        check_nonnegative("hardening_spring_2", K3=self.K3, K5=self.K5)
+
+    @classmethod
+    def typical(cls, n: int) -> HardeningSpring2:
+        return cls(K3=np.full(n, 10.0), K5=np.full(n, 100.0))
+
+    @classmethod
+    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> HardeningSpring2:
+        """K3 and K5 from the linear fit of the link residual by d^3 and d^5 (the nominal
+        K d cleared) where both come out positive; else ``lower``'s fitted K3 and a K5 whose
+        d^5 term is a tenth of the d^3 term at the log's 95th-percentile |d| (a positive
+        parameter is fitted through exp and needs a start of its own size)."""
+        if not isinstance(lower, HardeningSpring):
+            raise TypeError(f"{cls.name}.from_lower: expected a HardeningSpring, "
+                            f"got {type(lower).__name__}")
+        e, c = data.deflection_fits(lambda d, dd: np.column_stack([d**3, d**5]))
+        if e > 0 and np.all(c > 0):
+            return cls(K3=np.full(1, c[0]), K5=np.full(1, c[1]))
+        K3 = max(float(np.ravel(lower.K3)[0]), LEAST_AMPLITUDE)
+        d95 = max(float(np.percentile(np.abs(data.deflection()), 95)), 1e-6)
+        return cls(K3=np.full(1, K3), K5=np.full(1, 0.1 * K3 / d95**2))
+
+    def spring_torque(self, d: Array, dd: Array) -> Float[Array, " n"]:
+        return self.K3 * d**3 + self.K5 * d**5
+
+
+__all__ = ["ActuatorLag2", "HardeningSpring2", "MotorFriction2"]
