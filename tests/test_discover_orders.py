@@ -3,7 +3,9 @@ docs/spec.md section 8.1), on logs of an independent simulator (``tests/independ
 numpy RK4, effects in forms of its own): a two-harmonic cogging is answered ``cogging`` order 2
 and closes the gap, a one-harmonic cogging stays at order 1, a rotor friction with a
 Stribeck term is answered ``motor_friction`` order 2, a spring with cubic and fifth-power
-terms ``hardening_spring`` order 2 and one with the cubic term alone order 1."""
+terms ``hardening_spring`` order 2 and one with the cubic term alone order 1, LuGre levels
+that differ by direction in the static level beyond the Coulomb one ``asymmetric_friction``
+order 2 and ones that differ alike order 1."""
 
 import pytest
 
@@ -112,6 +114,39 @@ def test_a_cubic_spring_stays_hardening_spring_order_1():
     assert not rep["rounds"][0]["orders"][0]["kept"]
     assert rep["effect_params"]["hardening_spring"]["K3"]["value"] == pytest.approx(120.0,
                                                                                    rel=0.05)
+
+
+ASYM_CANDS = ("asymmetric_friction", "torque_offset", "motor_friction", "cogging")
+
+
+@pytest.mark.slow
+def test_a_static_level_that_differs_by_direction_is_named_asymmetric_friction_order_2():
+    """The simulator's LuGre levels per direction, inside its g(v): Coulomb 0.10 +- 0.02,
+    static 0.16 +- 0.05 N m. The Coulomb shift alone leaves part of the gap; the static one
+    pays, closes it, and both shifts are recovered."""
+    log = simulate(10.0, asymmetry=(0.02, 0.05))
+    rep = discover(log, paper_params(), DiscoverConfig(candidates=ASYM_CANDS,
+                                                       max_effects=2)).to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("asymmetric_friction", 2,
+                                                            ["asymmetric_friction_2"])
+    assert rep["explained_fraction"] >= 0.75
+    p = rep["effect_params"]["asymmetric_friction_2"]
+    assert p["dF"]["value"] == pytest.approx(0.02, rel=0.05)
+    assert abs(p["dS"]["value"] - 0.05) < 3.0 * p["dS"]["stderr"]
+
+
+@pytest.mark.slow
+def test_levels_that_differ_alike_by_direction_stay_asymmetric_friction_order_1():
+    """Coulomb and static levels both 0.03 N m apart per direction: the static shift does not
+    pay; the answer is order 1 with dF recovered."""
+    log = simulate(10.0, asymmetry=(0.03, 0.03))
+    rep = discover(log, paper_params(), DiscoverConfig(candidates=ASYM_CANDS,
+                                                       max_effects=2)).to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("asymmetric_friction", 1,
+                                                            ["asymmetric_friction"])
+    assert not rep["rounds"][0]["orders"][0]["kept"]
+    assert rep["effect_params"]["asymmetric_friction"]["dF"]["value"] == pytest.approx(
+        0.03, rel=0.05)
 
 
 def test_a_higher_order_is_built_only_once_its_order_below_is_in_a_model():

@@ -16,7 +16,7 @@ from jaxflex.io.params import Params
 from jaxflex.io.presets import paper_params, paper_plant
 
 FAMILIES = {"cogging": 3, "motor_cogging": 3, "motor_friction": 2, "actuator_lag": 2,
-            "hardening_spring": 2}
+            "asymmetric_friction": 2, "hardening_spring": 2}
 
 
 def test_each_family_is_a_chain_of_registered_orders():
@@ -72,6 +72,15 @@ def test_an_order_with_its_new_terms_at_zero_is_the_order_below(q, v):
     m2 = E["motor_friction_2"](Fm=0.0, bm=0.0, Fsm=0.02, vsm=0.1)
     assert _hooks(m2, q, v)[1] == pytest.approx(
         -0.02 * math.exp(-((v / 0.1) ** 2)) * math.tanh(v / 0.01))
+    # the friction level's orders: order 2 with dS = dF is order 1; its static shift decays
+    # with the plant's own Stribeck velocity
+    fr, vv = paper_plant().friction, jnp.array([v])
+    a1 = E["asymmetric_friction"](dF=0.02)
+    assert float(E["asymmetric_friction_2"](dF=0.02, dS=0.02).friction_level(vv, fr)[0]) == \
+        pytest.approx(float(a1.friction_level(vv, fr)[0]), abs=1e-15)
+    a2 = E["asymmetric_friction_2"](dF=0.0, dS=0.03)
+    assert float(a2.friction_level(vv, fr)[0]) == pytest.approx(
+        0.03 * math.exp(-((v / float(fr.vs[0])) ** 2)))
     # the spring's orders, on the deflection q (d' = v)
     d, dd = jnp.array([q]), jnp.array([v])
     s1, s2 = E["hardening_spring"](K3=40.0), E["hardening_spring_2"](K3=40.0, K5=0.0)
@@ -162,6 +171,19 @@ def test_the_stribeck_order_starts_from_the_rotor_residual():
     assert float(e.Fsm[0]) == pytest.approx(0.03, rel=0.2)
     assert float(e.bm[0]) == pytest.approx(0.01, rel=0.2)
     assert 0.06 <= float(e.vsm[0]) <= 0.16
+
+
+def test_the_static_asymmetry_starts_as_its_order_below():
+    """Order 2 of the friction level's asymmetry starts with the static shift at the fitted
+    Coulomb shift: its friction is order 1's."""
+    lower = EFFECTS["asymmetric_friction"](dF=0.03)
+    e = EFFECTS["asymmetric_friction_2"].from_lower(lower, _ResidualStart({}, vs=0.05, h=1e-3))
+    assert float(e.dF[0]) == float(e.dS[0]) == 0.03
+    plant = paper_plant()
+    for v in (0.5, -0.02, 0.004):
+        x = plant.init_state(dq1=v, z=1e-3)
+        assert float(plant.with_effects(e).friction_torque(x)[0]) == pytest.approx(
+            float(plant.with_effects(lower).friction_torque(x)[0]), abs=1e-15)
 
 
 def test_the_fifth_power_starts_from_the_link_residual_against_the_deflection():

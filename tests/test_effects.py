@@ -65,10 +65,16 @@ def test_each_effect_acts_where_it_says():
     assert dl == pytest.approx(-0.4 * math.sin(0.3)) and dr == 0.0
     dl, dr = _acc(E["cogging"](A=0.05, N=20.0, phi=0.3), q1=0.1)
     assert dl == pytest.approx(0.05 * math.sin(2.0 + 0.3)) and dr == 0.0
-    dl, dr = _acc(E["asymmetric_friction"](dF=0.04), q1=0.0, dq1=1.0)
-    assert dl == pytest.approx(-0.04, rel=1e-6) and dr == 0.0
-    dl, _ = _acc(E["asymmetric_friction"](dF=0.04), q1=0.0, dq1=-1.0)
-    assert dl == pytest.approx(-0.04, rel=1e-6)  # same sign both ways: the asymmetry
+    # the friction's level by direction: the static map (eq. 35) is g + dF forward and
+    # -(g - dF) backward, i.e. shifted by +dF both ways, and the bristle relaxes to it
+    base, asym = paper_plant(), paper_plant().with_effects(E["asymmetric_friction"](dF=0.04))
+    for v in (1.0, -1.0, 0.02, -0.02):
+        vv = jnp.array([v])
+        F0, F1 = base.friction.steady_state(vv), asym.lugre.steady_state(vv)
+        assert float((F1 - F0)[0]) == pytest.approx(0.04, rel=1e-12)
+        x = asym.init_state(dq1=v, z=asym.lugre.z_steady(vv))
+        assert float(asym.friction_torque(x)[0]) == pytest.approx(float(F1[0]), rel=1e-12)
+    assert base.lugre is base.friction  # no shift, no wrapper
     # rotor-side torque
     dl, dr = _acc(E["motor_friction"](Fm=0.03, bm=0.02), dq1=0.0, dq2=2.0)
     assert dl == 0.0 and dr == pytest.approx(-(0.03 + 0.04), rel=1e-6)
@@ -153,7 +159,7 @@ def test_gated_effect_equals_the_effect_or_nothing(name):
     u = jnp.array([0.2])
 
     def acc(plant):
-        x = plant.init_state(q1=0.3, dq1=0.4, q2=0.32, dq2=-0.7)
+        x = plant.init_state(q1=0.3, dq1=0.4, q2=0.32, dq2=-0.7, z=1e-3)
         if x.aux is not None:  # an effect's internal state away from rest (lag, delay)
             x = dataclasses.replace(x, aux=tuple(
                 None if a is None else jnp.asarray(a) + jnp.arange(1.0, 1.0 + jnp.size(a)).reshape(
@@ -193,7 +199,7 @@ def test_gated_effects_taken_in_one_branch_per_hook_equal_the_active_effects(act
     u = jnp.array([0.2])
 
     def acc(plant, aux_of):
-        x = plant.init_state(q1=0.3, dq1=0.4, q2=0.32, dq2=-0.7)
+        x = plant.init_state(q1=0.3, dq1=0.4, q2=0.32, dq2=-0.7, z=1e-3)
         if x.aux is not None:  # internal states away from rest, the same per effect
             x = dataclasses.replace(x, aux=tuple(aux_of(e, a) for e, a in zip(plant.effects,
                                                                           x.aux)))

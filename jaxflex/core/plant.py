@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.core.effects import AbstractEffect, applied_torque, effect_torque, spring_state_torque
+from jaxflex.core.effects import (AbstractEffect, applied_torque, effect_torque,
+                                  spring_state_torque, uses_hook)
 from jaxflex.core.friction import LuGre
 from jaxflex.core.state import PlantState
 from jaxflex.core.validation import as_param, check_positive
@@ -195,6 +196,27 @@ def _nonzero(x: ArrayLike) -> bool:
     return bool(jnp.any(jnp.asarray(x) != 0))
 
 
+#: The least level a direction-dependent shift leaves the link friction: this share of the
+#: LuGre's own g(v) (a fit may try a shift larger than the level; g must stay positive for
+#: eq. 5's bristle to relax).
+LEVEL_FLOOR: float = 0.05
+
+
+class LevelledLuGre(LuGre):
+    """The plant's LuGre (eq. 4-6) with its level shifted by direction by the plant's effects
+    (``AbstractEffect.friction_level``): g(v) + sign(v) Delta(v), at least ``LEVEL_FLOOR``
+    g(v). Everything that reads the level (the bristle's rate, its exact step, the steady
+    state, the capacity) reads this one; the parameters are the LuGre's."""
+
+    effects: tuple[AbstractEffect, ...] = ()
+
+    def g(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
+        """The level [N m] for the direction of ``v`` [rad/s] (eq. 6 shifted)."""
+        base = super().g(v)
+        shift = effect_torque(self.effects, "friction_level", v, self)
+        return jnp.maximum(base + jnp.sign(v) * shift, LEVEL_FLOOR * base)
+
+
 class FlexibleJointPlant(eqx.Module):
     """Flexible-joint robot: links + elastic joints + rotors + LuGre friction + effects.
 
@@ -245,11 +267,23 @@ class FlexibleJointPlant(eqx.Module):
             dq2=full(dq1) if dq2 is None else full(dq2), z=full(z), aux=aux,
         )
 
+    @property
+    def lugre(self) -> LuGre | None:
+        """The link's friction model: ``friction`` itself, or, where an effect shifts its
+        level by direction (``friction_level``), the ``LevelledLuGre`` of both; None without
+        friction."""
+        if self.friction is None or not uses_hook(self.effects, "friction_level"):
+            return self.friction
+        fr = self.friction
+        return LevelledLuGre(Fc=fr.Fc, Fs=fr.Fs, vs=fr.vs, sigma0=fr.sigma0, sigma1=fr.sigma1,
+                             sigma2=fr.sigma2, effects=tuple(self.effects))
+
     def friction_torque(self, x: PlantState) -> Float[Array, " n"]:
-        """LuGre friction F(q1', z) [N m] (eq. 4); zero without friction."""
+        """LuGre friction F(q1', z) [N m] (eq. 4, with the effects' level shifts: ``lugre``);
+        zero without friction."""
         if self.friction is None:
             return jnp.zeros_like(x.dq1)
-        return self.friction.force(x.dq1, x.z)
+        return self.lugre.force(x.dq1, x.z)
 
     def spring_torque(self, x: PlantState) -> Float[Array, " n"]:
         """Elastic joint torque K (q2 - q1) plus effects' spring terms [N m] (eq. 3), those of
@@ -305,9 +339,7 @@ class FlexibleJointPlant(eqx.Module):
     def vector_field(self, x: PlantState, tau: Float[Array, " n"]) -> PlantState:
         """Time derivative of the state under motor torque ``tau`` [N m] (eq. 3-5)."""
         ddq1, ddq2 = self.accelerations(x, tau)
-        dz = (
-            jnp.zeros_like(x.z) if self.friction is None else self.friction.z_dot(x.dq1, x.z)
-        )
+        dz = jnp.zeros_like(x.z) if self.friction is None else self.lugre.z_dot(x.dq1, x.z)
         daux = (
             None if x.aux is None
             else tuple(e.aux_rhs(a, tau, x) for e, a in zip(self.effects, x.aux))

@@ -250,7 +250,7 @@ def _bristle_residuals(plant: FlexibleJointPlant, *cols: jax.Array
     residual is affine in z: F = sigma0 z + sigma1 z' + sigma2 q1'), in one compiled
     program."""
     motion = Motion(*cols)
-    fr = plant.friction
+    fr = plant.lugre
     cap = fr.g(motion.v1) / fr.sigma0[0]
     r_link = lambda z: model_residuals(plant, "flexible", motion, z)[0]
     return cap, r_link(jnp.zeros_like(cap)), r_link(cap)
@@ -327,7 +327,7 @@ def within_capacity(x0s: jax.Array, plant: FlexibleJointPlant,
 
 @persistent_jit(fast_compile=True)
 def _within_capacity(x0s: jax.Array, plant: FlexibleJointPlant, bound: float) -> jax.Array:
-    fr = plant.friction
+    fr = plant.lugre
     cap = bound * fr.g(x0s[:, 1]) / fr.sigma0
     return x0s.at[:, 4].set(jnp.clip(x0s[:, 4], -cap, cap))
 

@@ -90,7 +90,7 @@ def model_residuals(plant: FlexibleJointPlant, kind: str, motion: Motion,
         if kind == "rotor":
             a1, v1 = link_input(plant.effects, a1, v1, ac1)
         if z is None:
-            z = (plant.friction.z_steady(v1) if plant.friction is not None
+            z = (plant.lugre.z_steady(v1) if plant.friction is not None
                  else jnp.zeros_like(v1))
         aux = tuple(e.aux_steady(tau) for e in plant.effects) if plant.effects else None
         x = PlantState(q1=a1, dq1=v1, q2=a2, dq2=v2, z=z, aux=aux)

@@ -311,7 +311,7 @@ class Problem(eqx.Module):
         n = plant.n
         aux = tuple(e.aux_init(n) for e in plant.effects) if plant.effects else None
         x0 = unpack_state(self.kind, v0, aux)
-        fr = plant.friction
+        fr = plant.lugre
         if self.free_starts and self.bounded_z and fr is not None:
             cap = fr.g(x0.dq1) / fr.sigma0  # the friction's capacity [rad]
             x0 = eqx.tree_at(lambda s: s.z, x0, jnp.clip(x0.z, -cap, cap))

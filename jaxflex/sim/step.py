@@ -108,7 +108,7 @@ def rigid_vector_field(plant: FlexibleJointPlant, x: PlantState, tau: Array) -> 
     u = u + effect_torque(plant.effects, "link_torque", x)
     u = u + effect_torque(plant.effects, "rotor_torque", x)
     acc = (u - plant.friction_torque(x)) / rigid_inertia(plant)
-    dz = jnp.zeros_like(x.z) if plant.friction is None else plant.friction.z_dot(x.dq1, x.z)
+    dz = jnp.zeros_like(x.z) if plant.friction is None else plant.lugre.z_dot(x.dq1, x.z)
     daux = (
         None if x.aux is None
         else tuple(e.aux_rhs(a, tau, x) for e, a in zip(plant.effects, x.aux))
@@ -136,7 +136,7 @@ def link_vector_field(plant: FlexibleJointPlant, x: PlantState, u: Array) -> Pla
     (``FlexibleJointPlant.accelerations``) with the rotor state ``x.q2``, ``x.dq2`` taken from
     the measurement; the rotor moves with the measured acceleration; z follows eq. 5."""
     ddq1, _ = plant.accelerations(x, jnp.zeros_like(x.q1))
-    dz = jnp.zeros_like(x.z) if plant.friction is None else plant.friction.z_dot(x.dq1, x.z)
+    dz = jnp.zeros_like(x.z) if plant.friction is None else plant.lugre.z_dot(x.dq1, x.z)
     daux = None if x.aux is None else tuple(jnp.zeros_like(a) for a in x.aux)
     return PlantState(q1=x.dq1, dq1=ddq1, q2=x.dq2, dq2=u[2], z=dz, aux=daux)
 
@@ -170,7 +170,7 @@ def model_step(
     """
     f = _vector_field(kind, plant)
     hs = h / substeps
-    fr = plant.friction
+    fr = plant.lugre
     if kind == "rotor":  # the measured link motion sets the link state at each sample
         if tau.ndim != 2 or tau.shape[0] != len(ROTOR_INPUTS):
             raise ValueError(f"rotor model: input per sample must be {ROTOR_INPUTS} stacked "

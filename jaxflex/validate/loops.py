@@ -454,6 +454,6 @@ def loop_start(plant: FlexibleJointPlant, q0: jax.Array) -> PlantState:
     """The plant at rest at ``q0`` [rad or m] with the bristles in their steady state."""
     x0 = plant.init_state(q1=q0)
     if plant.friction is not None:
-        x0 = eqx.tree_at(lambda s: s.z, x0, plant.friction.z_steady(x0.dq1))
+        x0 = eqx.tree_at(lambda s: s.z, x0, plant.lugre.z_steady(x0.dq1))
     return x0
 

@@ -31,8 +31,9 @@ on), ``start_from_residual`` (discovery's first guess), and ``moderate`` / ``sig
 ``draw`` / ``recording`` (how ``jaxflex.identify.datagen`` hides it in a synthetic log).
 
 Families: an effect may be order k of a family (``family``, ``order``, ``higher``): a harmonic
-series of a ripple, a rotor friction with a Stribeck term, a spring polynomial of odd powers,
-a lag of order two. Order k + 1 is
+series of a ripple, a rotor friction with a Stribeck term, a friction level that differs by
+direction in its Coulomb and then its static part, a spring polynomial of odd powers, a lag
+of order two. Order k + 1 is
 its own registered class whose ``from_lower`` starts it from a fitted order k; discovery keeps
 a higher order only when it pays (``family_orders``).
 
@@ -87,6 +88,7 @@ from jaxflex.core.effects.ripple import (
 )
 from jaxflex.core.effects.orders import (
     ActuatorLag2,
+    AsymmetricFriction2,
     HardeningSpring2,
     MotorFriction2,
 )
@@ -101,6 +103,7 @@ from jaxflex.core.effects.compose import (
     spring_state_torque,
     state_in_use,
     unwrap,
+    uses_hook,
 )
 
 __all__ = [
@@ -110,6 +113,7 @@ __all__ = [
     "ActuatorLag",
     "ActuatorLag2",
     "AsymmetricFriction",
+    "AsymmetricFriction2",
     "Backlash",
     "Cogging",
     "Cogging2",
@@ -145,4 +149,5 @@ __all__ = [
     "spring_state_torque",
     "state_in_use",
     "unwrap",
+    "uses_hook",
 ]

@@ -230,6 +230,13 @@ class AbstractEffect(eqx.Module):
         """Extra elastic torque [N m] given deflection d = q2 - q1 [rad] and its rate dd."""
         return 0.0
 
+    def friction_level(self, v: Array, friction: Any) -> Float[Array, " n"] | float:
+        """Shift Delta(v) [N m] of the link friction's level g(v) (eq. 6) by the direction of
+        the link velocity ``v`` [rad/s]: the LuGre of eq. 4-5 runs with g(v) + Delta(v) while
+        the link moves forward and g(v) - Delta(v) backward (a direction-dependent friction;
+        ``friction``: the plant's LuGre, whose parameters a shift may follow)."""
+        return 0.0
+
     def spring_state_torque(self, aux: Any, d: Array, dd: Array) -> Float[Array, " n"] | float:
         """Extra elastic torque [N m] from the effect's internal state ``aux`` (a hysteresis in
         the spring) at deflection d = q2 - q1 [rad] and its rate dd [rad/s]; acts on both

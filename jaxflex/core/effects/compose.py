@@ -63,6 +63,9 @@ class Gated(AbstractEffect):
     def spring_state_torque(self, aux: Any, d: Array, dd: Array):
         return self._gated("spring_state_torque", aux, d, dd)
 
+    def friction_level(self, v: Array, friction: Any):
+        return self._gated("friction_level", v, friction)
+
     def applied_torque(self, tau: Array, aux: Any):
         return self._switched(lambda: tau + self.gate * (self.inner.applied_torque(tau, aux) - tau),
                               lambda: jnp.asarray(tau))
@@ -114,8 +117,8 @@ def _overrides(effect: AbstractEffect, hook: str) -> bool:
 #: that ``jaxflex.discover`` fits): the motion, or the link encoder's reading of it
 #: (``link_measured``); ``link_reading`` is not one (a sensor map of a measured *input*).
 REPLAY_HOOKS: tuple[str, ...] = ("link_torque", "rotor_torque", "spring_torque",
-                                 "spring_state_torque", "applied_torque", "aux_rhs",
-                                 "link_measured")
+                                 "spring_state_torque", "friction_level", "applied_torque",
+                                 "aux_rhs", "link_measured")
 
 
 def acts_on_replay(name: str) -> bool:
@@ -146,6 +149,11 @@ def link_measurement(effects: Sequence[AbstractEffect], q1: Array, dq1: Array) -
     return q1
 
 
+def uses_hook(effects: Sequence[AbstractEffect], hook: str) -> bool:
+    """Whether any of ``effects`` (gated ones included) contributes through ``hook``."""
+    return any(_overrides(e, hook) for e in effects)
+
+
 def _one_branch(effects: Sequence[AbstractEffect], hook: str) -> bool:
     """Whether the ``hook`` contributions of ``effects`` are taken in one run-time branch:
     every effect that has the hook is ``Gated`` and there are at least two."""
@@ -158,8 +166,9 @@ def _any_on(effects: Sequence[Gated]) -> Array:
 
 
 def effect_torque(effects: Sequence[AbstractEffect], hook: str, *args: Any) -> Array | float:
-    """The sum of the effects' ``hook`` contributions [N m] (``link_torque``, ``rotor_torque``
-    or ``spring_torque``, with that hook's arguments): what the plant adds to its equations.
+    """The sum of the effects' ``hook`` contributions [N m] (``link_torque``, ``rotor_torque``,
+    ``spring_torque`` or ``friction_level``, with that hook's arguments): what the plant adds
+    to its equations.
 
     Gated effects (``Gated``, the discrepancy workflow's candidates) are taken together in
     one run-time branch, entered when any of them is on; inside it each contributes only

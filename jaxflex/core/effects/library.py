@@ -102,33 +102,28 @@ def softplus(x: Array, w: Array) -> Array:
 
 @register_effect
 class AsymmetricFriction(AbstractEffect):
-    """Direction-dependent Coulomb level on the link: the Coulomb level is Fc + dF when moving
-    forward and Fc - dF when moving backward (docs/spec.md section 8). Added as a link torque
-
-        link_torque = -dF |tanh(q1' / width)|      [N m]
-
-    dF [N m] any sign (|dF| < Fc for a physical plant, not enforced: the nominal Fc is refitted
-    alongside); width [rad/s] > 0 smoothing of sign(q1'), not fitted.
-    """
+    """Direction-dependent friction level on the link: the LuGre of eq. 4-6 runs with the
+    level g(v) + dF while the link moves forward and g(v) - dF backward (Coulomb level Fc + dF
+    and static level Fs + dF forward, Fc - dF and Fs - dF backward; docs/spec.md section 8),
+    a ``friction_level`` shift, so the bristles (eq. 5) follow the level of the direction they
+    move in. dF [N m] any sign (|dF| < Fc for a physical plant, not enforced: the nominal Fc
+    is refitted alongside; the level is floored, ``jaxflex.core.plant.LEVEL_FLOOR``)."""
 
     name: ClassVar[str] = "asymmetric_friction"
-    where: ClassVar[str] = "link torque"
-    constraints: ClassVar[dict[str, str]] = {"dF": "free", "width": "fixed"}
+    where: ClassVar[str] = "link friction level"
+    constraints: ClassVar[dict[str, str]] = {"dF": "free"}
     telling: ClassVar[str | None] = "link velocity"
     moderate: ClassVar[dict[str, tuple[float, float]] | None] = {"dF": (0.03, 0.06)}
     signed: ClassVar[tuple[str, ...]] = ("dF",)
+    higher: ClassVar[str | None] = "asymmetric_friction_2"
     dF: Float[Array, " n"] = eqx.field(converter=as_param)
-    width: Float[Array, " n"] = eqx.field(converter=as_param, default=0.01)
-
-    def __check_init__(self) -> None:
-        check_positive("asymmetric_friction", width=self.width)
 
     @classmethod
     def typical(cls, n: int) -> AsymmetricFriction:
         return cls(dF=np.zeros(n))
 
-    def link_torque(self, x: PlantState) -> Float[Array, " n"]:
-        return -self.dF * jnp.abs(smooth_sign(x.dq1, self.width))
+    def friction_level(self, v: Array, friction: Any) -> Float[Array, " n"]:
+        return self.dF * jnp.ones_like(v)
 
 
 @register_effect

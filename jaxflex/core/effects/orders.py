@@ -1,6 +1,7 @@
 """The higher orders of the library's friction, spring and lag families (docs/spec.md
 section 8): rotor friction with a Stribeck term (``motor_friction``: Coulomb and viscous, then
-the Stribeck excess), the spring as a polynomial of odd powers
+the Stribeck excess), direction-dependent friction in the Coulomb level and then the static
+level too (``asymmetric_friction``), the spring as a polynomial of odd powers
 (``hardening_spring``: d^3, then d^5) and a lag of order two (``actuator_lag``: first order,
 then a second-order current loop). The ripple's orders are with the ripple
 (``jaxflex.core.effects.ripple``).
@@ -15,7 +16,7 @@ keeps it when it pays by the criterion that adds an effect.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -32,6 +33,7 @@ from jaxflex.core.effects.base import (
 from jaxflex.core.effects.library import (
     AbstractSecondOrderInput,
     ActuatorLag,
+    AsymmetricFriction,
     HardeningSpring,
     MotorFriction,
     smooth_sign,
@@ -163,6 +165,47 @@ class ActuatorLag2(AbstractSecondOrderInput):
 
 
 @register_effect
+class AsymmetricFriction2(AbstractEffect):
+    """``asymmetric_friction`` of order 2: the Coulomb and the static level each shifted by
+    direction, Fc + dF and Fs + dS forward, Fc - dF and Fs - dS backward, a ``friction_level``
+    shift of the LuGre level g(v) (eq. 6)
+
+        Delta(v) = dF + (dS - dF) exp(-(v / vs)^2)      [N m]
+
+    with vs the plant's own Stribeck velocity (the LuGre's, as fitted). dF, dS [N m] any
+    sign; dS = dF is order 1."""
+
+    name: ClassVar[str] = "asymmetric_friction_2"
+    where: ClassVar[str] = "link friction level"
+    constraints: ClassVar[dict[str, str]] = {"dF": "free", "dS": "free"}
+    candidate: ClassVar[bool] = False
+    telling: ClassVar[str | None] = "link velocity"
+    signed: ClassVar[tuple[str, ...]] = ("dF", "dS")
+    family: ClassVar[str] = "asymmetric_friction"
+    order: ClassVar[int] = 2
+    dF: Float[Array, " n"] = eqx.field(converter=as_param)
+    dS: Float[Array, " n"] = eqx.field(converter=as_param)
+
+    @classmethod
+    def typical(cls, n: int) -> AsymmetricFriction2:
+        return cls(dF=np.zeros(n), dS=np.zeros(n))
+
+    @classmethod
+    def from_lower(cls, lower: AbstractEffect, data: ResidualStart) -> AsymmetricFriction2:
+        """``lower``'s fitted dF for both levels (dS = dF: order 1's own friction, so the fit
+        starts where order 1 ended). The static shift acts where the link nearly sticks,
+        which the localisation's steady-state residual (read on sliding samples only) does
+        not show, so it is left to the fit."""
+        if not isinstance(lower, AsymmetricFriction):
+            raise TypeError(f"{cls.name}.from_lower: expected an AsymmetricFriction, "
+                            f"got {type(lower).__name__}")
+        return cls(dF=np.ravel(lower.dF), dS=np.ravel(lower.dF))
+
+    def friction_level(self, v: Array, friction: Any) -> Float[Array, " n"]:
+        return self.dF + (self.dS - self.dF) * jnp.exp(-jnp.square(v / friction.vs))
+
+
+@register_effect
 class HardeningSpring2(AbstractEffect):
     """``hardening_spring`` of order 2: the joint spring as a polynomial of odd powers up to
     the fifth, K d + K3 d^3 + K5 d^5, added as
@@ -208,4 +251,4 @@ class HardeningSpring2(AbstractEffect):
         return self.K3 * d**3 + self.K5 * d**5
 
 
-__all__ = ["ActuatorLag2", "HardeningSpring2", "MotorFriction2"]
+__all__ = ["ActuatorLag2", "AsymmetricFriction2", "HardeningSpring2", "MotorFriction2"]
