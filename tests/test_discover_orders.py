@@ -5,7 +5,8 @@ and closes the gap, a one-harmonic cogging stays at order 1, a rotor friction wi
 Stribeck term is answered ``motor_friction`` order 2, a spring with cubic and fifth-power
 terms ``hardening_spring`` order 2 and one with the cubic term alone order 1, LuGre levels
 that differ by direction in the static level beyond the Coulomb one ``asymmetric_friction``
-order 2 and ones that differ alike order 1."""
+order 2 and ones that differ alike order 1, a second-order current loop that a delay beats at
+order 1 ``actuator_lag`` order 2."""
 
 import pytest
 
@@ -147,6 +148,25 @@ def test_levels_that_differ_alike_by_direction_stay_asymmetric_friction_order_1(
     assert not rep["rounds"][0]["orders"][0]["kept"]
     assert rep["effect_params"]["asymmetric_friction"]["dF"]["value"] == pytest.approx(
         0.03, rel=0.05)
+
+
+@pytest.mark.slow
+def test_a_current_loop_that_a_delay_beats_at_order_1_is_named_actuator_lag_order_2():
+    """A second-order lag of 150 rad/s and damping 0.5 from command to applied torque: at
+    order 1 the delay wins the round (its held-out gap a third of the first-order lag's);
+    the lag, a rival of the contest, is grown, its order 2 pays over the delay, and the
+    current loop is recovered."""
+    log = simulate(10.0, lag=(150.0, 0.5))
+    rep = discover(log, paper_params(), DiscoverConfig(
+        candidates=("actuator_lag", "time_delay", "torque_offset", "motor_friction"),
+        max_effects=2)).to_json()
+    assert (rep["effect"], rep["order"], rep["effects"]) == ("actuator_lag", 2,
+                                                            ["actuator_lag_2"])
+    assert "contest_orders" in rep["rounds"][0]
+    assert rep["explained_fraction"] >= 0.75
+    p = rep["effect_params"]["actuator_lag_2"]
+    assert p["T"]["value"] == pytest.approx(1.0 / 150.0, rel=0.05)
+    assert p["zeta"]["value"] == pytest.approx(0.5, rel=0.05)
 
 
 def test_a_higher_order_is_built_only_once_its_order_below_is_in_a_model():

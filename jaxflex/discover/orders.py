@@ -4,7 +4,8 @@ names a ``higher`` order, that order is fitted in its place, started from the fi
 (``candidate_score``: F-test, BIC, held-out gain; then polished, the held-out gap lower);
 then the next order, while each pays. A round whose candidates are tied grows each tied
 family the same way, and a grown member that pays over every other tied member's fit is told
-apart from them (``grow_tie``).
+apart from them (``grow_tie``); so does a round whose contest holds a rival with a higher
+order (the winner and those rivals as the members: a rival can win at its order 2).
 """
 
 from __future__ import annotations

@@ -395,15 +395,25 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
             # the order of the winner's family (and of each tied member's) that the log asks
             # for: a higher order is kept when it pays as an effect does (``grow``)
             run.stage = f"round {len(rounds)}: the orders of {winner}'s family"
-            if len(rounds[-1]["tied"]) > 1:
+            tie = rounds[-1]["tied"]
+            # a rival of the contest whose family has a higher order may overtake the pick at
+            # that order (a second-order lag against a delay): judged as a tie is
+            rivals = [k for k in close if k != winner and EFFECTS[k].higher is not None]
+            if len(tie) > 1 or rivals:
+                names_in = list(tie) if len(tie) > 1 else [winner, *rivals]
                 members = {k: polished if k == winner else polished_fits.get(k, fits[k])
-                           for k in rounds[-1]["tied"]}
+                           for k in names_in}
                 pick, told, grown_fits, names, record = grow_tie(
-                    log, wss, members, rounds[-1]["tied"], winner, cfg, say)
-                rounds[-1]["tie_orders"] = record
+                    log, wss, members, names_in, winner, cfg, say)
+                if len(tie) > 1:
+                    rounds[-1]["tie_orders"] = record
+                else:
+                    rounds[-1]["contest_orders"] = record
+                    rounds[-1]["orders"] = record["members"][pick]["orders"]
                 if told:
                     rounds[-1]["tied"] = [pick]
-                    say(f"tie told apart by the order: {EFFECTS[names[pick]].label()}")
+                    say(f"{'tie' if len(tie) > 1 else 'contest'} told apart by the order: "
+                        f"{EFFECTS[names[pick]].label()}")
                 winner, polished, grown = pick, grown_fits[pick], names[pick]
                 rounds[-1]["winner"] = winner
             else:
