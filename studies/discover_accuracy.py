@@ -28,6 +28,12 @@ implementations; an industrial drive's P/PI cascade on the motor encoder followi
 point-to-point moves or a chirp, or open-loop torque pulses or a chirp; disturbances outside
 the library: a vibration of the base, a stiffness that ripples with the link angle); the
 cases are those of ``--grown``.
+With ``--orders`` (and ``--simulator mujoco``) the hidden effects are the rig's orders 2 of
+the effect families (``mujoco_rig.HIGHER_DRAWS``: a cogging with its second harmonic, a spring
+with a fifth-power term, a static friction level shifted apart by direction, a rotor Stribeck
+excess, a second-order current loop), each scored right only when the answer names the family
+and its order ("cogging order 2"), without the outside and pair cases; every case is scored
+so (a first effect named at another order is wrong).
 Writes ``results.json`` (updated after every case) and ``confusion.png`` to ``--out``.
 """
 
@@ -57,6 +63,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--scale", type=float, default=1.0,
                     help="multiplies the hidden effects' magnitudes (moderate ranges x scale; 0.5: "
                          "nearer detectability)")
+    ap.add_argument("--orders", action="store_true",
+                    help="hide each family's order 2 that the MuJoCo rig draws (with "
+                         "--simulator mujoco): right when the answer names the family and the "
+                         "order")
     ap.add_argument("--grown", action="store_true",
                     help="the generator beyond the workflow's assumptions: loops cycle through "
                          "cascade, PD on the rotor angle and open-loop torque, excitations "
@@ -94,10 +104,17 @@ def main(argv: list[str] | None = None) -> None:
     use_lean_xla_cpu(small_loops=True)  # as jaxflex discover runs, before any JAX computation
     jax.config.update("jax_enable_x64", True)
     from jaxflex.discover import DiscoverConfig, discover, unexplained_limit
-    from jaxflex.core.effects import candidate_effects
+    from jaxflex.core.effects import EFFECTS, candidate_effects
 
     names = a.effects.split(",") if a.effects else candidate_effects()
     hidden = a.hidden.split(",") if a.hidden else names
+    if a.orders:
+        if a.simulator != "mujoco":
+            ap.error("--orders needs --simulator mujoco (the rig draws the orders 2)")
+        from mujoco_rig import HIGHER_DRAWS
+
+        hidden = a.hidden.split(",") if a.hidden else sorted(HIGHER_DRAWS)
+        a.outside = a.pairs = 0  # single effects: a pair's slots name families at order 1
     if a.small:
         hidden, a.per_effect, a.clean, a.t_final = hidden[:1], 1, 1, 6.0
     out = Path(a.out)
@@ -107,7 +124,7 @@ def main(argv: list[str] | None = None) -> None:
     for k in range(max(a.per_effect, a.clean)):
         cases += [(n,) for n in hidden] if k < a.per_effect else []
         cases += [()] if k < a.clean else []
-    labels = sorted(set(names) | set(hidden)) + ["none"]
+    labels = sorted({EFFECTS[n].label() for n in (*names, *hidden)}) + ["none"]
     rows = []
     if a.simulator == "mujoco":
         from mujoco_rig import DISTURBANCES, EXCITATIONS, LOOPS, simulate_rig as generate_log
@@ -147,8 +164,10 @@ def main(argv: list[str] | None = None) -> None:
         elif len(eff) > 1:
             true = "+".join(sorted(eff))
         else:
-            true = eff[0] if eff else "none"
+            true = EFFECTS[eff[0]].label() if eff else "none"
         found = rep["effect"]
+        if found not in ("none", "unexplained", "indistinguishable") and rep["effects"]:
+            found = EFFECTS[rep["effects"][0]].label()  # the family and its order
         # each added effect with the candidates its round could not tell apart from it
         slots = [r["tied"] if len(r["tied"]) > 1 else [r["winner"]]
                  for r in rep["rounds"] if r["winner"] != "none"]

@@ -42,6 +42,20 @@ def test_jaxflex_replays_the_mujoco_rig(effect, loop, excitation):
         assert _replay_error(rig, with_effects=False) > 10 * AGREE
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("effect,seed,loop", [
+    ("cogging_2", 3, "drive"), ("hardening_spring_2", 3, "drive"),
+    ("asymmetric_friction", 3, "drive"), ("asymmetric_friction_2", 3, "drive"),
+    ("asymmetric_friction_2", 4, "drive"), ("actuator_lag_2", 3, "open_loop"),
+])
+def test_jaxflex_replays_the_rig_s_higher_orders(effect, seed, loop):
+    """The rig's own forms of a family's order 2 (and the friction level shifted down by
+    direction, seed 3's negative dF) agree with jaxflex's classes."""
+    rig = simulate_rig((effect,), seed=seed, t_final=3.0, loop=loop, excitation="chirp")
+    assert _replay_error(rig, with_effects=True) < AGREE
+    assert _replay_error(rig, with_effects=False) > 10 * AGREE
+
+
 def test_rig_refuses_bad_settings():
     with pytest.raises(ValueError, match="loop must be one of"):
         simulate_rig((), loop="cascade")

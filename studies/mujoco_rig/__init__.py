@@ -16,9 +16,12 @@ by a fixed tendon ``q2 - q1`` whose stiffness is the joint spring. What MuJoCo i
 
 What this module adds as applied forces, written here, not taken from jaxflex: the LuGre
 bristle force (its state advanced exactly for the velocity frozen over a physics step),
-a direction-dependent Coulomb level inside the LuGre curve, cogging on either side, a
-cubic spring term, and disturbances outside jaxflex's effect library (a vibration of the
-base, a stiffness that ripples with position). A time delay is the exact transport delay
+a direction-dependent Coulomb level (and, for ``asymmetric_friction_2``, a static level of its
+own) inside the LuGre curve, cogging on either side (with a second harmonic for
+``cogging_2``), a cubic spring term (and a fifth-power one for ``hardening_spring_2``), a
+Stribeck excess on the rotor beside MuJoCo's Coulomb constraint (``motor_friction_2``), a
+second-order current loop on the command (``actuator_lag_2``), and disturbances outside
+jaxflex's effect library (a vibration of the base, a stiffness that ripples with position). A time delay is the exact transport delay
 of the sampled command (a buffer at the physics step, not a Pade approximant); an encoder
 skew is the link channel read late by a separate recorder, interpolated from the physics
 steps.
@@ -45,6 +48,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
+from jaxflex.core.effects import EFFECTS
 from jaxflex.identify.datagen import draw_effect
 from jaxflex.io.logs import Log
 from jaxflex.io.presets import paper_params
@@ -52,6 +56,44 @@ from jaxflex.io.presets import paper_params
 LOOPS: tuple[str, ...] = ("drive", "open_loop")
 EXCITATIONS: tuple[str, ...] = ("moves", "chirp")
 DISTURBANCES: tuple[str, ...] = ("vibration", "stiffness_ripple")
+def draw_rig_effect(name: str, rng: np.random.Generator, scale: float = 1.0) -> dict[str, float]:
+    """The parameters of effect ``name`` on the rig: an order-1 effect's moderate magnitudes
+    times ``scale`` (``jaxflex.identify.datagen.draw_effect``, the generator's draws); a
+    family's order 2 (``cogging_2``, ``hardening_spring_2``, ``asymmetric_friction_2``,
+    ``motor_friction_2``, ``actuator_lag_2``) its order 1's draw plus the terms of order 2,
+    sized here so that the order-1 term alone leaves a clear part of them: a second harmonic
+    of 40-70% of the fundamental, a fifth-power spring term equal to 50-100% of the cubic
+    one at a deflection of 0.05 rad, a static level shifted 0.02-0.04 N m further than the
+    Coulomb level, a Stribeck excess of 70-120% of the rotor's Coulomb level below 0.05-0.15
+    rad/s, a current loop with 1 / natural frequency 2-4 ms and damping 0.4-0.7. The keys are the
+    jaxflex class's parameters."""
+    if name not in EFFECTS or EFFECTS[name].order == 1:
+        return draw_effect(name, rng, scale)  # an unknown name: its error
+    if name not in HIGHER_DRAWS:
+        raise ValueError(f"the rig has no draw for {name!r}; its orders 2: {sorted(HIGHER_DRAWS)}")
+    kw = draw_effect(EFFECTS[name].family_name(), rng, scale)
+    return {**kw, **HIGHER_DRAWS[name](kw, rng)}
+
+
+#: The terms of each order 2 the rig draws, from its order 1's draw (``draw_rig_effect``).
+HIGHER_DRAWS: dict[str, Any] = {
+    "cogging_2": lambda kw, rng: {"A2": kw["A"] * rng.uniform(0.4, 0.7),
+                                  "phi2": rng.uniform(-math.pi, math.pi)},
+    "hardening_spring_2": lambda kw, rng: {"K5": kw["K3"] * rng.uniform(0.5, 1.0) / 0.05**2},
+    "asymmetric_friction_2": lambda kw, rng: {
+        "dS": kw["dF"] + math.copysign(rng.uniform(0.02, 0.04), kw["dF"])},
+    "motor_friction_2": lambda kw, rng: {"Fsm": kw["Fm"] * rng.uniform(0.7, 1.2),
+                                         "vsm": rng.uniform(0.05, 0.15)},
+    "actuator_lag_2": lambda kw, rng: {"T": rng.uniform(2e-3, 4e-3),
+                                       "zeta": rng.uniform(0.4, 0.7)},
+}
+
+
+def _family(eff: dict[str, dict[str, float]], name: str) -> dict[str, float] | None:
+    """The parameters of whichever order of family ``name`` the rig holds (None: none)."""
+    return next((kw for k, kw in eff.items() if EFFECTS[k].family_name() == name), None)
+
+
 @dataclasses.dataclass
 class RigLog:
     """A log of the MuJoCo rig (``jaxflex.io.logs.Log``) and its truth: hidden effects with
@@ -81,12 +123,12 @@ def rig_xml(plant: dict[str, float], fr: dict[str, float], eff: dict[str, dict[s
     else:
         link_inertial = f'<inertial pos="0 0 0" mass="1" diaginertia="{I:.12g} {I:.12g} {I:.12g}"/>'
         gravity = "0 0 0"
-    mf = eff.get("motor_friction", {"Fm": 0.0, "bm": 0.0})
+    mf = _family(eff, "motor_friction") or {"Fm": 0.0, "bm": 0.0}
     rotor_friction = (f'frictionloss="{mf["Fm"]:.12g}" damping="{mf["bm"]:.12g}" '
                       f'solreffriction="{4 * physics_dt:.6g} 1"')
     b = eff.get("backlash", {}).get("b", 0.0)
     D = eff.get("joint_damping", {}).get("D", 0.0)
-    lag = eff.get("actuator_lag")
+    lag = eff.get("actuator_lag")  # order 2 is this module's own filter (simulate_rig)
     dyn = f'dyntype="filterexact" dynprm="{lag["T"]:.12g}"' if lag else 'dyntype="none"'
     return f"""
 <mujoco model="flexible_joint_rig">
@@ -208,7 +250,7 @@ def simulate_rig(
         fr[k] *= math.exp(mismatch * rng.standard_normal())
     fr["Fs"] = max(fr["Fs"], 1.05 * fr["Fc"])
     # the magnitudes of jaxflex's generator (each class's ``moderate`` x scale, the same draws)
-    eff = {name: draw_effect(name, rng, scale) for name in effects}
+    eff = {name: draw_rig_effect(name, rng, scale) for name in effects}
     if "backlash" in eff:
         eff["backlash"]["K"] = plant["K"]
     dist: dict[str, float] = {}
@@ -262,10 +304,16 @@ def simulate_rig(
     delay = eff.get("time_delay", {}).get("T", 0.0)
     lag_steps = delay / physics_dt  # transport delay of the command, in physics steps
     offset = eff.get("torque_offset", {}).get("offset", 0.0)
-    cog = eff.get("cogging")
+    cog = _family(eff, "cogging")
     mcog = eff.get("motor_cogging")
-    K3 = eff.get("hardening_spring", {}).get("K3", 0.0)
-    dF = eff.get("asymmetric_friction", {}).get("dF", 0.0)
+    spring = _family(eff, "hardening_spring") or {}
+    K3, K5 = spring.get("K3", 0.0), spring.get("K5", 0.0)
+    asym = _family(eff, "asymmetric_friction") or {}
+    dF = asym.get("dF", 0.0)
+    dS = asym.get("dS", dF)
+    stribeck = eff.get("motor_friction_2")
+    loop2 = eff.get("actuator_lag_2")
+    a2, da2 = 0.0, 0.0  # the current loop's output and its rate
     s0, s1, Fc, Fs, vs = fr["sigma0"], fr["sigma1"], fr["Fc"], fr["Fs"], fr["vs"]
     K = plant["K"]
     hist_len = int(math.ceil(lag_steps)) + 2
@@ -301,11 +349,18 @@ def simulate_rig(
                 applied = cmd_hist[i0] + (i - i0) * (cmd_hist[min(i0 + 1, hist_len - 1)] - cmd_hist[i0])
             else:
                 applied = cmd
+            if loop2:  # T^2 a'' + 2 zeta T a' + a = command, semi-implicit at the physics step
+                T2, z2 = loop2["T"], loop2["zeta"]
+                da2 += physics_dt * (applied - a2 - 2 * z2 * T2 * da2) / T2**2
+                a2 += physics_dt * da2
+                applied = a2
             data.ctrl[0] = applied + offset
             q1, q2 = data.qpos[LINK], data.qpos[ROTOR]
             v1 = data.qvel[LINK]
             # LuGre bristles (docs/spec.md eq. 4-6), a direction-dependent Coulomb level
-            g = Fc + (dF * math.copysign(1.0, v1) if v1 != 0 else 0.0) + (Fs - Fc) * math.exp(-(v1 / vs) ** 2)
+            e1 = math.exp(-(v1 / vs) ** 2)
+            g = Fc + (Fs - Fc) * e1 + ((dF + (dS - dF) * e1) * math.copysign(1.0, v1)
+                                       if v1 != 0 else 0.0)
             a = s0 * abs(v1) / g
             zdot = v1 - a * z
             f_link = -(s0 * z + s1 * zdot)
@@ -316,13 +371,19 @@ def simulate_rig(
                 z += v1 * physics_dt
             f_rotor = 0.0
             d = q2 - q1
-            spring_extra = K3 * d**3
+            spring_extra = K3 * d**3 + K5 * d**5
             if disturbance == "stiffness_ripple":
                 spring_extra += dist["e"] * K * math.sin(dist["N"] * q1 + dist["phi"]) * d
             f_link += spring_extra
             f_rotor -= spring_extra
             if cog:
                 f_link += cog["A"] * math.sin(cog["N"] * q1 + cog["phi"])
+                if "A2" in cog:
+                    f_link += cog["A2"] * math.sin(2 * cog["N"] * q1 + cog["phi2"])
+            if stribeck:  # beside MuJoCo's Coulomb constraint: the excess, smoothed at 2 mrad/s
+                v2 = data.qvel[ROTOR]
+                f_rotor -= (stribeck["Fsm"] * math.exp(-(v2 / stribeck["vsm"]) ** 2)
+                            * math.tanh(v2 / 0.002))
             if mcog:
                 f_rotor += mcog["A"] * math.sin(mcog["N"] * q2 + mcog["phi"])
             if disturbance == "vibration":
