@@ -811,3 +811,26 @@ def test_ctrl_c_stops_a_real_discover_run(tmp_path):
     assert p.returncode == 130, err
     assert time.time() - t0 < 10.0 and "Traceback" not in err
     assert not (tmp_path / "new").exists()
+
+
+def test_a_ctrl_c_that_a_callback_swallows_still_stops_the_command():
+    """A KeyboardInterrupt raised inside a finaliser (as in JAX's garbage-collection callback)
+    is printed as "Exception ignored" and lost; inside ``interrupts_stop`` (identify's and
+    discover's computations) the signal is recorded, so the block still ends in
+    KeyboardInterrupt. Without it the block would run to its end."""
+    import os
+    import time
+
+    from jaxflex.app.cli.outputs import interrupts_stop
+
+    class Swallows:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the handler runs here; its exception is ignored
+
+    ran_on = False
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_stop():
+            Swallows()
+            ran_on = True
+    assert ran_on  # the interrupt was swallowed where it landed and raised at the block's end

@@ -246,15 +246,21 @@ def run(args: argparse.Namespace) -> int:
     # run waits for its compiled solver
     threading.Thread(target=importlib.import_module, args=("jaxflex.app.plots.identify",),
                      name="jaxflex-import-figures", daemon=True).start()
+    from jaxflex.app.cli.outputs import interrupts_stop, writing
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentificationWarning)  # printed below, once
         try:
-            res = identify(log, init if args.params is not None else None, free, model=model,
-                           pin=pins,
-                           segment_length="auto" if args.segment == "auto" else seg,
-                           substeps=args.substeps, max_steps=args.max_steps,
-                           progress=None if args.quiet else Printer(every=5,
-                                                                    prefix="  [identify] "))
+            # a Ctrl-C stops the command even where it lands in a callback that swallows it
+            with interrupts_stop():
+                res = identify(log, init if args.params is not None else None, free,
+                               model=model, pin=pins,
+                               segment_length="auto" if args.segment == "auto" else seg,
+                               substeps=args.substeps, max_steps=args.max_steps,
+                               progress=None if args.quiet else Printer(
+                                   every=5, prefix="  [identify] "))
+                if args.closed_loop:
+                    _closed_loop(res, log, loop, model, args.max_steps, say)
         except (np.linalg.LinAlgError, FloatingPointError) as e:
             # the fit ran into non-finite values (a diverged replay): a result that did not
             # converge, not a bad input; nothing is written
@@ -262,16 +268,15 @@ def run(args: argparse.Namespace) -> int:
                   "nothing written. Check the hints above, the start file and --model",
                   file=sys.stderr)
             return 3
-    if args.closed_loop:
-        _closed_loop(res, log, loop, model, args.max_steps, say)
     _declare(res.params, model, why, axis, side)
     out = Path(args.out)
-    save_params(res.params, out)
     fig = Path(args.figure) if args.figure else out.with_suffix(".png")
     from jaxflex.app.plots import save_figure
     from jaxflex.app.plots.identify import plot_fit
 
-    save_figure(plot_fit(res), fig)
+    with writing():  # the file and its figure, or nothing, Ctrl-C included
+        save_params(res.params, out)
+        save_figure(plot_fit(res), fig)
     print(res.table())
     for w in res.warnings:
         print(f"warning: {w}")
@@ -366,10 +371,12 @@ def _rotor(args: argparse.Namespace, log: Any, model: str, why: str, start_file:
     say(f"[identify] {log.N} samples at {1e3 * log.dt:g} ms, {log.n} joint(s), model {model} "
         f"({why}), free {[k for k in free if k not in pins]}; equation error on the torque "
         "from the measured motion")
-    res = identify_rotor(log, init, free, pin=pins, max_steps=args.max_steps)
+    from jaxflex.app.cli.outputs import interrupts_stop, writing
+
+    with interrupts_stop():  # a Ctrl-C stops the command wherever it lands
+        res = identify_rotor(log, init, free, pin=pins, max_steps=args.max_steps)
     _declare(res.params, model, why, axis, side)
     out = Path(args.out)
-    save_params(res.params, out)
     fig = Path(args.figure) if args.figure else out.with_suffix(".png")
     from jaxflex.app.plots import save_figure
     from jaxflex.app.plots.validate import plot_validation_log
@@ -377,8 +384,11 @@ def _rotor(args: argparse.Namespace, log: Any, model: str, why: str, start_file:
 
     series = {"t": log.t, "tau": log.tau, "q": log.q1, "closed_loop": None,
               "tau_hat": torque_prediction(res.params, log, kind="rotor")}
-    save_figure(plot_validation_log(series, units=("rad", "N m"), title=(
-        f"rotor model on the identification log: torque error {res.torque_pct:.3g}%")), fig)
+    with writing():  # the file and its figure, or nothing, Ctrl-C included
+        save_params(res.params, out)
+        save_figure(plot_validation_log(series, units=("rad", "N m"), title=(
+            f"rotor model on the identification log: torque error {res.torque_pct:.3g}%")),
+            fig)
     print(res.table())
     say(f"[identify] wrote {out} and {fig} ({res.wall_s:.1f} s)")
     if not res.converged:
