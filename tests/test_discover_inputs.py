@@ -85,9 +85,10 @@ def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
     assert rep["answer"].startswith(rep["effect"]) and len(rep["effects_tied"]) <= 1
     assert np.isfinite(rep["gap_before"]) and rep["gap_before"] < 0.05
     assert "rigid model" in out
-    # the final model's residual analysis (MATLAB's resid) per output, and its figure
+    # the final model's residual analysis (MATLAB's resid) on its one encoder (the log's q2
+    # is q1: compared once), and its figure
     ra = rep["residual_analysis"]
-    assert set(ra["channels"]) == {"q1", "q2"} and ra["lags"] == 25
+    assert set(ra["channels"]) == {"q1"} and ra["lags"] == 25
     for c in ra["channels"].values():
         assert len(c["autocorrelation"]) == 26 and len(c["cross_correlation"]) == 51
         assert 0 <= c["p_white"] <= 1 and c["band"] > 0 and c["cross_band"] > 0
@@ -346,3 +347,22 @@ def test_an_unconverged_identification_is_refused_unless_accepted(tmp_path, caps
     assert "p.json: refused: the identification did not converge" in err and "ran" not in err
     assert main(["--accept-unconverged"] + argv) == 2
     assert "ran" in capsys.readouterr().err
+
+
+def test_a_one_encoder_log_is_compared_once():
+    """A log whose q2 column is its q1 (one encoder) is replayed and compared on q1 alone, so
+    no sample counts twice in the evidence; a two-encoder log on both."""
+    from jaxflex.discover.candidates import replayed_outputs, workspace
+    from jaxflex.identify.datagen import generate_log
+    from jaxflex.io.logs import Log
+    from jaxflex.io.presets import paper_params
+
+    two = generate_log((), seed=1, t_final=3.0).log
+    one = Log.from_arrays(t=two.t, tau=two.tau, q1=two.q1, q2=two.q1)
+    assert replayed_outputs(two) == ("q1", "q2") and replayed_outputs(one) == ("q1",)
+    kw = dict(segment=0.3, train_frac=0.5, substeps=1, max_effects=1)
+    ws1, ws2 = (workspace(g, paper_params(), ("torque_offset",), **kw) for g in (one, two))
+    assert ws1.train.outputs == ws1.test.outputs == ("q1",)
+    assert ws2.train.outputs == ("q1", "q2")
+    assert np.asarray(ws2.train.segs.y_meas).shape[-1] == 2
+    assert np.asarray(ws1.train.segs.y_meas).shape[-1] == 1

@@ -125,6 +125,16 @@ class Workspace(eqx.Module):
         return {k: fit.theta.get(k, v) for k, v in theta0.items()}
 
 
+def replayed_outputs(log: Log) -> tuple[str, ...]:
+    """The angles a replay of ``log`` is compared with: ("q1", "q2"), or ("q1",) where the
+    two columns are one encoder's samples (q2 = q1: a rigid axis read once). Compared twice,
+    one measurement would count every sample twice in the evidence (the effective count,
+    every F-test, information criterion and tie) and a floor drawn with two independent
+    noises would not be the log's."""
+    q1, q2 = np.asarray(log.q1), np.asarray(log.q2)
+    return ("q1",) if q2.shape == q1.shape and np.array_equal(q1, q2) else ("q1", "q2")
+
+
 def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: float,
               train_frac: float, substeps: int, max_effects: int) -> Workspace:
     """Cut ``log`` into training and held-out segments [s] and build the gated universal
@@ -173,7 +183,8 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
     # Savitzky-Golay velocities from the log, the bristle load that balances the link's
     # inverse dynamics there (``bristle_entries``; the start z is bounded, Problem.bounded_z)
     plant = nominal.to_plant(with_effects=False)
-    kw = dict(kind="flexible", outputs=("q1", "q2"), length=L)
+    outputs = replayed_outputs(log)
+    kw = dict(kind="flexible", outputs=outputs, length=L)
 
     def segments(a, b):
         segs = make_segments(log, start=a, stop=b, **kw)
@@ -193,7 +204,7 @@ def workspace(log: Log, nominal: Params, universe: Sequence[str], *, segment: fl
         # segment that starts in stick carries a bristle load between the steady states
         return Problem(space=space, segs=segs, w_y=to_device(1.0 / scale),
                        w_def=to_device(np.zeros(5)), dt=dt, kind="flexible", substeps=substeps,
-                       outputs=("q1", "q2"), free_starts=True, bounded_z=True,
+                       outputs=outputs, free_starts=True, bounded_z=True,
                        jac_columns=columns, rolled_stages=True)
 
     # no parameter is fitted on the held-out segments (only their starts): no theta tangents

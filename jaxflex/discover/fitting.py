@@ -372,7 +372,7 @@ def without_effect(ws: Workspace, fit: CandidateFit, name: str, *, max_steps: in
 
 def held_out_mse(ws: Workspace, fit: CandidateFit) -> np.ndarray:
     """Mean squared error [rad^2] of a fitted model's replay per held-out segment and output
-    (S, C): (q1, q2)."""
+    (S, C): (q1, q2), or q1 alone (``replayed_outputs``)."""
     y_meas = np.asarray(ws.test.segs.y_meas)  # the held-out measurements, any model
     return np.mean((held_out_traces(ws, fit) - y_meas) ** 2, axis=1)
 
@@ -385,7 +385,7 @@ def segment_errors(ws: Workspace, fit: CandidateFit) -> np.ndarray:
 
 
 def held_out_traces(ws: Workspace, fit: CandidateFit) -> np.ndarray:
-    """Simulated outputs (S, L, 2) = (q1, q2) [rad] of a fitted model on the held-out
+    """Simulated outputs (S, L, C) = (q1, q2), or q1 alone, [rad] of a fitted model on the held-out
     segments (for plots)."""
     _, test, _ = ws.for_model(fit.model)
     return np.asarray(simulated_outputs(test, (ws.theta_of(fit), fit.test_starts)))
@@ -442,10 +442,10 @@ def gap_floor(log: Log, ws: Workspace, fit: CandidateFit, *, draws: int = 3,
     ``held_out_starts``).
 
     Returns ``floor`` (mean over ``draws``), ``floor_sd`` (their spread), ``noise_std`` and
-    ``step`` [rad] per output (q1, q2), ``segments`` used."""
+    ``step`` [rad] per output (q1, q2; q1 alone on a one-encoder log), ``segments`` used."""
     _, test, _ = ws.for_model(fit.model)
     th = ws.theta_of(fit)
-    chans = [np.asarray(log.q1, float)[:, 0], np.asarray(log.q2, float)[:, 0]]
+    chans = [np.asarray(getattr(log, name), float)[:, 0] for name in test.outputs]
     steps = [noise_level(c)["step"] for c in chans]
     sig = [math.sqrt(max(white_noise_std(c) ** 2 - st**2 / 12.0, 0.0))
            for c, st in zip(chans, steps)]

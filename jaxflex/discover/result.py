@@ -177,7 +177,8 @@ class DiscoverResult:
             "families": self.families, "orders": self.orders, "tied": list(self.tied),
             "effects_tied": self.effects_tied, "answer": self.answer(),
             "gap_before": self.gap_before, "gap_after": self.gap_after,
-            "gap_metric": "normalised RMS error of simulated q1 and q2 over held-out segments "
+            "gap_metric": "normalised RMS error of simulated q1 and q2 (q1 alone where the log's "
+                          "two columns are one encoder's) over held-out segments "
                           "(open-loop replay under logged torque from start states fitted "
                           "with the parameters fixed), relative to the measured motion within "
                           "each segment",
