@@ -33,9 +33,11 @@ def test_the_answer_names_the_family_and_its_order():
     assert res.answer() == "cogging order 2: cogging order 2, then time_delay | actuator_lag"
 
 
-def _run(**effects):
+def _run(candidates=CANDS, **effects):
+    """Discovery (two effects at most) on a 10 s log of the independent joint with
+    ``effects``, trying ``candidates``."""
     log = simulate(10.0, **effects)
-    return discover(log, paper_params(), DiscoverConfig(candidates=CANDS, max_effects=2))
+    return discover(log, paper_params(), DiscoverConfig(candidates=candidates, max_effects=2))
 
 
 @pytest.mark.slow
@@ -74,10 +76,8 @@ def test_a_rotor_friction_with_a_stribeck_term_is_named_motor_friction_order_2()
     def rotor(v):
         return -((0.02 + 0.03 * math.exp(-((v / 0.1) ** 2))) * math.tanh(v / 0.01) + 0.01 * v)
 
-    log = simulate(10.0, rotor_friction=rotor)
-    rep = discover(log, paper_params(), DiscoverConfig(
-        candidates=("motor_friction", "asymmetric_friction", "torque_offset", "joint_damping"),
-        max_effects=2)).to_json()
+    rep = _run(("motor_friction", "asymmetric_friction", "torque_offset", "joint_damping"),
+               rotor_friction=rotor).to_json()
     assert (rep["effect"], rep["order"], rep["effects"]) == ("motor_friction", 2,
                                                             ["motor_friction_2"])
     assert rep["explained_fraction"] >= 0.75
@@ -93,9 +93,7 @@ SPRING_CANDS = ("hardening_spring", "backlash", "joint_damping", "torque_offset"
 def test_a_spring_with_a_fifth_power_is_named_hardening_spring_order_2():
     """K d + 70 d^3 + 7000 d^5 [N m] (deflections up to 0.13 rad): the cubic term alone
     leaves part of the gap; the fifth power pays, closes it, and both are recovered."""
-    log = simulate(10.0, spring=lambda d: 70.0 * d**3 + 7000.0 * d**5)
-    rep = discover(log, paper_params(), DiscoverConfig(candidates=SPRING_CANDS,
-                                                       max_effects=2)).to_json()
+    rep = _run(SPRING_CANDS, spring=lambda d: 70.0 * d**3 + 7000.0 * d**5).to_json()
     assert (rep["effect"], rep["order"], rep["effects"]) == ("hardening_spring", 2,
                                                             ["hardening_spring_2"])
     assert rep["explained_fraction"] >= 0.75
@@ -107,9 +105,7 @@ def test_a_spring_with_a_fifth_power_is_named_hardening_spring_order_2():
 @pytest.mark.slow
 def test_a_cubic_spring_stays_hardening_spring_order_1():
     """K d + 120 d^3: the fifth power does not pay; the answer is order 1 with K3 recovered."""
-    log = simulate(10.0, spring=lambda d: 120.0 * d**3)
-    rep = discover(log, paper_params(), DiscoverConfig(candidates=SPRING_CANDS,
-                                                       max_effects=2)).to_json()
+    rep = _run(SPRING_CANDS, spring=lambda d: 120.0 * d**3).to_json()
     assert (rep["effect"], rep["order"], rep["effects"]) == ("hardening_spring", 1,
                                                             ["hardening_spring"])
     assert not rep["rounds"][0]["orders"][0]["kept"]
@@ -125,9 +121,7 @@ def test_a_static_level_that_differs_by_direction_is_named_asymmetric_friction_o
     """The simulator's LuGre levels per direction, inside its g(v): Coulomb 0.10 +- 0.02,
     static 0.16 +- 0.05 N m. The Coulomb shift alone leaves part of the gap; the static one
     pays, closes it, and both shifts are recovered."""
-    log = simulate(10.0, asymmetry=(0.02, 0.05))
-    rep = discover(log, paper_params(), DiscoverConfig(candidates=ASYM_CANDS,
-                                                       max_effects=2)).to_json()
+    rep = _run(ASYM_CANDS, asymmetry=(0.02, 0.05)).to_json()
     assert (rep["effect"], rep["order"], rep["effects"]) == ("asymmetric_friction", 2,
                                                             ["asymmetric_friction_2"])
     assert rep["explained_fraction"] >= 0.75
@@ -140,9 +134,7 @@ def test_a_static_level_that_differs_by_direction_is_named_asymmetric_friction_o
 def test_levels_that_differ_alike_by_direction_stay_asymmetric_friction_order_1():
     """Coulomb and static levels both 0.03 N m apart per direction: the static shift does not
     pay; the answer is order 1 with dF recovered."""
-    log = simulate(10.0, asymmetry=(0.03, 0.03))
-    rep = discover(log, paper_params(), DiscoverConfig(candidates=ASYM_CANDS,
-                                                       max_effects=2)).to_json()
+    rep = _run(ASYM_CANDS, asymmetry=(0.03, 0.03)).to_json()
     assert (rep["effect"], rep["order"], rep["effects"]) == ("asymmetric_friction", 1,
                                                             ["asymmetric_friction"])
     assert not rep["rounds"][0]["orders"][0]["kept"]
@@ -156,10 +148,8 @@ def test_a_current_loop_that_a_delay_beats_at_order_1_is_named_actuator_lag_orde
     order 1 the delay wins the round (its held-out gap a third of the first-order lag's);
     the lag, a rival of the contest, is grown, its order 2 pays over the delay, and the
     current loop is recovered."""
-    log = simulate(10.0, lag=(150.0, 0.5))
-    rep = discover(log, paper_params(), DiscoverConfig(
-        candidates=("actuator_lag", "time_delay", "torque_offset", "motor_friction"),
-        max_effects=2)).to_json()
+    rep = _run(("actuator_lag", "time_delay", "torque_offset", "motor_friction"),
+               lag=(150.0, 0.5)).to_json()
     assert (rep["effect"], rep["order"], rep["effects"]) == ("actuator_lag", 2,
                                                             ["actuator_lag_2"])
     assert "contest_orders" in rep["rounds"][0]
