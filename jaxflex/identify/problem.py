@@ -99,7 +99,7 @@ def make_problem(
         raise ValueError(f"identify: output_scale must be positive, got {output_scale}")
     scale = np.maximum(scale, 1e-6)
     segs = make_segments(log, kind=model, outputs=outputs, length=L,
-                         friction=plant.friction)
+                         friction=plant.lugre)
     dt = log.dt
     if model == "rigid":
         w_def = np.array([1.0, L * dt / 2, 1.0])

@@ -59,7 +59,7 @@ def _replay_problem(params: Params, log: Log, kind: str, length: int | None,
     L = min(log.N, length or max(20, int(round(0.5 / log.dt))))
     outputs = output_columns(log, kind, None)
     segs = make_segments(log, kind=kind, outputs=outputs, length=L,
-                         friction=plant.friction)
+                         friction=plant.lugre)
     space = ParamSpace.build(plant, ["J"])  # evaluated at the base values: nothing is fitted
     n_state = segs.x0.shape[1]
     prob = Problem(space=space, segs=segs, w_y=jnp.asarray(1.0), w_def=jnp.zeros(n_state),
