@@ -108,6 +108,19 @@ def simulate(duration: float, noise_counts: float = 0.0, seed: int = 0,
     return log
 
 
+def log_and_start(duration: float, noise_counts: float = 0.0) -> tuple[Any, Any]:
+    """The closed loop's log (``simulate``) as a ``jaxflex.io.logs.Log`` and the start file's
+    parameters (``START_FACTORS``) as ``jaxflex.io.params.Params``, for in-process use."""
+    from jaxflex.io.logs import Log
+    from jaxflex.io.params import Params
+
+    arrays = simulate(duration, noise_counts)
+    log = Log.from_arrays(**{k: arrays[k] for k in ("t", "tau", "q1", "q2")})
+    start = Params.from_dict({"plant": dict(PLANT), "friction": {
+        k: v * START_FACTORS[k] for k, v in TRUTH.items()}})
+    return log, start
+
+
 def write_log(log: dict[str, np.ndarray], path: Path) -> None:
     """The log as a CSV file with the columns of docs/spec.md section 6."""
     cols = ["t", "tau", "q1", "q2"]

@@ -393,10 +393,7 @@ def test_a_start_that_settles_in_a_minimum_of_its_own_does_not_end_the_search():
     the lower minimum, every LuGre parameter within 3 of its standard errors."""
     from studies import ident_independent as study
 
-    arrays = study.simulate(20.0, noise_counts=1.0)
-    log = Log.from_arrays(**{k: arrays[k] for k in ("t", "tau", "q1", "q2")})
-    init = Params.from_dict({"plant": study.PLANT, "friction": {
-        k: v * study.START_FACTORS[k] for k, v in study.TRUTH.items()}})
+    log, init = study.log_and_start(20.0, noise_counts=1.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentificationWarning)
         r = identify(log, init, list(study.TRUTH))

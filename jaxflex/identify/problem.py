@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -21,6 +22,7 @@ from jaxflex.fit import (
     noise_level,
     output_columns,
 )
+from jaxflex.fit.problem import quantised_residual
 from jaxflex.fit.signal import savgol, savgol_coeffs, savgol_window
 from jaxflex.identify.start import DataStart
 from jaxflex.io.logs import Log
@@ -48,6 +50,11 @@ REVERSAL_MARGIN: float = 1.0
 SEGMENT_MIN_S: float = 0.1
 SEGMENT_MAX_S: float = 2.0
 SEGMENT_GRID: int = 125
+#: The readings' model (``reading_model``, ``exact_reading``): the white noise before an
+#: encoder's rounding is at least READ_NOISE_FLOOR of a count, and the exact likelihood
+#: replaces the Gaussian where a count is at least QUANTISED_RATIO times that noise.
+READ_NOISE_FLOOR: float = 1.0 / 32.0
+QUANTISED_RATIO: float = 2.0
 
 def make_problem(
     log: Log, init: Params, free: Sequence[str] = DEFAULT_FREE, *, model: ModelKind = "flexible",
@@ -67,7 +74,8 @@ def make_problem(
     its continuity defects) are divided by its value (default: each joint's encoder-noise level
     estimated from its own first output channel, at least 1e-6 rad, so that a joint that moves
     little weighs as much as one that moves a lot and a cost of about n_out / 2 is what noise
-    explains on every joint). ``continuity_weight`` scales the defects.
+    explains on every joint). ``continuity_weight`` scales the defects. The output residual
+    is Gaussian (``exact_reading`` gives the readings' exact likelihood).
     Raises ``ValueError`` naming a bad model, column, parameter or segment length.
     """
     if model not in MODEL_KINDS:
@@ -117,6 +125,83 @@ def make_problem(
                    w_def=jnp.asarray(w_def), dt=dt, kind=model, substeps=substeps,
                    outputs=outputs, free_starts=True)
     return prob, prob.y0()
+
+
+def reading_model(log: Log, prob: Problem) -> tuple[np.ndarray, np.ndarray]:
+    """The readings of ``prob``'s output columns (channel-major) as ``log`` shows them: each
+    encoder's count and the white noise before its rounding, both in ``prob``'s weighted
+    units (``w_y``). The count is ``noise_level``'s step where every reading lies on its grid
+    (``on_grid``; else 0: no rounding); the noise is the log's white noise
+    beyond the rounding's (``total_std^2 - step^2 / 12``), at least ``READ_NOISE_FLOOR`` of a
+    count (the replay is no more exact than that)."""
+    cols = [np.asarray(getattr(log, c), float).reshape(log.N, log.n)[:, j]
+            for c in prob.outputs for j in range(log.n)]
+    levels = [noise_level(c) for c in cols]
+    # a count only where the readings lie on its grid (a float log's smallest increment is none)
+    step = np.array([v["step"] if on_grid(c, v["step"]) else 0.0
+                     for c, v in zip(cols, levels)])
+    total = np.array([v["total_std"] for v in levels])
+    noise = np.maximum(np.sqrt(np.maximum(total**2 - step**2 / 12.0, 0.0)),
+                       READ_NOISE_FLOOR * step)
+    w = np.broadcast_to(np.asarray(prob.w_y, float).reshape(-1), step.shape)
+    return step * w, np.maximum(noise, 1e-300) * w
+
+
+def on_grid(q: np.ndarray, step: float, tol: float = 1e-3) -> bool:
+    """Whether the readings ``q`` all lie on a grid of ``step`` (to ``tol`` of a step)."""
+    if not step > 0:
+        return False
+    k = (q - q[0]) / step
+    return bool(np.max(np.abs(k - np.round(k))) <= tol)
+
+
+def exact_reading(log: Log, prob: Problem) -> Problem | None:
+    """``prob`` with its readings' exact likelihood (``reading_model``,
+    ``jaxflex.fit.quantised_residual``), or None where no output column's count is at least
+    ``QUANTISED_RATIO`` times its noise (a finer count is the Gaussian's variance)."""
+    quantum, noise = reading_model(log, prob)
+    if not np.any(quantum >= QUANTISED_RATIO * noise):
+        return None
+    return dataclasses.replace(prob, quantum=jnp.asarray(quantum),
+                               read_noise=jnp.asarray(noise))
+
+
+def reading_units(prob: Problem, values: Array) -> list[float]:
+    """Per output column, ``values`` in the problem's weighted units back in rad."""
+    w = np.broadcast_to(np.asarray(prob.w_y, float).reshape(-1), np.shape(values))
+    return [float(v) for v in np.asarray(values, float) / w]
+
+
+@jax.jit
+def _residual_on_host(e: Array, quantum: Array) -> Array:
+    """``quantised_residual`` compiled once (the quadrature's grid)."""
+    return quantised_residual(e, quantum)
+
+
+def reading_statistics(prob: Problem) -> tuple[float, float]:
+    """``noise_statistics`` for a problem with the readings' exact likelihood
+    (``exact_reading``): the expected cost 0.5 ||r||^2 of its output residuals and that
+    cost's relative standard deviation, where every model angle is the truth and the reading
+    the truth plus the noise, rounded; by quadrature of each column's residual over the
+    reading error's density (Phi(h - e) - Phi(-h - e)) / 2h, noise units, h half a count)."""
+    from scipy.special import ndtr  # scipy: loaded here
+
+    L = int(prob.segs.y_meas.shape[0] * prob.segs.y_meas.shape[1])
+    q = np.asarray(prob.quantum, float) / np.asarray(prob.read_noise, float)
+    means, variances = [], []
+    for qc in np.atleast_1d(q):
+        h = 0.5 * qc
+        e = np.linspace(-h - 12.0, h + 12.0, 4001)
+        dens = (ndtr(h - e) - ndtr(-h - e)) / max(2 * h, 1e-300)
+        if h <= 1e-3:  # no grid: the unit normal
+            dens = np.exp(-0.5 * e**2) / math.sqrt(2 * math.pi)
+        dens = dens / np.trapezoid(dens, e)
+        f = 0.5 * np.asarray(_residual_on_host(e, qc))**2
+        m = float(np.trapezoid(f * dens, e))
+        means.append(m)
+        variances.append(float(np.trapezoid(f**2 * dens, e)) - m**2)
+    total = L * float(np.sum(means))
+    return total, math.sqrt(L * max(float(np.sum(variances)), 0.0)) / total
 
 
 #: The model kinds ``identify`` takes, and "auto": the kind the log's encoders suggest.
