@@ -1,5 +1,5 @@
 """The readings' model of an identification: an encoder's count and the white noise before its
-rounding, and the exact likelihood of a rounded reading (``jaxflex.fit.quantised_residual``,
+rounding, and the exact likelihood of a rounded reading (``jaxflex.fit.readings.quantised_residual``,
 ``jaxflex.identify.problem``'s ``reading_model``, ``exact_reading``, ``reading_statistics``)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from jaxflex.fit.problem import quantised_residual, quantised_slope
+from jaxflex.fit.readings import quantised_residual, quantised_slope
 from jaxflex.identify import IdentificationWarning, identify
 from jaxflex.identify.problem import (
     READ_NOISE_FLOOR,

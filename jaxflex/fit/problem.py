@@ -35,6 +35,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
 from jaxflex.core.effects import link_input, link_measurement
+from jaxflex.fit.readings import quantised_residual, quantised_slope
 from jaxflex.fit.signal import savgol
 from jaxflex.fit.space import ParamSpace
 from jaxflex.core.friction import LuGre
@@ -378,10 +379,14 @@ class Problem(eqx.Module):
         """d r / d e of the output residuals at replays ``out`` (None: 1, Gaussian)."""
         if self.quantum is None:
             return None
-        n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
-        e = self.w_y * (out[:, :n_y].reshape(self.segs.y_meas.shape) - self.segs.y_meas)
+        e = self._output_error(out, self.segs.y_meas)
         return quantised_slope(e / self.read_noise,
                                self.quantum / self.read_noise) / self.read_noise
+
+    def _output_error(self, out: Array, y_ref: Any) -> Array:
+        """Weighted output errors ``w_y (outputs - y_ref)`` (S, L, n_out) of replays ``out``."""
+        n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
+        return self.w_y * (out[:, :n_y].reshape(self.segs.y_meas.shape) - y_ref)
 
     def _assemble(self, out: Array, nxt: Array, y_ref: Any, dims: tuple[int, int],
                   slope: Array | None = None) -> Array:
@@ -392,7 +397,7 @@ class Problem(eqx.Module):
         n_y = self.segs.y_meas.shape[1] * self.segs.y_meas.shape[2]
         n_state, n = dims
         act = self.segs.active
-        e = self.w_y * (out[:, :n_y].reshape(self.segs.y_meas.shape) - y_ref)
+        e = self._output_error(out, y_ref)
         if slope is not None:  # a linearisation: the output residual's own slope
             r = slope * e
         elif self.quantum is not None:
@@ -524,63 +529,6 @@ class Problem(eqx.Module):
         if self.segs.active is not None:
             e, ref = (jnp.where(self.segs.active[:, None, None], a, 0.0) for a in (e, ref))
         return jnp.sqrt(jnp.sum(e) / jnp.sum(ref))
-
-
-#: Distance past a reading's cell [noise standard deviations] beyond which
-#: ``quantised_residual`` continues with slope 1.
-QUANTISED_TAIL: float = 30.0
-#: A grid whose half-width is at most this many noise standard deviations is no grid: the
-#: residual is the Gaussian e (the rounding adds a variance of 1 / 12 of its square).
-READING_GAUSS: float = 1e-3
-
-
-def _quantised_nll(a: Array, h: Array) -> Array:
-    """-log P(|e| = a) of a reading rounded to a grid of half-width h after unit Gaussian
-    noise: -log(Phi(h - a) - Phi(-h - a)), a >= 0. Inside the cell (a < h) as
-    -log1p(-(Phi(a - h) + Phi(-h - a))), the two small tails exact; outside from the
-    logarithms of the normal's tails."""
-    inside = a < h
-    a_in = jnp.where(inside, a, 0.0)
-    tails = jax.scipy.special.ndtr(a_in - h) + jax.scipy.special.ndtr(-h - a_in)
-    hi = jax.scipy.special.log_ndtr(h - a)
-    lo = jax.scipy.special.log_ndtr(-h - a)
-    return jnp.where(inside, -jnp.log1p(-tails), -(hi + jnp.log(-jnp.expm1(lo - hi))))
-
-
-def quantised_residual(e: Array, quantum: Array) -> Array:
-    """The output residual r of a reading: the angle plus unit white Gaussian noise, rounded
-    to a grid of ``quantum`` (noise standard deviations); ``e`` is the model's angle minus the
-    reading. 0.5 r^2 is the reading's negative log-likelihood -log(Phi(h - e) - Phi(-h - e)),
-    h = quantum / 2, above its value at e = 0, with r's sign that of e: e itself without a
-    grid (``quantum`` <= 2 ``READING_GAUSS``), about 0 inside the reading's cell and |e| - h
-    outside it for a grid far coarser than the noise, so that a model anywhere in the cell
-    fits the reading (a least-squares residual pulls it to the cell's centre, a bias where
-    the angle dwells in one cell)."""
-    gauss = 0.5 * quantum <= READING_GAUSS
-    h = jnp.where(gauss, 1.0, 0.5 * quantum)
-    # far out of the cell (past h + QUANTISED_TAIL) the slope is 1 to within 0.5 %: continue
-    # linearly (the normal tail's logarithms lose their digits there)
-    a_far = h + QUANTISED_TAIL
-    a = jnp.minimum(jnp.abs(e), a_far)
-    q = 2.0 * (_quantised_nll(a, h) - _quantised_nll(jnp.zeros_like(h), h))
-    # near e = 0 (or where the difference rounds away) the Taylor term e sqrt(nll''(0))
-    small = (a < 1e-4) | (q < 1e-24)
-    q_safe = jnp.where(small, 1.0, q)
-    tail = jnp.maximum(jnp.abs(e) - a_far, 0.0)
-    r = jnp.where(small, e * jnp.sqrt(_quantised_curvature(h)),
-                  jnp.sign(e) * (jnp.sqrt(q_safe) + tail))
-    return jnp.where(gauss, e, r)
-
-
-def _quantised_curvature(h: Array) -> Array:
-    """d^2/de^2 of ``_quantised_nll`` at e = 0: 2 h phi(h) / (2 Phi(h) - 1)."""
-    phi = jnp.exp(-0.5 * h**2) / jnp.sqrt(2.0 * jnp.pi)
-    return 2.0 * h * phi / jnp.maximum(jax.scipy.special.erf(h / jnp.sqrt(2.0)), 1e-300)
-
-
-def quantised_slope(e: Array, quantum: Array) -> Array:
-    """d r / d e of ``quantised_residual`` (elementwise)."""
-    return jax.jvp(lambda x: quantised_residual(x, quantum), (e,), (jnp.ones_like(e),))[1]
 
 
 def _guard(r: Array) -> Array:

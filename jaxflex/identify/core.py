@@ -342,7 +342,10 @@ def identify(
                        "gaussian_cost": f_sol.cost}
             total += q_sol.steps
             good = accept_cost * reading_statistics(q_prob)[0]
-            prob, f_prob, f_sol = exact_reading(log, prob), q_prob, q_sol
+            # the search's problem under the same readings (its end points are weighed so)
+            prob = dataclasses.replace(prob, quantum=q_prob.quantum,
+                                       read_noise=q_prob.read_noise)
+            f_prob, f_sol = q_prob, q_sol
         else:  # the Gaussian answer stands
             readings["rounded_failed"] = q_sol.reason
     # the integrator must not move the answer: refined at the solution, coarse to fine

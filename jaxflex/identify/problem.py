@@ -22,7 +22,7 @@ from jaxflex.fit import (
     noise_level,
     output_columns,
 )
-from jaxflex.fit.problem import quantised_residual
+from jaxflex.fit.readings import READING_GAUSS, quantised_residual
 from jaxflex.fit.signal import savgol, savgol_coeffs, savgol_window
 from jaxflex.identify.start import DataStart
 from jaxflex.io.logs import Log
@@ -157,7 +157,7 @@ def on_grid(q: np.ndarray, step: float, tol: float = 1e-3) -> bool:
 
 def exact_reading(log: Log, prob: Problem) -> Problem | None:
     """``prob`` with its readings' exact likelihood (``reading_model``,
-    ``jaxflex.fit.quantised_residual``), or None where no output column's count is at least
+    ``jaxflex.fit.readings.quantised_residual``), or None where no output column's count is at least
     ``QUANTISED_RATIO`` times its noise (a finer count is the Gaussian's variance)."""
     quantum, noise = reading_model(log, prob)
     if not np.any(quantum >= QUANTISED_RATIO * noise):
@@ -192,9 +192,10 @@ def reading_statistics(prob: Problem) -> tuple[float, float]:
     for qc in np.atleast_1d(q):
         h = 0.5 * qc
         e = np.linspace(-h - 12.0, h + 12.0, 4001)
-        dens = (ndtr(h - e) - ndtr(-h - e)) / max(2 * h, 1e-300)
-        if h <= 1e-3:  # no grid: the unit normal
+        if h <= READING_GAUSS:  # no grid: the unit normal
             dens = np.exp(-0.5 * e**2) / math.sqrt(2 * math.pi)
+        else:
+            dens = (ndtr(h - e) - ndtr(-h - e)) / (2 * h)
         dens = dens / np.trapezoid(dens, e)
         f = 0.5 * np.asarray(_residual_on_host(e, qc))**2
         m = float(np.trapezoid(f * dens, e))

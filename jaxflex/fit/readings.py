@@ -1,0 +1,66 @@
+"""The likelihood of an encoder reading: the angle plus white Gaussian noise, rounded to the
+encoder's count, as a least-squares residual (``quantised_residual``) and its slope, for
+``jaxflex.fit.Problem``'s output rows (docs/spec.md section 5).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+#: Distance past a reading's cell [noise standard deviations] beyond which
+#: ``quantised_residual`` continues with slope 1.
+QUANTISED_TAIL: float = 30.0
+#: A grid whose half-width is at most this many noise standard deviations is no grid: the
+#: residual is the Gaussian e (the rounding adds a variance of 1 / 12 of its square).
+READING_GAUSS: float = 1e-3
+
+
+def _quantised_nll(a: Array, h: Array) -> Array:
+    """-log P(|e| = a) of a reading rounded to a grid of half-width h after unit Gaussian
+    noise: -log(Phi(h - a) - Phi(-h - a)), a >= 0. Inside the cell (a < h) as
+    -log1p(-(Phi(a - h) + Phi(-h - a))), the two small tails exact; outside from the
+    logarithms of the normal's tails."""
+    inside = a < h
+    a_in = jnp.where(inside, a, 0.0)
+    tails = jax.scipy.special.ndtr(a_in - h) + jax.scipy.special.ndtr(-h - a_in)
+    hi = jax.scipy.special.log_ndtr(h - a)
+    lo = jax.scipy.special.log_ndtr(-h - a)
+    return jnp.where(inside, -jnp.log1p(-tails), -(hi + jnp.log(-jnp.expm1(lo - hi))))
+
+
+def quantised_residual(e: Array, quantum: Array) -> Array:
+    """The output residual r of a reading: the angle plus unit white Gaussian noise, rounded
+    to a grid of ``quantum`` (noise standard deviations); ``e`` is the model's angle minus the
+    reading. 0.5 r^2 is the reading's negative log-likelihood -log(Phi(h - e) - Phi(-h - e)),
+    h = quantum / 2, above its value at e = 0, with r's sign that of e: e itself without a
+    grid (``quantum`` <= 2 ``READING_GAUSS``), about 0 inside the reading's cell and |e| - h
+    outside it for a grid far coarser than the noise, so that a model anywhere in the cell
+    fits the reading (a least-squares residual pulls it to the cell's centre, a bias where
+    the angle dwells in one cell)."""
+    gauss = 0.5 * quantum <= READING_GAUSS
+    h = jnp.where(gauss, 1.0, 0.5 * quantum)
+    # far out of the cell (past h + QUANTISED_TAIL) the slope is 1 to within 0.5 %: continue
+    # linearly (the normal tail's logarithms lose their digits there)
+    a_far = h + QUANTISED_TAIL
+    a = jnp.minimum(jnp.abs(e), a_far)
+    q = 2.0 * (_quantised_nll(a, h) - _quantised_nll(jnp.zeros_like(h), h))
+    # near e = 0 (or where the difference rounds away) the Taylor term e sqrt(nll''(0))
+    small = (a < 1e-4) | (q < 1e-24)
+    q_safe = jnp.where(small, 1.0, q)
+    tail = jnp.maximum(jnp.abs(e) - a_far, 0.0)
+    r = jnp.where(small, e * jnp.sqrt(_quantised_curvature(h)),
+                  jnp.sign(e) * (jnp.sqrt(q_safe) + tail))
+    return jnp.where(gauss, e, r)
+
+
+def _quantised_curvature(h: Array) -> Array:
+    """d^2/de^2 of ``_quantised_nll`` at e = 0: 2 h phi(h) / (2 Phi(h) - 1)."""
+    phi = jnp.exp(-0.5 * h**2) / jnp.sqrt(2.0 * jnp.pi)
+    return 2.0 * h * phi / jnp.maximum(jax.scipy.special.erf(h / jnp.sqrt(2.0)), 1e-300)
+
+
+def quantised_slope(e: Array, quantum: Array) -> Array:
+    """d r / d e of ``quantised_residual`` (elementwise)."""
+    return jax.jvp(lambda x: quantised_residual(x, quantum), (e,), (jnp.ones_like(e),))[1]
