@@ -768,7 +768,7 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
     """On EMPS (rigid, the study's start and free set, automatic segments: 1000 samples) the
     first fit ends with vs = 157 m/s: the Stribeck hump is a level shift and Fc, Fs share a
     null direction with it. vs, the least determined, is fixed at its start and the rest
-    refitted: Fc and Fs come out at the log's friction level (published IDIM-LS Fc 20.39 N),
+    refitted (then released, the lowest end point kept): Fc and Fs come out at the log's friction level (published IDIM-LS Fc 20.39 N),
     vs is marked, and the set predicts the closed loop (force error on DATA_EMPS below 6%;
     published parameters 5.85%). Before, Fc was fixed first, the refit dropped, and Fc = 10 N,
     Fs = 12 N written beside values fitted with 20 N: force error 19.5%. From the user's start
@@ -785,7 +785,10 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
                      rtol=1e-8, atol=1e-8, data_start=False)
     assert r.segments["samples"] == 1000 and r.segments["mode"] == "auto"
     assert r.unidentifiable == ["vs"]
-    assert r.params.friction["vs"] == start.friction["vs"]
+    # never worse than an end point: where the refit's release ends lower than the refit
+    # with vs fixed, that point is the answer, vs marked at its fitted value
+    finals = [a["cost_final"] for a in r.attempts if "cost_final" in a]
+    assert r.cost <= min(finals) * (1 + 1e-9)
     fc = r.params.friction["Fc"][0]
     assert fc == pytest.approx(EMPS_IDIM_LS.Fc, rel=0.1)
     assert r.params.friction["Fs"][0] >= fc

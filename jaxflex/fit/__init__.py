@@ -31,6 +31,7 @@ from jaxflex.fit.problem import (
 from jaxflex.fit.discretisation import (
     discretisation_bias,
     integration_error,
+    observed_order,
     refined,
     step_doubling_error,
 )
@@ -68,7 +69,7 @@ __all__ = [
     "Segments", "Solution", "on_slot_rows", "segment_slots", "slot_rows",
     "constraint_of", "cost", "dynamic_substeps", "covariance", "cluster_robust_covariance",
     "segment_robust_covariance", "discretisation_bias", "gap", "induced_shift", "remaining_step",
-    "integration_error", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
+    "integration_error", "observed_order", "refined", "step_doubling_error", "get_value", "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
     "problem_residuals", "residuals", "simulated_outputs", "trace_solver",
     "relative", "savgol", "savgol_coeffs", "set_values", "unpack_state", "white_noise_std",

@@ -1,6 +1,6 @@
 """How far the integrator's discretisation moves a fit: the replay's error by step doubling
-(``integration_error``) and the first-order shift of the fitted parameters it induces, in their
-standard errors (``discretisation_bias``).
+(``integration_error``) and the shift of the fitted parameters it induces, in their standard
+errors, with the order the replays show (``discretisation_bias``).
 """
 
 from __future__ import annotations
@@ -18,13 +18,16 @@ from jaxflex.fit.solve import Solution
 from jaxflex.fit.uncertainty import induced_shift
 
 
-#: Error bound factor of a step-doubling estimate: the error of the coarse replay is at most
-#: RICHARDSON x (coarse - fine) for a scheme of order >= 1 (e_h = C h^p gives
-#: e_h = (y_h - y_h/2) / (1 - 2^-p): 2 for p = 1, 4/3 for p = 2). The Strang-split step is
-#: second order only once sigma0 |v| / g(v) h is small; on the paper's plant at 1 kHz the
-#: differences 1->2, 2->4, 4->8 substeps fall by 1.6x then 4x, so the first-order bound is the
-#: one that holds at coarse steps.
+#: Error bound factor of a step-doubling estimate whose order is not measured: the error of
+#: the coarse replay is at most RICHARDSON x (coarse - fine) for a scheme of order >= 1
+#: (e_h = C h^p gives e_h = (y_h - y_h/2) / (1 - 2^-p): 2 for p = 1, 4/3 for p = 2). The
+#: Strang-split step is second order only once sigma0 |v| / g(v) h is small; on the paper's
+#: plant at 1 kHz the differences 1->2, 2->4, 4->8 substeps fall by 1.6x then 4x, so the
+#: first-order bound is the one that holds at coarse steps.
 RICHARDSON = 2.0
+#: The bounds of the order ``observed_order`` reads off three replays (1: the first-order
+#: bound, where the differences do not fall as a power of the step).
+ORDER_RANGE: tuple[float, float] = (1.0, 4.0)
 
 
 def refined(prob: Problem, factor: int = 2, traced: bool = False) -> Problem:
@@ -54,34 +57,50 @@ def step_doubling_error(prob: Problem, coarse: jax.Array, fine: jax.Array) -> fl
     return RICHARDSON * float(np.sqrt(np.mean(d**2))) if np.all(np.isfinite(d)) else math.inf
 
 
+def observed_order(coarse: np.ndarray, fine: np.ndarray, finer: np.ndarray) -> float:
+    """The integrator's order as three replays with h, h/2 and h/4 show it:
+    log2(|coarse - fine| / |fine - finer|) (the differences of a scheme of order p fall by
+    2^p per halving), within ``ORDER_RANGE``; its lower bound where either difference is not
+    finite or the finer one vanishes only because both do."""
+    d1 = float(np.linalg.norm(np.asarray(fine) - np.asarray(coarse)))
+    d2 = float(np.linalg.norm(np.asarray(finer) - np.asarray(fine)))
+    lo, hi = ORDER_RANGE
+    if not (math.isfinite(d1) and math.isfinite(d2)) or d1 == 0.0:
+        return lo
+    return hi if d2 == 0.0 else min(max(math.log2(d1 / d2), lo), hi)
+
+
 def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     """How far the integrator's discretisation moves the fitted parameters, in their standard
     errors: the parameters fitted with the problem's substeps minimise the coarse residual
     r_h; with an exact replay they would minimise r_h + e, e the integration error of the
-    residuals at the solution (step doubling, ``RICHARDSON`` x (r_h/2 - r_h)). To first order
-    the fit moves by the Gauss-Newton step -(J^T J)^-1 J^T e, computed from the solution's own
-    normal equations (no new Jacobian; one finer replay, compiled once per shape).
+    residuals at the solution, by Richardson extrapolation with the order the replays show:
+    e = (r_h/2 - r_h) / (1 - 2^-p), p the ``observed_order`` of the replays with 1, 2 and 4
+    times the substeps. To first order the fit moves by the Gauss-Newton step
+    -(J^T J)^-1 J^T e, computed from the solution's own normal equations (no new Jacobian; two
+    finer replays, on the programs of the problem's own shape).
 
     ``solution``: the ``least_squares`` result of ``prob`` (with its ``normal`` equations).
     Returns ``bias_se`` (the largest |shift| / standard error over the fitted theta entries:
     the discretisation moves no fitted parameter by more than this many standard errors),
     ``bias_mahalanobis`` (sqrt of shift^T Cov^-1 shift over the fitted entries: the bound for
-    any combination of them), ``output_error`` (``integration_error``, weighted RMS),
-    ``substeps``, and per fitted theta entry ("name[j]") the predicted ``shift_theta`` (exact
-    replay minus this fit, engine coordinates) and ``stderr_theta`` (segment-robust,
-    ``segment_robust_covariance``, where the log has the segments for it). Raises
-    ``ValueError`` for a solution without normal equations."""
+    any combination of them), ``output_error`` (the output rows of e, weighted RMS),
+    ``order`` (p), ``substeps``, and per fitted theta entry ("name[j]") the predicted
+    ``shift_theta`` (exact replay minus this fit, engine coordinates) and ``stderr_theta``
+    (segment-robust, ``segment_robust_covariance``, where the log has the segments for it).
+    Raises ``ValueError`` for a solution without normal equations."""
     if solution.normal is None or solution.residual is None:
         raise ValueError("discretisation_bias: the solution carries no normal equations "
                          "(it took no step)")
     y = solution.y
+    coarse = np.asarray(solution.residual)
     fine = np.asarray(residuals(refined(prob), y))
-    e = RICHARDSON * (fine - np.asarray(solution.residual))
-    # the output rows of e are RICHARDSON w_y (fine - coarse replay): ``integration_error``
-    # without replaying twice more (inf where a replay blew up, as there)
     n_out = prob.n_out
-    blown = (np.any(fine[:n_out] == BLOWN_RESIDUAL)
-             or np.any(np.asarray(solution.residual)[:n_out] == BLOWN_RESIDUAL))
+    blown = (np.any(fine[:n_out] == BLOWN_RESIDUAL) or np.any(coarse[:n_out] == BLOWN_RESIDUAL))
+    order = ORDER_RANGE[0] if blown else observed_order(
+        coarse, fine, np.asarray(residuals(refined(prob, 4), y)))
+    e = (fine - coarse) / (1.0 - 2.0**-order)
+    # the output rows of e are the replay's own error, weighted (inf where a replay blew up)
     out_err = math.inf if blown else float(np.sqrt(np.mean(e[:n_out] ** 2)))
     shift, se, labels, fitted, cov = induced_shift(prob, solution, e)
     finite = bool(np.all(np.isfinite(shift)))
@@ -89,7 +108,7 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
             if finite and shift.size else (0.0 if finite else math.inf))
     return {"bias_se": float(np.max(np.abs(shift) / se)) if finite and shift.size
             else (0.0 if finite else math.inf),
-            "bias_mahalanobis": maha, "output_error": out_err,
+            "bias_mahalanobis": maha, "output_error": out_err, "order": order,
             "substeps": prob.n_substeps,
             "shift_theta": {labels[i]: float(v) for i, v in zip(fitted, shift)},
             "stderr_theta": {labels[i]: float(v) for i, v in zip(fitted, se)}}

@@ -30,6 +30,7 @@ def _quantised_nll(a: Array, h: Array) -> Array:
     return jnp.where(inside, -jnp.log1p(-tails), -(hi + jnp.log(-jnp.expm1(lo - hi))))
 
 
+@jax.custom_jvp
 def quantised_residual(e: Array, quantum: Array) -> Array:
     """The output residual r of a reading: the angle plus unit white Gaussian noise, rounded
     to a grid of ``quantum`` (noise standard deviations); ``e`` is the model's angle minus the
@@ -38,21 +39,42 @@ def quantised_residual(e: Array, quantum: Array) -> Array:
     grid (``quantum`` <= 2 ``READING_GAUSS``), about 0 inside the reading's cell and |e| - h
     outside it for a grid far coarser than the noise, so that a model anywhere in the cell
     fits the reading (a least-squares residual pulls it to the cell's centre, a bias where
-    the angle dwells in one cell)."""
+    the angle dwells in one cell). Differentiable in ``e`` (``quantised_slope``); ``quantum``
+    is data (its tangent is ignored)."""
+    return _residual_parts(e, quantum)[0]
+
+
+def _residual_parts(e: Array, quantum: Array) -> tuple[Array, Array]:
+    """``quantised_residual`` and its slope d r / d e: 0.5 r^2 rises with |e| as the
+    likelihood's score nll'(a) = (phi(h - a) - phi(h + a)) / P(a), P(a) = exp(-nll(a)), so
+    the slope is nll'(a) / |r| (sqrt of the curvature at e = 0 near it, 1 on the tail)."""
     gauss = 0.5 * quantum <= READING_GAUSS
     h = jnp.where(gauss, 1.0, 0.5 * quantum)
     # far out of the cell (past h + QUANTISED_TAIL) the slope is 1 to within 0.5 %: continue
     # linearly (the normal tail's logarithms lose their digits there)
     a_far = h + QUANTISED_TAIL
     a = jnp.minimum(jnp.abs(e), a_far)
-    q = 2.0 * (_quantised_nll(a, h) - _quantised_nll(jnp.zeros_like(h), h))
+    nll = _quantised_nll(a, h)
+    q = 2.0 * (nll - _quantised_nll(jnp.zeros_like(h), h))
     # near e = 0 (or where the difference rounds away) the Taylor term e sqrt(nll''(0))
     small = (a < 1e-4) | (q < 1e-24)
-    q_safe = jnp.where(small, 1.0, q)
+    root = jnp.sqrt(jnp.where(small, 1.0, q))
     tail = jnp.maximum(jnp.abs(e) - a_far, 0.0)
-    r = jnp.where(small, e * jnp.sqrt(_quantised_curvature(h)),
-                  jnp.sign(e) * (jnp.sqrt(q_safe) + tail))
-    return jnp.where(gauss, e, r)
+    curv = jnp.sqrt(_quantised_curvature(h))
+    r = jnp.where(small, e * curv, jnp.sign(e) * (root + tail))
+    log_phi = -0.5 * jnp.log(2.0 * jnp.pi)
+    score = (jnp.exp(log_phi - 0.5 * (h - a) ** 2 + nll)
+             - jnp.exp(log_phi - 0.5 * (h + a) ** 2 + nll))
+    slope = jnp.where(small, curv, jnp.where(tail > 0.0, 1.0, score / root))
+    return jnp.where(gauss, e, r), jnp.where(gauss, 1.0, slope)
+
+
+@quantised_residual.defjvp
+def _quantised_residual_jvp(primals: tuple[Array, Array], tangents: tuple[Array, Array],
+                            ) -> tuple[Array, Array]:
+    e, quantum = primals
+    r, slope = _residual_parts(e, quantum)
+    return r, slope * tangents[0]
 
 
 def _quantised_curvature(h: Array) -> Array:

@@ -112,8 +112,9 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
     the parameters it moves by a tenth of a standard error or more). A
     model-limited fit's standard errors are inflated by its residual, and a coarse
     integrator's own error can be that residual; the relative shift holds either way. The fit
-    is refined while either fails. Each refinement multiplies the substeps by 2^k (a first-order
-    fall of the shift, at most ``REFINE_MOST`` x) and continues from the solution, so most
+    is refined while either fails. Each refinement multiplies the substeps by 2^k, the shift
+    falling by 2^(k p) with the order p the check measured (at most ``REFINE_MOST`` x), and
+    continues from the solution, so most
     steps use the cheap replay; with ``make_problem``'s traced substep count every level runs
     the same compiled solver.
 
@@ -146,8 +147,9 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
         settled = chk["bias_se"] <= tol and chk["bias_rel"] <= rel_tol
         if not refine or settled or prob.n_substeps * 2 > most:
             return prob, sol, checks
+        # the shift falls by 2^p per halving of the step, p the order the replays show
         need = max(chk["bias_se"] / tol, chk["bias_rel"] / rel_tol, 2.0)
-        factor = 2 ** max(1, math.ceil(math.log2(min(need, 1e6))))
+        factor = 2 ** max(1, math.ceil(math.log2(min(need, 1e6)) / chk.get("order", 1.0)))
         factor = max(2, min(factor, REFINE_MOST, most // prob.n_substeps))
         finer = refined(prob, factor)
         more = least_squares(finer, sol.y, **solve)

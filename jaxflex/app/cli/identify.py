@@ -115,12 +115,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "replay error is at most half the log's noise, refined until the "
                         "integrator moves no fitted parameter by more than half a standard "
                         "error (docs/spec.md section 5)")
-    p.add_argument("--reading", choices=("gaussian", "exact"), default="gaussian",
-                   help="'gaussian' (default): least squares throughout; 'exact': a fit the "
-                        "noise explains, on a log whose encoders round coarser than their "
-                        "noise, is continued under the readings' exact likelihood (rounded "
-                        "Gaussian noise: no pull to the centre of a count where the angle "
-                        "dwells; about 1.5x the time; docs/spec.md section 5)")
+    p.add_argument("--reading", choices=("exact", "gaussian"), default="exact",
+                   help="'exact' (default): a fit the noise explains, on a log whose encoders "
+                        "round coarser than their noise, is continued under the readings' "
+                        "exact likelihood (rounded Gaussian noise: no pull to the centre of a "
+                        "count where the angle dwells); 'gaussian': least squares throughout "
+                        "(docs/spec.md section 5)")
     p.add_argument("--max-steps", type=int, default=200, help="solver iteration cap")
     p.add_argument("--start", type=int, default=0, help="first sample used")
     p.add_argument("--stop", type=int, default=None, help="one past the last sample used")
