@@ -111,12 +111,12 @@ def identified(tmp_path_factory):
 
 
 def test_spread_from_identification_keeps_the_constraints(identified):
-    """Every draw of an identification's posterior (widened 300x so that the constraints
+    """Every draw of an identification's posterior (widened 1000x so that the constraints
     would bind) has Fs >= Fc and every parameter > 0; correlations come from the fit."""
     params = load_params(identified)
-    post = Posterior.from_params(params, inflate=300.0)
+    post = Posterior.from_params(params, inflate=1000.0)
     assert set(post.names) == set(DEFAULT_FREE)
-    spec = parse_spread({"identified": {"file": str(identified), "inflate": 300.0},
+    spec = parse_spread({"identified": {"file": str(identified), "inflate": 1000.0},
                          "uncertain": {"plant.K": {"dist": "uniform", "rel": 0.1}}})
     th = np.asarray(jax.vmap(lambda i: sample_parameters(spec, i)[0])(jnp.arange(400)))
     lab = spec.labels
