@@ -85,4 +85,4 @@ def _quantised_curvature(h: Array) -> Array:
 
 def quantised_slope(e: Array, quantum: Array) -> Array:
     """d r / d e of ``quantised_residual`` (elementwise)."""
-    return jax.jvp(lambda x: quantised_residual(x, quantum), (e,), (jnp.ones_like(e),))[1]
+    return _residual_parts(e, quantum)[1]

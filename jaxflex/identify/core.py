@@ -55,6 +55,7 @@ from jaxflex.identify.problem import (
     segments_of,
     start_hints,
     with_named_effects,
+    with_readings,
 )
 from jaxflex.identify.result import (
     IdentificationWarning,
@@ -211,9 +212,10 @@ def identify(
         substeps=dynamic_substeps(1) if auto else substeps,
         outputs=outputs, output_scale=output_scale, continuity_weight=continuity_weight,
     )
-    if reading == "exact" and (rounded := exact_reading(log, prob)) is not None:
-        # the search's readings Gaussian in the exact likelihood's structure: both phases
-        # run the same compiled programs
+    # the readings' model, read off the log once; the search's readings Gaussian in the
+    # exact likelihood's structure: both phases run the same compiled programs
+    rounded = exact_reading(log, prob) if reading == "exact" else None
+    if rounded is not None:
         prob = gaussian_reading(rounded)
     # the statistical stop at the fit's own residual scale: a step that would lower chi-square
     # by less than ``decrement_tol`` in units of the residual variance the fit leaves (the
@@ -338,8 +340,8 @@ def identify(
     # counts exceed their noise, is continued under it from here on (a Gaussian residual
     # pulls the model to the centre of a count wherever the angle dwells in one)
     readings, q_prob = {"likelihood": "gaussian"}, None
-    if f_sol.cost <= good and f_sol.converged and reading == "exact":
-        q_prob = exact_reading(log, f_prob)
+    if f_sol.cost <= good and f_sol.converged and rounded is not None:
+        q_prob = with_readings(f_prob, rounded)
     if q_prob is not None:
         q_sol = search.run(q_prob, f_sol.y, {"reading": "rounded",
                                              "substeps": q_prob.n_substeps}, max_steps,
@@ -352,8 +354,7 @@ def identify(
             total += q_sol.steps
             good = accept_cost * reading_statistics(q_prob)[0]
             # the search's problem under the same readings (its end points are weighed so)
-            prob = dataclasses.replace(prob, quantum=q_prob.quantum,
-                                       read_noise=q_prob.read_noise)
+            prob = with_readings(prob, rounded)
             f_prob, f_sol = q_prob, q_sol
         else:  # the Gaussian answer stands
             readings["rounded_failed"] = q_sol.reason

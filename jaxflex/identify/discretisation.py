@@ -149,7 +149,7 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
             return prob, sol, checks
         # the shift falls by 2^p per halving of the step, p the order the replays show
         need = max(chk["bias_se"] / tol, chk["bias_rel"] / rel_tol, 2.0)
-        factor = 2 ** max(1, math.ceil(math.log2(min(need, 1e6)) / chk.get("order", 1.0)))
+        factor = 2 ** max(1, math.ceil(math.log2(min(need, 1e6)) / chk["order"]))
         factor = max(2, min(factor, REFINE_MOST, most // prob.n_substeps))
         finer = refined(prob, factor)
         more = least_squares(finer, sol.y, **solve)

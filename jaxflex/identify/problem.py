@@ -166,6 +166,12 @@ def exact_reading(log: Log, prob: Problem) -> Problem | None:
                                read_noise=jnp.asarray(noise))
 
 
+def with_readings(prob: Problem, source: Problem) -> Problem:
+    """``prob`` with ``source``'s readings' model (``exact_reading``'s ``quantum`` and
+    ``read_noise``, weighted units: the two problems share their output weights)."""
+    return dataclasses.replace(prob, quantum=source.quantum, read_noise=source.read_noise)
+
+
 def gaussian_reading(prob: Problem) -> Problem:
     """``prob`` (one with the readings' model, ``exact_reading``) with Gaussian readings of
     its own weighted noise: the least-squares residual, in the exact likelihood's structure
