@@ -88,6 +88,7 @@ def test_divergence_flag_trips_on_a_lost_run_not_on_a_tracking_one():
     assert float(lost.max_error[0]) > band
 
 
+@pytest.mark.slow
 def test_ultimate_bound_in_rad_is_vacuous_for_the_paper_gains():
     b = task_bound(paper_plant(), paper_gains(), paper_sinusoid(), 2.0)
     assert b["vacuous"] and b["e1_bound_rad"] > 1e3 * b["reference_half_range_rad"]

@@ -6,6 +6,7 @@ baseline on B."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxflex.identify.arm import (
     ArmMotion,
@@ -55,6 +56,7 @@ def synthetic_motion(chain: SerialChain, N: int = 400) -> tuple[ArmMotion, np.nd
                      joints=(0, 1, 2)), known
 
 
+@pytest.mark.slow
 def test_idim_recovers_base_parameters_friction_and_known_scale():
     chain = three_link()
     motion, known = synthetic_motion(chain)

@@ -298,7 +298,10 @@ def _spawn(argv: list[str]) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("sig", [
+    pytest.param(signal.SIGINT, id="SIGINT"),
+    pytest.param(signal.SIGTERM, id="SIGTERM", marks=pytest.mark.slow),
+])
 def test_run_loop_interrupted_writes_log_and_summary(tmp_path, sig):
     ctrl = tmp_path / "c.py"
     assert main(["--no-cache", "export", "--out", str(ctrl)]) == 0

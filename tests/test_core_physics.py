@@ -42,8 +42,10 @@ def test_exact_z_update_is_stable_for_stiff_rates():
     assert float(fr.stiff_step_bound(v, 0.005)[0]) < 1e-6
 
 
-@pytest.mark.parametrize("plant", [paper_plant(friction=False), two_link_plant(friction=False)],
-                         ids=["one-link", "two-link-gravity"])
+@pytest.mark.parametrize("plant", [
+    pytest.param(paper_plant(friction=False), id="one-link"),
+    pytest.param(two_link_plant(friction=False), id="two-link-gravity", marks=pytest.mark.slow),
+])
 def test_energy_conserved_without_friction_and_input(plant):
     n = plant.n
     x = plant.init_state(q1=jnp.full(n, 0.3), q2=jnp.full(n, 0.5), dq1=0.4)

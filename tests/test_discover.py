@@ -19,6 +19,7 @@ CANDS = ("backlash", "encoder_skew", "hardening_spring", "torque_offset")
 CFG = DiscoverConfig(candidates=CANDS, max_effects=2)
 
 
+@pytest.mark.slow
 def test_hidden_backlash_is_named_and_gap_halved():
     g = generate_log(("backlash",), seed=3, t_final=8.0)
     rep = discover(g.log, config=CFG).to_json()
@@ -46,6 +47,7 @@ def test_hidden_backlash_is_named_and_gap_halved():
             assert k in first["fitted"] and s["gap_test"] > 0
 
 
+@pytest.mark.slow
 def test_a_late_link_encoder_is_named_with_its_skew():
     """A log whose link channel is recorded late and offset (``generate_log`` with
     ``encoder_skew``: the exact delay of the simulated link angle, re-quantised, by a
@@ -174,6 +176,7 @@ def test_motor_cogging_is_told_from_link_cogging():
     assert rep["gap_after"] <= 0.5 * rep["gap_before"]
 
 
+@pytest.mark.slow
 def test_a_two_joint_log_gets_an_answer_per_joint(tmp_path):
     """n joints: each joint of a two-joint log is examined with its own parameters (CLI end to
     end: one report per joint and the answers side by side)."""

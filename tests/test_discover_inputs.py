@@ -64,6 +64,7 @@ def test_a_rigid_model_is_replayed_as_two_stiff_halves(emps_log):
     assert np.array_equal(nominal_for_model(_rigid(), "rigid", one, 1e-3)[1].q2, one.q1)
 
 
+@pytest.mark.slow
 def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
     """The rigid EMPS file, its model read from the file: discover runs (it used to exit 2
     with "Eigenvalues did not converge" and leave an empty folder), reports the model and

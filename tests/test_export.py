@@ -62,6 +62,7 @@ def test_generated_file_imports_only_numpy_and_stdlib(default_export, tmp_path):
     assert len(out.stdout.split()) == 2
 
 
+@pytest.mark.slow
 def test_parity_default_long_run(default_export):
     """10 s of closed loop (10^4 samples, quantised encoders, controller-side velocity
     estimation): exported torques equal the JAX sampled-data controller's to 1e-12."""
@@ -291,6 +292,7 @@ def test_kalman_and_leak_exported_as_certified(kalman_export):
     pytest.param("polynomial", marks=pytest.mark.slow),
     pytest.param("fast", marks=pytest.mark.slow),
 ])
+@pytest.mark.slow
 def test_parity_kalman_leak_under_paper_sensing(kalman_export, experiment):
     """reproduce's full 10 s closed loop of each of the paper's experiments under the paper's
     sensing (0.72 deg encoder, 12-bit DAC) with the Kalman filter and the leak. Replayed on
@@ -325,6 +327,7 @@ def test_parity_check_catches_a_dropped_estimator(kalman_export):
     assert not parity_ok(r)
 
 
+@pytest.mark.slow
 def test_reference_given_by_the_rig(kalman_export):
     """step(t, q1, q2, ref=R) follows the rig's reference, not the recorded one: a controller
     exported for the sinusoid, given the polynomial task's derivatives at each sample,

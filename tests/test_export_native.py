@@ -68,8 +68,8 @@ def test_compiles_cleanly_as_c99(exported, tmp_path):
 
 
 @needs_cc
-@pytest.mark.parametrize("experiment", ["sinusoid", pytest.param("polynomial", marks=pytest.mark.slow),
-                                        "fast"])
+@pytest.mark.slow
+@pytest.mark.parametrize("experiment", ["sinusoid", "polynomial", "fast"])
 def test_c_parity_with_jax_and_python(exported, experiment, tmp_path):
     """The C controller in reproduce's full 10 s closed loop of each of the paper's
     experiments under the paper's sensing, with the Kalman filter and the leak: equal to the
@@ -124,6 +124,7 @@ def test_c_reference_input_and_reset(exported):
         a.step(0.0, 0.0, 0.0, ref=[1.0])
 
 
+@pytest.mark.slow
 def test_cli_export_c_check(tmp_path, capsys):
     """`export --out controller.c` writes controller.c and controller.h; --check compiles it
     and runs it in the closed loop, --check-reference also with the reference given at each
@@ -151,6 +152,7 @@ def test_compile_error_is_reported(tmp_path):
         compile_c(bad)
 
 
+@pytest.mark.slow
 @needs_cc
 def test_run_loop_runs_the_c_controller(exported, tmp_path, capsys):
     """run-loop --controller controller.c: the C controller in the fixed-period loop against

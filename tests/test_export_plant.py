@@ -34,6 +34,7 @@ def test_independent_plant_is_the_papers_joint():
     assert x[0] > 0.0 and x[2] < 0.01  # the spring pulls link and rotor together
 
 
+@pytest.mark.slow
 def test_compensation_wins_on_an_independent_plant(tmp_path):
     """reproduce's default controller (Kalman velocities, observer leak), exported, in closed
     loop with the RK4-integrated LuGre joint through the paper's encoder and DAC, 10 s per

@@ -293,6 +293,7 @@ def test_segments_refuse_bad_lengths():
         make_segments(log, length=101)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scaling", ["identity", "marquardt"])
 def test_shooting_solve_equals_dense_solve(scaling):
     """The block-tridiagonal/Schur solve of the multiple-shooting normal equations gives the
@@ -326,6 +327,7 @@ def test_segment_slots_hold_every_count_with_little_padding():
     assert len(set(slots)) < 40  # few shapes for 3,000 lengths
 
 
+@pytest.mark.slow
 def test_logs_of_other_lengths_share_the_compiled_solver(lowerings):
     """A multiple-shooting problem is solved in its bucket of segment slots (inert padding
     segments): the same steps, cost, residual and normal equations as in its own shape (to
@@ -374,6 +376,7 @@ def test_logs_of_other_lengths_share_the_compiled_solver(lowerings):
     assert sol.y[1].shape == y1[1].shape and sol.residual.shape == other.residuals(sol.y).shape
 
 
+@pytest.mark.slow
 def test_traced_substeps_equal_compiled_ones_and_share_every_program(lowerings):
     """A problem whose substeps are a traced count (``dynamic_substeps``, identify's automatic
     choice) gives the compiled-in count's numbers (solve, replay, covariance), and a problem
@@ -417,6 +420,7 @@ def _plain_residuals(y, prob):  # the same residuals by another function: the de
     return prob.residuals(y)
 
 
+@pytest.mark.slow
 def test_structured_covariance_equals_dense_covariance():
     from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
 
@@ -433,6 +437,7 @@ def test_structured_covariance_equals_dense_covariance():
     np.testing.assert_allclose(fast["rss"], dense["rss"], rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_covariance_from_the_solvers_normal_equations_equals_a_fresh_one(monkeypatch):
     """``covariance(..., solution=sol)`` reuses the solver's normal equations at its final
     point (no second linearisation): the same standard errors, rank, rss and final cost as
@@ -483,6 +488,7 @@ def test_covariance_from_the_solvers_normal_equations_equals_a_fresh_one(monkeyp
     assert reused == [] and all(np.isfinite(se) and se > 0 for _, se in fit.values()), fit
 
 
+@pytest.mark.slow
 def test_zero_residual_optimum_is_reported_converged():
     """A noise-free log replayed by its own model: the optimum has a residual at rounding
     level, where every trial step is rejected (the cost cannot fall) and optimistix's test,
@@ -505,6 +511,7 @@ def test_zero_residual_optimum_is_reported_converged():
     assert np.all(np.isfinite(ravel_pytree(sol.y)[0]))
 
 
+@pytest.mark.slow
 def test_shooting_solve_equals_dense_solve_for_two_joints():
     """The block-arrow solve with (n_state, n) segment starts, n = 2 (two independent joints
     with their own parameters): the same damped step as the dense solve, to 1e-10."""
@@ -694,6 +701,7 @@ def test_statistical_stop_ends_within_a_small_fraction_of_a_standard_error():
         least_squares((t, z), y0, fn=_decay, decrement_tol=-1.0)
 
 
+@pytest.mark.slow
 def test_shooting_jacobian_blocks_give_J_and_J_transpose():
     """The Jacobian blocks the shooting descent keeps (for geodesic acceleration) give J v and
     J^T w equal to the materialised Jacobian's, to 1e-12."""
@@ -722,6 +730,7 @@ def test_shooting_jacobian_blocks_give_J_and_J_transpose():
                                atol=1e-12 * np.max(np.abs(JTw)))
 
 
+@pytest.mark.slow
 def test_problem_residual_blocks_equal_the_probed_linearisation():
     """``Problem.residual_blocks`` (the solver's Jacobian, straight from the segment
     replays) gives the residual and the Jacobian blocks that probing the linearised residual

@@ -200,6 +200,7 @@ def test_log_csv_two_joints(tmp_path):
     assert head == "t,tau[0],tau[1],q1[0],q1[1],q2[0],q2[1]"
 
 
+@pytest.mark.slow
 def test_exported_controller_on_simulated_rig_matches_jax(tmp_path):
     """Lock-step: the loop (exported controller, plant in a separate process, 16-bit
     encoders) reproduces the JAX sampled-data simulation of the same run."""
@@ -234,6 +235,7 @@ def test_exported_controller_on_simulated_rig_matches_jax(tmp_path):
     assert log.N == 1500 and abs(log.dt - 1e-3) < 1e-12
 
 
+@pytest.mark.slow
 def test_rig_reference_drives_the_exported_controller(tmp_path):
     """The rig gives the reference: a controller exported for the sinusoid, fed the
     polynomial task's derivatives by the loop at each sample, reproduces the JAX closed loop

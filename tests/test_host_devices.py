@@ -42,6 +42,7 @@ def _run(n: int) -> dict:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_two_host_devices_give_the_numbers_of_one():
     one, two = _run(1), _run(2)
     assert (one["devices"], two["devices"]) == (1, 2)
@@ -130,6 +131,7 @@ _SMALL_LOOP_RUN = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_small_loop_option_runs_the_same_closed_loop(tmp_path):
     """The small-loop option (``SMALL_LOOP_XLA_CPU_FLAGS``: a loop as one compiled function)
     changes XLA's code, not the numbers: the same 1 s closed loop with and without it agrees

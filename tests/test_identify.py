@@ -86,6 +86,7 @@ def test_bad_identify_input():
         identify(log, p, ["Fc"], model="stiff")
 
 
+@pytest.mark.slow
 def test_rank_deficiency_is_named():
     """On the rigid model only Jx = I + J is seen: I and J are named together; one is then
     kept at its prior and the other refitted."""
@@ -126,6 +127,7 @@ def test_joint_fit_small_noise_free():
     assert r.params.extra["stderr"]["Fc"][0] >= 0
 
 
+@pytest.mark.slow
 def test_structured_jacobian_equals_plain_autodiff():
     """The multiple-shooting residual's custom JVP (block-sparse Jacobian) gives the same
     values, Jacobian and gradient as plain forward/reverse autodiff through the simulator."""
@@ -160,6 +162,7 @@ def test_problem_residual_zero_at_truth():
     assert float(np.max(np.abs(np.asarray(r)))) < 1e-6
 
 
+@pytest.mark.slow
 def test_all_six_noise_free_within_half_percent():
     """Acceptance: all six LuGre parameters from one noise-free log (exact q1, q2), initial
     guesses off by up to 2x, within 0.5%."""
@@ -172,6 +175,7 @@ def test_all_six_noise_free_within_half_percent():
     assert max(err.values()) < 5e-3, err
 
 
+@pytest.mark.slow
 def test_noisy_logs_within_ten_percent_and_consistent_stderr():
     """Acceptance: quantised, noisy logs: all six within 10%; across seeds the normalised errors
     (estimate - truth) / stderr have an RMS of order one (standard errors are honest)."""
@@ -196,6 +200,7 @@ def test_noisy_logs_within_ten_percent_and_consistent_stderr():
     assert np.max(np.abs(zs)) < 6.0, zs
 
 
+@pytest.mark.slow
 def test_standard_errors_hold_for_correlated_measurement_errors():
     """A measurement error correlated over ~100 samples (AR(1), 0.04 mrad, as a model's
     mismatch or a slow encoder's quantisation leaves): the standard errors of white residuals
@@ -238,6 +243,7 @@ def test_standard_errors_hold_for_correlated_measurement_errors():
     assert rms_white > 2 * rms_robust, (z_white, z_robust)
 
 
+@pytest.mark.slow
 def test_two_step_procedure():
     """Acceptance: the paper's procedure recovers Fc, Fs, vs, sigma2 within 2% (static map with
     a 16-bit encoder and 12-bit DAC); sigma0, sigma1 come from the rigid model fitted to a
@@ -292,6 +298,7 @@ def _closed_loop_log(t_final, seed=7):
     return g.log, Params.from_dict(g.truth["plant"])
 
 
+@pytest.mark.slow
 def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
     """identify(substeps="auto") refines coarse to fine (1 -> 8 substeps on this log) with a
     traced substep count: the refinement lowers no solver of its own; the solver is lowered
@@ -322,6 +329,7 @@ def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
     assert 1 <= lowered.count("jit(_steps_loop)") <= spaces, (lowered, spaces)
 
 
+@pytest.mark.slow
 def test_a_local_minimum_is_rescued_by_the_identifiability_refits():
     """From a start 50% off without the log's static map (one schedule), every start of the
     closed-loop 3 s log lands in a local minimum (cost 65x what the noise explains). Fixing
@@ -475,6 +483,7 @@ def _two_joints_converge(off):
     assert max(err.values()) < 0.02, err
 
 
+@pytest.mark.slow
 def test_two_joint_log_converges_from_thirty_percent_off():
     """Acceptance: the six LuGre parameters of both joints of one noise-free 2-joint
     log, fitted jointly from 30% off: converged (cost explained by the noise, solver settled)
@@ -487,6 +496,7 @@ def test_two_joint_log_converges_from_fifty_percent_off():
     _two_joints_converge(0.5)
 
 
+@pytest.mark.slow
 def test_link_subsystem_is_identified_without_a_motor_model():
     """The "link" model kind (the link line of eq. 3 driven by the measured rotor motion)
     recovers all six LuGre parameters from 2x-off guesses on a log whose motor side the model
@@ -507,6 +517,7 @@ def test_link_subsystem_is_identified_without_a_motor_model():
     assert max(err.values()) < 1e-3, err
 
 
+@pytest.mark.slow
 def test_each_joint_is_weighted_by_its_own_noise():
     """A joint that moves 10x less than the other (the same dynamics scaled: angles, Fc, Fs,
     vs and torque / 10, noise / 10) is determined relative to its own noise: in the joint
@@ -614,6 +625,7 @@ def _fine_encoder_log():
     return log.slice(0, 1500), truth
 
 
+@pytest.mark.slow
 def test_discretisation_bias_predicts_how_far_a_finer_fit_moves():
     """``discretisation_bias`` at 1 substep predicts, from the solution's own normal equations,
     the shift that refitting with 16 substeps actually brings: the same sign for every fitted

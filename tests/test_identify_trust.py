@@ -138,6 +138,7 @@ def test_emps_with_the_command_defaults_is_near_the_published_idim(tmp_path):
     assert abs(d["friction"]["Fc"][0] / EMPS_IDIM_LS.Fc - 1) < 0.1
 
 
+@pytest.mark.slow
 def test_the_file_is_never_worse_than_an_attempt_and_the_verdict_has_two_parts():
     """A log with a torque offset the model is not given: the fit is model-limited (the
     noise does not explain it), its solver half says how the solve ended, and the answer's
@@ -160,6 +161,7 @@ def test_the_file_is_never_worse_than_an_attempt_and_the_verdict_has_two_parts()
         assert "cost" not in a or ("reason" in a and "steps" in a)
 
 
+@pytest.mark.slow
 def test_the_data_show_the_offset_and_the_fit_recovers_it(tmp_path):
     """The same log from the command line with a start file that lacks the offset: the
     log's inverse dynamics show it, it is fitted, and all six LuGre parameters come back
@@ -323,6 +325,7 @@ def _failed_like(sol, cost):
                                       "solve)")
 
 
+@pytest.mark.slow
 def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_the_fit(
         monkeypatch):
     import jaxflex.identify.discretisation as disc
@@ -385,6 +388,7 @@ def test_the_substeps_are_judged_again_against_the_residual_the_answer_leaves():
     assert rechoose_substeps(prob, answer(noise), noise)[1]["tolerance"] == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_a_start_that_settles_in_a_minimum_of_its_own_does_not_end_the_search():
     """An independent simulator's closed loop (scipy's Dormand-Prince, a PD on the rotor,
     18-bit encoders read through a count of white noise), started 40-70% off: the static

@@ -330,6 +330,7 @@ def test_global_option_after_the_command_is_not_reset_and_identify_keeps_its_own
     assert args.accept_result and not args.accept_unconverged
 
 
+@pytest.mark.slow
 def test_sweep_resume_hint_runs_as_printed(tmp_path, capsys, monkeypatch):
     """The interrupted sweep's hint keeps --samples (and every other option) and runs."""
     import jaxflex.sweep

@@ -129,6 +129,7 @@ def test_a_quantised_closed_loop_log_is_not_biased_by_its_counts():
         assert abs(value / true - 1) < 0.02 and abs(value - true) < 2 * se, (k, value, se)
 
 
+@pytest.mark.slow
 def test_both_likelihoods_run_one_compiled_solver(lowerings):
     """By default a fit the noise explains on a rounded log (``studies.ident_independent``'s
     closed loop, 3 s, 18-bit encoders) ends under the readings' exact likelihood, and the

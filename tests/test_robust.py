@@ -64,6 +64,7 @@ def _plant_at(p, vals):
     return eqx.tree_at(lambda q: (q.K, q.friction), p, (jnp.asarray(vals["K"]), fr))
 
 
+@pytest.mark.slow
 def test_box_certificate_holds_at_every_sample_of_the_box():
     """A gain set certified on the box is certified at every plant drawn from it (and the
     bound is a lower bound of lambda_min at each speed), including the box's corners."""
@@ -162,6 +163,7 @@ def test_spread_box_bounds_and_robust_search_small():
         RobustTask(spec, plants=1)
 
 
+@pytest.mark.slow
 def test_cli_tune_spread_writes_certified_gains_that_export_follows(tmp_path, capsys):
     """``jaxflex tune --spread``: the written file carries the controller configuration of the
     spread and the box certificate; ``export`` follows it; an impossible margin is refused

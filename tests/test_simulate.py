@@ -51,6 +51,7 @@ def test_compensation_reduces_rms_error_on_lugre_plant():
     assert on < 0.7 * off, (on, off)
 
 
+@pytest.mark.slow
 def test_split_integrator_converges_to_diffrax_sampled_loop():
     """Same sampled-data loop; plant integrated by the Strang-split RK4 with 1, 2, 4, 8
     substeps against Kvaerno5 at rtol 1e-10 per sample interval. The error falls with h
@@ -138,6 +139,7 @@ def test_vmap_equals_python_loop():
     np.testing.assert_allclose(batched, looped, rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_grad_matches_finite_differences():
     p = paper_plant()
     traj = Sinusoid(amplitude=0.05, frequency=1.0)

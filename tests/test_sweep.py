@@ -294,6 +294,7 @@ _SHARD_SCRIPT = textwrap.dedent("""
 TINY = {**SMALL, "t_final": 0.1, "samples": 6}
 
 
+@pytest.mark.slow
 def test_sharded_over_two_host_devices_equals_unsharded():
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     r = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT, json.dumps(TINY)], env=env,

@@ -170,6 +170,7 @@ _CHILD = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_a_second_process_does_not_trace(tmp_path):
     """The claim itself, across real processes: the second one reads the program and traces
     nothing of the engine's function, with bitwise the same residuals."""

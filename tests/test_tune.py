@@ -44,6 +44,7 @@ def tuned():
     return plant, task, res
 
 
+@pytest.mark.slow
 def test_tuned_gains_beat_paper_gains_and_pass_certify(tuned):
     plant, task, res = tuned
     rms_paper, _ = _rms(plant, paper_gains(), task)
@@ -91,6 +92,7 @@ def test_uncertified_initial_gains_and_bad_settings_raise():
         TuneTask(trajectories=())
 
 
+@pytest.mark.slow
 def test_straight_through_sensing_values_and_gradient():
     """The wrapper gives the wrapped sensing's values and a straight-through gradient."""
     from jaxflex.core.sensing import AbstractSensing, StraightThrough
