@@ -6,17 +6,31 @@ holds its own memory mappings (measured: 3 per ``jax.jit`` executable, about 18 
 Linux's default limit of 65530 mappings per process (``vm.max_map_count``), after which LLVM's
 code allocation fails and the process dies in XLA compilation or a cache read (seen twice at
 90% of the suite, in test_tune, with no Python error). Clearing after each module keeps the
-count at what one module needs; executables are recompiled (or read from the persistent
-cache) where a later module needs them again.
+count at what one module needs; executables a later module needs again are read back from
+JAX's persistent compilation cache.
+
+That cache is on from the start, in a folder of this run's own (empty at the start, removed at
+the end), and ``JAXFLEX_CACHE_DIR`` points the command line's own cache there too (in-process
+and in subprocesses): a run never reads what an earlier run or the user's ``~/.cache`` kept.
 """
 
+import atexit
 import contextlib
 import gc
+import os
+import shutil
+import tempfile
 
 import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+
+_CACHE = tempfile.mkdtemp(prefix="jaxflex-tests-cache-")
+atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+os.environ["JAXFLEX_CACHE_DIR"] = _CACHE
+jax.config.update("jax_compilation_cache_dir", _CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 @pytest.fixture(autouse=True, scope="module")
