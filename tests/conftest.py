@@ -26,11 +26,13 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 
+# after float64 is on: no jaxflex module is imported under JAX's float32 default
+from jaxflex.app.cli import enable_compilation_cache  # noqa: E402
+
 _CACHE = tempfile.mkdtemp(prefix="jaxflex-tests-cache-")
 atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 os.environ["JAXFLEX_CACHE_DIR"] = _CACHE
-jax.config.update("jax_compilation_cache_dir", _CACHE)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+enable_compilation_cache(traces=False)
 
 
 @pytest.fixture(autouse=True, scope="module")

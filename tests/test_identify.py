@@ -780,7 +780,8 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
     """On EMPS (rigid, the study's start and free set, automatic segments: 1000 samples) the
     first fit ends with vs = 157 m/s: the Stribeck hump is a level shift and Fc, Fs share a
     null direction with it. vs, the least determined, is fixed at its start and the rest
-    refitted (then released, the lowest end point kept): Fc and Fs come out at the log's friction level (published IDIM-LS Fc 20.39 N),
+    refitted (then released, the lowest end point kept): Fc and Fs come out at the log's
+    friction level (published IDIM-LS Fc 20.39 N),
     vs is marked, and the set predicts the closed loop (force error on DATA_EMPS below 6%;
     published parameters 5.85%). Before, Fc was fixed first, the refit dropped, and Fc = 10 N,
     Fs = 12 N written beside values fitted with 20 N: force error 19.5%. From the user's start

@@ -351,7 +351,8 @@ def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_
     monkeypatch.setattr(disc, "least_squares", lambda *a, **k: _failed_like(sol, 1e50))
     monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so: {
         "bias_se": 50.0, "bias_rel": 0.5, "bias_mahalanobis": 50.0, "output_error": 1.0,
-        "order": 1.0, "substeps": pr.n_substeps, "shift_theta": {"Fc[0]": 1.0}, "stderr_theta": {"Fc[0]": 0.01}})
+        "order": 1.0, "substeps": pr.n_substeps, "shift_theta": {"Fc[0]": 1.0},
+        "stderr_theta": {"Fc[0]": 0.01}})
     monkeypatch.setattr(disc, "relative_shift", lambda *a: 0.5)
     attempts = []
     p_out, s_out, checks = disc.refine_fit(prob, sol, refine=True, solve={}, attempts=attempts)
