@@ -12,6 +12,12 @@ JAX's persistent compilation cache.
 That cache is on from the start, in a folder of this run's own (empty at the start, removed at
 the end), and ``JAXFLEX_CACHE_DIR`` points the command line's own cache there too (in-process
 and in subprocesses): a run never reads what an earlier run or the user's ``~/.cache`` kept.
+
+Tests compile for compile speed (``XLA_FLAGS`` below, inherited by the command lines they
+start): XLA CPU's older emitters (as ``jaxflex.runtime.tracecache.FAST_COMPILE_OPTIONS``) and
+LLVM at its first optimisation level. Most of a test's time is the compilation of programs it
+runs for a few steps. Level 0 is not used: there, two evaluations of one residual at one point
+differ by more than the fit's tolerance, and a fit to exact data never meets its stop test.
 """
 
 import atexit
@@ -21,8 +27,12 @@ import os
 import shutil
 import tempfile
 
-import jax
-import pytest
+#: before JAX starts its backend, which reads XLA_FLAGS once
+_COMPILE_FOR_SPEED = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1"
+os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_COMPILE_FOR_SPEED}".strip()
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
