@@ -9,9 +9,10 @@ code allocation fails and the process dies in XLA compilation or a cache read (s
 count at what one module needs; executables a later module needs again are read back from
 JAX's persistent compilation cache.
 
-That cache is on from the start, in a folder of this run's own (empty at the start, removed at
-the end), and ``JAXFLEX_CACHE_DIR`` points the command line's own cache there too (in-process
-and in subprocesses): a run never reads what an earlier run or the user's ``~/.cache`` kept.
+That cache is on from the start, in a folder of this process's own (each test worker has one;
+empty at the start, removed at the end), and ``JAXFLEX_CACHE_DIR`` points the command line's
+own cache there too (in-process and in subprocesses): a run never reads what an earlier run or
+the user's ``~/.cache`` kept.
 
 Tests compile for compile speed (``XLA_FLAGS`` below, inherited by the command lines they
 start): XLA CPU's older emitters (as ``jaxflex.runtime.tracecache.FAST_COMPILE_OPTIONS``) and
