@@ -123,7 +123,7 @@ class IdentResult:
         if g.get("samples"):
             rows.append(f"segments: {g['segments']} of {g['samples']} samples "
                         f"({g['seconds']:.3g} s, {g['mode']})")
-        fitted = set(self.problem.space.names) if self.problem is not None else set()
+        fitted = set(self.problem.space.fitted_names()) if self.problem is not None else set()
         fixed = [k for k in self.unidentifiable if k not in fitted]
         marked = [k for k in self.unidentifiable if k in fitted]
         if fixed:
@@ -170,10 +170,12 @@ def finish(
     A free parameter is unidentifiable when it lies in a numerically null direction of the
     Jacobian, its relative standard error exceeds ``rel_stderr_limit``, or (Fs, Fc) it exceeds
     the largest torque in ``log``; ``unidentified`` names parameters already fixed at their
-    initial values, with the reason. ``solution``: the ``jaxflex.fit.Solution`` that ended at
-    ``y``, whose normal equations the covariance then reuses."""
+    initial values, with the reason (those of ``prob``'s space that its mask holds, or names
+    outside it). ``solution``: the ``jaxflex.fit.Solution`` that ended at ``y``, whose normal
+    equations the covariance then reuses."""
     theta, _ = prob.split(y)
-    phys = prob.space.physical_values(theta)
+    every = prob.space.physical_values(theta)
+    phys = {k: every[k] for k in prob.space.fitted_names()}
     cov = covariance(prob, y, solution=solution)
     # identifiability is judged on the information in the data (white residuals); the
     # standard errors reported and the posterior hold for correlated residuals too
@@ -233,7 +235,8 @@ def finish(
     marks = {k: {"identified": k not in bad, **({"reason": why[k]} if k in bad else {})}
              for k in list(phys) + list(fixed)}
     out.extra["identification"] = {
-        "free": list(prob.space.names) + list(fixed), "model": prob.kind, "cost": cost,
+        "free": list(phys) + [k for k in fixed if k not in phys], "model": prob.kind,
+        "cost": cost,
         "noise_cost": noise_cost, "rms_residual": rms, "jacobian_rank": cov["rank"],
         "unknowns": cov["n_free"], "steps": steps, "converged": converged,
         "reason": reason or ("cost explained by noise" if converged else "not converged"),
@@ -243,7 +246,7 @@ def finish(
         f"segment-robust ({robust['clusters']} segments as clusters)" if robust is not None
         else "white residuals")
     out.extra["identification"]["covariance"] = posterior_record(prob, theta, shown, bad)
-    links = base_record(prob.space.plant(theta).links, phys, np.asarray(shown["cov_phys"]))
+    links = base_record(prob.space.plant(theta).links, every, np.asarray(shown["cov_phys"]))
     if links is not None:
         out.extra["identification"]["links"] = links
     rel = relative_stderr(se, phys)

@@ -9,6 +9,7 @@ import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
+import equinox as eqx
 
 from jaxflex.fit import (
     Problem,
@@ -120,20 +121,27 @@ def fix_unidentified(search: Search, res: IdentResult, prob: Problem, best: Solu
     fixed_why: dict[str, str] = {}
     cur, sol_cur, total = prob, best, best.steps
     for _ in range(len(prob.space.names)):
-        own = [k for k in res.unidentifiable if k in cur.space.names
+        own = [k for k in res.unidentifiable if k in cur.space.fitted_names()
                and not res.why.get(k, "").startswith("kept at its initial value with")]
         if not own:
             break
         worst = max(own, key=lambda k: (k != "Fs" or len(own) == 1,  # fixing Fs caps Fc
                                         "null direction" not in res.why.get(k, ""),
                                         max(res.information_rel_stderr.get(k, [0.0]))))
-        keep = [k for k in cur.space.names if k != worst]
+        keep = [k for k in cur.space.fitted_names() if k != worst]
         if not keep:
             break
         fixed_why[worst] = res.why[worst]
-        sub, _ = make_problem(log, init, keep, model=model, segment_length=segment_length,
-                              substeps=prob.substeps, outputs=outputs,
-                              output_scale=output_scale, continuity_weight=continuity_weight)
+        if worst == "Fs" and "Fc" in keep:
+            # Fs's coordinate is its excess over Fc: held, it would move Fs with Fc; a space
+            # without Fs fits Fc as a share of the fixed Fs
+            sub, _ = make_problem(log, init, keep, model=model, segment_length=segment_length,
+                                  substeps=prob.substeps, outputs=outputs,
+                                  output_scale=output_scale,
+                                  continuity_weight=continuity_weight)
+        else:  # the same space, masked at the start: its compiled programs serve the refit
+            sub = eqx.tree_at(lambda q: q.space, cur,
+                              cur.space.with_mask(keep, cur.space.theta0()))
 
         def kept(space: Any, y: Any) -> Any:
             """``y`` in the refit's coordinates: the physical values of the names kept (an
