@@ -791,7 +791,8 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
     """On EMPS (rigid, the study's start and free set, automatic segments: 1000 samples) the
     first fit ends with vs = 157 m/s: the Stribeck hump is a level shift and Fc, Fs share a
     null direction with it. vs, the least determined, is fixed at its start and the rest
-    refitted (then released, the lowest end point kept): Fc and Fs come out at the log's
+    refitted (then released; the refit stands unless a solve of the full problem ends lower
+    by more than ``REFIT_TOL`` at the fit's residual scale): Fc and Fs come out at the log's
     friction level (published IDIM-LS Fc 20.39 N),
     vs is marked, and the set predicts the closed loop (force error on DATA_EMPS below 6%;
     published parameters 5.85%). Before, Fc was fixed first, the refit dropped, and Fc = 10 N,
@@ -800,6 +801,7 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
     multiple-shooting cost with sigma0 at its cap and Fs ten times Fc, a set whose closed
     loop is far worse (what the closed-loop refinement is for)."""
     from jaxflex.data import EMPS_IDIM_LS, emps_record
+    from jaxflex.identify.search import REFIT_TOL
     from jaxflex.validate import validate
 
     log, start, free = _emps_start()
@@ -809,10 +811,16 @@ def test_emps_fit_reports_a_consistent_set_with_the_automatic_segments():
                      rtol=1e-8, atol=1e-8, data_start=False)
     assert r.segments["samples"] == 1000 and r.segments["mode"] == "auto"
     assert r.unidentifiable == ["vs"]
-    # never worse than an end point: where the refit's release ends lower than the refit
-    # with vs fixed, that point is the answer, vs marked at its fitted value
+    # never worse than an end point, but for the refit with vs fixed at its start: it stands
+    # against a lower end point within REFIT_TOL at the first fit's residual scale (the two
+    # are the same to the data); a lower end point beyond that is the answer, vs marked
     finals = [a["cost_final"] for a in r.attempts if "cost_final" in a]
-    assert r.cost <= min(finals) * (1 + 1e-9)
+    first = [a["cost"] for a in r.attempts if "start" in a and "refit_without" not in a
+             and "released" not in a and not a["start"].startswith("best end point")]
+    noise = r.noise_cost / 4.0  # identify's accept_cost
+    fixed = "vs" not in r.problem.space.fitted_names()
+    allowed = REFIT_TOL * max(1.0, min(first) / noise) if fixed else 0.0
+    assert r.cost <= min(finals) * (1 + 1e-9) + allowed
     fc = r.params.friction["Fc"][0]
     assert fc == pytest.approx(EMPS_IDIM_LS.Fc, rel=0.1)
     assert r.params.friction["Fs"][0] >= fc
