@@ -259,10 +259,9 @@ class Problem(eqx.Module):
     compiled program); ``n_substeps`` reads it as an int on the host.
     ``rolled_stages``: the Jacobian blocks (``segment_jacobians``) replay with the RK4 stages
     as a loop (``jaxflex.sim.step.rk4``'s ``rolled``: the same to rounding, one copy of the
-    vector field instead of four per substep). It pays where the model is large and XLA's
-    small-loop option is on (``discover``'s gated universe of candidates: a program about a
-    third smaller, which compiles and loads faster) and costs run time where not
-    (``identify``'s solver under XLA's default options), so it is off by default.
+    vector field instead of four per substep): a smaller program, faster to compile and load;
+    ``identify``'s and ``discover``'s problems use it (on CPU their solves also run faster
+    with it); off by default.
     ``quantum``, ``read_noise``: the readings' model per output column, in the weighted units
     of ``w_y``: the encoder's count and the white noise before its rounding; the output
     residual is then ``quantised_residual`` (the reading's exact likelihood) instead of the

@@ -123,7 +123,8 @@ def make_problem(
     w_y = np.tile(1.0 / scale, len(outputs))
     prob = Problem(space=space, segs=segs, w_y=jnp.asarray(w_y),
                    w_def=jnp.asarray(w_def), dt=dt, kind=model, substeps=substeps,
-                   outputs=outputs, free_starts=True)
+                   outputs=outputs, free_starts=True,
+                   rolled_stages=True)  # a smaller program: faster to compile and to run
     return prob, prob.y0()
 
 
