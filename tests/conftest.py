@@ -54,23 +54,33 @@ def _release_compiled_executables():
 
 
 @contextlib.contextmanager
-def _lowerings():
-    """The names of the programs JAX lowers inside the block (a list, filled as it runs)."""
+def _lowerings(by_name: bool = False):
+    """The names of the programs JAX lowers inside the block (a list, filled as it runs).
+    ``by_name``: the kept-programs cache (``jaxflex.runtime.tracecache``, which a command run
+    in this process may have turned on) is off inside the block, so that programs lower by
+    their own names (kept ones lower as "call"); its state is restored after."""
+    from jaxflex.runtime import tracecache
+
     lowered: list[str] = []
 
     def listen(event: str, secs: float, **kw) -> None:
         if event.endswith("jaxpr_to_mlir_module_duration"):
             lowered.append(kw.get("fun_name", "?"))
 
+    kept = tracecache.folder()
+    if by_name:
+        tracecache.enable(None)
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         yield lowered
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
+        tracecache.enable(kept)
 
 
 @pytest.fixture
 def lowerings():
     """``with lowerings() as lowered:`` collects the names of the programs lowered inside
-    the block (tests that a call reuses compiled programs)."""
+    the block (tests that a call reuses compiled programs); ``lowerings(by_name=True)``
+    with the kept-programs cache off inside it."""
     return _lowerings

@@ -305,19 +305,12 @@ def test_automatic_substeps_refine_within_one_compiled_solver(lowerings):
     once per parameter space (the refits hold a parameter by a mask of the first fit's space,
     except Fs with Fc free, which needs a space of its own). Static counts would lower one
     more per level (checked during development)."""
-    from jaxflex.runtime import tracecache
-
     log, truth = _closed_loop_log(1.2)
     init = perturb(truth, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
-    kept = tracecache.folder()  # a command run in this process may have turned it on
-    tracecache.enable(None)  # programs by their own names (kept ones lower as "call")
-    try:
-        with lowerings() as lowered, warnings.catch_warnings():
-            warnings.simplefilter("ignore", IdentificationWarning)
-            r = identify(log, init, DEFAULT_FREE, segment_length=290, static_start=False,
-                         max_steps=30)
-    finally:
-        tracecache.enable(kept)
+    with lowerings(by_name=True) as lowered, warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        r = identify(log, init, DEFAULT_FREE, segment_length=290, static_start=False,
+                     max_steps=30)
     # the programs compiled ahead in a background thread (``compile_ahead`` on
     # ``jaxflex.runtime.ahead``) are all made before identify returns: no compilation is left running
     from jaxflex.runtime.ahead import THREAD_NAME
@@ -362,20 +355,14 @@ def test_an_unconverged_fit_is_reported_and_refused_downstream(tmp_path, lowerin
     import sys
 
     from jaxflex.io.params import load_params, save_params
-    from jaxflex.runtime import tracecache
 
     log, truth = _closed_loop_log(3.0)
     init = perturb(truth, DEFAULT_FREE, (1.5, 1.5, 0.5, 1.5, 0.5, 1.5))
-    kept = tracecache.folder()
-    tracecache.enable(None)  # programs by their own names (kept ones lower as "call")
-    try:
-        with lowerings() as lowered, warnings.catch_warnings():
-            warnings.simplefilter("ignore", IdentificationWarning)
-            r = identify(log, init, DEFAULT_FREE, segment_length=300, substeps=2,
-                         max_steps=3, static_start=False, warm_start=(1e-3,), vs_restarts=(),
-                         data_start=False, decrement_tol=None)
-    finally:
-        tracecache.enable(kept)
+    with lowerings(by_name=True) as lowered, warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        r = identify(log, init, DEFAULT_FREE, segment_length=300, substeps=2,
+                     max_steps=3, static_start=False, warm_start=(1e-3,), vs_restarts=(),
+                     data_start=False, decrement_tol=None)
     assert not r.converged and "above what the measurement noise explains" in r.reason
     assert {tuple(a["refit_without"]) for a in r.attempts if "refit_without" in a} == {
         ("sigma1",), ("sigma1", "vs")}

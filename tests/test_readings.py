@@ -135,18 +135,12 @@ def test_both_likelihoods_run_one_compiled_solver(lowerings):
     closed loop, 3 s, 18-bit encoders) ends under the readings' exact likelihood, and the
     least-squares search and the exact phase share one compiled solver per parameter space
     (``gaussian_reading``)."""
-    from jaxflex.runtime import tracecache
     from studies import ident_independent as study
 
     log, init = study.log_and_start(3.0)
-    kept = tracecache.folder()  # a command run in this process may have turned it on
-    tracecache.enable(None)  # programs by their own names (kept ones lower as "call")
-    try:
-        with lowerings() as lowered, warnings.catch_warnings():
-            warnings.simplefilter("ignore", IdentificationWarning)
-            r = identify(log, init, list(study.TRUTH), max_steps=60, static_start=False)
-    finally:
-        tracecache.enable(kept)
+    with lowerings(by_name=True) as lowered, warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        r = identify(log, init, list(study.TRUTH), max_steps=60, static_start=False)
     assert r.params.extra["identification"]["reading"]["likelihood"] == "rounded"
     assert any("reading" in a for a in r.attempts)
     spaces = 1 + len({tuple(a["refit_without"]) for a in r.attempts if "refit_without" in a})

@@ -235,8 +235,7 @@ def finish(
     marks = {k: {"identified": k not in bad, **({"reason": why[k]} if k in bad else {})}
              for k in list(phys) + list(fixed)}
     out.extra["identification"] = {
-        "free": list(phys) + [k for k in fixed if k not in phys], "model": prob.kind,
-        "cost": cost,
+        "free": list(phys) + list(fixed), "model": prob.kind, "cost": cost,
         "noise_cost": noise_cost, "rms_residual": rms, "jacobian_rank": cov["rank"],
         "unknowns": cov["n_free"], "steps": steps, "converged": converged,
         "reason": reason or ("cost explained by noise" if converged else "not converged"),
