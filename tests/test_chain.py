@@ -1,6 +1,7 @@
 """SerialChain: M, C, G of a chain from DH parameters (jaxflex.core.chain) against closed forms,
 energy conservation and the structure gravity must have."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -33,6 +34,10 @@ def test_mass_matrix_symmetric_positive_definite():
     assert float(jnp.min(jnp.linalg.eigvalsh(Ms))) > 1e-6
 
 
+# the chain's terms, compiled once per chain structure: eager calls would compile every small op
+_terms = eqx.filter_jit(lambda m, q, dq, v: (m.mass_matrix(q), m.gravity(q), m.coriolis(q, dq, v)))
+
+
 def test_planar_two_link_matches_closed_form():
     m1, m2, l1, l2, lc1, lc2, I1, I2, g = 0.6, 0.35, 0.3, 0.25, 0.15, 0.12, 0.0045, 0.002, 9.81
     ref = PlanarTwoLink(m1=m1, m2=m2, l1=l1, lc1=lc1, lc2=lc2, I1=I1, I2=I2, g=g)
@@ -45,9 +50,8 @@ def test_planar_two_link_matches_closed_form():
                              gravity=(0.0, -g, 0.0))
     for q, dq, v in [([0.3, -0.7], [1.0, -2.0], [0.5, 0.2]), ([1.2, 2.0], [-0.3, 0.8], [1, 1])]:
         q, dq, v = (jnp.asarray(x, float) for x in (q, dq, v))
-        np.testing.assert_allclose(ch.mass_matrix(q), ref.mass_matrix(q), atol=1e-14)
-        np.testing.assert_allclose(ch.gravity(q), ref.gravity(q), atol=1e-13)
-        np.testing.assert_allclose(ch.coriolis(q, dq, v), ref.coriolis(q, dq, v), atol=1e-13)
+        for got, want, tol in zip(_terms(ch, q, dq, v), _terms(ref, q, dq, v), (1e-14, 1e-13, 1e-13)):
+            np.testing.assert_allclose(got, want, atol=tol)
 
 
 def test_rigid_chain_conserves_energy_without_torque():
@@ -61,7 +65,9 @@ def test_rigid_chain_conserves_energy_without_torque():
 
     @jax.jit
     def run(x):
-        return jax.lax.scan(lambda s, _: (rk4(f, s, 2e-4), energy(s)), x, None, length=5000)
+        # the stages rolled: one copy of the chain in the program, a quarter of the compilation
+        return jax.lax.scan(lambda s, _: (rk4(f, s, 2e-4, rolled=True), energy(s)), x, None,
+                            length=5000)
 
     x0 = (jnp.array([0.3, -1.0, 0.5]), jnp.array([2.0, -1.0, 3.0]))
     x_end, E = run(x0)
@@ -95,18 +101,18 @@ def test_prismatic_joint_closed_form():
                              com=[[0.0, 0.0, 0.0], [r, 0.0, 0.0]], inertia=Ic,
                              gravity=(0.0, 0.0, -g), joints="PR")
     for q in ([0.0, 0.0], [0.7, 1.3], [-0.2, -2.5]):
-        q = jnp.asarray(q, float)
-        np.testing.assert_allclose(ch.mass_matrix(q), np.diag([m1 + m2, Izz + m2 * r**2]),
-                                   atol=1e-14)
-        np.testing.assert_allclose(ch.gravity(q), [(m1 + m2) * g, 0.0], atol=1e-12)
+        M, G, _ = _terms(ch, jnp.asarray(q, float), jnp.zeros(2), jnp.zeros(2))
+        np.testing.assert_allclose(M, np.diag([m1 + m2, Izz + m2 * r**2]), atol=1e-14)
+        np.testing.assert_allclose(G, [(m1 + m2) * g, 0.0], atol=1e-12)
     # a horizontal prismatic joint after a revolute one (polar arm): Coriolis 2 m r r' th'
     ch = SerialChain.from_dh(a=[0.0, 0.0], d=[0.0, 0.0], alpha=[np.pi / 2, 0.0],
                              mass=[1.0, m2], com=[[0, 0, 0], [0, 0, 0]],
                              inertia=np.zeros((2, 3, 3)), gravity=(0.0, 0.0, 0.0),
                              joints="RP")
     q, dq = jnp.array([0.4, 0.8]), jnp.array([1.5, 0.3])
-    np.testing.assert_allclose(ch.mass_matrix(q), np.diag([m2 * 0.8**2, m2]), atol=1e-14)
-    np.testing.assert_allclose(ch.coriolis(q, dq, dq),
+    M, _, C = _terms(ch, q, dq, dq)
+    np.testing.assert_allclose(M, np.diag([m2 * 0.8**2, m2]), atol=1e-14)
+    np.testing.assert_allclose(C,
                                [2 * m2 * 0.8 * 0.3 * 1.5, -m2 * 0.8 * 1.5**2], atol=1e-13)
 
 
@@ -135,9 +141,10 @@ def test_jit_grad_vmap_through_q_and_inertial_parameters():
                                / (2 * eps), rtol=1e-6, atol=tol)
     # vmap over a batch of chains (their phi) equals a loop
     phis = ch.phi[None] * jnp.linspace(0.5, 2.0, 3)[:, None, None]
-    batched = jax.vmap(lambda p: ch.with_phi(p).mass_matrix(q))(phis)
+    mass_matrix = jax.jit(lambda p: ch.with_phi(p).mass_matrix(q))
+    batched = jax.vmap(mass_matrix)(phis)
     for k in range(3):
-        np.testing.assert_allclose(batched[k], ch.with_phi(phis[k]).mass_matrix(q), atol=1e-12)
+        np.testing.assert_allclose(batched[k], mass_matrix(phis[k]), atol=1e-12)
     # the round trip mass, com, I_c -> phi -> mass, com, I_c
     np.testing.assert_allclose(standard_parameters(ch.mass, ch.com, ch.inertia_com), ch.phi,
                                atol=1e-12)
@@ -150,8 +157,7 @@ def test_flexible_plant_on_a_chain_is_passive():
     x = plant.init_state(q1=jnp.array([0.2, -0.5, 0.9]), dq1=jnp.array([1.0, -0.5, 0.3]),
                          q2=jnp.array([0.21, -0.49, 0.88]), dq2=jnp.array([0.9, -0.4, 0.2]))
     tau = jnp.array([3.0, -2.0, 1.0])
-    xd = plant.vector_field(x, tau)
-    dE = jax.jvp(plant.energy, (x,), (xd,))[1]
+    dE = jax.jit(lambda x: jax.jvp(plant.energy, (x,), (plant.vector_field(x, tau),))[1])(x)
     np.testing.assert_allclose(dE, x.dq2 @ tau, rtol=1e-10)
 
 

@@ -70,6 +70,7 @@ def clean_report():
     return discover(generate_log((), seed=4, t_final=8.0).log, config=CFG).to_json()
 
 
+@pytest.mark.slow
 def test_clean_log_gives_none(clean_report):
     rep = clean_report
     assert rep["effect"] == "none" and rep["effects"] == []
@@ -77,6 +78,7 @@ def test_clean_log_gives_none(clean_report):
     assert not any(s["significant"] for s in rep["candidate_scores"].values())
 
 
+@pytest.mark.slow
 def test_floor_is_honest_and_an_effect_outside_the_library_is_unexplained(clean_report):
     """The gap floor (bootstrap of a correct model through the workflow's steps) sits at the
     clean log's final gap: above half of it and at most 10% above it (a three-draw estimate;

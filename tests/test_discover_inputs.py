@@ -96,6 +96,7 @@ def test_a_rigid_identification_runs_from_the_command_line(tmp_path, capsys):
     assert "residuals.png" in rep["figures"] and (tmp_path / "o" / "residuals.png").exists()
 
 
+@pytest.mark.slow
 def test_a_solver_crash_is_a_solver_failure_naming_the_fit(emps_log, tmp_path, capsys,
                                                              monkeypatch):
     """A numpy LinAlgError inside a fit is a ``SolverFailure`` naming the fit (the nominal

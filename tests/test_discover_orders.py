@@ -159,6 +159,7 @@ def test_a_current_loop_that_a_delay_beats_at_order_1_is_named_actuator_lag_orde
     assert p["zeta"]["value"] == pytest.approx(0.5, rel=0.05)
 
 
+@pytest.mark.slow
 def test_a_higher_order_is_built_only_once_its_order_below_is_in_a_model():
     """The run's workspaces (``Workspaces``): the first holds the candidates alone; one that
     holds a family's order 2 is built when asked for and kept; a fit made in the first

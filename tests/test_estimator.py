@@ -72,6 +72,7 @@ def test_kalman_beats_dirty_derivative_on_the_paper_encoders():
     assert a_k < 0.7 * a_enc, (a_k, a_enc)
 
 
+@pytest.mark.slow
 def test_kalman_in_the_closed_loop_with_paper_sensing():
     """Same comparison inside the loop (the velocities the controller used): with the paper's
     sensing the Kalman loop's velocity error is far below the dirty derivative's, and with

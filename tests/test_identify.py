@@ -346,6 +346,7 @@ def test_a_local_minimum_is_rescued_by_the_identifiability_refits():
     assert max(err.values()) < 0.02, err
 
 
+@pytest.mark.slow
 def test_an_unconverged_fit_is_reported_and_refused_downstream(tmp_path, lowerings):
     """A solver stopped by its step cap (3 steps, no statistical stop, no restarts) says
     converged False with the reason, keeps the parameters it cannot determine at their

@@ -97,6 +97,7 @@ def test_a_rigid_axis_under_the_flexible_model_is_refused_with_a_hint(tmp_path):
     assert not (tmp_path / "r.json").exists()
 
 
+@pytest.mark.slow
 def test_identify_without_a_start_file_on_the_shipped_emps(tmp_path):
     """``jaxflex identify jaxflex:emps/DATA_EMPS --closed-loop`` with no start file: the
     rigid model from the one encoder, the start from the inverse dynamics, the offset the
@@ -192,6 +193,7 @@ def test_relative_shift_reads_the_engine_coordinates():
     assert relative_shift(prob, y0, {"sigma2[0]": math.log(1.1)}) == pytest.approx(0.1, rel=1e-9)
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_identify_within_a_second(tmp_path):
     """SIGINT during the solve: exit 130 within about a second, and no result file."""
     log, truth = _offset_log(3.0)

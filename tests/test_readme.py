@@ -8,6 +8,8 @@ import re
 import warnings
 from pathlib import Path
 
+import pytest
+
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
@@ -15,6 +17,7 @@ def _python_blocks(text: str) -> list[str]:
     return re.findall(r"```python\n(.*?)```", text, flags=re.S)
 
 
+@pytest.mark.slow
 def test_readme_notebook_examples_run():
     blocks = _python_blocks(README.read_text())
     assert blocks, "README has no python example"

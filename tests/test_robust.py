@@ -111,6 +111,7 @@ def identified(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_spread_from_identification_keeps_the_constraints(identified):
     """Every draw of an identification's posterior (widened 1000x so that the constraints
     would bind) has Fs >= Fc and every parameter > 0; correlations come from the fit."""
@@ -133,6 +134,7 @@ def test_spread_from_identification_keeps_the_constraints(identified):
     assert inside.mean() > 0.9
 
 
+@pytest.mark.slow
 def test_identified_spread_errors(identified, tmp_path):
     with pytest.raises(SpreadError, match="drawn from the identification"):
         parse_spread({"identified": str(identified),
@@ -145,6 +147,7 @@ def test_identified_spread_errors(identified, tmp_path):
         parse_spread({"identified": str(plain)})
 
 
+@pytest.mark.slow
 def test_spread_box_bounds_and_robust_search_small():
     """The box of a uniform spread is its support; the robust search on a tiny batch returns
     gains certified on that box and not worse in risk than its start."""

@@ -164,7 +164,8 @@ def test_divergence_is_flagged_not_raised():
     assert np.all(np.isfinite(np.asarray(r.q1)))
 
 
-@pytest.mark.parametrize("layout", [dict(unroll=4), dict(unroll=3, unroll_substeps=True)])
+@pytest.mark.parametrize("layout", [dict(unroll=4), pytest.param(
+    dict(unroll=3, unroll_substeps=True), marks=pytest.mark.slow, id="layout1")])
 def test_samples_per_trip_of_the_time_loop_change_no_number(layout):
     """``unroll`` (samples per trip of the time loop; the sweep engine's GPU layout) runs the
     same loop: the trajectory and metrics equal the default layout's to rounding, including a

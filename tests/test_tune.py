@@ -143,6 +143,7 @@ def test_tracking_cost_gradient_matches_finite_difference():
     assert g != 0.0
 
 
+@pytest.mark.slow
 def test_cli_tune_writes_gains_and_report(tmp_path, capsys):
     from jaxflex.app.cli import main
 
@@ -216,6 +217,7 @@ def test_rest_damping_constraint_is_enforced_and_reached_from_an_undamped_start(
         dataclasses.replace(task, min_rest_damping=2.0)
 
 
+@pytest.mark.slow
 def test_tune_keeps_the_observer_leak_and_its_damped_rest():
     """The observer leakage is not searched: a tune from leaky gains returns the same leak,
     and with it the paper's gains already meet a rest-damping constraint they fail without

@@ -201,6 +201,7 @@ def test_sampled_reference_gives_the_derivatives_the_cascade_needs():
     assert np.all(rel[:4] < 1e-5) and rel[4] < 1e-3, rel
 
 
+@pytest.mark.slow
 def test_declared_cascade_reproduces_a_cascade_log_and_wrong_parameters_do_not():
     """A log of jaxflex's cascade (``generate_log(loop="cascade")``: IDENT_GAINS, the paper's
     parameters as the controller's nominal model, 2 N m) simulated back through the declared

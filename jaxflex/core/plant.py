@@ -57,12 +57,12 @@ class AbstractLinkDynamics(eqx.Module):
     def coriolis(self, q: Array, dq: Array, v: Array) -> Float[Array, " n"]:
         """C(q, dq) v [N m] with C from the Christoffel symbols of M (so M' - 2C is skew).
 
-        C v = 1/2 (dM[dq] v + dM[v] dq - grad_q(dq^T M(q) v)).
+        C v = 1/2 (dM[dq] v + dM[v] dq - grad_q(dq^T M(q) v)), every term a contraction of
+        the one derivative T_ijk = dM_ij/dq_k (a single forward pass over the n directions).
         """
-        dM_dq = jax.jvp(self.mass_matrix, (q,), (dq,))[1]
-        dM_v = jax.jvp(self.mass_matrix, (q,), (v,))[1]
-        grad_term = jax.grad(lambda qq: dq @ self.mass_matrix(qq) @ v)(q)
-        return 0.5 * (dM_dq @ v + dM_v @ dq - grad_term)
+        T = jax.jacfwd(self.mass_matrix)(q)
+        return 0.5 * (jnp.einsum("ijk,j,k->i", T, v, dq) + jnp.einsum("ijk,j,k->i", T, dq, v)
+                      - jnp.einsum("jki,j,k->i", T, dq, v))
 
     def gravity(self, q: Float[Array, " n"]) -> Float[Array, " n"]:
         """G(q) = dU/dq [N m]."""
