@@ -350,18 +350,49 @@ def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_
     assert s.attempts[-1]["converged"] is False
 
     # a refinement that fails leaves the coarser fit as the answer, and says so
-    monkeypatch.setattr(disc, "least_squares", lambda *a, **k: _failed_like(sol, 1e50))
     monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so: {
         "bias_se": 50.0, "bias_rel": 0.5, "bias_mahalanobis": 50.0, "output_error": 1.0,
         "order": 1.0, "substeps": pr.n_substeps, "shift_theta": {"Fc[0]": 1.0},
         "stderr_theta": {"Fc[0]": 0.01}})
     monkeypatch.setattr(disc, "relative_shift", lambda *a: 0.5)
-    attempts = []
-    p_out, s_out, checks = disc.refine_fit(prob, sol, refine=True, solve={}, attempts=attempts)
+    s = search_mod.Search(good=1e-3, solve={})
+    p_out, s_out, checks = disc.refine_fit(
+        prob, sol, refine=True, run=lambda p, y, label: s.run(p, y, label, 3, full=False))
     assert p_out is prob and s_out is sol
     assert checks[-1]["refinement_failed"] > prob.n_substeps
-    assert attempts and attempts[-1]["converged"] is False
+    assert s.attempts and s.attempts[-1]["converged"] is False
+    assert s.attempts[-1]["refined_substeps"] > prob.n_substeps
 
+
+def test_a_refinement_is_stopped_by_the_same_rule_as_every_solve(monkeypatch):
+    """A model-limited refinement that reaches its step cap with a Gauss-Newton step left
+    far inside the standard errors is converged, as any other solve of the fit is: the
+    refinement runs through the search's own solve (its statistical stop and its record)."""
+    import dataclasses
+
+    import jaxflex.identify.discretisation as disc
+    import jaxflex.identify.search as search_mod
+    from jaxflex.fit import least_squares
+    from jaxflex.identify import make_problem
+
+    log, _ = _offset_log(0.6)
+    prob, y0 = make_problem(log, paper_params(), ("Fc", "sigma2"), segment_length=300)
+    sol = least_squares(prob, y0, max_steps=3)
+    capped = dataclasses.replace(sol, converged=False, failed=False, cost=1e9,
+                                 reason="stopped at max_steps = 3")
+    monkeypatch.setattr(search_mod, "least_squares", lambda *a, **k: capped)
+    monkeypatch.setattr(search_mod, "remaining_step", lambda *a: 0.01)
+    checks = iter([50.0, 0.0])  # the coarse fit is biased; the refined one is not
+    monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so: {
+        "bias_se": next(checks), "bias_mahalanobis": 0.0, "output_error": 1.0, "order": 4.0,
+        "substeps": pr.n_substeps, "shift_theta": {}, "stderr_theta": {}})
+    s = search_mod.Search(good=1e-3, solve={})
+    p_out, s_out, _ = disc.refine_fit(
+        prob, sol, refine=True, run=lambda p, y, label: s.run(p, y, label, 3, full=False))
+    assert p_out.n_substeps > prob.n_substeps
+    assert s_out.converged and "statistical stop" in s_out.reason
+    assert s.attempts[-1]["refined_substeps"] == p_out.n_substeps
+    assert s.attempts[-1]["converged"] is True
 
 def test_the_substeps_are_judged_again_against_the_residual_the_answer_leaves():
     from jaxflex.fit import Solution, dynamic_substeps

@@ -360,8 +360,8 @@ def identify(
             readings["rounded_failed"] = q_sol.reason
     # the integrator must not move the answer: refined at the solution, coarse to fine
     r_prob, r_sol, discretisation["checks"] = refine_fit(
-        f_prob, f_sol, refine=auto, solve=dict(search.solve, max_steps=max_steps),
-        attempts=search.attempts)
+        f_prob, f_sol, refine=auto,
+        run=lambda p, y, label: search.run(p, y, label, max_steps, full=False))
     if r_prob is not f_prob:
         total += r_sol.steps - f_sol.steps
     # never worse than the best point a solve of the full problem reached, at this

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -15,7 +16,6 @@ from jaxflex.fit import (
     Problem,
     Solution,
     discretisation_bias,
-    least_squares,
     refined,
     simulated_outputs,
     step_doubling_error,
@@ -27,17 +27,15 @@ from jaxflex.core.validation import to_device
 #: cost is then inflated by at most a quarter of what the noise explains, so the judgements
 #: "settled" and "identifiable" still hold at that level); the fit is then refined until the
 #: integrator moves no fitted parameter by more than BIAS_TOL standard errors
-#: (``jaxflex.fit.discretisation_bias``), at most MAX_SUBSTEPS. Measured on the 3 s
-#: closed-loop logs of seeds 7-14 (20-bit encoder, 50% off): a first choice at 2 noise units
-#: (1 substep) left seed 8 unconverged; 0.5 and 0.1 converged the same seven (13 fails either
-#: way), every one within 0.8% and within 0.33 standard errors of the integrator.
+#: (``jaxflex.fit.discretisation_bias``), at most MAX_SUBSTEPS.
 OUTPUT_TOL: float = 0.5
 BIAS_TOL: float = 0.5
 #: ``refine_fit`` also refines while the integrator moves a fitted parameter by more than
 #: this share of its value: the standard errors of a model-limited fit are inflated by its
 #: residual and alone would let a coarse integrator bias the answer.
 BIAS_REL: float = 5e-3
-MAX_SUBSTEPS: int = 32#: ``refine_fit``: the most the substeps grow in one refinement.
+MAX_SUBSTEPS: int = 32
+#: ``refine_fit``: the most the substeps grow in one refinement.
 REFINE_MOST: int = 8
 
 def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
@@ -99,9 +97,9 @@ def relative_shift(prob: Problem, y: Any, shift_theta: dict[str, float]) -> floa
     return max(rel) if rel else 0.0
 
 
-def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, Any],
+def refine_fit(prob: Problem, sol: Solution, *, refine: bool,
+               run: Callable[[Problem, Any, dict[str, Any]], Solution],
                tol: float = BIAS_TOL, rel_tol: float = BIAS_REL, most: int = MAX_SUBSTEPS,
-               attempts: list[dict[str, Any]] | None = None,
                ) -> tuple[Problem, Solution, list[dict[str, Any]]]:
     """Check how far the integrator moves the fitted parameters of ``sol`` and, with
     ``refine``, continue the fit with more substeps until it does not.
@@ -121,10 +119,11 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
     Arguments:
         prob, sol: the problem and its ``least_squares`` solution.
         refine: continue the fit with more substeps (else only check).
-        solve: ``least_squares`` options.
+        run: the solve that continues it, ``run(problem, y, label)`` (identify's
+            ``Search.run``: the same stops and record as every other solve of the fit;
+            ``label`` names the substeps).
         tol, rel_tol: the bounds on the shift (standard errors; share of the value).
         most: the most substeps.
-        attempts: a list the continuations are recorded in.
 
     Returns:
         The final problem, solution, and every check (``discretisation_bias``'s numbers
@@ -152,13 +151,7 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool, solve: dict[str, A
         factor = 2 ** max(1, math.ceil(math.log2(min(need, 1e6)) / chk["order"]))
         factor = max(2, min(factor, REFINE_MOST, most // prob.n_substeps))
         finer = refined(prob, factor)
-        more = least_squares(finer, sol.y, **solve)
-        if more.interrupted:
-            raise KeyboardInterrupt
-        if attempts is not None:
-            attempts.append({"refined_substeps": finer.n_substeps, "cost": more.cost,
-                             "steps": more.steps, "converged": more.converged,
-                             "reason": more.reason})
+        more = run(finer, sol.y, {"refined_substeps": finer.n_substeps})
         if more.failed:  # the finer fit broke down: the coarser answer stands, judged as is
             checks[-1]["refinement_failed"] = finer.n_substeps
             return prob, sol, checks
