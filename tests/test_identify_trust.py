@@ -327,18 +327,34 @@ def _failed_like(sol, cost):
                                       "solve)")
 
 
+def _three_step_fit():
+    """A small problem (0.6 s offset log, Fc and sigma2 free) and its 3-step solution."""
+    from jaxflex.fit import least_squares
+    from jaxflex.identify import make_problem
+
+    log, _ = _offset_log(0.6)
+    prob, y0 = make_problem(log, paper_params(), ("Fc", "sigma2"), segment_length=300)
+    return prob, y0, least_squares(prob, y0, max_steps=3)
+
+
+def _refine_through_a_search(prob, sol):
+    """``refine_fit`` continuing through a fresh ``Search``'s solve, as ``identify`` runs
+    it: the refined problem, solution and checks, and the search (its attempts)."""
+    import jaxflex.identify.discretisation as disc
+    import jaxflex.identify.search as search_mod
+
+    s = search_mod.Search(good=1e-3, solve={})
+    return (*disc.refine_fit(prob, sol, refine=True,
+                             run=lambda p, y, label: s.run(p, y, label, 3, full=False)), s)
+
+
 @pytest.mark.slow
 def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_the_fit(
         monkeypatch):
     import jaxflex.identify.discretisation as disc
     import jaxflex.identify.search as search_mod
-    from jaxflex.fit import least_squares
-    from jaxflex.identify import make_problem
 
-    p = paper_params()
-    log, _ = _offset_log(0.6)
-    prob, y0 = make_problem(log, p, ("Fc", "sigma2"), segment_length=300)
-    sol = least_squares(prob, y0, max_steps=3)
+    prob, y0, sol = _three_step_fit()
     assert not sol.failed and sol.normal is not None
 
     # a failed solve far above the noise stays not converged (no statistical stop)
@@ -355,9 +371,7 @@ def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_
         "order": 1.0, "substeps": pr.n_substeps, "shift_theta": {"Fc[0]": 1.0},
         "stderr_theta": {"Fc[0]": 0.01}})
     monkeypatch.setattr(disc, "relative_shift", lambda *a: 0.5)
-    s = search_mod.Search(good=1e-3, solve={})
-    p_out, s_out, checks = disc.refine_fit(
-        prob, sol, refine=True, run=lambda p, y, label: s.run(p, y, label, 3, full=False))
+    p_out, s_out, checks, s = _refine_through_a_search(prob, sol)
     assert p_out is prob and s_out is sol
     assert checks[-1]["refinement_failed"] > prob.n_substeps
     assert s.attempts and s.attempts[-1]["converged"] is False
@@ -372,12 +386,8 @@ def test_a_refinement_is_stopped_by_the_same_rule_as_every_solve(monkeypatch):
 
     import jaxflex.identify.discretisation as disc
     import jaxflex.identify.search as search_mod
-    from jaxflex.fit import least_squares
-    from jaxflex.identify import make_problem
 
-    log, _ = _offset_log(0.6)
-    prob, y0 = make_problem(log, paper_params(), ("Fc", "sigma2"), segment_length=300)
-    sol = least_squares(prob, y0, max_steps=3)
+    prob, _, sol = _three_step_fit()
     capped = dataclasses.replace(sol, converged=False, failed=False, cost=1e9,
                                  reason="stopped at max_steps = 3")
     monkeypatch.setattr(search_mod, "least_squares", lambda *a, **k: capped)
@@ -386,13 +396,12 @@ def test_a_refinement_is_stopped_by_the_same_rule_as_every_solve(monkeypatch):
     monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so: {
         "bias_se": next(checks), "bias_mahalanobis": 0.0, "output_error": 1.0, "order": 4.0,
         "substeps": pr.n_substeps, "shift_theta": {}, "stderr_theta": {}})
-    s = search_mod.Search(good=1e-3, solve={})
-    p_out, s_out, _ = disc.refine_fit(
-        prob, sol, refine=True, run=lambda p, y, label: s.run(p, y, label, 3, full=False))
+    p_out, s_out, _, s = _refine_through_a_search(prob, sol)
     assert p_out.n_substeps > prob.n_substeps
     assert s_out.converged and "statistical stop" in s_out.reason
     assert s.attempts[-1]["refined_substeps"] == p_out.n_substeps
     assert s.attempts[-1]["converged"] is True
+
 
 def test_the_substeps_are_judged_again_against_the_residual_the_answer_leaves():
     from jaxflex.fit import Solution, dynamic_substeps

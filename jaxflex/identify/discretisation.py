@@ -38,6 +38,7 @@ MAX_SUBSTEPS: int = 32
 #: ``refine_fit``: the most the substeps grow in one refinement.
 REFINE_MOST: int = 8
 
+
 def choose_substeps(prob: Problem, y: Any, *, tol: float = OUTPUT_TOL,
                     most: int = MAX_SUBSTEPS) -> tuple[Problem, dict[str, Any]]:
     """The first choice of substeps for ``prob`` at the unknowns ``y``: starting from the
