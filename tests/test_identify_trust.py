@@ -160,6 +160,11 @@ def test_the_file_is_never_worse_than_an_attempt_and_the_verdict_has_two_parts()
     assert finals and r.cost <= min(finals) * (1 + 1e-6) + 1e-9
     for a in r.attempts:
         assert "cost" not in a or ("reason" in a and "steps" in a)
+    # a warm phase's record is at the identification's own cost: the solve from its end
+    # (LM: never above where it starts) ends no higher
+    for a, b in zip(r.attempts, r.attempts[1:]):
+        if "warm" in a:
+            assert "cost_loosened" in a and b["cost"] <= a["cost"] * (1 + 1e-9), (a, b)
 
 
 @pytest.mark.slow
@@ -401,6 +406,44 @@ def test_a_refinement_is_stopped_by_the_same_rule_as_every_solve(monkeypatch):
     assert s_out.converged and "statistical stop" in s_out.reason
     assert s.attempts[-1]["refined_substeps"] == p_out.n_substeps
     assert s.attempts[-1]["converged"] is True
+
+
+def test_the_first_start_s_bristle_load_is_held_within_what_a_motion_reaches():
+    """The log's first segment is the one start no continuity defect ties to a replay: its
+    bristle load is fitted as a share of the bristle's invariant bound (``LuGre.z_bound``),
+    clipped to [-1, 1], so that a fit cannot use a load many times the friction's largest as
+    an impulse at the log's start; every other start keeps its absolute, free entry."""
+    from jaxflex.fit import simulated_outputs
+
+    prob, y0, _ = _three_step_fit()
+    theta, x0 = y0
+    bound = float(np.ravel(prob.space.plant(theta).lugre.z_bound())[0])
+    assert np.asarray(x0)[0, -1, 0] == pytest.approx(
+        float(np.asarray(prob.segs.x0)[0, -1, 0]) / bound)  # the data's estimate, as a share
+    out = lambda x: np.asarray(simulated_outputs(prob, (theta, x)))  # noqa: E731
+    at_bound, beyond = (x0.at[0, -1, 0].set(v) for v in (1.0, 50.0))
+    np.testing.assert_array_equal(out(beyond)[0], out(at_bound)[0])
+    assert not np.allclose(out(x0.at[1, -1, 0].set(50 * bound))[1], out(x0)[1])
+
+
+def test_a_warm_phase_is_recorded_at_the_identification_s_own_cost():
+    """A warm phase solves the problem with loosened continuity weights; its record states
+    the identification's own cost at its end (what every other record and the file state),
+    the loosened objective beside it, so that no record looks lower than the answer for
+    being another objective."""
+    import equinox as eqx
+
+    import jaxflex.identify.search as search_mod
+    from jaxflex.fit import cost
+
+    prob, y0, _ = _three_step_fit()
+    loose = eqx.tree_at(lambda q: q.w_def, prob, prob.w_def * 1e-3)
+    s = search_mod.Search(good=1e-3, solve={})
+    sol = s.run(loose, y0, {"warm": "user", "warm_start": 1e-3}, 3, full=False, scored=prob)
+    rec = s.attempts[-1]
+    assert rec["cost_loosened"] == sol.cost
+    assert rec["cost"] == pytest.approx(cost(prob, sol.y), rel=1e-12)
+    assert rec["cost"] > rec["cost_loosened"]  # the defects weigh 1000x more in its own
 
 
 def test_the_substeps_are_judged_again_against_the_residual_the_answer_leaves():

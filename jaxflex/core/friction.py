@@ -100,6 +100,14 @@ class LuGre(eqx.Module):
         """Steady bristle deflection z_ss = sign(v) g(v) / sigma0 [rad]."""
         return jnp.sign(v) * self.g(v) / self.sigma0
 
+    def z_bound(self) -> Float[Array, " n"]:
+        """The bristle's invariant bound [rad]: the level at standstill, from either direction,
+        over sigma0. Eq. 5 moves z toward zero wherever |z| > g(v) / sigma0 and g peaks at
+        standstill (eq. 6 with Fs >= Fc), so a motion whose |z| starts within this bound keeps
+        it there: no state beyond it is reachable."""
+        eps = 1e-6 * self.vs
+        return jnp.maximum(self.g(eps), self.g(-eps)) / self.sigma0
+
     def step_z(self, v: Float[Array, " n"], z: Float[Array, " n"], h: float | Array) -> Array:
         """Advance z by ``h`` seconds with v frozen, exactly (eq. 5 is linear in z for fixed v)."""
         return relax(z, self.z_rate(v), v, h)

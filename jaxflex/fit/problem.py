@@ -250,7 +250,14 @@ class Problem(eqx.Module):
     breakaway, which the steady state (only 0 or +-g / sigma0 at rest) cannot, and z stays
     physical (an entry past the capacity, poorly determined while sliding, stops moving
     instead of wandering; the load is absolute, so a fitted Fs moves only the bound, not
-    every load with it). ``jac_columns``:
+    every load with it). Otherwise, with free starts, the first segment's start z (the one
+    start no continuity defect ties to a replay) is held within the bristle's invariant bound
+    (``LuGre.z_bound``): a state beyond it is one no motion reaches, and a fit left free
+    there uses it as an impulse at the log's start (a load many times the friction's
+    largest) that the integrator cannot follow. Its entry in the start vector is the load's
+    share of that bound, clipped to [-1, 1] (``y0`` gives the data's estimate so): a fitted
+    Fs or sigma0 then moves the bound and the load with it, where an absolute entry the
+    bound moved past would stop moving. ``jac_columns``:
     with a parameter mask, the most fitted theta entries any mask will have; the structured
     Jacobian then takes only that many tangents (the fitted directions) instead of all of
     theta. ``substeps``: integrator substeps per sample, a Python int (a compiled program per
@@ -309,20 +316,31 @@ class Problem(eqx.Module):
         """Starting unknowns: ``theta`` (default: the space's base values) and, with free
         starts, the data's start states."""
         theta = self.space.theta0() if theta is None else theta
-        return (theta, self.segs.x0) if self.free_starts else theta
+        if not self.free_starts:
+            return theta
+        fr = self.space.plant(theta).lugre
+        if fr is None or self.bounded_z or self.steady_z:
+            return theta, self.segs.x0
+        # the first start's z entry is its share of the bristle's bound (``_segment``)
+        return theta, self.segs.x0.at[0, -1].divide(fr.z_bound())
 
     def _segment(self, th: dict[str, Array], v0: Array, tau: Array, tau_pre: Array,
-                 rolled: bool = False):
+                 rolled: bool = False, first: Array | bool = False):
         plant = self.space.plant(th)
         n = plant.n
         aux = tuple(e.aux_init(n) for e in plant.effects) if plant.effects else None
         x0 = unpack_state(self.kind, v0, aux)
         fr = plant.lugre
-        if self.free_starts and self.bounded_z and fr is not None:
-            cap = fr.g(x0.dq1) / fr.sigma0  # the friction's capacity [rad]
-            x0 = eqx.tree_at(lambda s: s.z, x0, jnp.clip(x0.z, -cap, cap))
-        elif (self.steady_z or not self.free_starts) and fr is not None:
-            x0 = eqx.tree_at(lambda s: s.z, x0, fr.z_steady(x0.dq1))
+        if fr is not None:
+            if self.free_starts and self.bounded_z:
+                cap = fr.g(x0.dq1) / fr.sigma0  # the friction's capacity [rad]
+                x0 = eqx.tree_at(lambda s: s.z, x0, jnp.clip(x0.z, -cap, cap))
+            elif self.steady_z or not self.free_starts:
+                x0 = eqx.tree_at(lambda s: s.z, x0, fr.z_steady(x0.dq1))
+            else:  # the first start, which no defect ties to a replay: a state a motion reaches
+                cap = fr.z_bound()
+                x0 = eqx.tree_at(lambda s: s.z, x0,
+                                 jnp.where(first, cap * jnp.clip(x0.z, -1.0, 1.0), x0.z))
         reads_link = self.kind in ("flexible", "link") and "q1" in self.outputs
         if reads_link and not self.free_starts:
             # a measured start is the encoder's reading: start from the link angle behind it
@@ -541,12 +559,18 @@ def theta_spec(theta: dict[str, Array]) -> tuple[tuple[str, tuple[int, ...]], ..
     return tuple((k, tuple(jnp.shape(v))) for k, v in sorted(theta.items()))
 
 
+def _first_slot(S: int) -> Array:
+    """(S,) bool: the slot of the log's first segment (``Problem``'s bound on its start z)."""
+    return jnp.arange(S) == 0
+
+
 def _segment_flat(prob: Problem, spec: tuple, dims: tuple[int, int], th: Array, v0: Array,
-                  tau: Array, tau_pre: Array, rolled: bool = False) -> Array:
+                  tau: Array, tau_pre: Array, first: Array, rolled: bool = False) -> Array:
     """One segment's outputs and end state, flattened, from flat coordinates ``th``
-    (``rolled``: the integrator's RK4 stages as a loop, ``jaxflex.sim.step.rk4``)."""
+    (``first``: the log's first segment, ``Problem``'s bound on its start z; ``rolled``: the
+    integrator's RK4 stages as a loop, ``jaxflex.sim.step.rk4``)."""
     unravel = ravel_pytree({k: jnp.zeros(shape, th.dtype) for k, shape in spec})[1]
-    ys, x_end = prob._segment(unravel(th), v0.reshape(dims), tau, tau_pre, rolled)
+    ys, x_end = prob._segment(unravel(th), v0.reshape(dims), tau, tau_pre, rolled, first)
     return jnp.concatenate([ys.reshape(-1), x_end.reshape(-1)])
 
 
@@ -556,8 +580,8 @@ def replay_segments(prob: Problem, th: Array, v0s: Array, spec: tuple,
     """Every segment of ``prob`` replayed from flat coordinates ``th`` and flat start states
     ``v0s`` (S, n_state * n): (S, outputs + end state) [rad, rad/s], flattened per segment.
     ``spec``: ``theta_spec`` of the coordinates; ``dims``: (n_state, n)."""
-    return jax.vmap(lambda v, u, p: _segment_flat(prob, spec, dims, th, v, u, p))(
-        v0s, prob.segs.tau, prob.segs.tau_pre)
+    return jax.vmap(lambda v, u, p, f: _segment_flat(prob, spec, dims, th, v, u, p, f))(
+        v0s, prob.segs.tau, prob.segs.tau_pre, _first_slot(v0s.shape[0]))
 
 
 @persistent_jit
@@ -580,11 +604,11 @@ def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
     P = basis.shape[1]
     free = prob.free_starts
 
-    def seg_and_jac(v0, tau, tau_pre):
+    def seg_and_jac(v0, tau, tau_pre, first):
         # one forward pass with P (+ n_state*n) tangents: the fitted theta directions (and
         # the segment's own start state)
         f = lambda t_, v_: _segment_flat(prob, spec, dims, t_, v_, tau, tau_pre,  # noqa: E731
-                                         rolled=prob.rolled_stages)
+                                         first, rolled=prob.rolled_stages)
         d = v0.shape[0]
         t_th = basis.T if not free else jnp.concatenate([basis.T, jnp.zeros((d, k), th.dtype)])
         t_v = jnp.zeros((P, d), v0.dtype) if not free else jnp.concatenate(
@@ -593,5 +617,6 @@ def segment_jacobians(prob: Problem, th: Array, v0s: Array, spec: tuple,
                              out_axes=(None, 1))(t_th, t_v)
         return out, cols[:, :P], cols[:, P:]
 
-    out, jac_th, jac_v = jax.vmap(seg_and_jac)(v0s, prob.segs.tau, prob.segs.tau_pre)
+    out, jac_th, jac_v = jax.vmap(seg_and_jac)(v0s, prob.segs.tau, prob.segs.tau_pre,
+                                               _first_slot(v0s.shape[0]))
     return out, jac_th, jac_v, basis

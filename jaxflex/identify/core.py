@@ -250,7 +250,7 @@ def identify(
             return y
         loose = eqx.tree_at(lambda q: q.w_def, problem, problem.w_def * factor)
         return search.run(loose, y, {"warm": label, "warm_start": factor}, warm_steps,
-                          full=False).y
+                          full=False, scored=problem).y
 
     def solve_from(prob: Problem, origin: str, y_start: Any, factor: float | None,
                    ) -> Solution:

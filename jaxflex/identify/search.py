@@ -46,9 +46,12 @@ class Search:
         self.ends: list[tuple[int, Any]] = []  # (attempt index, y) of the full problem
 
     def run(self, prob: Problem, y: Any, label: dict[str, Any], max_steps: int,
-            full: bool = True) -> Solution:
+            full: bool = True, scored: Problem | None = None) -> Solution:
         """One ``least_squares`` solve, recorded; a Ctrl-C inside it ends the whole
-        identification (``KeyboardInterrupt``)."""
+        identification (``KeyboardInterrupt``). Every record's ``cost`` is the
+        identification's own cost at the solve's end: ``scored``, the problem whose cost that
+        is where ``prob`` solves another objective (a warm phase's loosened continuity
+        weights, recorded beside it as ``cost_loosened``)."""
         sol = least_squares(prob, y, max_steps=max_steps, **self.solve)
         if sol.interrupted:
             raise KeyboardInterrupt
@@ -62,7 +65,9 @@ class Search:
                     f"statistical stop at the reported (segment-robust) standard errors: a "
                     f"full Gauss-Newton step would move no parameter by more than {rem:.2g} "
                     f"of them ({sol.reason})"))
-        self.attempts.append({**label, "cost": sol.cost, "steps": sol.steps,
+        costs = ({"cost": sol.cost} if scored is None
+                 else {"cost": cost(scored, sol.y), "cost_loosened": sol.cost})
+        self.attempts.append({**label, **costs, "steps": sol.steps,
                               "converged": sol.converged, "reason": sol.reason})
         if full:
             self.ends.append((len(self.attempts) - 1, sol.y))
