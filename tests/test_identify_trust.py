@@ -411,8 +411,9 @@ def test_a_refinement_is_stopped_by_the_same_rule_as_every_solve(monkeypatch):
 def test_the_first_start_s_bristle_load_is_held_within_what_a_motion_reaches():
     """The log's first segment is the one start no continuity defect ties to a replay: its
     bristle load is fitted as a share of the bristle's invariant bound (``LuGre.z_bound``),
-    clipped to [-1, 1], so that a fit cannot use a load many times the friction's largest as
-    an impulse at the log's start; every other start keeps its absolute, free entry."""
+    folded into [-1, 1] (reflected at the bound, so a step past it comes back), so that a fit
+    cannot use a load many times the friction's largest as an impulse at the log's start;
+    every other start keeps its absolute, free entry."""
     from jaxflex.fit import simulated_outputs
 
     prob, y0, _ = _three_step_fit()
@@ -420,10 +421,13 @@ def test_the_first_start_s_bristle_load_is_held_within_what_a_motion_reaches():
     bound = float(np.ravel(prob.space.plant(theta).lugre.z_bound())[0])
     assert np.asarray(x0)[0, -1, 0] == pytest.approx(
         float(np.asarray(prob.segs.x0)[0, -1, 0]) / bound)  # the data's estimate, as a share
-    out = lambda x: np.asarray(simulated_outputs(prob, (theta, x)))  # noqa: E731
-    at_bound, beyond = (x0.at[0, -1, 0].set(v) for v in (1.0, 50.0))
-    np.testing.assert_array_equal(out(beyond)[0], out(at_bound)[0])
-    assert not np.allclose(out(x0.at[1, -1, 0].set(50 * bound))[1], out(x0)[1])
+    out = lambda x: np.asarray(simulated_outputs(prob, (theta, x)))[0]  # noqa: E731
+    share = lambda v: x0.at[0, -1, 0].set(v)  # noqa: E731
+    for past, inside in ((1.5, 0.5), (2.5, -0.5), (50.0, 0.0), (-1.25, -0.75)):
+        np.testing.assert_allclose(out(share(past)), out(share(inside)), rtol=0, atol=1e-12)
+    assert not np.allclose(out(share(1.0)), out(share(0.5)))
+    later = lambda x: np.asarray(simulated_outputs(prob, (theta, x)))[1]  # noqa: E731
+    assert not np.allclose(later(x0.at[1, -1, 0].set(50 * bound)), later(x0))
 
 
 def test_a_warm_phase_is_recorded_at_the_identification_s_own_cost():

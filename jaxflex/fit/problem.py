@@ -255,9 +255,9 @@ class Problem(eqx.Module):
     (``LuGre.z_bound``): a state beyond it is one no motion reaches, and a fit left free
     there uses it as an impulse at the log's start (a load many times the friction's
     largest) that the integrator cannot follow. Its entry in the start vector is the load's
-    share of that bound, clipped to [-1, 1] (``y0`` gives the data's estimate so): a fitted
-    Fs or sigma0 then moves the bound and the load with it, where an absolute entry the
-    bound moved past would stop moving. ``jac_columns``:
+    share of that bound, folded into [-1, 1] (``_folded``; ``y0`` gives the data's estimate
+    so): a fitted Fs or sigma0 moves the bound and the load with it, and a step past the
+    bound is reflected back, where a clipped entry would stop moving. ``jac_columns``:
     with a parameter mask, the most fitted theta entries any mask will have; the structured
     Jacobian then takes only that many tangents (the fitted directions) instead of all of
     theta. ``substeps``: integrator substeps per sample, a Python int (a compiled program per
@@ -340,7 +340,7 @@ class Problem(eqx.Module):
             else:  # the first start, which no defect ties to a replay: a state a motion reaches
                 cap = fr.z_bound()
                 x0 = eqx.tree_at(lambda s: s.z, x0,
-                                 jnp.where(first, cap * jnp.clip(x0.z, -1.0, 1.0), x0.z))
+                                 jnp.where(first, cap * _folded(x0.z), x0.z))
         reads_link = self.kind in ("flexible", "link") and "q1" in self.outputs
         if reads_link and not self.free_starts:
             # a measured start is the encoder's reading: start from the link angle behind it
@@ -557,6 +557,13 @@ def theta_spec(theta: dict[str, Array]) -> tuple[tuple[str, tuple[int, ...]], ..
     """The structure of engine coordinates ``theta`` (names and shapes), hashable: what
     ``replay_segments`` needs to unflatten them."""
     return tuple((k, tuple(jnp.shape(v))) for k, v in sorted(theta.items()))
+
+
+def _folded(s: Array) -> Array:
+    """A share ``s`` folded into [-1, 1]: s itself there, reflected at +-1 beyond (a triangle
+    wave of period 4, slope +-1 everywhere): a step past the bound comes back inside, where a
+    clip would hold the entry with no slope."""
+    return 1.0 - jnp.abs(jnp.mod(s + 1.0, 4.0) - 2.0)
 
 
 def _first_slot(S: int) -> Array:
