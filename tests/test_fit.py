@@ -318,7 +318,7 @@ def test_shooting_solve_equals_dense_solve(scaling):
 
 
 def test_segment_slots_hold_every_count_with_little_padding():
-    from jaxflex.fit.problem import segment_slots
+    from jaxflex.fit.segments import segment_slots
 
     slots = [segment_slots(c) for c in range(1, 3000)]
     assert slots[:2] == [1, 2]  # the smallest logs are not padded

@@ -332,13 +332,19 @@ def _failed_like(sol, cost):
                                       "solve)")
 
 
-def _three_step_fit():
-    """A small problem (0.6 s offset log, Fc and sigma2 free) and its 3-step solution."""
-    from jaxflex.fit import least_squares
+def _small_problem():
+    """A small problem (0.6 s offset log, Fc and sigma2 free) and its start."""
     from jaxflex.identify import make_problem
 
     log, _ = _offset_log(0.6)
-    prob, y0 = make_problem(log, paper_params(), ("Fc", "sigma2"), segment_length=300)
+    return make_problem(log, paper_params(), ("Fc", "sigma2"), segment_length=300)
+
+
+def _three_step_fit():
+    """``_small_problem``, its start and its 3-step solution."""
+    from jaxflex.fit import least_squares
+
+    prob, y0 = _small_problem()
     return prob, y0, least_squares(prob, y0, max_steps=3)
 
 
@@ -416,18 +422,17 @@ def test_the_first_start_s_bristle_load_is_held_within_what_a_motion_reaches():
     every other start keeps its absolute, free entry."""
     from jaxflex.fit import simulated_outputs
 
-    prob, y0, _ = _three_step_fit()
-    theta, x0 = y0
+    prob, (theta, x0) = _small_problem()
     bound = float(np.ravel(prob.space.plant(theta).lugre.z_bound())[0])
     assert np.asarray(x0)[0, -1, 0] == pytest.approx(
         float(np.asarray(prob.segs.x0)[0, -1, 0]) / bound)  # the data's estimate, as a share
-    out = lambda x: np.asarray(simulated_outputs(prob, (theta, x)))[0]  # noqa: E731
+    out = lambda x: np.asarray(simulated_outputs(prob, (theta, x)))  # noqa: E731
     share = lambda v: x0.at[0, -1, 0].set(v)  # noqa: E731
     for past, inside in ((1.5, 0.5), (2.5, -0.5), (50.0, 0.0), (-1.25, -0.75)):
-        np.testing.assert_allclose(out(share(past)), out(share(inside)), rtol=0, atol=1e-12)
-    assert not np.allclose(out(share(1.0)), out(share(0.5)))
-    later = lambda x: np.asarray(simulated_outputs(prob, (theta, x)))[1]  # noqa: E731
-    assert not np.allclose(later(x0.at[1, -1, 0].set(50 * bound)), later(x0))
+        np.testing.assert_allclose(out(share(past))[0], out(share(inside))[0], rtol=0,
+                                   atol=1e-12)
+    assert not np.allclose(out(share(1.0))[0], out(share(0.5))[0])
+    assert not np.allclose(out(x0.at[1, -1, 0].set(50 * bound))[1], out(x0)[1])
 
 
 def test_a_warm_phase_is_recorded_at_the_identification_s_own_cost():
@@ -440,7 +445,7 @@ def test_a_warm_phase_is_recorded_at_the_identification_s_own_cost():
     import jaxflex.identify.search as search_mod
     from jaxflex.fit import cost
 
-    prob, y0, _ = _three_step_fit()
+    prob, y0 = _small_problem()
     loose = eqx.tree_at(lambda q: q.w_def, prob, prob.w_def * 1e-3)
     s = search_mod.Search(good=1e-3, solve={})
     sol = s.run(loose, y0, {"warm": "user", "warm_start": 1e-3}, 3, full=False, scored=prob)

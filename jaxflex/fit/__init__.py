@@ -5,25 +5,25 @@ constraint vocabulary, one solver path (optimistix Levenberg-Marquardt), one cov
 
 - ``ParamSpace``: free parameters and their reparametrisation (``space``);
 - ``savgol``, ``noise_level``: Savitzky-Golay and the noise of a logged angle (``signal``);
-- ``Segments``, ``make_segments``, ``Problem``: data and residuals (``problem``);
+- ``Segments``, ``make_segments``: the log cut into segments (``segments``); ``Problem``:
+  their replay and residuals (``problem``);
 - ``least_squares``, ``cost``, ``Solution``: the step loop and its stops (``solve``), built
   from a Levenberg-Marquardt descent and trust region (``levenberg_marquardt``) over structured
   normal-equation solves (``normal``);
 - ``covariance`` and the robust covariances (``uncertainty``); ``simulated_outputs``,
   ``residuals``, ``gap`` (``replay``); ``discretisation_bias`` (``discretisation``);
-- ``segment_slots``, ``slot_rows``, ``on_slot_rows``, ``Padding``: the buckets of segment
-  counts a problem is compiled for, so that logs of other lengths reuse the programs.
+- ``segment_slots``, ``slot_rows``, ``on_slot_rows`` (``segments``), ``Padding``: the buckets
+  of segment counts a problem is compiled for, so that logs of other lengths reuse the
+  programs.
 """
 
-from jaxflex.fit.problem import (
-    BLOWN_RESIDUAL,
-    Problem,
+from jaxflex.fit.problem import BLOWN_RESIDUAL, Problem, dynamic_substeps
+from jaxflex.fit.segments import (
     Segments,
-    dynamic_substeps,
     make_segments,
+    on_slot_rows,
     output_columns,
     pack_state,
-    on_slot_rows,
     segment_slots,
     slot_rows,
     unpack_state,

@@ -23,7 +23,7 @@ from jaxtyping import Array
 from jaxflex.core.effects import link_input
 from jaxflex.core.plant import FlexibleJointPlant
 from jaxflex.core.state import PlantState
-from jaxflex.fit.problem import on_slot_rows
+from jaxflex.fit.segments import on_slot_rows
 from jaxflex.fit.signal import savgol
 from jaxflex.io.logs import Log
 from jaxflex.runtime.tracecache import persistent_jit

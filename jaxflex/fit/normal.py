@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from jaxflex.fit.problem import segment_rows
+from jaxflex.fit.segments import segment_rows
 
 
 def damping_diagonal(diag: jax.Array, scaling: str) -> jax.Array:

@@ -13,7 +13,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from jaxflex.fit.problem import Problem, segment_slots, slot_rows
+from jaxflex.fit.problem import Problem
+from jaxflex.fit.segments import segment_slots, slot_rows
 from jaxflex.core.validation import to_device
 
 
