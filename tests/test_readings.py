@@ -7,6 +7,7 @@ from __future__ import annotations
 import warnings
 
 import jax
+import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -56,6 +57,28 @@ def test_half_its_square_is_the_reading_s_negative_log_likelihood():
         nll0 = -np.log(norm.cdf(h) - norm.cdf(-h))
         got = 0.5 * np.asarray(quantised_residual(jnp.asarray(e), jnp.asarray(quantum)))**2
         np.testing.assert_allclose(got, nll - nll0, rtol=1e-6, atol=1e-9)
+
+
+def test_a_reading_s_likelihood_and_slope_take_two_error_functions_per_reading():
+    """The solver's compiled program evaluates the residual and its slope at every step of
+    every segment: each error function there is a long polynomial expansion that XLA
+    compiles, so the readings' likelihood spends two per reading (the constant at e = 0 and
+    the curvature are per count, not per reading)."""
+    e, t = jnp.ones((40, 500, 2)), jnp.ones((40, 500, 2))
+    quantum = jnp.asarray([0.5, 3.0])
+    jaxpr = jax.make_jaxpr(lambda e, t: jax.jvp(lambda x: quantised_residual(x, quantum),
+                                                (e,), (t,)))(e, t)
+
+    def per_reading(jx):
+        n = 0
+        for eqn in jx.eqns:
+            if eqn.primitive.name in ("erf", "erfc") and eqn.outvars[0].aval.shape == e.shape:
+                n += 1
+            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+                n += per_reading(sub)
+        return n
+
+    assert per_reading(jaxpr.jaxpr) == 2
 
 
 def test_a_model_inside_a_coarse_count_is_not_pulled_to_its_centre():
