@@ -228,6 +228,9 @@ def identify(
     # the solver options every solve of this fit shares (they key its compiled program)
     options = dict(rtol=rtol, atol=atol, decrement_tol=stop, geodesic=geodesic)
     ahead = compile_ahead(prob, y0, options)
+    # what the noise explains under the readings' exact likelihood (the same for every problem
+    # of this log: its segments and readings), reckoned while the solver compiles
+    rounded_noise = None if rounded is None else reading_statistics(rounded)[0]
     starts = starts_of(log, init, free, prob, y0, model, static_start, user_start, data)
     discretisation: dict[str, Any] = {"mode": "auto" if auto else "given"}
     if auto:
@@ -352,7 +355,7 @@ def identify(
                        "noise": reading_units(q_prob, q_prob.read_noise),
                        "gaussian_cost": f_sol.cost}
             total += q_sol.steps
-            good = accept_cost * reading_statistics(q_prob)[0]
+            good = accept_cost * rounded_noise
             # the search's problem under the same readings (its end points are weighed so)
             prob = with_readings(prob, rounded)
             f_prob, f_sol = q_prob, q_sol
