@@ -14,7 +14,9 @@ uncompensated one (observer off; the same Kalman sensing and gains).
 
 One export per configuration serves the three experiments: the rig gives the controller
 the reference (q1d and four derivatives) at each sample. Writes results.json (and
-tracking.png when matplotlib is installed) to --out.
+tracking.png when matplotlib is installed) to --out. Usage: ``python
+studies/export_independent_plant.py [--out DIR] [--duration S] [--substeps N] [--small]``
+(``--small``: 2 s per run).
 """
 
 from __future__ import annotations
@@ -118,7 +120,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default="out/export_independent_plant")
     ap.add_argument("--duration", type=float, default=10.0, help="seconds per run (default 10)")
     ap.add_argument("--substeps", type=int, default=10, help="RK4 steps per sample")
+    ap.add_argument("--small", action="store_true", help="2 s per run (a quick check)")
     args = ap.parse_args(argv)
+    if args.small:
+        args.duration = min(args.duration, 2.0)
 
     import jax
 
