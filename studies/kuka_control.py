@@ -29,7 +29,7 @@ loop with and without the friction compensation (``compensation=False``: F_hat =
 Writes ``DIR/results.json`` (the friction per joint and where each number comes from, the
 gains, the certificate, the tracking errors with and without compensation, timings) and
 ``DIR/kuka_control.png`` (link error per joint, both runs). Usage:
-``python studies/kuka_control.py --out DIR``.
+``python studies/kuka_control.py --out DIR [--small]`` (``--small``: 1 s moves).
 """
 
 from __future__ import annotations
@@ -87,9 +87,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Run the study; returns and writes the results (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, type=Path, help="output folder (must exist)")
+    ap.add_argument("--small", action="store_true", help="1 s moves instead of 3 s (a quick check)")
     args = ap.parse_args(argv)
     if not args.out.is_dir():
         raise SystemExit(f"kuka_control: output folder {args.out} does not exist")
+    segment_s = 1.0 if args.small else SEGMENT_S
     jax.config.update("jax_enable_x64", True)
     import equinox as eqx
     import jax.numpy as jnp
@@ -121,9 +123,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     cert = certify(plant, gains, vmax=1.3 * v_task)
 
     traj = RestToRest(waypoints=[q0, q0 + jnp.asarray(MOVE), q0],
-                      durations=[SEGMENT_S, SEGMENT_S], t0=0.5)
+                      durations=[segment_s, segment_s], t0=0.5)
     x0 = plant.init_state(q1=q0, q2=q0 + plant.links.gravity(q0) / plant.K)
-    t_final = 2 * SEGMENT_S + 1.0
+    t_final = 2 * segment_s + 1.0
     run = eqx.filter_jit(lambda p, c: simulate_sampled(p, c, t_final, x0=x0,
                                                        substeps=SUBSTEPS))
     loops: dict[str, Any] = {}
@@ -157,7 +159,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "certificate": {"vmax": 1.3 * v_task, "v_task_A": v_task,
                         "certified_up_to": cert.certified_up_to, "certified": cert.certified,
                         "lambda_min_min": float(np.min(cert.lambda_min))},
-        "task": {"pose": POSE, "move": MOVE, "segment_s": SEGMENT_S, "dt": DT,
+        "task": {"pose": POSE, "move": MOVE, "segment_s": segment_s, "dt": DT,
                  "substeps": SUBSTEPS},
         "loops": loops,
     }
