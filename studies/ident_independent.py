@@ -255,28 +255,28 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         [("250hz_20s", SETUPS["paper_250hz"], 20.0, 0.0),
          ("stiff_2khz_10s", SETUPS["stiff_2khz"], 10.0, 0.0)] if args.variants else [])
     rigs = {setup.name: setup for _, setup, _, _ in runs}
+    # each rig's start file: the paper's as start.json, the others by their names
+    start_paths = {name: args.out / ("start.json" if setup is PAPER else f"start_{name}.json")
+                   for name, setup in rigs.items()}
+    starts = {name: start_file(start_paths[name], setup) for name, setup in rigs.items()}
     results: dict[str, Any] = {
         "truth": {"plant": PLANT, "friction": TRUTH},
-        "start": start_file(args.out / "start.json"),
+        "start": starts[PAPER.name],
         "simulator": {"method": "scipy solve_ivp DOP853", "rtol": 1e-10, "atol": 1e-12,
                       "controller": "PD on the rotor encoder, backward-difference velocity",
                       "reference": REFERENCE},
         "setups": {name: dataclasses.asdict(setup) for name, setup in rigs.items()},
         "blas": BLAS, "cold_cache": args.cold, "logs": {},
     }
-    for name, setup in rigs.items():
-        if setup is not PAPER:
-            start_file(args.out / f"start_{name}.json", setup)
     for name, setup, duration, noise_counts in runs:
         log_path = args.out / f"log_{name}.csv"
-        start_path = args.out / ("start.json" if setup is PAPER else f"start_{setup.name}.json")
         if not log_path.exists():
             t0 = time.perf_counter()
             write_log(simulate(duration, noise_counts, setup=setup), log_path)
             print(f"{name}: simulated in {time.perf_counter() - t0:.1f} s", flush=True)
         entry: dict[str, Any] = {"setup": setup.name, "machine_before": benchkit.machine_state()}
         with tempfile.TemporaryDirectory() as cache:
-            entry["run"] = run_identify(log_path, start_path,
+            entry["run"] = run_identify(log_path, start_paths[setup.name],
                                         args.out / f"identified_{name}.json",
                                         cache if args.cold else None)
         entry["machine_after"] = benchkit.machine_state()
