@@ -31,25 +31,13 @@ host device pinned to one core), one device (free to use every core) and two hos
 alternating rounds (best and median).
 
 GPU (``--gpu``): the target's spread on an NVIDIA GPU in float64 and float32 beside
-the same machine's CPU (every core as a host device), accuracy first (``gpu``'s docstring);
-on a machine without a GPU it writes ``gpu.json`` saying so. Measured 2026-11-26 on one H100
-80GB (JAX 0.11.2; its host: 16 cores), 1000 x 10 s, float64 at 3 substeps (RMS metric within
-2.4e-6 of 100 substeps; GPU and CPU agree to 3e-14), controller steps/s, best of 3 after
-compilation (median within 1%):
-
-- the CPU's layout (substeps rolled, one sample per trip of the time loop): 1.29e7, under the
-  16-core CPU's 3.07e7; 1e4 samples 1.17e8 (CPU 5.7e7), 1e5 7.7e8 (float32 8.4e8). On a GPU
-  every trip of a loop waits for the host to read its condition: the loop, not the
-  arithmetic, sets the pace (1 substep: 4.9e7, 2: 1.7e7);
-- substeps unrolled (``jaxflex.sweep.engine.loop_unrolls`` on a GPU, the default since):
-  4.24e7 (3.3x), 1e5 samples 2.08e9 (2.7x); first chunk (compilation) 7.5 s as before;
-- samples per trip of the time loop (``GPU_SCAN_UNROLL``) 2 / 4 / 8: 5.8e7 / 6.8e7 / 7.2e7,
-  compilation 9.6 / 13.5 / 21 s; at 8: 1e4 samples 6.9e8 (float32 1.25e9; the 16-core CPU 4.0-5.7e7),
-  1e5 samples 2.65-2.78e9 (float32 6.2-6.3e9), 1000 samples float32 1.09e8 (float32's RMS
-  metric within 1.3-4.0e-5 of the reference: above 1e-5, so float32 misses the stated
-  accuracy). Compilation outweighs the gain on a first run below ~1e7 samples, so the
-  default stays at one sample per trip (the persistent compilation cache of the command
-  line removes it from later runs: set ``GPU_SCAN_UNROLL`` before the first sweep).
+the same machine's CPU (every core as a host device), accuracy first (``gpu``'s docstring),
+then 1e4 and 1e5 samples; on a machine without a GPU it writes ``gpu.json`` saying so. On a
+GPU every trip of a loop waits for the host to read its condition, so the loop rather than
+the arithmetic sets the pace: the substeps are unrolled there
+(``jaxflex.sweep.engine.loop_unrolls``), and ``GPU_SCAN_UNROLL`` (set before the first
+sweep) puts more samples in each trip of the time loop at a longer compilation. The figures
+are in docs/performance.md (``performance_table.py``).
 
     python studies/bench_sweep.py [--small] [--gpu] [--out out/bench_sweep]
 """

@@ -6,8 +6,8 @@ table? Each benchmark writes its numbers to a JSON file; this script reads them 
 the figure (ratios against the baseline the benchmark ran side by side in the same process,
 min and median where the JSON has them, compilation or first-call time stated apart), the
 baseline, the machine as the JSON records it (cores, load average, BLAS threads, XLA
-options) and the command that regenerates it. A benchmark whose JSON is missing gets no
-numbers: its row says "not measured" and names the command. Nothing is timed here.
+options) and the command that regenerates it. A benchmark whose JSON is missing and whose
+rows the page does not hold says "not measured" and names the command. Nothing is timed here.
 
 Sources (each path an option; defaults relative to the working directory, as the
 benchmarks write them):
@@ -21,20 +21,25 @@ benchmarks write them):
 - ``out/bench_compile_cache/``: ``bench_compile_cache.py`` (its ``results_COMMAND.json``,
   one row per command measured);
 - ``out/bench_sweep/results.json``: ``bench_sweep.py``;
+- ``out/bench_sweep/gpu.json``: ``bench_sweep.py --gpu`` (on a machine with an NVIDIA GPU);
 - ``out/ident_bench_scipy/results.json``: ``ident_bench_scipy.py`` (one row per log length).
 
-Also writes the rows as ``table.json`` to ``--out``. ``--small`` (the studies' smoke test)
+A benchmark whose JSON is missing here keeps its rows from the page as it stands (a
+benchmark run on another machine, such as the GPU's, keeps its figures when the table is
+regenerated elsewhere); ``--fresh`` forgets them. Also writes the rows as ``table.json`` to ``--out``. ``--small`` (the studies' smoke test)
 writes the table to ``--out`` instead of ``docs/``.
 
     python studies/performance_table.py [--simulate-default PATH] [--simulate PATH]
-        [--export-step PATH] [--compile-cache DIR] [--sweep PATH] [--ident-scipy PATH]
-        [--doc docs/performance.md] [--out out/performance_table] [--small]
+        [--export-step PATH] [--compile-cache DIR] [--sweep PATH] [--gpu PATH]
+        [--ident-scipy PATH] [--doc docs/performance.md] [--out out/performance_table]
+        [--fresh] [--small]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -261,6 +266,57 @@ def sweep_rows(d: dict, command: str) -> list[Row]:
     return rows
 
 
+def gpu_rows(d: dict, command: str) -> list[Row]:
+    """``bench_sweep.py --gpu``: the sweep on a GPU, float64 and float32, against the same
+    machine's CPU (every core a host device), at the substeps that meet the stated accuracy."""
+    if not d.get("measured"):
+        return []
+    if d["samples"] == 64:  # the script's --small
+        command += " --small"
+    runs, n, sub = d["runs"], d["samples"], d["substeps"]
+    device = d["device"].split(" | ")[1]
+    machine = (f"{device}, JAX {d['device'].split(' | ')[-1]}; host {d['cpu_count']} cores, "
+               f"load {_load(d['load_avg_start'], d.get('load_avg_end'))}, "
+               f"{_blas(d.get('blas_threads'))}")
+
+    def rate(name: str) -> str:
+        r = runs.get(name)
+        if not r or "steps_per_s" not in r:
+            return "not run"
+        return (f"{r['steps_per_s']:.3g} steps/s (median {r['steps_per_s_median']:.3g}, "
+                f"first chunk with compilation {_t(r['first_chunk_s'])})")
+
+    if sub is None:
+        return [Row(f"`run_sweep` on a GPU, {n} closed loops of {d['t_final']:g} s",
+                    f"no accuracy reached: {d.get('note', '')}", "", machine, command)]
+    g64, cpu = runs[f"gpu_f64_{n}_sub{sub}"], runs.get(f"cpu_f64_{n}_sub{sub}")
+    fig = (f"float64 {rate(f'gpu_f64_{n}_sub{sub}')}; float32 "
+           f"{rate(f'gpu_f32_{n}_sub{sub}')}, its RMS metric within "
+           f"{d.get('float32_rms_rel_diff_vs_float64_max', float('nan')):.1e} of float64's; "
+           f"the CPU {rate(f'cpu_f64_{n}_sub{sub}')}")
+    if cpu is not None:
+        fig += (f": GPU float64 {_x(d['ratio_gpu_f64_over_cpu_f64_best'])} best; the two "
+                f"agree to {d['gpu_vs_cpu_rms_rel_diff_max']:.1e}")
+    rows = [Row(f"`run_sweep` on a GPU, {n} closed loops of {d['t_final']:g} s, {sub} substeps "
+                f"(RMS metric within {g64['rms_rel_err_vs_reference']:.1e} of "
+                f"{d['reference']['substeps']} substeps, bound {d['tolerance_rel']:g})",
+                fig, "the same sweep on the same machine's CPU, every core a host device, "
+                "fresh processes in turn", machine, command)]
+    big = sorted({int(k.split("_")[2]) for k in runs if k.startswith("gpu_f64_")} - {n})
+    if big:
+        parts = [f"{m:g} samples: float64 {rate(f'gpu_f64_{m}_sub{sub}')}, float32 "
+                 f"{rate(f'gpu_f32_{m}_sub{sub}')}" for m in big]
+        cpu_big = f"cpu_f64_{big[0]}_sub{sub}"
+        if cpu_big in runs and "steps_per_s" in runs[cpu_big]:
+            ratio = runs[f"gpu_f64_{big[0]}_sub{sub}"]["steps_per_s"] / runs[cpu_big]["steps_per_s"]
+            parts.append(f"the CPU at {big[0]:g} samples {rate(cpu_big)}: GPU float64 "
+                         f"{_x(ratio)} best")
+        rows.append(Row(f"`run_sweep` on a GPU, larger batches ({sub} substeps, one chunk each)",
+                        "; ".join(parts), "the CPU at the smallest of them, as above",
+                        machine, command))
+    return rows
+
+
 def ident_scipy_rows(d: dict, command: str) -> list[Row]:
     """``ident_bench_scipy.py``: identification against scipy's least squares, per log length."""
     if list(d["lengths"]) == ["1"] and d["segment_length"] == 250:
@@ -305,6 +361,8 @@ SOURCES: tuple[Source, ...] = (
            "a second run of a command on the same compilation cache", compile_cache_rows),
     Source("sweep", "out/bench_sweep/results.json", "python studies/bench_sweep.py",
            "batched sweep against solve_ivp, and 2 host devices against 1", sweep_rows),
+    Source("gpu", "out/bench_sweep/gpu.json", "python studies/bench_sweep.py --gpu",
+           "batched sweep on a GPU against the same machine's CPU", gpu_rows),
     Source("ident_scipy", "out/ident_bench_scipy/results.json",
            "python studies/ident_bench_scipy.py",
            "identification against scipy's least squares", ident_scipy_rows),
@@ -318,13 +376,35 @@ def _read(path: Path) -> Any:
     return json.loads(path.read_text())
 
 
-def collect(paths: dict[str, Path]) -> list[Row]:
-    """The rows of every source: read from its JSON (``paths``: option name -> path), or one
-    "not measured" row where the JSON is missing."""
+def source_of(command: str) -> str | None:
+    """The source whose command a row's "regenerate with" command extends (the longest)."""
+    fits = [s for s in SOURCES if command == s.command or command.startswith(s.command + " ")]
+    return max(fits, key=lambda s: len(s.command)).option if fits else None
+
+
+def page_rows(text: str) -> list[Row]:
+    """The rows of a page ``render`` wrote (its table's lines, cells unescaped)."""
+    rows = []
+    for line in text.splitlines():
+        if not line.startswith("| ") or line.startswith(("| what |", "|---")):
+            continue
+        cells = [c.strip().replace("\\|", "|")
+                 for c in re.split(r"(?<!\\)\|", line.strip())[1:-1]]
+        if len(cells) == 5:
+            rows.append(Row(*cells[:4], cells[4].strip("`")))
+    return rows
+
+
+def collect(paths: dict[str, Path], previous: list[Row] = ()) -> list[Row]:
+    """The rows of every source: read from its JSON (``paths``: option name -> path); where
+    the JSON is missing, that source's rows of the ``previous`` page (a benchmark run on
+    another machine, a GPU's, keeps its figures), else one "not measured" row."""
     rows: list[Row] = []
     for src in SOURCES:
         path = paths[src.option]
         got = src.rows(_read(path), src.command) if path.exists() else []
+        got = got or [r for r in previous if source_of(r.command) == src.option
+                      and not r.figure.startswith("not measured")]
         rows += got or [Row(src.what, f"not measured: run `{src.command}`", "", "",
                             src.command)]
     return rows
@@ -351,6 +431,8 @@ def main(argv: list[str] | None = None) -> list[Row]:
     ap.add_argument("--doc", default=None, help="the page to write (default docs/performance.md; "
                                                 "with --small, OUT/performance.md)")
     ap.add_argument("--out", default="out/performance_table", help="folder of table.json")
+    ap.add_argument("--fresh", action="store_true",
+                    help="forget the page's rows of benchmarks whose JSON is missing")
     ap.add_argument("--small", action="store_true",
                     help="smoke test: write the page to --out, leave docs/ alone")
     a = ap.parse_args(argv)
@@ -358,7 +440,8 @@ def main(argv: list[str] | None = None) -> list[Row]:
     out.mkdir(parents=True, exist_ok=True)
     doc = Path(a.doc) if a.doc else (out / "performance.md" if a.small
                                      else ROOT / "docs" / "performance.md")
-    rows = collect({src.option: Path(getattr(a, src.option)) for src in SOURCES})
+    previous = page_rows(doc.read_text()) if doc.exists() and not a.fresh else []
+    rows = collect({src.option: Path(getattr(a, src.option)) for src in SOURCES}, previous)
     doc.write_text(render(rows))
     (out / "table.json").write_text(json.dumps([r._asdict() for r in rows], indent=2) + "\n")
     measured = sum(not r.figure.startswith("not measured") for r in rows)

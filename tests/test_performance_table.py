@@ -32,7 +32,7 @@ def test_rows_from_json_and_not_measured(tmp_path):
     _simulate_json(sim)
     doc, out = tmp_path / "performance.md", tmp_path / "out"
     missing = [f"--{o}={tmp_path / 'missing' / o}" for o in
-               ("simulate", "export-step", "compile-cache", "sweep", "ident-scipy")]
+               ("simulate", "export-step", "compile-cache", "sweep", "gpu", "ident-scipy")]
     rows = performance_table.main([f"--simulate-default={sim}", *missing, f"--doc={doc}",
                                    f"--out={out}"])
     text = doc.read_text()
@@ -50,8 +50,29 @@ def test_rows_from_json_and_not_measured(tmp_path):
     assert f"| {save.what} | {save.figure} |" in text
 
     not_measured = [r for r in rows if r.figure.startswith("not measured")]
-    assert len(not_measured) == 5
+    assert len(not_measured) == 6
     export = next(r for r in not_measured if "bench_export_step" in r.command)
     assert export.figure == "not measured: run `python studies/bench_export_step.py`"
     assert export.figure in text
     assert json.loads((out / "table.json").read_text())[0]["figure"] == save.figure
+
+
+def test_a_benchmark_without_its_json_keeps_its_rows_from_the_page(tmp_path):
+    """A GPU's rows, measured on another machine, survive a regeneration here; --fresh and a
+    page without them give "not measured"."""
+    doc, out = tmp_path / "performance.md", tmp_path / "out"
+    missing = [f"--{o}={tmp_path / 'missing' / o}" for o in
+               ("simulate-default", "simulate", "export-step", "compile-cache", "sweep", "gpu",
+                "ident-scipy")]
+    kept = performance_table.Row("`run_sweep` on a GPU | float64", "4e7 steps/s", "the CPU",
+                                 "H200", "python studies/bench_sweep.py --gpu --small")
+    sweep = performance_table.Row("sweep", "6e5 steps/s", "solve_ivp", "2 cores",
+                                  "python studies/bench_sweep.py --small")
+    doc.write_text(performance_table.render([kept, sweep]))
+    assert performance_table.page_rows(doc.read_text()) == [kept, sweep]
+    rows = performance_table.main([*missing, f"--doc={doc}", f"--out={out}"])
+    assert kept in rows and sweep in rows
+    # each row back under its own benchmark (the longest command it extends)
+    assert rows.index(sweep) < rows.index(kept)
+    rows = performance_table.main([*missing, f"--doc={doc}", f"--out={out}", "--fresh"])
+    assert all(r.figure.startswith("not measured") for r in rows)
