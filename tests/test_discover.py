@@ -825,3 +825,38 @@ def test_an_effect_of_real_joints_is_named_when_it_is_a_candidate(name, rivals, 
     assert rep["effect_params"][name][param]["value"] == pytest.approx(
         g.truth["effects"][name][param], rel=rel)
     assert rep["gap_after"] <= 0.5 * rep["gap_before"]
+
+
+@pytest.mark.slow
+def test_the_file_s_effects_stay_in_the_base_when_the_model_without_them_cannot_be_refit(
+        monkeypatch):
+    """Discovery sets the file's effects aside and refits the bare model; where that refit
+    fails (a rotor-kind KUKA file whose friction is all in its motor_friction effect ran I
+    to inf, and discover ended in a solver failure), the file's model is the base: its
+    effects fitted with it, their families not candidates, and the report says so."""
+    import jaxflex.discover.workflow as workflow
+    from jaxflex.io.params import Params
+
+    g = generate_log(("torque_offset",), seed=5, t_final=6.0)
+    nominal = Params.from_dict({**g.truth["plant"], "effects": g.truth["effects"]})
+    real = workflow.base_fit
+    bases = []
+
+    def base_fit(ws, model, cfg, log):
+        bases.append(sorted(model.active))
+        if not model.effects:  # as check_bounded refuses a runaway inertia
+            raise FloatingPointError("the fit ran I to inf")
+        return real(ws, model, cfg, log)
+
+    monkeypatch.setattr(workflow, "base_fit", base_fit)
+    res = discover(g.log, nominal, DiscoverConfig(candidates=("backlash", "torque_offset"),
+                                                  max_effects=1))
+    assert bases == [[], ["torque_offset"]]
+    assert list(res.kept) == ["torque_offset"] and "ran I to inf" in res.kept["torque_offset"]
+    rep = res.to_json()
+    assert rep["kept"] == res.kept
+    assert set(rep["rounds"][0]["scores"]) | set(rep["rounds"][0]["failed"]) == {"backlash"}
+    assert res.effects == []
+    offset = float(np.ravel(res.params.effects["torque_offset"]["offset"])[0])
+    truth = float(np.ravel(g.truth["effects"]["torque_offset"]["offset"])[0])
+    assert offset == pytest.approx(truth, rel=0.1)

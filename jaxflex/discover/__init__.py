@@ -69,7 +69,10 @@ Workflow (``discover``), for one joint:
 The nominal model comes as the kind its file describes (``DiscoverConfig.model``,
 ``nominal_for_model``: a flexible joint as it is, a rigid model as two halves joined by a
 stiff spring, a rotor subsystem with its link side from a rigid fit of the log); a candidate
-the file's declared axis says cannot act is not tried (``cannot_act``). The report carries
+the file's declared axis says cannot act is not tried (``cannot_act``). The file's own
+effects are set aside and tried as candidates; where the model without them cannot be refit
+on the log (a parameter runs away, or its replay is worse than no motion), they stay in the
+base, fitted with it, their families not candidates (``DiscoverResult.kept``). The report carries
 every round's tie (``effect_ties``) and the final model's residual analysis as MATLAB's
 ``resid`` gives it (``residual_analysis``); a numerical failure of a fit is a
 ``SolverFailure`` naming the fit, not a bad input.

@@ -54,7 +54,10 @@ class DiscoverResult:
     seconds; workspace: the problems (for replays in plots); residuals: the final model's
     residual analysis on the held-out segments (``residual_analysis``: MATLAB's ``resid``);
     not_tried: the candidates left out because the file's declared axis says they cannot act
-    (``cannot_act``), each with the reason.
+    (``cannot_act``), each with the reason; kept: the file's effects kept in the base model
+    (fitted with it, their families not candidates) because the model without them could
+    not be refit on the log, each with the reason (empty: the file's effects were set aside
+    and tried as candidates).
     """
 
     effect: str
@@ -79,6 +82,7 @@ class DiscoverResult:
     residuals: dict[str, Any] = dataclasses.field(default_factory=dict)
     not_tried: dict[str, str] = dataclasses.field(default_factory=dict)
     order: int = 0
+    kept: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def families(self) -> list[str]:
@@ -197,6 +201,7 @@ class DiscoverResult:
             "config": dataclasses.asdict(self.config) | {"candidates": self.candidates},
             "log": self.log_info, "seconds": self.seconds,
             "residual_analysis": self.residuals, "not_tried": dict(self.not_tried or {}),
+            "kept": dict(self.kept or {}),
         }
 
 

@@ -14,7 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from jaxflex.discover.candidates import Model, Workspace, Workspaces, fitted_names
+from jaxflex.discover.candidates import (
+    CandidateFit,
+    Model,
+    Workspace,
+    Workspaces,
+    fitted_names,
+)
 from jaxflex.discover.config import (
     DiscoverConfig,
     STABLE_MODE_STEP,
@@ -187,6 +193,8 @@ class _Run:
     stage: str = "the nominal model's refit"
     aheads: list[Ahead] = dataclasses.field(default_factory=list)
     model_note: str = ""
+    #: the file's effects kept in the base model, each with the reason
+    kept: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
 def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[str],
@@ -194,7 +202,8 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
     """``discover``'s workflow after its input checks; ``run`` says where it is."""
     t_start = time.perf_counter()
     nominal = Params.from_dict(nominal.to_dict())
-    if nominal.effects:  # e.g. an identified torque offset: discovery starts from the bare
+    on_file = nominal.to_plant().effects
+    if on_file:  # e.g. an identified torque offset: discovery starts from the bare
         # model, and such an effect is one of its candidates
         say(f"note: the file's effects ({', '.join(nominal.effects)}) are set aside: "
             "discover starts from the model without them and tries them as candidates")
@@ -206,30 +215,32 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         trace_fit(ws, Model(nominal, []))
         run.aheads.append(made_ahead(ws, nominal))
 
-    # the candidates' workspace; a family's order k + 1 is in a workspace built once its
-    # order k is in the model (``grow``)
-    wss = Workspaces(log, nominal, cands, prepare=prepare, segment=cfg.segment,
-                     train_frac=cfg.train_frac, substeps=cfg.substeps,
-                     max_effects=cfg.max_effects)
-    ws = wss.holding()
-    current = fit_model(ws, Model(nominal, []), max_steps=cfg.max_steps * 2, held_out=False)
-    # the base every candidate is compared with must not keep a load that the first solve's
-    # long early steps pushed past the capacity (``settle``). Its stops stay in the units of
-    # white residuals: in the rounds' units (inflated by the first solve's autocorrelation
-    # time) it stops earlier and can leave a worse base
-    current = settle(ws, current, max_steps=cfg.max_steps * 2)
-    if not (math.isfinite(current.gap_test) and math.isfinite(current.rss)):
-        raise ValueError(
-            "discover: the nominal model's replay of this log is not finite (held-out gap "
-            f"{current.gap_test}); check the units of the log and of the nominal parameters "
-            f"(sample period {log.dt:g} s, segments of {cfg.segment:g} s)"
-        )
-    if current.gap_test > 1.0:
-        raise ValueError(
-            f"discover: the refitted nominal model replays the held-out segments worse than "
-            f"predicting no motion (held-out gap {current.gap_test:.3g} > 1): it does not "
-            "describe this log; identify it first (jaxflex identify) and pass it with --params"
-        )
+    def workspaces(kept: Sequence[AbstractEffect]) -> Workspaces:
+        # the candidates' workspace (and the effects kept in the base); a family's order
+        # k + 1 is in a workspace built once its order k is in the model (``grow``)
+        return Workspaces(log, nominal, [*cands, *(e.name for e in kept)], prepare=prepare,
+                          segment=cfg.segment, train_frac=cfg.train_frac,
+                          substeps=cfg.substeps, max_effects=cfg.max_effects + len(kept))
+
+    kept: list[AbstractEffect] = []
+    wss = workspaces(kept)
+    try:
+        ws = wss.holding()
+        current = base_fit(ws, Model(nominal, []), cfg, log)
+    except (FloatingPointError, ValueError) as e:
+        if not on_file:
+            raise
+        # the file's effects carry what the bare model cannot (a rotor's friction on an
+        # axis whose link friction the file leaves at zero): they stay in the base, fitted
+        # with it, and their families are not candidates
+        kept = list(on_file)
+        why = f"the model without the file's effects cannot be refit on this log ({e})"
+        run.kept = {k.name: why for k in kept}
+        say(f"{why}: discover starts from the file's model with them "
+            f"({', '.join(run.kept)}), which are not candidates")
+        wss = workspaces(kept)
+        ws = wss.holding(run.kept)
+        current = base_fit(ws, Model(nominal, kept), cfg, log)
     say(f"nominal refit: gap train {current.gap_train:.4f} held-out {current.gap_test:.4f}")
     first_fit = current
     loc = localise(log, current.model.params)
@@ -246,7 +257,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         n_eff = current.n_res / tau_int
         series = loc_current.series
         scores, fits, failed, screens = {}, {}, {}, {}
-        families = {EFFECTS[a].family_name() for a in added}
+        families = {EFFECTS[a].family_name() for a in [*run.kept, *added]}
         remaining = [name for name in cands if EFFECTS[name].family_name() not in families]
         starts = dict(zip(remaining, all_side_by_side(
             lambda name: start_effect(name, current.model, series, ws.step), remaining)))
@@ -480,4 +491,33 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         seconds=time.perf_counter() - t_start, workspace=ws, tied=list(first_tied),
         explained=explained, residuals=resid,
         not_tried={k: v for k, v in cannot_act(nominal).items() if k not in cands},
+        kept=dict(run.kept),
     )
+
+
+def base_fit(ws: Workspace, model: Model, cfg: DiscoverConfig, log: Log) -> CandidateFit:
+    """The base every first-round candidate is compared with: ``model`` refitted on the
+    training segments and settled, its held-out gap taken.
+
+    **Raises:** ``FloatingPointError`` where the fit runs a parameter away
+    (``check_bounded``); ``ValueError`` where its replay is not finite or replays the
+    held-out segments worse than predicting no motion (it does not describe the log)."""
+    current = fit_model(ws, model, max_steps=cfg.max_steps * 2, held_out=False)
+    # the base every candidate is compared with must not keep a load that the first solve's
+    # long early steps pushed past the capacity (``settle``). Its stops stay in the units of
+    # white residuals: in the rounds' units (inflated by the first solve's autocorrelation
+    # time) it stops earlier and can leave a worse base
+    current = settle(ws, current, max_steps=cfg.max_steps * 2)
+    if not (math.isfinite(current.gap_test) and math.isfinite(current.rss)):
+        raise ValueError(
+            "discover: the nominal model's replay of this log is not finite (held-out gap "
+            f"{current.gap_test}); check the units of the log and of the nominal parameters "
+            f"(sample period {log.dt:g} s, segments of {cfg.segment:g} s)"
+        )
+    if current.gap_test > 1.0:
+        raise ValueError(
+            f"discover: the refitted nominal model replays the held-out segments worse than "
+            f"predicting no motion (held-out gap {current.gap_test:.3g} > 1): it does not "
+            "describe this log; identify it first (jaxflex identify) and pass it with --params"
+        )
+    return current
