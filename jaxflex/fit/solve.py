@@ -43,6 +43,7 @@ from jaxflex.fit.levenberg_marquardt import LevenbergMarquardt, ScaledDampedNewt
 from jaxflex.fit.normal import gauss_newton_decrement
 from jaxflex.fit.padding import Padding
 from jaxflex.fit.problem import Problem
+from jaxflex.fit.replay import residuals as replay_residuals
 from jaxflex.runtime.tracecache import persistent_jit
 from jaxflex.core.validation import to_device
 from jaxflex.io.progress import Progress
@@ -228,9 +229,14 @@ def _cost(fn: Callable, y: Any, args: Any) -> jax.Array:
 
 
 def cost(prob: Problem, y: Any, fn: Callable = problem_residuals) -> float:
-    """0.5 ||r||^2 at ``y`` of ``fn(y, prob)`` (default: the problem's residuals; compiled
-    once per shape); inf if not finite."""
-    c = float(_cost(fn, y, prob))
+    """0.5 ||r||^2 at ``y`` of ``fn(y, prob)`` (default: the problem's residuals, from the
+    program that also gives its simulated outputs and gap, ``jaxflex.fit.replay``; another
+    ``fn`` compiled once per shape); inf if not finite."""
+    if fn is problem_residuals and isinstance(prob, Problem):
+        r = np.asarray(replay_residuals(prob, y))
+        c = 0.5 * float(np.sum(r * r))
+    else:
+        c = float(_cost(fn, y, prob))
     return c if math.isfinite(c) else math.inf
 
 
