@@ -76,3 +76,26 @@ def test_a_benchmark_without_its_json_keeps_its_rows_from_the_page(tmp_path):
     assert rows.index(sweep) < rows.index(kept)
     rows = performance_table.main([*missing, f"--doc={doc}", f"--out={out}", "--fresh"])
     assert all(r.figure.startswith("not measured") for r in rows)
+
+
+def test_gpu_rows_state_the_accuracy_and_a_run_the_budget_skipped():
+    """``bench_sweep --gpu``'s JSON: the substeps chosen and their accuracy, GPU against the
+    same machine's CPU; a run its time budget skipped reads "not run" (no ratio)."""
+    def run(s, **k):
+        return {"steps_per_s": s, "steps_per_s_median": s, "first_chunk_s": 5.0, **k}
+
+    d = {"measured": True, "samples": 1000, "t_final": 10.0, "tolerance_rel": 1e-5,
+         "device": "gpu | NVIDIA H200 | 1 | 0.11.2", "cpu_count": 16,
+         "load_avg_start": [0.1], "load_avg_end": [1.0], "substeps": 3,
+         "reference": {"substeps": 100}, "float32_rms_rel_diff_vs_float64_max": 4e-5,
+         "runs": {"gpu_f64_1000_sub3": run(4e7, rms_rel_err_vs_reference=2e-6),
+                  "gpu_f32_1000_sub3": run(6e7),
+                  "cpu_f64_1000_sub3": {"skipped": "time budget of 300 s spent"},
+                  "gpu_f64_10000_sub3": run(4e8), "gpu_f32_10000_sub3": run(5e8),
+                  "cpu_f64_10000_sub3": run(4e7)}}
+    first, big = performance_table.gpu_rows(d, "python studies/bench_sweep.py --gpu")
+    assert "3 substeps (RMS metric within 2.0e-06 of 100 substeps" in first.what
+    assert "the CPU not run" in first.figure and "x" not in first.figure.split("CPU")[-1]
+    assert big.figure.endswith("GPU float64 x10 best")
+    assert "NVIDIA H200, JAX 0.11.2" in first.machine
+    assert performance_table.gpu_rows({"measured": False}, "cmd") == []
