@@ -224,8 +224,8 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
 
     kept: list[AbstractEffect] = []
     wss = workspaces(kept)
+    ws = wss.holding()
     try:
-        ws = wss.holding()
         current = base_fit(ws, Model(nominal, []), cfg, log)
     except (FloatingPointError, ValueError) as e:
         if not on_file:
