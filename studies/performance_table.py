@@ -274,8 +274,8 @@ def gpu_rows(d: dict, command: str) -> list[Row]:
     if d["samples"] == 64:  # the script's --small
         command += " --small"
     runs, n, sub = d["runs"], d["samples"], d["substeps"]
-    device = d["device"].split(" | ")[1]
-    machine = (f"{device}, JAX {d['device'].split(' | ')[-1]}; host {d['cpu_count']} cores, "
+    device = d["device"].split(" | ")  # platform | kind | count | JAX version
+    machine = (f"{device[1]}, JAX {device[-1]}; host {d['cpu_count']} cores, "
                f"load {_load(d['load_avg_start'], d.get('load_avg_end'))}, "
                f"{_blas(d.get('blas_threads'))}")
 
@@ -386,7 +386,7 @@ def page_rows(text: str) -> list[Row]:
     """The rows of a page ``render`` wrote (its table's lines, cells unescaped)."""
     rows = []
     for line in text.splitlines():
-        if not line.startswith("| ") or line.startswith(("| what |", "|---")):
+        if not line.startswith("| ") or line.startswith("| what |"):  # not a row, or the head
             continue
         cells = [c.strip().replace("\\|", "|")
                  for c in re.split(r"(?<!\\)\|", line.strip())[1:-1]]

@@ -222,8 +222,7 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
                           segment=cfg.segment, train_frac=cfg.train_frac,
                           substeps=cfg.substeps, max_effects=cfg.max_effects + len(kept))
 
-    kept: list[AbstractEffect] = []
-    wss = workspaces(kept)
+    wss = workspaces([])
     ws = wss.holding()
     try:
         current = base_fit(ws, Model(nominal, []), cfg, log)
@@ -233,14 +232,13 @@ def _discover_run(log: Log, nominal: Params, cfg: DiscoverConfig, cands: list[st
         # the file's effects carry what the bare model cannot (a rotor's friction on an
         # axis whose link friction the file leaves at zero): they stay in the base, fitted
         # with it, and their families are not candidates
-        kept = list(on_file)
         why = f"the model without the file's effects cannot be refit on this log ({e})"
-        run.kept = {k.name: why for k in kept}
+        run.kept = {k.name: why for k in on_file}
         say(f"{why}: discover starts from the file's model with them "
             f"({', '.join(run.kept)}), which are not candidates")
-        wss = workspaces(kept)
+        wss = workspaces(on_file)
         ws = wss.holding(run.kept)
-        current = base_fit(ws, Model(nominal, kept), cfg, log)
+        current = base_fit(ws, Model(nominal, list(on_file)), cfg, log)
     say(f"nominal refit: gap train {current.gap_train:.4f} held-out {current.gap_test:.4f}")
     first_fit = current
     loc = localise(log, current.model.params)
