@@ -312,3 +312,22 @@ def test_no_import_loops_between_modules():
     for m in graph:
         if m not in state:
             visit(m, [])
+
+
+def test_a_long_line_is_drawn_by_the_extremes_of_each_run_of_samples():
+    """``envelope`` draws at most ``max_points`` points, in time order, keeping each run's
+    lowest and highest sample (a one-sample spike that even thinning would drop is drawn),
+    gaps (NaN) stay gaps, and a short series is drawn whole."""
+    from jaxflex.app.plots.identify import envelope
+
+    t = np.arange(10_001) * 1e-3
+    y = np.sin(t) + 1e-3 * np.random.default_rng(0).standard_normal(t.size)
+    y[4_321] = 5.0  # a spike between any even thinning's points
+    tt, yy = envelope(t, y, 200)
+    assert tt.size <= 200 and np.all(np.diff(tt) > 0)
+    assert yy.max() == 5.0 and yy.min() == y.min()
+    assert np.array_equal(yy, y[np.searchsorted(t, tt)])  # samples of the series itself
+    y[77] = np.nan
+    assert np.isnan(envelope(t, y, 200)[1]).any()
+    short = envelope(t[:150], y[:150], 200)
+    assert np.array_equal(short[0], t[:150]) and np.array_equal(short[1], y[:150], equal_nan=True)

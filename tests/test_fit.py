@@ -417,6 +417,32 @@ def test_traced_substeps_equal_compiled_ones_and_share_every_program(lowerings):
         dynamic_substeps(0)
 
 
+@pytest.mark.slow
+def test_a_check_given_a_coarser_checks_order_replays_once_and_keeps_to_the_safe_side(
+        monkeypatch):
+    """``discretisation_bias(..., order=p)`` (``refine_fit``'s checks after the first) makes
+    one finer replay instead of two and uses p no higher than the scheme's own order: given
+    a higher p it reckons with ``SCHEME_ORDER``, its shift the measured one's rescaled by
+    (1 - 2^-p_measured) / (1 - 2^-2) (the shift is linear in the extrapolated error)."""
+    import jaxflex.fit.discretisation as disc
+    from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
+
+    p = paper_params()
+    init = perturb(p, DEFAULT_FREE, (1.1, 1.1, 0.9, 1.1, 0.9, 1.1))
+    log, _ = synthetic_log(p.to_plant(), excitation_torque(t_final=0.3), substeps=4)
+    prob, y0 = make_problem(log, init, DEFAULT_FREE, segment_length=50, substeps=1)
+    sol = least_squares(prob, y0, max_steps=3)
+    measured = disc.discretisation_bias(prob, sol)
+    replays = []
+    real = disc.residuals
+    monkeypatch.setattr(disc, "residuals", lambda q, y: replays.append(q.n_substeps) or real(q, y))
+    given = disc.discretisation_bias(prob, sol, order=5.0)
+    assert replays == [2] and given["order"] == disc.SCHEME_ORDER
+    scale = (1.0 - 2.0 ** -measured["order"]) / (1.0 - 2.0 ** -disc.SCHEME_ORDER)
+    for k, v in measured["shift_theta"].items():
+        assert given["shift_theta"][k] == pytest.approx(v * scale, rel=1e-8, abs=1e-300), k
+
+
 def _plain_residuals(y, prob):  # the same residuals by another function: the dense route
     return prob.residuals(y)
 

@@ -28,6 +28,8 @@ RICHARDSON = 2.0
 #: The bounds of the order ``observed_order`` reads off three replays (1: the first-order
 #: bound, where the differences do not fall as a power of the step).
 ORDER_RANGE: tuple[float, float] = (1.0, 4.0)
+#: The replay's order as its step falls (the Strang-split step of ``jaxflex.sim.step``).
+SCHEME_ORDER: float = 2.0
 
 
 def refined(prob: Problem, factor: int = 2, traced: bool = False) -> Problem:
@@ -70,7 +72,8 @@ def observed_order(coarse: np.ndarray, fine: np.ndarray, finer: np.ndarray) -> f
     return hi if d2 == 0.0 else min(max(math.log2(d1 / d2), lo), hi)
 
 
-def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
+def discretisation_bias(prob: Problem, solution: Solution, order: float | None = None,
+                        ) -> dict[str, Any]:
     """How far the integrator's discretisation moves the fitted parameters, in their standard
     errors: the parameters fitted with the problem's substeps minimise the coarse residual
     r_h; with an exact replay they would minimise r_h + e, e the integration error of the
@@ -81,6 +84,9 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     finer replays, on the programs of the problem's own shape).
 
     ``solution``: the ``least_squares`` result of ``prob`` (with its ``normal`` equations).
+    ``order``: p as a check at coarser substeps measured it, in place of the replay with 4
+    times the substeps; at most ``SCHEME_ORDER`` is used (the scheme's order at coarse steps
+    is at most its asymptotic one, and a lower p gives a larger e: the safe side).
     Returns ``bias_se`` (the largest |shift| / standard error over the fitted theta entries:
     the discretisation moves no fitted parameter by more than this many standard errors),
     ``bias_mahalanobis`` (sqrt of shift^T Cov^-1 shift over the fitted entries: the bound for
@@ -97,8 +103,12 @@ def discretisation_bias(prob: Problem, solution: Solution) -> dict[str, Any]:
     fine = np.asarray(residuals(refined(prob), y))
     n_out = prob.n_out
     blown = (np.any(fine[:n_out] == BLOWN_RESIDUAL) or np.any(coarse[:n_out] == BLOWN_RESIDUAL))
-    order = ORDER_RANGE[0] if blown else observed_order(
-        coarse, fine, np.asarray(residuals(refined(prob, 4), y)))
+    if blown:
+        order = ORDER_RANGE[0]
+    elif order is None:
+        order = observed_order(coarse, fine, np.asarray(residuals(refined(prob, 4), y)))
+    else:
+        order = min(max(order, ORDER_RANGE[0]), SCHEME_ORDER)
     e = (fine - coarse) / (1.0 - 2.0**-order)
     # the output rows of e are the replay's own error, weighted (inf where a replay blew up)
     out_err = math.inf if blown else float(np.sqrt(np.mean(e[:n_out] ** 2)))

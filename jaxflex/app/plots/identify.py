@@ -38,13 +38,44 @@ def fit_traces(result: Any) -> dict[str, Any]:
     }
 
 
-def plot_identification(traces: dict[str, Any], max_points: int = 20000) -> Figure:
+def envelope(t: np.ndarray, y: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """A line of ``y`` over ``t`` drawn with at most ``max_points`` points: the samples cut
+    into ``max_points // 2`` runs of consecutive samples, each drawn by its lowest and highest
+    sample in time order, so that the line covers the same pixels as the whole series
+    wherever a run spans at most a pixel (even thinning drops the extremes between its
+    points). A series of at most ``max_points`` samples is returned as it is.
+
+    **Arguments:**
+
+    - `t`: (N,) the samples' times [s].
+    - `y`: (N,) the values.
+    - `max_points`: the most points drawn (at least 2).
+
+    **Returns:**
+
+    ``(t, y)`` of the points drawn.
+    """
+    t, y = np.asarray(t), np.asarray(y)
+    if t.size <= max_points:
+        return t, y
+    runs = max(1, max_points // 2)
+    k = -(-t.size // runs)  # samples per run; the last run padded with the last sample
+    blocks = np.concatenate([y, np.repeat(y[-1:], runs * k - t.size)]).reshape(runs, k)
+    start = np.arange(runs) * k
+    pick = np.sort(np.stack([start + blocks.argmin(axis=1), start + blocks.argmax(axis=1)],
+                            axis=1), axis=1).ravel()
+    pick = np.unique(np.minimum(pick, t.size - 1))
+    return t[pick], y[pick]
+
+
+def plot_identification(traces: dict[str, Any], max_points: int = 2000) -> Figure:
     """Measured and simulated outputs and their difference; segment joins as thin lines.
 
     **Arguments:**
 
     - `traces`: ``fit_traces``' dictionary.
-    - `max_points`: at most this many samples are drawn per line (evenly thinned).
+    - `max_points`: at most this many points are drawn per line (``envelope``: each run of
+      samples by its extremes; 2000 is two per pixel of the figure's width).
 
     **Returns:**
 
@@ -52,12 +83,12 @@ def plot_identification(traces: dict[str, Any], max_points: int = 20000) -> Figu
     """
     t, ym, ys = traces["t"], np.asarray(traces["measured"]), np.asarray(traces["simulated"])
     labels = traces["labels"]
-    step = max(1, t.size // max_points)
     fig, axes = new_figure(2, 1, figsize=(9, 5.5), sharex=True)
     for j in range(ym.shape[1]):
-        axes[0].plot(t[::step], ym[::step, j], lw=1.0, label=f"measured {labels[j]}")
-        axes[0].plot(t[::step], ys[::step, j], "--", lw=1.0, label=f"simulated {labels[j]}")
-        axes[1].plot(t[::step], (ys - ym)[::step, j], lw=0.8, label=labels[j])
+        axes[0].plot(*envelope(t, ym[:, j], max_points), lw=1.0, label=f"measured {labels[j]}")
+        axes[0].plot(*envelope(t, ys[:, j], max_points), "--", lw=1.0,
+                     label=f"simulated {labels[j]}")
+        axes[1].plot(*envelope(t, ys[:, j] - ym[:, j], max_points), lw=0.8, label=labels[j])
     for ax in axes:
         for b in traces["boundaries"]:
             ax.axvline(b, color="0.85", lw=0.5, zorder=0)
@@ -71,7 +102,7 @@ def plot_identification(traces: dict[str, Any], max_points: int = 20000) -> Figu
     return fig
 
 
-def plot_fit(result: Any, max_points: int = 20000) -> Figure:
+def plot_fit(result: Any, max_points: int = 2000) -> Figure:
     """``plot_identification`` of an ``IdentResult`` (the command line's figure).
 
     **Arguments:**
