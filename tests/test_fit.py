@@ -18,6 +18,7 @@ from jaxflex.fit import (
     ParamSpace,
     Problem,
     covariance,
+    induced_point,
     least_squares,
     make_segments,
     noise_level,
@@ -420,10 +421,11 @@ def test_traced_substeps_equal_compiled_ones_and_share_every_program(lowerings):
 @pytest.mark.slow
 def test_a_check_given_a_coarser_checks_order_replays_once_and_keeps_to_the_safe_side(
         monkeypatch):
-    """``discretisation_bias(..., order=p)`` (``refine_fit``'s checks after the first) makes
-    one finer replay instead of two and uses p no higher than the scheme's own order: given
-    a higher p it reckons with ``SCHEME_ORDER``, its shift the measured one's rescaled by
-    (1 - 2^-p_measured) / (1 - 2^-2) (the shift is linear in the extrapolated error)."""
+    """``replay_error(..., order=p)`` (``refine_fit``'s checks after the first) makes one
+    finer replay instead of two and uses p no higher than the scheme's own order: given a
+    higher p it reckons with ``SCHEME_ORDER``, the shift ``discretisation_bias`` reads from
+    it the measured one's rescaled by (1 - 2^-p_measured) / (1 - 2^-2) (the shift is linear
+    in the extrapolated error). ``induced_point`` moves the fitted entries by that shift."""
     import jaxflex.fit.discretisation as disc
     from jaxflex.identify import DEFAULT_FREE, make_problem, perturb
 
@@ -436,11 +438,18 @@ def test_a_check_given_a_coarser_checks_order_replays_once_and_keeps_to_the_safe
     replays = []
     real = disc.residuals
     monkeypatch.setattr(disc, "residuals", lambda q, y: replays.append(q.n_substeps) or real(q, y))
-    given = disc.discretisation_bias(prob, sol, order=5.0)
+    error = disc.replay_error(prob, sol, order=5.0)
+    given = disc.discretisation_bias(prob, sol, error=error)
     assert replays == [2] and given["order"] == disc.SCHEME_ORDER
     scale = (1.0 - 2.0 ** -measured["order"]) / (1.0 - 2.0 ** -disc.SCHEME_ORDER)
     for k, v in measured["shift_theta"].items():
         assert given["shift_theta"][k] == pytest.approx(v * scale, rel=1e-8, abs=1e-300), k
+    moved = induced_point(prob, sol, error.e, 0.5)
+    for k, v in given["shift_theta"].items():
+        name, j = k.split("[")[0], int(k.split("[")[1].rstrip("]"))
+        step = np.ravel(moved[0][name])[j] - np.ravel(sol.y[0][name])[j]
+        assert step == pytest.approx(0.5 * v, rel=1e-8, abs=1e-300), k
+    assert moved[1].shape == sol.y[1].shape
 
 
 def _plain_residuals(y, prob):  # the same residuals by another function: the dense route

@@ -377,7 +377,7 @@ def test_a_failed_solve_is_never_called_converged_and_a_failed_refinement_keeps_
     assert s.attempts[-1]["converged"] is False
 
     # a refinement that fails leaves the coarser fit as the answer, and says so
-    monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so: {
+    monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so, error=None: {
         "bias_se": 50.0, "bias_rel": 0.5, "bias_mahalanobis": 50.0, "output_error": 1.0,
         "order": 1.0, "substeps": pr.n_substeps, "shift_theta": {"Fc[0]": 1.0},
         "stderr_theta": {"Fc[0]": 0.01}})
@@ -404,7 +404,7 @@ def test_a_refinement_is_stopped_by_the_same_rule_as_every_solve(monkeypatch):
     monkeypatch.setattr(search_mod, "least_squares", lambda *a, **k: capped)
     monkeypatch.setattr(search_mod, "remaining_step", lambda *a: 0.01)
     checks = iter([50.0, 0.0])  # the coarse fit is biased; the refined one is not
-    monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so: {
+    monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so, error=None: {
         "bias_se": next(checks), "bias_mahalanobis": 0.0, "output_error": 1.0, "order": 4.0,
         "substeps": pr.n_substeps, "shift_theta": {}, "stderr_theta": {}})
     p_out, s_out, _, s = _refine_through_a_search(prob, sol)

@@ -29,10 +29,12 @@ from jaxflex.fit.segments import (
     unpack_state,
 )
 from jaxflex.fit.discretisation import (
+    ReplayError,
     discretisation_bias,
     integration_error,
     observed_order,
     refined,
+    replay_error,
     step_doubling_error,
 )
 from jaxflex.fit.padding import Padding
@@ -49,6 +51,7 @@ from jaxflex.fit.solve import (
 from jaxflex.fit.uncertainty import (
     cluster_robust_covariance,
     covariance,
+    induced_point,
     induced_shift,
     remaining_step,
     segment_robust_covariance,
@@ -68,7 +71,8 @@ __all__ = [
     "BLOWN_RESIDUAL", "CostBound", "NOMINAL_CONSTRAINTS", "Padding", "ParamSpace", "Problem",
     "Segments", "Solution", "on_slot_rows", "segment_slots", "slot_rows",
     "constraint_of", "cost", "dynamic_substeps", "covariance", "cluster_robust_covariance",
-    "segment_robust_covariance", "discretisation_bias", "gap", "induced_shift", "remaining_step",
+    "segment_robust_covariance", "discretisation_bias", "gap", "induced_point", "induced_shift",
+    "remaining_step", "ReplayError", "replay_error",
     "integration_error", "observed_order", "refined", "step_doubling_error", "get_value",
     "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -72,21 +72,54 @@ def observed_order(coarse: np.ndarray, fine: np.ndarray, finer: np.ndarray) -> f
     return hi if d2 == 0.0 else min(max(math.log2(d1 / d2), lo), hi)
 
 
-def discretisation_bias(prob: Problem, solution: Solution, order: float | None = None,
-                        ) -> dict[str, Any]:
+class ReplayError(NamedTuple):
+    """The integration error of a solution's residuals (``replay_error``): ``e``, the exact
+    replay's residuals minus the solution's (rows as the problem's residual, estimated),
+    ``order``, the p it was extrapolated with, ``blown``: a replay blew up (``e`` not
+    meaningful)."""
+
+    e: np.ndarray
+    order: float
+    blown: bool
+
+
+def replay_error(prob: Problem, solution: Solution, order: float | None = None,
+                 ) -> ReplayError:
+    """The integration error of ``solution``'s residuals by Richardson extrapolation with the
+    order the replays show: e = (r_h/2 - r_h) / (1 - 2^-p), p the ``observed_order`` of the
+    replays with 1, 2 and 4 times the substeps (``ORDER_RANGE``'s lower bound where a replay
+    blew up). ``order``: p as a check at coarser substeps measured it, in place of the replay
+    with 4 times the substeps; at most ``SCHEME_ORDER`` is used (the scheme's order at coarse
+    steps is at most its asymptotic one, and a lower p gives a larger e: the safe side).
+    Raises ``ValueError`` for a solution without its residual (it took no step)."""
+    if solution.residual is None:
+        raise ValueError("replay_error: the solution carries no residual (it took no step)")
+    y = solution.y
+    coarse = np.asarray(solution.residual)
+    fine = np.asarray(residuals(refined(prob), y))
+    n_out = prob.n_out
+    blown = bool(np.any(fine[:n_out] == BLOWN_RESIDUAL)
+                 or np.any(coarse[:n_out] == BLOWN_RESIDUAL))
+    if blown:
+        order = ORDER_RANGE[0]
+    elif order is None:
+        order = observed_order(coarse, fine, np.asarray(residuals(refined(prob, 4), y)))
+    else:
+        order = min(max(order, ORDER_RANGE[0]), SCHEME_ORDER)
+    return ReplayError((fine - coarse) / (1.0 - 2.0**-order), order, blown)
+
+
+def discretisation_bias(prob: Problem, solution: Solution,
+                        error: ReplayError | None = None) -> dict[str, Any]:
     """How far the integrator's discretisation moves the fitted parameters, in their standard
     errors: the parameters fitted with the problem's substeps minimise the coarse residual
     r_h; with an exact replay they would minimise r_h + e, e the integration error of the
-    residuals at the solution, by Richardson extrapolation with the order the replays show:
-    e = (r_h/2 - r_h) / (1 - 2^-p), p the ``observed_order`` of the replays with 1, 2 and 4
-    times the substeps. To first order the fit moves by the Gauss-Newton step
-    -(J^T J)^-1 J^T e, computed from the solution's own normal equations (no new Jacobian; two
-    finer replays, on the programs of the problem's own shape).
+    residuals at the solution (``replay_error``). To first order the fit moves by the
+    Gauss-Newton step -(J^T J)^-1 J^T e, computed from the solution's own normal equations
+    (no new Jacobian; two finer replays, on the programs of the problem's own shape).
 
     ``solution``: the ``least_squares`` result of ``prob`` (with its ``normal`` equations).
-    ``order``: p as a check at coarser substeps measured it, in place of the replay with 4
-    times the substeps; at most ``SCHEME_ORDER`` is used (the scheme's order at coarse steps
-    is at most its asymptotic one, and a lower p gives a larger e: the safe side).
+    ``error``: its ``replay_error`` where already made (None: made here).
     Returns ``bias_se`` (the largest |shift| / standard error over the fitted theta entries:
     the discretisation moves no fitted parameter by more than this many standard errors),
     ``bias_mahalanobis`` (sqrt of shift^T Cov^-1 shift over the fitted entries: the bound for
@@ -98,20 +131,9 @@ def discretisation_bias(prob: Problem, solution: Solution, order: float | None =
     if solution.normal is None or solution.residual is None:
         raise ValueError("discretisation_bias: the solution carries no normal equations "
                          "(it took no step)")
-    y = solution.y
-    coarse = np.asarray(solution.residual)
-    fine = np.asarray(residuals(refined(prob), y))
-    n_out = prob.n_out
-    blown = (np.any(fine[:n_out] == BLOWN_RESIDUAL) or np.any(coarse[:n_out] == BLOWN_RESIDUAL))
-    if blown:
-        order = ORDER_RANGE[0]
-    elif order is None:
-        order = observed_order(coarse, fine, np.asarray(residuals(refined(prob, 4), y)))
-    else:
-        order = min(max(order, ORDER_RANGE[0]), SCHEME_ORDER)
-    e = (fine - coarse) / (1.0 - 2.0**-order)
+    e, order, blown = replay_error(prob, solution) if error is None else error
     # the output rows of e are the replay's own error, weighted (inf where a replay blew up)
-    out_err = math.inf if blown else float(np.sqrt(np.mean(e[:n_out] ** 2)))
+    out_err = math.inf if blown else float(np.sqrt(np.mean(e[: prob.n_out] ** 2)))
     shift, se, labels, fitted, cov = induced_shift(prob, solution, e)
     finite = bool(np.all(np.isfinite(shift)))
     maha = (float(np.sqrt(max(float(shift @ np.linalg.pinv(cov) @ shift), 0.0)))

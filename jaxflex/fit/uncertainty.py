@@ -257,6 +257,23 @@ def _covariance_shooting(prob: Problem, info: tuple[Any, Any], theta: Any, infla
                               defects_ss=float(np.sum(r[n_out:] ** 2)), n_res=n_out)
 
 
+def _induced(prob: Problem, solution: Solution, e: Any) -> tuple[np.ndarray, Any, Any]:
+    """The undamped Gauss-Newton step (J^T J)^-1 J^T e at ``solution`` from its own normal
+    equations, flattened, with the unknowns it applies to and the padding they sit in (as
+    ``least_squares`` solves: the slots' layout of a shooting problem; None: the problem's
+    own)."""
+    y = solution.y
+    structure = "shooting" if "Ntt" in solution.normal else "dense"
+    e = np.asarray(e, float)
+    pad = Padding.of(prob, y) if structure == "shooting" else None
+    normal, e_in, y_in = solution.normal, e, y
+    if pad is not None:  # the solve in the slots' layout: compiled once per bucket
+        normal, e_in, y_in = pad.blocks_in(normal), pad.rows_in(e), pad.unknowns(y)
+    template = jax.tree_util.tree_map(
+        lambda a: to_device(np.zeros(np.shape(a), a.dtype)), y_in)
+    return np.asarray(induced_step(normal, e_in, structure, template)), y_in, pad
+
+
 def induced_shift(prob: Problem, solution: Solution, e: Any,
                   ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray, np.ndarray]:
     """The first-order move -(J^T J)^-1 J^T e of the fitted parameters that a change ``e``
@@ -268,15 +285,7 @@ def induced_shift(prob: Problem, solution: Solution, e: Any,
     fitted theta entry (engine coordinates), every entry's "name[j]" label, the indices of
     the fitted entries among them, and their covariance."""
     y = solution.y
-    structure = "shooting" if "Ntt" in solution.normal else "dense"
-    e = np.asarray(e, float)
-    pad = Padding.of(prob, y) if structure == "shooting" else None
-    normal, e_in, y_in = solution.normal, e, y
-    if pad is not None:  # the solve in the slots' layout: compiled once per bucket
-        normal, e_in, y_in = pad.blocks_in(normal), pad.rows_in(e), pad.unknowns(y)
-    template = jax.tree_util.tree_map(
-        lambda a: to_device(np.zeros(np.shape(a), a.dtype)), y_in)
-    step = np.asarray(induced_step(normal, e_in, structure, template))
+    step = _induced(prob, solution, e)[0]
     theta = prob.split(y)[0] if hasattr(prob, "split") else y
     k = ravel_pytree(theta)[0].shape[0]
     fitted = np.flatnonzero(prob.space.fitted_flat())
@@ -287,6 +296,19 @@ def induced_shift(prob: Problem, solution: Solution, e: Any,
     se = np.sqrt(np.maximum(np.diag(cov), 1e-300))
     labels = [f"{k}[{j}]" for k in sorted(theta) for j in range(np.size(theta[k]))]
     return shift, se, labels, fitted, cov
+
+
+def induced_point(prob: Problem, solution: Solution, e: Any, fraction: float = 1.0) -> Any:
+    """The unknowns of ``solution`` moved by ``fraction`` of the first-order move
+    -(J^T J)^-1 J^T e that a change ``e`` of the residuals induces (``induced_shift``'s move
+    of every unknown, the segments' start states included): to first order, the minimum of
+    the residuals r + ``fraction`` e. None where the move is not finite."""
+    step, y_in, pad = _induced(prob, solution, e)
+    if not np.all(np.isfinite(step)):
+        return None
+    flat, unravel = ravel_pytree(y_in)
+    moved = unravel(flat - fraction * to_device(step))
+    return pad.unknowns_back(moved) if pad is not None else moved
 
 
 def remaining_step(prob: Problem, solution: Solution) -> float:

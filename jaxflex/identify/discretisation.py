@@ -15,8 +15,11 @@ import numpy as np
 from jaxflex.fit import (
     Problem,
     Solution,
+    cost,
     discretisation_bias,
+    induced_point,
     refined,
+    replay_error,
     simulated_outputs,
     step_doubling_error,
 )
@@ -98,6 +101,20 @@ def relative_shift(prob: Problem, y: Any, shift_theta: dict[str, float]) -> floa
     return max(rel) if rel else 0.0
 
 
+def refined_start(finer: Problem, sol: Solution, error: Any, factor: int) -> Any:
+    """Where the fit with ``factor`` x the substeps starts: ``sol``'s unknowns moved by the
+    share 1 - factor^-p of the first-order move its replay's error induces
+    (``jaxflex.fit.induced_point``; the finer replay keeps factor^-p of the error), unless
+    that point costs more than ``sol``'s own with the finer substeps (a move the first
+    order does not describe). ``error``: ``sol``'s ``replay_error``."""
+    if error.blown:
+        return sol.y
+    moved = induced_point(finer, sol, error.e, 1.0 - float(factor) ** -error.order)
+    if moved is None or not cost(finer, moved) < cost(finer, sol.y):
+        return sol.y
+    return moved
+
+
 def refine_fit(prob: Problem, sol: Solution, *, refine: bool,
                run: Callable[[Problem, Any, dict[str, Any]], Solution],
                tol: float = BIAS_TOL, rel_tol: float = BIAS_REL, most: int = MAX_SUBSTEPS,
@@ -113,7 +130,8 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool,
     integrator's own error can be that residual; the relative shift holds either way. The fit
     is refined while either fails. Each refinement multiplies the substeps by 2^k, the shift
     falling by 2^(k p) with the order p the check measured (at most ``REFINE_MOST`` x), and
-    continues from the solution, so most
+    continues from the solution moved by the shift the check predicts (``refined_start``),
+    so most
     steps use the cheap replay; with ``make_problem``'s traced substep count every level runs
     the same compiled solver.
 
@@ -137,7 +155,8 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool,
                            "bias_mahalanobis": math.nan, "output_error": math.nan})
             return prob, sol, checks
         # the order the first check measured serves the finer ones (one replay fewer each)
-        chk = discretisation_bias(prob, sol, order=checks[0]["order"] if checks else None)
+        error = replay_error(prob, sol, order=checks[0]["order"] if checks else None)
+        chk = discretisation_bias(prob, sol, error=error)
         finite = all(math.isfinite(v) for v in chk["shift_theta"].values())
         # the relative shift of the parameters it moves by a tenth of a standard error or
         # more (a shift far inside a poorly determined parameter's error is no bias)
@@ -153,7 +172,8 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool,
         factor = 2 ** max(1, math.ceil(math.log2(min(need, 1e6)) / chk["order"]))
         factor = max(2, min(factor, REFINE_MOST, most // prob.n_substeps))
         finer = refined(prob, factor)
-        more = run(finer, sol.y, {"refined_substeps": finer.n_substeps})
+        more = run(finer, refined_start(finer, sol, error, factor),
+                   {"refined_substeps": finer.n_substeps})
         if more.failed:  # the finer fit broke down: the coarser answer stands, judged as is
             checks[-1]["refinement_failed"] = finer.n_substeps
             return prob, sol, checks
