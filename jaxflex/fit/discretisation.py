@@ -76,11 +76,12 @@ class ReplayError(NamedTuple):
     """The integration error of a solution's residuals (``replay_error``): ``e``, the exact
     replay's residuals minus the solution's (rows as the problem's residual, estimated),
     ``order``, the p it was extrapolated with, ``blown``: a replay blew up (``e`` not
-    meaningful)."""
+    meaningful), and ``replays``: the finer replays' residuals it made (substeps -> rows)."""
 
     e: np.ndarray
     order: float
     blown: bool
+    replays: dict[int, np.ndarray]
 
 
 def replay_error(prob: Problem, solution: Solution, order: float | None = None,
@@ -100,13 +101,15 @@ def replay_error(prob: Problem, solution: Solution, order: float | None = None,
     n_out = prob.n_out
     blown = bool(np.any(fine[:n_out] == BLOWN_RESIDUAL)
                  or np.any(coarse[:n_out] == BLOWN_RESIDUAL))
+    replays = {2 * prob.n_substeps: fine}
     if blown:
         order = ORDER_RANGE[0]
     elif order is None:
-        order = observed_order(coarse, fine, np.asarray(residuals(refined(prob, 4), y)))
+        finer = replays[4 * prob.n_substeps] = np.asarray(residuals(refined(prob, 4), y))
+        order = observed_order(coarse, fine, finer)
     else:
         order = min(max(order, ORDER_RANGE[0]), SCHEME_ORDER)
-    return ReplayError((fine - coarse) / (1.0 - 2.0**-order), order, blown)
+    return ReplayError((fine - coarse) / (1.0 - 2.0**-order), order, blown, replays)
 
 
 def discretisation_bias(prob: Problem, solution: Solution,
@@ -131,7 +134,7 @@ def discretisation_bias(prob: Problem, solution: Solution,
     if solution.normal is None or solution.residual is None:
         raise ValueError("discretisation_bias: the solution carries no normal equations "
                          "(it took no step)")
-    e, order, blown = replay_error(prob, solution) if error is None else error
+    e, order, blown, _ = replay_error(prob, solution) if error is None else error
     # the output rows of e are the replay's own error, weighted (inf where a replay blew up)
     out_err = math.inf if blown else float(np.sqrt(np.mean(e[: prob.n_out] ** 2)))
     shift, se, labels, fitted, cov = induced_shift(prob, solution, e)

@@ -106,13 +106,16 @@ def refined_start(finer: Problem, sol: Solution, error: Any, factor: int) -> Any
     share 1 - factor^-p of the first-order move its replay's error induces
     (``jaxflex.fit.induced_point``; the finer replay keeps factor^-p of the error), unless
     that point costs more than ``sol``'s own with the finer substeps (a move the first
-    order does not describe). ``error``: ``sol``'s ``replay_error``."""
+    order does not describe; that cost read off the error's own replays where it made one
+    with the finer substeps). ``error``: ``sol``'s ``replay_error``."""
     if error.blown:
         return sol.y
     moved = induced_point(finer, sol, error.e, 1.0 - float(factor) ** -error.order)
-    if moved is None or not cost(finer, moved) < cost(finer, sol.y):
+    if moved is None:
         return sol.y
-    return moved
+    made = error.replays.get(finer.n_substeps)
+    here = cost(finer, sol.y) if made is None else 0.5 * float(np.sum(made * made))
+    return moved if cost(finer, moved) < here else sol.y
 
 
 def refine_fit(prob: Problem, sol: Solution, *, refine: bool,
