@@ -414,6 +414,37 @@ def test_a_refinement_is_stopped_by_the_same_rule_as_every_solve(monkeypatch):
     assert s.attempts[-1]["converged"] is True
 
 
+@pytest.mark.parametrize("first_order, reused", [(1.3, False), (2.1, True)])
+def test_a_finer_check_takes_a_coarser_one_s_order_only_once_it_reached_the_scheme_s(
+        monkeypatch, first_order, reused):
+    """``refine_fit``'s checks after the first take the order the previous one measured only
+    where it had reached the scheme's own (``SCHEME_ORDER``): below it the steps were
+    pre-asymptotic, a finer step shows a higher order, and the lower one would overstate
+    the error and refine again for nothing (a near-Coulomb log went 8 -> 16 substeps and
+    180 more steps that way)."""
+    import jaxflex.identify.discretisation as disc
+    import jaxflex.identify.search as search_mod
+    from jaxflex.fit import ReplayError
+
+    prob, _, sol = _three_step_fit()
+    monkeypatch.setattr(search_mod, "least_squares", lambda *a, **k: sol)
+    asked = []
+
+    def fake_error(pr, so, order=None):
+        asked.append(order)
+        return ReplayError(np.zeros_like(np.asarray(so.residual)), order or first_order, True,
+                           {})
+
+    checks = iter([50.0, 0.0])  # the coarse fit is biased; the refined one is not
+    monkeypatch.setattr(disc, "replay_error", fake_error)
+    monkeypatch.setattr(disc, "discretisation_bias", lambda pr, so, error=None: {
+        "bias_se": next(checks), "bias_mahalanobis": 0.0, "output_error": 1.0,
+        "order": error.order, "substeps": pr.n_substeps, "shift_theta": {},
+        "stderr_theta": {}})
+    _refine_through_a_search(prob, sol)
+    assert asked == [None, first_order if reused else None]
+
+
 def test_the_first_start_s_bristle_load_is_held_within_what_a_motion_reaches():
     """The log's first segment is the one start no continuity defect ties to a replay: its
     bristle load is fitted as a share of the bristle's invariant bound (``LuGre.z_bound``),

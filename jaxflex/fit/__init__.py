@@ -29,6 +29,7 @@ from jaxflex.fit.segments import (
     unpack_state,
 )
 from jaxflex.fit.discretisation import (
+    SCHEME_ORDER,
     ReplayError,
     discretisation_bias,
     integration_error,
@@ -72,7 +73,7 @@ __all__ = [
     "Segments", "Solution", "on_slot_rows", "segment_slots", "slot_rows",
     "constraint_of", "cost", "dynamic_substeps", "covariance", "cluster_robust_covariance",
     "segment_robust_covariance", "discretisation_bias", "gap", "induced_point", "induced_shift",
-    "remaining_step", "ReplayError", "replay_error",
+    "remaining_step", "ReplayError", "replay_error", "SCHEME_ORDER",
     "integration_error", "observed_order", "refined", "step_doubling_error", "get_value",
     "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",

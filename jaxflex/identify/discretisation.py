@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from jaxflex.fit import (
+    SCHEME_ORDER,
     Problem,
     Solution,
     cost,
@@ -157,8 +158,11 @@ def refine_fit(prob: Problem, sol: Solution, *, refine: bool,
             checks.append({"substeps": prob.n_substeps, "bias_se": math.nan, "bias_rel": math.nan,
                            "bias_mahalanobis": math.nan, "output_error": math.nan})
             return prob, sol, checks
-        # the order the first check measured serves the finer ones (one replay fewer each)
-        error = replay_error(prob, sol, order=checks[0]["order"] if checks else None)
+        # an order a coarser check saw at the scheme's own serves the finer ones (one replay
+        # fewer each); below it the steps were still in the pre-asymptotic range, where the
+        # finer check measures afresh (a low order overstates the error there)
+        seen = checks[-1]["order"] if checks else 0.0
+        error = replay_error(prob, sol, order=seen if seen >= SCHEME_ORDER else None)
         chk = discretisation_bias(prob, sol, error=error)
         finite = all(math.isfinite(v) for v in chk["shift_theta"].values())
         # the relative shift of the parameters it moves by a tenth of a standard error or
