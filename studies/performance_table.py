@@ -22,7 +22,9 @@ benchmarks write them):
   one row per command measured);
 - ``out/bench_sweep/results.json``: ``bench_sweep.py``;
 - ``out/bench_sweep/gpu.json``: ``bench_sweep.py --gpu`` (on a machine with an NVIDIA GPU);
-- ``out/ident_bench_scipy/results.json``: ``ident_bench_scipy.py`` (one row per log length).
+- ``out/ident_bench_scipy/results.json``: ``ident_bench_scipy.py`` (one row per log length);
+- ``out/peer_sysid/results.json``: ``peer_sysid.py`` (one row per log: against
+  ``mujoco.sysid``).
 
 A benchmark whose JSON is missing here keeps its rows from the page as it stands (a benchmark
 run on another machine, such as the GPU's, keeps its figures when the table is regenerated
@@ -31,13 +33,14 @@ elsewhere); ``--fresh`` forgets them. Also writes the rows as ``table.json`` to 
 
     python studies/performance_table.py [--simulate-default PATH] [--simulate PATH]
         [--export-step PATH] [--compile-cache DIR] [--sweep PATH] [--gpu PATH]
-        [--ident-scipy PATH] [--doc docs/performance.md] [--out out/performance_table]
+        [--ident-scipy PATH] [--peer-sysid PATH] [--doc docs/performance.md] [--out out/performance_table]
         [--fresh] [--small]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import json
 import re
 from collections.abc import Callable
@@ -343,6 +346,46 @@ def ident_scipy_rows(d: dict, command: str) -> list[Row]:
     return rows
 
 
+def peer_rows(d: dict, command: str) -> list[Row]:
+    """``peer_sysid.py``: ``jaxflex.identify`` against ``mujoco.sysid`` on the same logs, one
+    row per log: wall times, each tool's largest relative error over the quantities both
+    fit, and sysid's time over jaxflex's (warm), said to be at equal or better error or not."""
+    rows = []
+    loads = d.get("load_avg_per_stage") or []
+    for lg in d["logs"].values():
+        m = lg["methods"]
+        jx = next(v for k, v in m.items() if k.startswith("jaxflex"))
+        ratios = {r["sysid"]: r for r in lg.get("ratios", [])}
+        parts = []
+        for key, label in (("sysid_default", "default scaling"),
+                           ("sysid_xscale_jac", "x_scale='jac'")):
+            if key not in m:
+                continue
+            sv, r = m[key], ratios.get(key, {})
+            ratio = sv["wall_s"] / jx["warm_s"]  # baseline over jaxflex, as every row
+            verdict = ("at equal or better jaxflex error" if r.get("equal_or_better")
+                       else "jaxflex's error larger")
+            parts.append(f"sysid ({label}) {_t(sv['wall_s'])}, error "
+                         f"{100 * r.get('sysid_err', math.nan):.2g}%"
+                         f"{'' if sv.get('success') else ', not converged'}: "
+                         f"sysid/jaxflex {_x(ratio)} ({verdict})")
+        j_err = next(iter(ratios.values()), {}).get("jaxflex_err", math.nan)
+        fig = (f"jaxflex warm {_t(jx['warm_s'])} (cold {_t(jx['cold_s'])}, {jx['steps']} "
+               f"steps), error {100 * j_err:.2g}%; " + "; ".join(parts))
+        rows.append(Row(
+            f"identification of a rigid hinge with friction, {lg['source']} (15 s at 1 kHz, "
+            "open loop, start 40-50% off), `jaxflex.identify` (rigid + LuGre) against "
+            "`mujoco.sysid`", fig,
+            f"`mujoco.sysid` {d['versions'].get('mujoco', '?')} (Levenberg-Marquardt on "
+            "finite-difference Jacobians of MuJoCo rollouts of the true MJCF), one run each, "
+            "same process, same start; errors: the largest relative error over the inertia, "
+            "viscous and Coulomb levels",
+            f"{d.get('cpu_count', '?')} cores, load "
+            f"{_load(loads[0] if loads else None, loads[-1] if loads else None)}, "
+            f"{_blas(d.get('blas'))}", command))
+    return rows
+
+
 SOURCES: tuple[Source, ...] = (
     Source("simulate_default", "out/bench_simulate_default/results.json",
            "python studies/bench_simulate.py --part single --xla-default "
@@ -366,6 +409,9 @@ SOURCES: tuple[Source, ...] = (
     Source("ident_scipy", "out/ident_bench_scipy/results.json",
            "python studies/ident_bench_scipy.py",
            "identification against scipy's least squares", ident_scipy_rows),
+    Source("peer_sysid", "out/peer_sysid/results.json",
+           "python studies/peer_sysid.py --out out/peer_sysid",
+           "identification against `mujoco.sysid` on the same logs", peer_rows),
 )
 
 

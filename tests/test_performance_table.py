@@ -32,7 +32,8 @@ def test_rows_from_json_and_not_measured(tmp_path):
     _simulate_json(sim)
     doc, out = tmp_path / "performance.md", tmp_path / "out"
     missing = [f"--{o}={tmp_path / 'missing' / o}" for o in
-               ("simulate", "export-step", "compile-cache", "sweep", "gpu", "ident-scipy")]
+               ("simulate", "export-step", "compile-cache", "sweep", "gpu", "ident-scipy",
+                "peer-sysid")]
     rows = performance_table.main([f"--simulate-default={sim}", *missing, f"--doc={doc}",
                                    f"--out={out}"])
     text = doc.read_text()
@@ -50,7 +51,7 @@ def test_rows_from_json_and_not_measured(tmp_path):
     assert f"| {save.what} | {save.figure} |" in text
 
     not_measured = [r for r in rows if r.figure.startswith("not measured")]
-    assert len(not_measured) == 6
+    assert len(not_measured) == 7
     export = next(r for r in not_measured if "bench_export_step" in r.command)
     assert export.figure == "not measured: run `python studies/bench_export_step.py`"
     assert export.figure in text
@@ -99,3 +100,27 @@ def test_gpu_rows_state_the_accuracy_and_a_run_the_budget_skipped():
     assert big.figure.endswith("GPU float64 x10 best")
     assert "NVIDIA H200, JAX 0.11.2" in first.machine
     assert performance_table.gpu_rows({"measured": False}, "cmd") == []
+
+
+def test_peer_rows_give_the_baseline_s_time_over_jaxflex_s_and_say_which_error_is_larger():
+    """``peer_rows``: per log, sysid's wall time over jaxflex's warm one (above 1: jaxflex
+    faster, as every row of the table), each tool's error, a sysid run that did not converge
+    said so, and whether jaxflex's error is at least as small."""
+    method = {"wall_s": 10.0, "success": True}
+    log = {"source": "MuJoCo 4.0.0 rigid hinge, seed 0",
+           "methods": {"sysid_default": method,
+                       "sysid_xscale_jac": {**method, "wall_s": 20.0, "success": False},
+                       "jaxflex_same_start": {"warm_s": 40.0, "cold_s": 55.0, "steps": 99}},
+           "ratios": [{"sysid": "sysid_default", "jaxflex_err": 0.004, "sysid_err": 1e-5,
+                       "equal_or_better": False},
+                      {"sysid": "sysid_xscale_jac", "jaxflex_err": 0.004, "sysid_err": 0.02,
+                       "equal_or_better": True}]}
+    d = {"logs": {"mujoco_log": log}, "versions": {"mujoco": "4.0.0"}, "cpu_count": 2,
+         "load_avg_per_stage": [[0.5, 0, 0], [1.5, 0, 0]], "blas": None}
+    (row,) = performance_table.peer_rows(d, "python studies/peer_sysid.py --out x")
+    assert row.figure.startswith("jaxflex warm 40 s (cold 55 s, 99 steps), error 0.4%")
+    assert ("sysid (default scaling) 10 s, error 0.001%: sysid/jaxflex x0.25 (jaxflex's error "
+            "larger)") in row.figure
+    assert ("sysid (x_scale='jac') 20 s, error 2%, not converged: sysid/jaxflex x0.5 (at equal "
+            "or better jaxflex error)") in row.figure
+    assert "mujoco.sysid` 4.0.0" in row.baseline and "load 0.50-1.50" in row.machine
