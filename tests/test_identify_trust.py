@@ -445,6 +445,30 @@ def test_a_finer_check_takes_a_coarser_one_s_order_only_once_it_reached_the_sche
     assert asked == [None, first_order if reused else None]
 
 
+def test_a_refinement_starts_at_the_predicted_point_only_in_the_asymptotic_range(monkeypatch):
+    """``refined_start``: the solution moved by the check's predicted shift where the replays
+    showed the scheme's own order and the moved point costs less with the finer substeps;
+    the solution itself where the order was lower (a pre-asymptotic error is a guess: on
+    MuJoCo's hinge log the move led the 8-substep fit to another minimum, a refinement to
+    32 substeps and a 200-step cap), where the move costs more, or where a replay blew up."""
+    import jaxflex.identify.discretisation as disc
+    from jaxflex.fit import SCHEME_ORDER, ReplayError, refined
+
+    prob, _, sol = _three_step_fit()
+    finer = refined(prob, 4)
+    moved = object()
+    monkeypatch.setattr(disc, "induced_point", lambda *a: moved)
+    costs = {"moved": 1.0, "here": 2.0}
+    monkeypatch.setattr(disc, "cost", lambda pr, y: costs["moved" if y is moved else "here"])
+    err = lambda order, blown=False: ReplayError(  # noqa: E731
+        np.zeros_like(np.asarray(sol.residual)), order, blown, {})
+    assert disc.refined_start(finer, sol, err(SCHEME_ORDER), 4) is moved
+    assert disc.refined_start(finer, sol, err(SCHEME_ORDER - 0.3), 4) is sol.y
+    assert disc.refined_start(finer, sol, err(SCHEME_ORDER, blown=True), 4) is sol.y
+    costs["moved"] = 3.0
+    assert disc.refined_start(finer, sol, err(SCHEME_ORDER), 4) is sol.y
+
+
 def test_the_first_start_s_bristle_load_is_held_within_what_a_motion_reaches():
     """The log's first segment is the one start no continuity defect ties to a replay: its
     bristle load is fitted as a share of the bristle's invariant bound (``LuGre.z_bound``),

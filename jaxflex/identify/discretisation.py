@@ -105,11 +105,13 @@ def relative_shift(prob: Problem, y: Any, shift_theta: dict[str, float]) -> floa
 def refined_start(finer: Problem, sol: Solution, error: Any, factor: int) -> Any:
     """Where the fit with ``factor`` x the substeps starts: ``sol``'s unknowns moved by the
     share 1 - factor^-p of the first-order move its replay's error induces
-    (``jaxflex.fit.induced_point``; the finer replay keeps factor^-p of the error), unless
-    that point costs more than ``sol``'s own with the finer substeps (a move the first
-    order does not describe; that cost read off the error's own replays where it made one
-    with the finer substeps). ``error``: ``sol``'s ``replay_error``."""
-    if error.blown:
+    (``jaxflex.fit.induced_point``; the finer replay keeps factor^-p of the error), where the
+    replays are in the scheme's asymptotic range (their order at least ``SCHEME_ORDER``: a
+    lower one makes the extrapolated error, and the move, a guess that can carry the fit to
+    another minimum) and that point costs less than ``sol``'s own with the finer substeps
+    (read off the error's own replays where it made one with them); else ``sol.y``.
+    ``error``: ``sol``'s ``replay_error``."""
+    if error.blown or error.order < SCHEME_ORDER:
         return sol.y
     moved = induced_point(finer, sol, error.e, 1.0 - float(factor) ** -error.order)
     if moved is None:
