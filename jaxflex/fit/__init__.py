@@ -47,6 +47,7 @@ from jaxflex.fit.solve import (
     cost,
     least_squares,
     problem_residuals,
+    residual_cost,
     trace_solver,
 )
 from jaxflex.fit.uncertainty import (
@@ -77,6 +78,6 @@ __all__ = [
     "integration_error", "observed_order", "refined", "step_doubling_error", "get_value",
     "is_fitted", "least_squares",
     "make_segments", "noise_level", "output_columns", "pack_state", "params_of_plant",
-    "problem_residuals", "residuals", "simulated_outputs", "trace_solver",
+    "problem_residuals", "residual_cost", "residuals", "simulated_outputs", "trace_solver",
     "relative", "savgol", "savgol_coeffs", "set_values", "unpack_state", "white_noise_std",
 ]

@@ -119,7 +119,8 @@ def discretisation_bias(prob: Problem, solution: Solution,
     r_h; with an exact replay they would minimise r_h + e, e the integration error of the
     residuals at the solution (``replay_error``). To first order the fit moves by the
     Gauss-Newton step -(J^T J)^-1 J^T e, computed from the solution's own normal equations
-    (no new Jacobian; two finer replays, on the programs of the problem's own shape).
+    (no new Jacobian; ``replay_error``'s finer replays, on the programs of the problem's own
+    shape).
 
     ``solution``: the ``least_squares`` result of ``prob`` (with its ``normal`` equations).
     ``error``: its ``replay_error`` where already made (None: made here).

@@ -233,10 +233,16 @@ def cost(prob: Problem, y: Any, fn: Callable = problem_residuals) -> float:
     program that also gives its simulated outputs and gap, ``jaxflex.fit.replay``; another
     ``fn`` compiled once per shape); inf if not finite."""
     if fn is problem_residuals and isinstance(prob, Problem):
-        r = np.asarray(replay_residuals(prob, y))
-        c = 0.5 * float(np.sum(r * r))
-    else:
-        c = float(_cost(fn, y, prob))
+        return residual_cost(replay_residuals(prob, y))
+    c = float(_cost(fn, y, prob))
+    return c if math.isfinite(c) else math.inf
+
+
+def residual_cost(r: Any) -> float:
+    """0.5 ||r||^2 of residual rows already made (``cost``'s measure), on the host; inf if
+    not finite."""
+    r = np.asarray(r)
+    c = 0.5 * float(np.sum(r * r))
     return c if math.isfinite(c) else math.inf
 
 

@@ -15,12 +15,14 @@ import numpy as np
 from jaxflex.fit import (
     SCHEME_ORDER,
     Problem,
+    ReplayError,
     Solution,
     cost,
     discretisation_bias,
     induced_point,
     refined,
     replay_error,
+    residual_cost,
     simulated_outputs,
     step_doubling_error,
 )
@@ -102,7 +104,7 @@ def relative_shift(prob: Problem, y: Any, shift_theta: dict[str, float]) -> floa
     return max(rel) if rel else 0.0
 
 
-def refined_start(finer: Problem, sol: Solution, error: Any, factor: int) -> Any:
+def refined_start(finer: Problem, sol: Solution, error: ReplayError, factor: int) -> Any:
     """Where the fit with ``factor`` x the substeps starts: ``sol``'s unknowns moved by the
     share 1 - factor^-p of the first-order move its replay's error induces
     (``jaxflex.fit.induced_point``; the finer replay keeps factor^-p of the error), where the
@@ -117,7 +119,7 @@ def refined_start(finer: Problem, sol: Solution, error: Any, factor: int) -> Any
     if moved is None:
         return sol.y
     made = error.replays.get(finer.n_substeps)
-    here = cost(finer, sol.y) if made is None else 0.5 * float(np.sum(made * made))
+    here = cost(finer, sol.y) if made is None else residual_cost(made)
     return moved if cost(finer, moved) < here else sol.y
 
 
