@@ -33,15 +33,15 @@ elsewhere); ``--fresh`` forgets them. Also writes the rows as ``table.json`` to 
 
     python studies/performance_table.py [--simulate-default PATH] [--simulate PATH]
         [--export-step PATH] [--compile-cache DIR] [--sweep PATH] [--gpu PATH]
-        [--ident-scipy PATH] [--peer-sysid PATH] [--doc docs/performance.md] [--out out/performance_table]
-        [--fresh] [--small]
+        [--ident-scipy PATH] [--peer-sysid PATH] [--doc docs/performance.md]
+        [--out out/performance_table] [--fresh] [--small]
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import json
+import math
 import re
 from collections.abc import Callable
 from pathlib import Path

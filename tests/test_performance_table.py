@@ -27,13 +27,18 @@ def _simulate_json(path):
     path.write_text(json.dumps(d))
 
 
+def _missing(tmp_path, but=None):
+    """Every source's option pointed at a missing file (``but`` that one), so that no JSON
+    in the working directory's ``out/`` reaches a test."""
+    return [f"--{s.option.replace('_', '-')}={tmp_path / 'missing' / s.option}"
+            for s in performance_table.SOURCES if s.option != but]
+
+
 def test_rows_from_json_and_not_measured(tmp_path):
     sim = tmp_path / "sim" / "results.json"
     _simulate_json(sim)
     doc, out = tmp_path / "performance.md", tmp_path / "out"
-    missing = [f"--{o}={tmp_path / 'missing' / o}" for o in
-               ("simulate", "export-step", "compile-cache", "sweep", "gpu", "ident-scipy",
-                "peer-sysid")]
+    missing = _missing(tmp_path, but="simulate_default")
     rows = performance_table.main([f"--simulate-default={sim}", *missing, f"--doc={doc}",
                                    f"--out={out}"])
     text = doc.read_text()
@@ -62,9 +67,7 @@ def test_a_benchmark_without_its_json_keeps_its_rows_from_the_page(tmp_path):
     """A GPU's rows, measured on another machine, survive a regeneration here; --fresh and a
     page without them give "not measured"."""
     doc, out = tmp_path / "performance.md", tmp_path / "out"
-    missing = [f"--{o}={tmp_path / 'missing' / o}" for o in
-               ("simulate-default", "simulate", "export-step", "compile-cache", "sweep", "gpu",
-                "ident-scipy")]
+    missing = _missing(tmp_path)
     kept = performance_table.Row("`run_sweep` on a GPU | float64", "4e7 steps/s", "the CPU",
                                  "H200", "python studies/bench_sweep.py --gpu --small")
     sweep = performance_table.Row("sweep", "6e5 steps/s", "solve_ivp", "2 cores",
