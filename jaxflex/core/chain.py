@@ -39,6 +39,8 @@ entry of the tensor, not its negation). M, C and G are linear in phi (the regres
 
 from __future__ import annotations
 
+import abc
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -102,7 +104,138 @@ def _dh_transform(theta: Array, d: Array, a: Array, alpha: Array) -> Array:
     ])
 
 
-class SerialChain(AbstractLinkDynamics):
+class AbstractChain(AbstractLinkDynamics):
+    """An open chain of n rigid links, revolute or prismatic joints, described by where its
+    frames and joint axes are (``frames``, ``joint_axes``): the dynamics (M from the frames'
+    geometric Jacobians, V from their positions, C and G by differentiation, module docstring)
+    are the same for every description of the kinematics (standard DH: ``SerialChain``; a
+    URDF's joint origins and axes: ``jaxflex.core.urdf.UrdfChain``).
+
+    phi: (n, 10) standard inertial parameters (``INERTIAL_NAMES``), link i's in its own
+    frame (frame i of ``frames``). g [m/s^2]: gravity's acceleration vector in the base frame
+    (frame 0). joints: one letter per joint, "R" or "P" (static). Each description declares
+    the three fields itself (an abstract field here would fix their order before its own)."""
+
+    @abc.abstractmethod
+    def frames(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n1 3 3"], Float[Array, "n1 3"]]:
+        """Orientations R_i and origins o_i [m] of frames 0..n in the base frame (frame i:
+        link i's, in which its ``phi`` is given; frame 0: the base)."""
+
+    @abc.abstractmethod
+    def joint_axes(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
+        """Each joint's unit axis z_j and a point p_j [m] on it, in the base frame: joint j
+        turns the links beyond it about (or moves them along) z_j through p_j."""
+
+    @property
+    def n(self) -> int:
+        return len(self.joints)
+
+    @property
+    def revolute(self) -> Array:
+        """1.0 for revolute joints, 0.0 for prismatic, (n,)."""
+        return jnp.asarray([j == "R" for j in self.joints], self.phi.dtype)
+
+    @property
+    def mass(self) -> Float[Array, " n"]:
+        """Link masses m [kg]."""
+        return self.phi[:, 0]
+
+    @property
+    def com(self) -> Float[Array, "n 3"]:
+        """Centres of mass c [m] in each link's frame."""
+        return self.phi[:, 1:4] / self.phi[:, :1]
+
+    @property
+    def inertia_origin(self) -> Float[Array, "n 3 3"]:
+        """Inertia tensors I_o [kg m^2] about each link frame's origin."""
+        return inertia_matrix(self.phi[:, 4:])
+
+    @property
+    def inertia_com(self) -> Float[Array, "n 3 3"]:
+        """Inertia tensors I_c [kg m^2] about each link's centre of mass."""
+        c, m = self.com, self.mass
+        eye = jnp.eye(3, dtype=m.dtype)
+        return self.inertia_origin - m[:, None, None] * (
+            jnp.sum(c * c, -1)[:, None, None] * eye - c[:, :, None] * c[:, None, :])
+
+    def with_phi(self, phi: Float[Array, "n 10"]) -> AbstractChain:
+        """A copy with other standard inertial parameters (same kinematics)."""
+        return eqx.tree_at(lambda s: s.phi, self, jnp.asarray(phi, self.phi.dtype))
+
+    # ----- kinematics and dynamics -------------------------------------------------------
+
+    def axis_kinds(self, q: ArrayLike) -> list[str]:
+        """What gravity can do on each joint at the pose ``q`` [rad or m], in the words a
+        parameter file declares (``jaxflex.discover.config.AXES``): "prismatic" for a
+        prismatic joint, "vertical" for a revolute joint whose axis is parallel to gravity
+        (no gravity moment about it, whatever the pose of the joints beyond it), else
+        "horizontal" (gravity can act)."""
+        z = np.asarray(self.joint_axes(jnp.asarray(q, self.g.dtype))[0])
+        g = np.asarray(self.g, float)
+        g_dir = g / max(float(np.linalg.norm(g)), 1e-300)
+        rev = np.asarray(self.revolute) > 0.5
+        return ["prismatic" if not rev[i] else
+                "vertical" if abs(float(z[i] @ g_dir)) >= 1.0 - 1e-6 else "horizontal"
+                for i in range(self.n)]
+
+    def jacobians(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n 3 n"],
+                                                        Float[Array, "n 3 n"]]:
+        """Geometric Jacobians (Jo, Jw) of the origins and angular velocities of frames
+        1..n: v_o_i = Jo[i] q', omega_i = Jw[i] q' (base frame; [m/rad] or 1)."""
+        _, o = self.frames(q)
+        z, p = self.joint_axes(q)                          # (n, 3) each
+        rev = self.revolute
+        lever = o[1:, None, :] - p[None, :, :]             # o_i - p_j, (n_i, n_j, 3)
+        lin = rev[None, :, None] * jnp.cross(z[None], lever) + (1 - rev)[None, :, None] * z[None]
+        mask = jnp.tril(jnp.ones((self.n, self.n), q.dtype))[:, :, None]
+        Jo = jnp.swapaxes(mask * lin, 1, 2)
+        Jw = jnp.swapaxes(mask * (rev[:, None] * z)[None], 1, 2)
+        return Jo, Jw
+
+    def mass_matrix(self, q: Float[Array, " n"]) -> Float[Array, "n n"]:
+        """M(q) [kg m^2, kg m, kg]: sum over links of their kinetic-energy quadratic forms
+
+            M_i = m Jo^T Jo + Jw^T R I_o R^T Jw - (Jo^T S(R h) Jw + (Jo^T S(R h) Jw)^T)
+
+        with h = m c (T_i = 1/2 m |v_o|^2 + v_o . (omega x R h) + 1/2 omega^T R I_o R^T omega).
+        """
+        R, _ = self.frames(q)
+        R = R[1:]
+        Jo, Jw = self.jacobians(q)
+        m, h, Io = self.phi[:, 0], self.phi[:, 1:4], self.inertia_origin
+        Iw = R @ Io @ jnp.swapaxes(R, 1, 2)
+        Sh = skew(jnp.einsum("iab,ib->ia", R, h))
+        lin = jnp.einsum("i,iaj,iak->jk", m, Jo, Jo)
+        rot = jnp.einsum("iaj,iab,ibk->jk", Jw, Iw, Jw)
+        cross = jnp.einsum("iaj,iab,ibk->jk", Jo, Sh, Jw)
+        return lin + rot - cross - cross.T
+
+    def kinetic_energy(self, q: Float[Array, " n"], dq: Float[Array, " n"]) -> Float[Array, ""]:
+        """T = 1/2 q'^T M(q) q' [J]."""
+        return 0.5 * dq @ self.mass_matrix(q) @ dq
+
+    def potential(self, q: Float[Array, " n"]) -> Float[Array, ""]:
+        """V(q) = -sum_i g . (m_i o_i + R_i h_i) [J] (zero at the base origin)."""
+        R, o = self.frames(q)
+        m, h = self.phi[:, 0], self.phi[:, 1:4]
+        pos = m[:, None] * o[1:] + jnp.einsum("iab,ib->ia", R[1:], h)
+        return -jnp.sum(pos @ self.g)
+
+    def inverse_dynamics(self, q: Float[Array, " n"], dq: Float[Array, " n"],
+                         ddq: Float[Array, " n"]) -> Float[Array, " n"]:
+        """M(q) q'' + C(q, q') q' + G(q) [N m or N]: the joint torques of the rigid chain
+        (the left side of the link line of eq. 3 without friction); linear in ``phi``."""
+        return self.mass_matrix(q) @ ddq + self.coriolis(q, dq, dq) + self.gravity(q)
+
+    def com_positions(self, q: Float[Array, " n"]) -> Float[Array, "n 3"]:
+        """Centres of mass [m] of the links in the base frame."""
+        R, o = self.frames(q)
+        return o[1:] + jnp.einsum("iab,ib->ia", R[1:], self.com)
+
+
+
+
+class SerialChain(AbstractChain):
     """An open chain of n rigid links, revolute or prismatic joints, standard DH (module
     docstring); a ``FlexibleJointPlant``'s ``links``.
 
@@ -173,46 +306,11 @@ class SerialChain(AbstractLinkDynamics):
         return cls(a=a, d=d, alpha=alpha, offset=offset,
                    phi=standard_parameters(mass, com, inertia), g=gravity, joints=joints)
 
-    @property
-    def n(self) -> int:
-        return len(self.joints)
-
-    @property
-    def revolute(self) -> Array:
-        """1.0 for revolute joints, 0.0 for prismatic, (n,)."""
-        return jnp.asarray([j == "R" for j in self.joints], self.a.dtype)
-
-    @property
-    def mass(self) -> Float[Array, " n"]:
-        """Link masses m [kg]."""
-        return self.phi[:, 0]
-
-    @property
-    def com(self) -> Float[Array, "n 3"]:
-        """Centres of mass c [m] in each link's frame."""
-        return self.phi[:, 1:4] / self.phi[:, :1]
-
-    @property
-    def inertia_origin(self) -> Float[Array, "n 3 3"]:
-        """Inertia tensors I_o [kg m^2] about each link frame's origin."""
-        return inertia_matrix(self.phi[:, 4:])
-
-    @property
-    def inertia_com(self) -> Float[Array, "n 3 3"]:
-        """Inertia tensors I_c [kg m^2] about each link's centre of mass."""
-        c, m = self.com, self.mass
-        eye = jnp.eye(3, dtype=m.dtype)
-        return self.inertia_origin - m[:, None, None] * (
-            jnp.sum(c * c, -1)[:, None, None] * eye - c[:, :, None] * c[:, None, :])
-
-    def with_phi(self, phi: Float[Array, "n 10"]) -> SerialChain:
-        """A copy with other standard inertial parameters (same kinematics)."""
-        return eqx.tree_at(lambda s: s.phi, self, jnp.asarray(phi, self.phi.dtype))
-
-    # ----- kinematics --------------------------------------------------------------------------
+    # ----- kinematics ------------------------------------------------------------------------
 
     def frames(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n1 3 3"], Float[Array, "n1 3"]]:
-        """Orientations R_i and origins o_i [m] of frames 0..n in the base frame."""
+        """Orientations R_i and origins o_i [m] of frames 0..n in the base frame (frame i at
+        the distal end of link i, DH)."""
         rev = self.revolute
         theta = (self.offset + q) * rev        # a prismatic joint's theta is 0
         dd = self.d + (self.offset + q) * (1.0 - rev)
@@ -224,76 +322,10 @@ class SerialChain(AbstractLinkDynamics):
         Ts = jnp.stack(Ts)
         return Ts[:, :3, :3], Ts[:, :3, 3]
 
-    def axis_kinds(self, q: ArrayLike) -> list[str]:
-        """What gravity can do on each joint at the pose ``q`` [rad or m], in the words a
-        parameter file declares (``jaxflex.discover.config.AXES``): "prismatic" for a
-        prismatic joint, "vertical" for a revolute joint whose axis is parallel to gravity
-        (no gravity moment about it, whatever the pose of the joints beyond it), else
-        "horizontal" (gravity can act). The axis of joint i is frame i-1's z axis."""
-        R, _ = self.frames(jnp.asarray(q, self.g.dtype))
-        z = np.asarray(R[:-1, :, 2])
-        g = np.asarray(self.g, float)
-        g_dir = g / max(float(np.linalg.norm(g)), 1e-300)
-        rev = np.asarray(self.revolute) > 0.5
-        return ["prismatic" if not rev[i] else
-                "vertical" if abs(float(z[i] @ g_dir)) >= 1.0 - 1e-6 else "horizontal"
-                for i in range(self.n)]
-
-    def jacobians(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n 3 n"],
-                                                        Float[Array, "n 3 n"]]:
-        """Geometric Jacobians (Jo, Jw) of the origins and angular velocities of frames
-        1..n: v_o_i = Jo[i] q', omega_i = Jw[i] q' (base frame; [m/rad] or 1)."""
+    def joint_axes(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
+        """Joint j's axis is frame j-1's z axis, through frame j-1's origin (DH)."""
         R, o = self.frames(q)
-        rev = self.revolute
-        z = R[:-1, :, 2]                                   # joint axes z_0..z_{n-1}, (n, 3)
-        lever = o[1:, None, :] - o[None, :-1, :]           # o_i - o_{j-1}, (n_i, n_j, 3)
-        lin = rev[None, :, None] * jnp.cross(z[None], lever) + (1 - rev)[None, :, None] * z[None]
-        mask = jnp.tril(jnp.ones((self.n, self.n), q.dtype))[:, :, None]
-        Jo = jnp.swapaxes(mask * lin, 1, 2)
-        Jw = jnp.swapaxes(mask * (rev[:, None] * z)[None], 1, 2)
-        return Jo, Jw
-
-    # ----- dynamics (eq. 2-3, link side) --------------------------------------------------------
-
-    def mass_matrix(self, q: Float[Array, " n"]) -> Float[Array, "n n"]:
-        """M(q) [kg m^2, kg m, kg]: sum over links of their kinetic-energy quadratic forms
-
-            M_i = m Jo^T Jo + Jw^T R I_o R^T Jw - (Jo^T S(R h) Jw + (Jo^T S(R h) Jw)^T)
-
-        with h = m c (T_i = 1/2 m |v_o|^2 + v_o . (omega x R h) + 1/2 omega^T R I_o R^T omega).
-        """
-        R, _ = self.frames(q)
-        R = R[1:]
-        Jo, Jw = self.jacobians(q)
-        m, h, Io = self.phi[:, 0], self.phi[:, 1:4], self.inertia_origin
-        Iw = R @ Io @ jnp.swapaxes(R, 1, 2)
-        Sh = skew(jnp.einsum("iab,ib->ia", R, h))
-        lin = jnp.einsum("i,iaj,iak->jk", m, Jo, Jo)
-        rot = jnp.einsum("iaj,iab,ibk->jk", Jw, Iw, Jw)
-        cross = jnp.einsum("iaj,iab,ibk->jk", Jo, Sh, Jw)
-        return lin + rot - cross - cross.T
-
-    def kinetic_energy(self, q: Float[Array, " n"], dq: Float[Array, " n"]) -> Float[Array, ""]:
-        """T = 1/2 q'^T M(q) q' [J]."""
-        return 0.5 * dq @ self.mass_matrix(q) @ dq
-
-    def potential(self, q: Float[Array, " n"]) -> Float[Array, ""]:
-        """V(q) = -sum_i g . (m_i o_i + R_i h_i) [J] (zero at the base origin)."""
-        R, o = self.frames(q)
-        m, h = self.phi[:, 0], self.phi[:, 1:4]
-        pos = m[:, None] * o[1:] + jnp.einsum("iab,ib->ia", R[1:], h)
-        return -jnp.sum(pos @ self.g)
-
-    def inverse_dynamics(self, q: Float[Array, " n"], dq: Float[Array, " n"],
-                         ddq: Float[Array, " n"]) -> Float[Array, " n"]:
-        """M(q) q'' + C(q, q') q' + G(q) [N m or N]: the joint torques of the rigid chain
-        (the left side of the link line of eq. 3 without friction); linear in ``phi``."""
-        return self.mass_matrix(q) @ ddq + self.coriolis(q, dq, dq) + self.gravity(q)
-
-    def com_positions(self, q: Float[Array, " n"]) -> Float[Array, "n 3"]:
-        """Centres of mass [m] of the links in the base frame."""
-        R, o = self.frames(q)
-        return o[1:] + jnp.einsum("iab,ib->ia", R[1:], self.com)
+        return R[:-1, :, 2], o[:-1]
 
 
 class LockedJoints(AbstractLinkDynamics):
@@ -310,7 +342,7 @@ class LockedJoints(AbstractLinkDynamics):
     full motion for those.
     """
 
-    chain: SerialChain
+    chain: AbstractChain
     q_held: Float[Array, " n_full"] = eqx.field(converter=as_param)
     free: tuple[int, ...] = eqx.field(static=True, default=())
 

@@ -42,7 +42,7 @@ import numpy as np
 import scipy.linalg
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.core.chain import INERTIAL_NAMES, SerialChain, inertia_entries, inertia_matrix
+from jaxflex.core.chain import INERTIAL_NAMES, AbstractChain, inertia_entries, inertia_matrix
 
 #: Relative tolerance (to the largest |R_ii| of the pivoted QR) below which a column of the
 #: stacked regressor counts as dependent. Regressors are exact to rounding in float64, so a
@@ -121,7 +121,7 @@ def parameter_names(n: int) -> list[str]:
     return [f"{p}{i + 1}" for i in range(n) for p in INERTIAL_NAMES]
 
 
-def regressor(chain: SerialChain, q: Float[Array, " n"], dq: Float[Array, " n"],
+def regressor(chain: AbstractChain, q: Float[Array, " n"], dq: Float[Array, " n"],
               ddq: Float[Array, " n"]) -> Float[Array, "n 10n"]:
     """Y(q, q', q'') with ``chain.inverse_dynamics(q, dq, ddq) = Y @ chain.phi.ravel()``
     [N m per parameter unit] (exact: the inverse dynamics is linear in phi)."""
@@ -168,7 +168,7 @@ def _format(name: str, coefs: dict[str, float]) -> str:
                                for k, c in coefs.items()])
 
 
-def stacked_regressor(chain: SerialChain, states: Float[Array, "N 3 n"],
+def stacked_regressor(chain: AbstractChain, states: Float[Array, "N 3 n"],
                       joints: tuple[int, ...] | None = None) -> np.ndarray:
     """The regressors at ``states`` (each (q, q', q'')) stacked into (N n_j, 10 n): the rows
     of the torques of ``joints`` (indices; default all n joints)."""
@@ -178,7 +178,7 @@ def stacked_regressor(chain: SerialChain, states: Float[Array, "N 3 n"],
 
 
 @eqx.filter_jit
-def _regressors(chain: SerialChain, states: Array, rows: tuple[int, ...]) -> Array:
+def _regressors(chain: AbstractChain, states: Array, rows: tuple[int, ...]) -> Array:
     """The rows ``rows`` of the regressors at ``states`` (N, 3, n), compiled once per chain
     structure and shape (``rows`` static)."""
     return jax.vmap(lambda s: regressor(chain, s[0], s[1], s[2])[jnp.asarray(rows)])(states)
@@ -193,7 +193,7 @@ def random_states(n: int, num: int, seed: int = 0, q_range: float = np.pi,
     return np.stack([q, rate * rng.normal(size=(num, n)), rate * rng.normal(size=(num, n))], 1)
 
 
-def base_parameters(chain: SerialChain, states: ArrayLike | None = None, num: int = 200,
+def base_parameters(chain: AbstractChain, states: ArrayLike | None = None, num: int = 200,
                     seed: int = 0, rtol: float = RANK_RTOL,
                     joints: tuple[int, ...] | None = None) -> BaseParameters:
     """The base parameters of ``chain``'s inertial parameters (module docstring).

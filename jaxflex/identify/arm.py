@@ -3,10 +3,10 @@ inverse dynamics (IDIM-LS; the weighted form IDIM-WLS of Gautier & Poignet, "Ext
 filtering and weighted least squares dynamic identification of robot", Control Eng. Practice
 2001, the method of the EMPS benchmark's reference).
 
-For the driven joints j of a chain (``jaxflex.core.chain.SerialChain``; docs/spec.md section 1),
-the motor torque referred to the link side is the link line of eq. 3 plus the rotor line's
-inertia (the spring torque K (q2 - q1) of eq. 3 is eliminated between the two lines, so K
-does not appear and both encoders are used):
+For the driven joints j of a chain (``jaxflex.core.chain.AbstractChain``, from DH parameters
+or a URDF; docs/spec.md section 1), the motor torque referred to the link side is the link
+line of eq. 3 plus the rotor line's inertia (the spring torque K (q2 - q1) of eq. 3 is
+eliminated between the two lines, so K does not appear and both encoders are used):
 
     tau_j = [M(q) q'' + C(q, q') q' + G(q)]_j + Ja_j qm_j'' + Fv_j qm_j' + Fc_j sign(qm_j')
             + c_j + k_b b_j(q)
@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from jaxflex.core.chain import SerialChain
+from jaxflex.core.chain import AbstractChain
 from jaxflex.fit import savgol
 from jaxflex.fit.inverse import rigid_regressors
 from jaxflex.core.inertial import (BaseParameters, base_parameters, log_cholesky_from_phi,
@@ -177,7 +177,7 @@ def joint_columns(motion: ArmMotion) -> np.ndarray:
 
 
 @eqx.filter_jit
-def _inverse_dynamics(chain: SerialChain, states: Array, rows: tuple[int, ...]) -> Array:
+def _inverse_dynamics(chain: AbstractChain, states: Array, rows: tuple[int, ...]) -> Array:
     """Rows ``rows`` of M q'' + C q' + G at ``states`` (N, 3, n) [N m]."""
     return jax.vmap(lambda s: chain.inverse_dynamics(s[0], s[1], s[2])[jnp.asarray(rows)])(
         states)
@@ -195,7 +195,7 @@ class _Design:
     fixed: np.ndarray
 
 
-def _design(chain: SerialChain, base: BaseParameters | None, free: Sequence[str],
+def _design(chain: AbstractChain, base: BaseParameters | None, free: Sequence[str],
             motion: ArmMotion, known: np.ndarray | None, fit_known: bool) -> _Design:
     """The ``_Design`` of ``motion``; the prior values of the base parameters are those of
     ``chain.phi`` (Y phi = Y_b beta, so the prior torque is the chain's inverse dynamics)."""
@@ -267,7 +267,7 @@ class ArmFit:
         fit_known: whether the known torque's scale was fitted (else 1).
     """
 
-    chain: SerialChain
+    chain: AbstractChain
     base: BaseParameters | None
     free: tuple[str, ...]
     joints: tuple[int, ...]
@@ -319,13 +319,13 @@ class ArmFit:
                 "sigma": [float(s) for s in self.sigma]}
 
 
-def arm_base(chain: SerialChain, joints: Sequence[int], num: int = 200) -> BaseParameters:
+def arm_base(chain: AbstractChain, joints: Sequence[int], num: int = 200) -> BaseParameters:
     """The structural base parameters of ``chain`` for the torques of ``joints``: from
     ``num`` random states of all joints (``jaxflex.core.inertial.base_parameters``)."""
     return base_parameters(chain, states=random_states(chain.n, num), joints=tuple(joints))
 
 
-def identify_arm(chain: SerialChain, motion: ArmMotion, known: ArrayLike | None = None,
+def identify_arm(chain: AbstractChain, motion: ArmMotion, known: ArrayLike | None = None,
                  fit_known: bool = False, free: Sequence[str] | None = None,
                  base: BaseParameters | None = None) -> ArmFit:
     """Identify the coupled arm by IDIM-WLS (module docstring).
@@ -368,7 +368,7 @@ def identify_arm(chain: SerialChain, motion: ArmMotion, known: ArrayLike | None 
                   fit_known=bool(kn is not None and fit_known))
 
 
-def essential_parameters(chain: SerialChain, motion: ArmMotion, known: ArrayLike | None = None,
+def essential_parameters(chain: AbstractChain, motion: ArmMotion, known: ArrayLike | None = None,
                          max_rel_stderr: float = 0.1, base: BaseParameters | None = None
                          ) -> tuple[str, ...]:
     """The base parameters a log determines (the essential parameters of Pham & Gautier,

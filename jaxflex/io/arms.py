@@ -1,6 +1,6 @@
-"""The named arms a parameter file's ``links`` section can name beside the planar two-link
-(``jaxflex.io.params.LINK_TYPES``): their kinematic and inertial tables and the builders of
-their link dynamics.
+"""The arms a parameter file's ``links`` section can name beside the planar two-link
+(``jaxflex.io.params.LINK_TYPES``): the shipped KUKA KR300's kinematic and inertial tables, and
+the builders of a chain given by its DH table (``dh_links``) or by a URDF (``urdf_links``).
 
 The KUKA KR300 R2500 ultra (Quantec), axes 1-3 flexible, the wrist held. Source: the
 rigid-body model of the arm in the public repository its measured data come from (GitHub
@@ -15,10 +15,12 @@ G leaves out: ``jaxflex.data.kr300``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
-from jaxflex.core.chain import LockedJoints, SerialChain
+from jaxflex.core.chain import GRAVITY_DOWN, LockedJoints, SerialChain
+from jaxflex.core.urdf import UrdfChain, read_urdf
 
 #: Standard DH parameters of axes 1-6: a [m], d [m], alpha [rad].
 KR300_A: tuple[float, ...] = (0.350, 1.150, 0.041, 0.0, 0.0, 0.0)
@@ -91,3 +93,36 @@ def kuka_kr300_links(payload: float, q4: float, q5: float, q6: float) -> LockedJ
     "q5": ..., "q6": ...}`` (``jaxflex.io.params.LINK_TYPES``): ``kuka_kr300_arm`` with the
     payload [kg] and the wrist held at q4, q5, q6 [rad] (recorded convention)."""
     return kuka_kr300_arm((q4, q5, q6), payload)
+
+
+def dh_links(a: list[float], d: list[float], alpha: list[float], mass: list[float],
+             com: list[list[float]], inertia: list[list[list[float]]],
+             offset: list[float] | None = None, joints: str | None = None,
+             gravity: Sequence[float] = GRAVITY_DOWN) -> SerialChain:
+    """The links a parameter file names ``{"type": "dh", ...}``: a chain of any length from
+    its standard DH table (``SerialChain.from_dh``): ``a``, ``d`` [m], ``alpha`` [rad],
+    ``offset`` [rad or m] (default 0) per joint, ``joints`` ("R"/"P" per joint, default all
+    revolute), each link's ``mass`` [kg], ``com`` [m] (n x 3, in its DH frame) and
+    ``inertia`` [kg m^2] (n x 3 x 3, about its centre of mass), and ``gravity`` [m/s^2] in
+    the base frame (default (0, 0, -9.81)).
+
+    **Raises:** ``ValueError`` for lengths or shapes that disagree, a non-positive mass or an
+    inertia that is not positive semi-definite."""
+    m = np.asarray(mass, float)
+    Ic = np.asarray(inertia, float)
+    if m.ndim != 1 or np.any(m <= 0):
+        raise ValueError(f"dh links: mass must be a list of positive masses [kg], got {mass}")
+    if Ic.shape != (m.size, 3, 3) or np.any(np.linalg.eigvalsh((Ic + np.swapaxes(Ic, 1, 2)) / 2)
+                                            < -1e-12 * np.max(np.abs(Ic), initial=1.0)):
+        raise ValueError("dh links: inertia must be one symmetric positive semi-definite "
+                         f"3 x 3 tensor [kg m^2] per link, got shape {Ic.shape}")
+    return SerialChain.from_dh(a=a, d=d, alpha=alpha, mass=m, com=com, inertia=Ic,
+                               gravity=gravity, joints=joints, offset=offset)
+
+
+def urdf_links(path: str, gravity: Sequence[float] = GRAVITY_DOWN) -> UrdfChain:
+    """The links a parameter file names ``{"type": "urdf", "path": ..., "gravity": ...}``:
+    the chain of the URDF at ``path`` (``jaxflex.core.urdf.read_urdf``; a relative path is
+    taken from the parameter file's folder), gravity [m/s^2] in its root link's frame
+    (default (0, 0, -9.81))."""
+    return read_urdf(path, gravity=gravity)

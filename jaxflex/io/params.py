@@ -33,7 +33,7 @@ from typing import Any
 from jaxtyping import ArrayLike
 
 from jaxflex.core.controller import GAIN_NAMES, Q2D_METHODS, CascadeGains
-from jaxflex.io.arms import kuka_kr300_links
+from jaxflex.io.arms import dh_links, kuka_kr300_links, urdf_links
 from jaxflex.core.effects import EFFECTS
 from jaxflex.core.friction import LUGRE_NAMES, LuGre
 from jaxflex.core.plant import AbstractLinkDynamics, DiagonalInertia, FlexibleJointPlant, PlanarTwoLink
@@ -42,15 +42,24 @@ from jaxflex.core.validation import check_keys, did_you_mean
 
 PLANT_NAMES: tuple[str, ...] = ("I", "J", "K")
 #: The coupled link models a parameter file's ``links`` section may name (its ``type``): each
-#: one's builder, called with the fields as keywords, and its fields (all required;
-#: docs/spec.md section 7). A shipped arm is built by its data module from its own tables.
+#: one's builder, called with the fields as keywords, its required fields and its optional
+#: ones (docs/spec.md section 7). A shipped arm is built by its data module from its own
+#: tables.
 LINK_TYPES: dict[str, Callable[..., AbstractLinkDynamics]] = {
-    "planar_two_link": PlanarTwoLink, "kuka_kr300": kuka_kr300_links,
+    "planar_two_link": PlanarTwoLink, "kuka_kr300": kuka_kr300_links, "dh": dh_links,
+    "urdf": urdf_links,
 }
 LINK_FIELDS: dict[str, tuple[str, ...]] = {
     "planar_two_link": ("m1", "m2", "l1", "lc1", "lc2", "I1", "I2", "g"),
     "kuka_kr300": ("payload", "q4", "q5", "q6"),
+    "dh": ("a", "d", "alpha", "mass", "com", "inertia"),
+    "urdf": ("path",),
 }
+LINK_OPTIONAL: dict[str, tuple[str, ...]] = {
+    "dh": ("offset", "joints", "gravity"), "urdf": ("gravity",),
+}
+#: The fields of a ``links`` section that hold text (the others hold numbers or lists).
+LINK_TEXT: tuple[str, ...] = ("type", "path", "joints")
 
 
 class ParamsError(ValueError):
@@ -61,18 +70,44 @@ def build_links(links: Mapping[str, Any]) -> AbstractLinkDynamics:
     """The coupled link model of a ``links`` section: ``{"type": <LINK_TYPES key>, <field>:
     value, ...}`` (a ``PlanarTwoLink``: masses [kg], lengths [m], inertias [kg m^2], g
     [m/s^2]; the KUKA KR300's axes 1-3, ``jaxflex.io.arms.kuka_kr300_links``: payload
-    [kg], wrist angles [rad]). Raises ``ParamsError`` naming an unknown type (and the known
-    ones) or a missing or unknown field."""
+    [kg], wrist angles [rad]; a chain from its DH table, ``jaxflex.io.arms.dh_links``, or
+    from a URDF, ``jaxflex.io.arms.urdf_links``). Raises ``ParamsError`` naming an unknown
+    type (and the known ones), a missing or unknown field, or what the builder refuses."""
+    kind = check_link_fields(links)
+    try:
+        return LINK_TYPES[kind](**{k: v for k, v in links.items() if k != "type"})
+    except ValueError as e:
+        raise ParamsError(f"links ({kind}): {e}") from None
+
+
+def check_link_fields(links: Mapping[str, Any]) -> str:
+    """The ``type`` of a ``links`` section whose fields are its type's (``LINK_FIELDS``, all
+    present, and ``LINK_OPTIONAL``); raises ``ParamsError`` naming an unknown type, an
+    unknown field or the missing ones."""
     kind = links.get("type")
     if kind not in LINK_TYPES:
         raise ParamsError(f"links.type: expected one of {sorted(LINK_TYPES)}, got {kind!r}")
     fields = LINK_FIELDS[kind]
-    check_keys({k: v for k, v in links.items() if k != "type"}, fields,
-               where=f"links ({kind}): ", what="field", error=ParamsError)
+    check_keys({k: v for k, v in links.items() if k != "type"},
+               fields + LINK_OPTIONAL.get(kind, ()), where=f"links ({kind}): ", what="field",
+               error=ParamsError)
     missing = [k for k in fields if k not in links]
     if missing:
         raise ParamsError(f"links ({kind}): missing field(s) {missing}")
-    return LINK_TYPES[kind](**{k: links[k] for k in fields})
+    return kind
+
+
+def _link_value(name: str, v: Any) -> Any:
+    """A ``links`` field's value checked: text for ``LINK_TEXT``'s fields, else a finite
+    number or a (nested) list of them."""
+    where = f"links.{name}"
+    if name in LINK_TEXT:
+        if not isinstance(v, str):
+            raise ParamsError(f"{where}: expected text, got {v!r}")
+        return v
+    if isinstance(v, list):
+        return [_link_value(name, x) for x in v]
+    return _number(where, v)
 
 
 def build_plant(
@@ -347,8 +382,8 @@ class Params:
             if "I" in d["plant"]:
                 raise ParamsError("plant.I: a file with a 'links' section describes the link "
                                   "inertia there; remove plant.I")
-            links = {k: (v if k == "type" else _number(f"links.{k}", v))
-                     for k, v in links.items()}
+            check_link_fields(links)
+            links = {k: _link_value(k, v) for k, v in links.items()}
         n = None
         plant = {}
         for k in PLANT_NAMES if links is None else ("J", "K"):
@@ -508,8 +543,13 @@ def load_params(path: str | os.PathLike, *, accept_unconverged: bool | None = No
     A file written by ``identify`` that did not converge, or that holds parameters the data
     could not determine without marking them, is refused (``ParamsError`` naming why) unless
     ``accept_unconverged`` is true. ``None`` takes the setting of the enclosing
-    ``accepting_unconverged`` block (refused outside one)."""
+    ``accepting_unconverged`` block (refused outside one). A relative ``links.path`` (a
+    URDF) is taken from the parameter file's folder."""
     d = read_json_file(path, ParamsError, "parameter file")
+    links = d.get("links") if isinstance(d, dict) else None
+    if isinstance(links, dict) and isinstance(links.get("path"), str):
+        # a file the links section names (a URDF) is found beside the parameter file
+        d["links"] = {**links, "path": str(Path(path).parent / links["path"])}
     try:
         params = Params.from_dict(d)
     except ParamsError as e:
