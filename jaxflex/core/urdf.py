@@ -75,12 +75,6 @@ def moved_phi(phi: np.ndarray, R: np.ndarray, p: np.ndarray) -> np.ndarray:
                                              I[2, 2]]])
 
 
-def _rotation(axis: Array, angle: Array) -> Array:
-    """Rotation [3x3] by ``angle`` [rad] about the unit ``axis`` (Rodrigues)."""
-    K = skew(axis)
-    return jnp.eye(3, dtype=angle.dtype) + jnp.sin(angle) * K + (1.0 - jnp.cos(angle)) * K @ K
-
-
 def _as_float(x: ArrayLike) -> Array:
     """An array in the default float type (float64 where x64 is on)."""
     return jnp.asarray(x, jnp.result_type(float))
@@ -114,29 +108,35 @@ class UrdfChain(AbstractChain):
                 raise ValueError(f"UrdfChain: {name} must have shape {shape} for joints "
                                  f"{self.joints!r}, got {getattr(self, name).shape}")
 
-    def _walk(self, q: Float[Array, " n"]) -> tuple[Array, Array, Array]:
-        """(frames 0..n as 4x4 transforms in the root's frame, the joints' axes, the joints'
-        origins) at the joint positions ``q``."""
-        rev = self.revolute
-        T = jnp.eye(4, dtype=q.dtype)
-        Ts, axes, points = [T], [], []
-        for j in range(self.n):
-            Tj = T @ self.origin[j]
-            axes.append(Tj[:3, :3] @ self.axis[j])
-            points.append(Tj[:3, 3])
-            motion = jnp.eye(4, dtype=q.dtype)
-            motion = motion.at[:3, :3].set(_rotation(self.axis[j], q[j] * rev[j]))
-            motion = motion.at[:3, 3].set(self.axis[j] * q[j] * (1.0 - rev[j]))
-            T = Tj @ motion
-            Ts.append(T)
-        return jnp.stack(Ts), jnp.stack(axes), jnp.stack(points)
+    def _walk(self, q: Float[Array, " n"]) -> tuple[Array, Array, Array, Array]:
+        """(orientations and origins of frames 0..n in the root's frame, the joints' axes,
+        the joints' origins) at the joint positions ``q``: rotations and translations kept
+        apart (no homogeneous products), a joint's turn by Rodrigues' formula
+        cos q 1 + sin q S(a) + (1 - cos q) a a^T."""
+        R, p = jnp.eye(3, dtype=q.dtype), jnp.zeros(3, q.dtype)
+        Rs, ps, axes, points = [R], [p], [], []
+        for j, kind in enumerate(self.joints):
+            a = self.axis[j]
+            p = p + R @ self.origin[j, :3, 3]
+            R = R @ self.origin[j, :3, :3]
+            axes.append(R @ a)
+            points.append(p)
+            if kind == "R":
+                c, s = jnp.cos(q[j]), jnp.sin(q[j])
+                turn = c * jnp.eye(3, dtype=q.dtype) + s * skew(a) + (1.0 - c) * jnp.outer(a, a)
+                R = R @ turn
+            else:
+                p = p + axes[-1] * q[j]
+            Rs.append(R)
+            ps.append(p)
+        return jnp.stack(Rs), jnp.stack(ps), jnp.stack(axes), jnp.stack(points)
 
     def frames(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n1 3 3"], Float[Array, "n1 3"]]:
-        Ts, _, _ = self._walk(q)
-        return Ts[:, :3, :3], Ts[:, :3, 3]
+        R, p, _, _ = self._walk(q)
+        return R, p
 
     def joint_axes(self, q: Float[Array, " n"]) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
-        _, axes, points = self._walk(q)
+        _, _, axes, points = self._walk(q)
         return axes, points
 
 
