@@ -78,6 +78,15 @@ def inertia_entries(I: Float[Array, "... 3 3"]) -> Float[Array, "... 6"]:
                       I[..., 2, 2]], -1)
 
 
+def is_inertia_tensor(I: ArrayLike) -> bool:
+    """Whether ``I`` [kg m^2] (..., 3, 3) holds symmetric positive semi-definite tensors (to
+    rounding: eigenvalues of the symmetric part above -1e-12 of the largest entry, at least
+    1 kg m^2)."""
+    I = np.asarray(I, float)
+    sym = (I + np.swapaxes(I, -1, -2)) / 2
+    return bool(np.all(np.linalg.eigvalsh(sym) >= -1e-12 * np.max(np.abs(I), initial=1.0)))
+
+
 def standard_parameters(mass: ArrayLike, com: ArrayLike, inertia: ArrayLike
                         ) -> Float[Array, "n 10"]:
     """The standard parameters phi (module docstring) of links given their mass m [kg] (n,),

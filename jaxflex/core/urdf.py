@@ -38,7 +38,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxflex.core.chain import GRAVITY_DOWN, AbstractChain, skew, standard_parameters
+from jaxflex.core.chain import (
+    GRAVITY_DOWN,
+    AbstractChain,
+    inertia_entries,
+    inertia_matrix,
+    is_inertia_tensor,
+    skew,
+    standard_parameters,
+)
 
 #: The URDF joint types of a chain's joints, by the letter ``AbstractChain.joints`` uses.
 MOVING_TYPES: dict[str, str] = {"revolute": "R", "continuous": "R", "prismatic": "P"}
@@ -65,14 +73,12 @@ def moved_phi(phi: np.ndarray, R: np.ndarray, p: np.ndarray) -> np.ndarray:
     [m]: m, h' = R h + m p, I_o' = R I_o R^T + m (|p|^2 1 - p p^T) + (p . R h) 2 1 -
     (p (R h)^T + (R h) p^T). Standard parameters of bodies in one frame add."""
     m, h = phi[0], phi[1:4]
-    xx, xy, xz, yy, yz, zz = phi[4:]
-    Io = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    Io = np.asarray(inertia_matrix(np.asarray(phi[4:])))
     Rh = R @ h
     eye = np.eye(3)
     I = (R @ Io @ R.T + m * (p @ p * eye - np.outer(p, p))
          + 2.0 * (p @ Rh) * eye - np.outer(p, Rh) - np.outer(Rh, p))
-    return np.concatenate([[m], Rh + m * p, [I[0, 0], I[0, 1], I[0, 2], I[1, 1], I[1, 2],
-                                             I[2, 2]]])
+    return np.concatenate([[m], Rh + m * p, np.asarray(inertia_entries(I))])
 
 
 def _as_float(x: ArrayLike) -> Array:
@@ -188,9 +194,8 @@ def _link_phi(link: ET.Element) -> np.ndarray:
     keys = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
     vals = [0.0] * 6 if el is None else [
         _floats(el.get(k), 1, f"{where} inertia {k}", (0.0,))[0] for k in keys]
-    xx, xy, xz, yy, yz, zz = vals
-    Ic = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-    if np.min(np.linalg.eigvalsh(Ic)) < -1e-12 * max(1.0, float(np.max(np.abs(Ic)))):
+    Ic = np.asarray(inertia_matrix(np.asarray(vals)))  # URDF's keys in the entries' order
+    if not is_inertia_tensor(Ic):
         raise UrdfError(f"URDF {where}: the inertia tensor is not positive semi-definite")
     T = _transform(inertial.find("origin"), where)
     R = T[:3, :3]

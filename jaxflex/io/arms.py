@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from jaxflex.core.chain import GRAVITY_DOWN, LockedJoints, SerialChain
+from jaxflex.core.chain import GRAVITY_DOWN, LockedJoints, SerialChain, is_inertia_tensor
 from jaxflex.core.urdf import UrdfChain, read_urdf
 
 #: Standard DH parameters of axes 1-6: a [m], d [m], alpha [rad].
@@ -112,8 +112,7 @@ def dh_links(a: list[float], d: list[float], alpha: list[float], mass: list[floa
     Ic = np.asarray(inertia, float)
     if m.ndim != 1 or np.any(m <= 0):
         raise ValueError(f"dh links: mass must be a list of positive masses [kg], got {mass}")
-    if Ic.shape != (m.size, 3, 3) or np.any(np.linalg.eigvalsh((Ic + np.swapaxes(Ic, 1, 2)) / 2)
-                                            < -1e-12 * np.max(np.abs(Ic), initial=1.0)):
+    if Ic.shape != (m.size, 3, 3) or not is_inertia_tensor(Ic):
         raise ValueError("dh links: inertia must be one symmetric positive semi-definite "
                          f"3 x 3 tensor [kg m^2] per link, got shape {Ic.shape}")
     return SerialChain.from_dh(a=a, d=d, alpha=alpha, mass=m, com=com, inertia=Ic,
